@@ -1,0 +1,1 @@
+//! The flight component: keyframe window, synchronizer, training scheduler and transports.
