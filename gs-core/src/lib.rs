@@ -4,7 +4,17 @@
 //! No bus, no async, no file formats beyond the model's own (PLY, checkpoints).
 
 pub mod camera;
+pub mod densify;
+pub mod init;
+pub mod loss;
 pub mod model;
+pub mod nn;
+pub mod optim;
+pub mod ply;
+pub mod raster;
+pub mod regularizer;
+pub mod sh;
+pub mod train;
 
 pub use camera::{Camera, Intrinsics};
 pub use model::{GaussianModel, ModelError, ModelLayout, Param, ParamSet};

@@ -1,0 +1,1 @@
+//! Adaptive density control: clone, split, prune, opacity reset.

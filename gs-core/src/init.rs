@@ -1,0 +1,1 @@
+//! Initial Gaussians from a point set or random points in a sphere.

@@ -1,0 +1,1 @@
+//! Small dense networks: positional encoding, MLP forward/backward on a GEMM.

@@ -1,0 +1,1 @@
+//! Adam with per-group learning rates and the 3DGS exponential schedule.

@@ -1,0 +1,1 @@
+//! The standard 3DGS PLY model file (binary little-endian).

@@ -1,0 +1,1 @@
+//! Tile rasterizer for Gaussians: projection, binning, blending, and the backward pass.

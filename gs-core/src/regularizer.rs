@@ -1,0 +1,1 @@
+//! Geometric regularisers: the isotropic scale loss.

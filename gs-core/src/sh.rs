@@ -1,0 +1,1 @@
+//! Spherical-harmonic colour (degree 0-3) and its backward pass.

@@ -1,0 +1,1 @@
+//! Vanilla 3DGS training loop over posed images.

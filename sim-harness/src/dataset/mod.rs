@@ -1,0 +1,1 @@
+//! Dataset writer: frames, masks, depth, telemetry, evaluation views, points, plots.

@@ -1,0 +1,7 @@
+//! sim-harness: rendezvous scenario simulator with ray-traced ground truth.
+
+pub mod dataset;
+pub mod orbit;
+pub mod raytrace;
+pub mod scenario;
+pub mod target;

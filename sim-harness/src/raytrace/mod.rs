@@ -1,0 +1,1 @@
+//! CPU ray tracer: BVH, physically based shading, hard Sun shadows.

@@ -1,0 +1,1 @@
+//! Target spacecraft: triangle meshes, materials, procedural targets, OBJ loading, surface sampling.
