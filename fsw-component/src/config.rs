@@ -1,0 +1,1 @@
+//! Component configuration (config/component.toml).

@@ -1,0 +1,1 @@
+//! Traffic logs: candump .log text for CAN, a datagram recording for UDP.

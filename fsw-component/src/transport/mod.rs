@@ -1,0 +1,1 @@
+//! Bus transports: SocketCAN (classic and FD) and UDP sockets.
