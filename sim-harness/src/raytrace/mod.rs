@@ -1,1 +1,398 @@
 //! CPU ray tracer: BVH, physically based shading, hard Sun shadows.
+//!
+//! Radiometry (normalised units): the Sun delivers irradiance `SUN_IRRADIANCE` = pi on a
+//! surface facing it, so a white Lambertian surface facing the Sun has radiance exactly 1 and a
+//! surface of albedo a has radiance a. Pixel value (linear) = exposure * radiance, then clamped
+//! to [0, 1] and sRGB-encoded to 8 bits. The optional Earth-albedo fill is a second directional
+//! light of irradiance `strength * SUN_IRRADIANCE`, shadowed like the Sun. No other light: the
+//! background is black, eclipse frames without fill are exactly zero.
+//!
+//! Geometry: `x_cam = R x_target + t`, OpenCV axes (x right, y down, z forward), pixel centres
+//! at +0.5. Mask and depth come from the ray through each pixel centre; colour averages
+//! `samples_per_pixel` stratified, seeded jittered rays (1 sample = the centre ray).
+//!
+//! Invariants: rendering is deterministic (each pixel seeds its own RNG from the request seed
+//! and its index; rows are independent, so the thread count does not matter); radiance is
+//! finite and non-negative; depth is the camera z of the hit or +inf.
+
+pub mod bvh;
+pub mod rng;
+pub mod shading;
+
+use crate::target::TargetMesh;
+use bvh::{Bvh, Ray};
+use glam::{Quat, Vec3};
+use rayon::prelude::*;
+use rng::{mix64, SplitMix64};
+use std::fmt;
+
+/// Sun irradiance in normalised units (see the module header).
+pub const SUN_IRRADIANCE: f32 = std::f32::consts::PI;
+/// Default exposure: sunlit white paint (albedo 0.8) facing the Sun maps to 0.8 linear (sRGB 231).
+pub const DEFAULT_EXPOSURE: f32 = 1.0;
+/// Largest image side accepted (guards against absurd allocations).
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+/// Most samples per pixel accepted.
+pub const MAX_SAMPLES_PER_PIXEL: u32 = 1024;
+
+/// A mesh with its acceleration structure, ready to render.
+pub struct Scene {
+    mesh: TargetMesh,
+    bvh: Bvh,
+    triangle_normals: Vec<Vec3>,
+    /// Offset of shadow-ray origins along the normal, metres.
+    shadow_offset_m: f32,
+}
+
+impl Scene {
+    pub fn new(mesh: TargetMesh) -> Scene {
+        let corners: Vec<[Vec3; 3]> = (0..mesh.triangle_count())
+            .map(|t| mesh.triangle_corners_m(t))
+            .collect();
+        let bvh = Bvh::build(&corners);
+        let triangle_normals = corners
+            .iter()
+            .map(|[a, b, c]| (*b - *a).cross(*c - *a).normalize_or_zero())
+            .collect();
+        // Large enough to escape float error at the mesh's scale, far below any feature size.
+        let shadow_offset_m = 2e-5 * mesh.bounding_radius_m().max(1.0);
+        Scene {
+            mesh,
+            bvh,
+            triangle_normals,
+            shadow_offset_m,
+        }
+    }
+
+    pub fn mesh(&self) -> &TargetMesh {
+        &self.mesh
+    }
+}
+
+/// Pinhole intrinsics in pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PinholeCamera {
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// Earth-albedo fill light.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EarthFill {
+    /// Unit vector towards the Earth, target body frame.
+    pub dir_target: Vec3,
+    /// Irradiance as a fraction of the Sun's (0.3 typical).
+    pub strength: f32,
+}
+
+/// Everything needed to render one frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameRequest {
+    pub camera: PinholeCamera,
+    pub camera_from_target_rotation: Quat,
+    pub camera_from_target_translation_m: Vec3,
+    /// Unit vector towards the Sun, target body frame.
+    pub sun_dir_target: Vec3,
+    /// False in eclipse: no direct sunlight at all.
+    pub sun_lit: bool,
+    pub earth_albedo: Option<EarthFill>,
+    pub samples_per_pixel: u32,
+    pub exposure: f32,
+    pub seed: u64,
+}
+
+/// An 8-bit sRGB frame with its mask and depth, row-major from the top-left pixel.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    /// sRGB, 3 bytes per pixel.
+    pub rgb8: Vec<u8>,
+    /// 255 where the pixel-centre ray hits the target, else 0.
+    pub mask: Vec<u8>,
+    /// Camera z of the pixel-centre hit in metres; +inf for background.
+    pub depth_m: Vec<f32>,
+}
+
+/// Linear radiance (normalised units, before exposure) with mask and depth.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RadianceFrame {
+    pub width: u32,
+    pub height: u32,
+    pub radiance_rgb: Vec<[f32; 3]>,
+    pub mask: Vec<u8>,
+    pub depth_m: Vec<f32>,
+}
+
+/// Why a request cannot be rendered.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RenderError {
+    InvalidCamera(String),
+    InvalidPose(String),
+    InvalidLighting(String),
+    InvalidSampling(String),
+}
+
+impl fmt::Display for RenderError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            RenderError::InvalidCamera(m) => write!(f, "invalid camera: {m}"),
+            RenderError::InvalidPose(m) => write!(f, "invalid pose: {m}"),
+            RenderError::InvalidLighting(m) => write!(f, "invalid lighting: {m}"),
+            RenderError::InvalidSampling(m) => write!(f, "invalid sampling: {m}"),
+        }
+    }
+}
+
+impl std::error::Error for RenderError {}
+
+fn is_unit(v: Vec3) -> bool {
+    v.is_finite() && (v.length() - 1.0).abs() < 1e-3
+}
+
+impl FrameRequest {
+    /// Checks every field; the renderer relies on these.
+    pub fn validate(&self) -> Result<(), RenderError> {
+        let c = &self.camera;
+        if c.width == 0 || c.height == 0 || c.width > MAX_IMAGE_SIDE || c.height > MAX_IMAGE_SIDE {
+            return Err(RenderError::InvalidCamera(format!(
+                "image size {}x{} outside 1..={MAX_IMAGE_SIDE}",
+                c.width, c.height
+            )));
+        }
+        if ![c.fx, c.fy, c.cx, c.cy].iter().all(|v| v.is_finite()) || c.fx <= 0.0 || c.fy <= 0.0 {
+            return Err(RenderError::InvalidCamera(format!(
+                "focal lengths must be finite and positive, principal point finite: {c:?}"
+            )));
+        }
+        let q = self.camera_from_target_rotation;
+        if !q.is_finite() || (q.length() - 1.0).abs() > 1e-3 {
+            return Err(RenderError::InvalidPose(format!("rotation {q:?} is not a unit quaternion")));
+        }
+        if !self.camera_from_target_translation_m.is_finite() {
+            return Err(RenderError::InvalidPose(format!(
+                "translation {:?} is not finite",
+                self.camera_from_target_translation_m
+            )));
+        }
+        if self.sun_lit && !is_unit(self.sun_dir_target) {
+            return Err(RenderError::InvalidLighting(format!(
+                "Sun direction {:?} is not a unit vector",
+                self.sun_dir_target
+            )));
+        }
+        if let Some(fill) = self.earth_albedo {
+            if !is_unit(fill.dir_target) || !fill.strength.is_finite() || fill.strength < 0.0 {
+                return Err(RenderError::InvalidLighting(format!(
+                    "Earth fill needs a unit direction and a finite strength >= 0: {fill:?}"
+                )));
+            }
+        }
+        if self.samples_per_pixel == 0 || self.samples_per_pixel > MAX_SAMPLES_PER_PIXEL {
+            return Err(RenderError::InvalidSampling(format!(
+                "samples per pixel {} outside 1..={MAX_SAMPLES_PER_PIXEL}",
+                self.samples_per_pixel
+            )));
+        }
+        if !self.exposure.is_finite() || self.exposure < 0.0 {
+            return Err(RenderError::InvalidSampling(format!(
+                "exposure {} must be finite and >= 0",
+                self.exposure
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Renders an 8-bit frame. An invalid request (see `FrameRequest::validate`) yields an all-black
+/// frame with an empty mask and infinite depth, of the requested size clamped to
+/// `MAX_IMAGE_SIDE`; call `try_render_frame` to get the error instead.
+pub fn render_frame(scene: &Scene, req: &FrameRequest) -> Frame {
+    try_render_frame(scene, req).unwrap_or_else(|_| {
+        let width = req.camera.width.min(MAX_IMAGE_SIDE);
+        let height = req.camera.height.min(MAX_IMAGE_SIDE);
+        let n = width as usize * height as usize;
+        Frame {
+            width,
+            height,
+            rgb8: vec![0; 3 * n],
+            mask: vec![0; n],
+            depth_m: vec![f32::INFINITY; n],
+        }
+    })
+}
+
+/// Renders an 8-bit frame, or says why the request is invalid.
+pub fn try_render_frame(scene: &Scene, req: &FrameRequest) -> Result<Frame, RenderError> {
+    let radiance = render_radiance(scene, req)?;
+    let rgb8 = radiance
+        .radiance_rgb
+        .par_iter()
+        .flat_map_iter(|rgb| rgb.map(|c| linear_to_srgb8(c * req.exposure)))
+        .collect();
+    Ok(Frame {
+        width: radiance.width,
+        height: radiance.height,
+        rgb8,
+        mask: radiance.mask,
+        depth_m: radiance.depth_m,
+    })
+}
+
+/// Renders linear radiance (before exposure), mask and depth.
+pub fn render_radiance(scene: &Scene, req: &FrameRequest) -> Result<RadianceFrame, RenderError> {
+    req.validate()?;
+    let (width, height) = (req.camera.width as usize, req.camera.height as usize);
+    let target_from_camera = req.camera_from_target_rotation.normalize().inverse();
+    let origin = target_from_camera * -req.camera_from_target_translation_m;
+    let lights = Lights::from_request(req);
+
+    let mut radiance_rgb = vec![[0.0f32; 3]; width * height];
+    let mut mask = vec![0u8; width * height];
+    let mut depth_m = vec![f32::INFINITY; width * height];
+    radiance_rgb
+        .par_chunks_mut(width)
+        .zip(mask.par_chunks_mut(width))
+        .zip(depth_m.par_chunks_mut(width))
+        .enumerate()
+        .for_each(|(y, ((rgb_row, mask_row), depth_row))| {
+            for x in 0..width {
+                let pixel_index = (y * width + x) as u64;
+                let ray_through = |px: f32, py: f32| {
+                    let d_cam = Vec3::new(
+                        (px - req.camera.cx) / req.camera.fx,
+                        (py - req.camera.cy) / req.camera.fy,
+                        1.0,
+                    );
+                    // Camera z of a point at ray parameter s equals s, since d_cam.z = 1.
+                    Ray::new(origin, target_from_camera * d_cam)
+                };
+                let centre_ray = ray_through(x as f32 + 0.5, y as f32 + 0.5);
+                let centre_hit = scene.bvh.closest_hit(&centre_ray, 0.0, f32::INFINITY);
+                if let Some(hit) = centre_hit {
+                    mask_row[x] = 255;
+                    depth_row[x] = hit.t;
+                }
+                let spp = req.samples_per_pixel;
+                let sum = if spp == 1 {
+                    centre_hit.map_or(Vec3::ZERO, |hit| shade(scene, &lights, &centre_ray, hit))
+                } else {
+                    let mut rng = SplitMix64::new(mix64(req.seed ^ mix64(pixel_index)));
+                    let columns = (spp as f32).sqrt().ceil() as u32;
+                    let rows = spp.div_ceil(columns);
+                    let mut sum = Vec3::ZERO;
+                    for k in 0..spp {
+                        let (i, j) = (k % columns, k / columns);
+                        let sx = (i as f32 + rng.next_f32()) / columns as f32;
+                        let sy = (j as f32 + rng.next_f32()) / rows as f32;
+                        let ray = ray_through(x as f32 + sx, y as f32 + sy);
+                        if let Some(hit) = scene.bvh.closest_hit(&ray, 0.0, f32::INFINITY) {
+                            sum += shade(scene, &lights, &ray, hit);
+                        }
+                    }
+                    sum
+                };
+                rgb_row[x] = (sum / spp as f32).to_array();
+            }
+        });
+    Ok(RadianceFrame {
+        width: req.camera.width,
+        height: req.camera.height,
+        radiance_rgb,
+        mask,
+        depth_m,
+    })
+}
+
+/// Directional lights: (unit direction towards the light, irradiance).
+struct Lights {
+    lights: Vec<(Vec3, f32)>,
+}
+
+impl Lights {
+    fn from_request(req: &FrameRequest) -> Lights {
+        let mut lights = Vec::with_capacity(2);
+        if req.sun_lit {
+            lights.push((req.sun_dir_target.normalize(), SUN_IRRADIANCE));
+        }
+        if let Some(fill) = req.earth_albedo {
+            if fill.strength > 0.0 {
+                lights.push((fill.dir_target.normalize(), fill.strength * SUN_IRRADIANCE));
+            }
+        }
+        Lights { lights }
+    }
+}
+
+/// Radiance leaving the hit point towards the ray origin.
+fn shade(scene: &Scene, lights: &Lights, ray: &Ray, hit: bvh::Hit) -> Vec3 {
+    if lights.lights.is_empty() {
+        return Vec3::ZERO;
+    }
+    let t = hit.triangle_index as usize;
+    let position = ray.origin + ray.direction * hit.t;
+    let to_viewer = -ray.direction.normalize();
+    let mut normal = scene.triangle_normals[t];
+    // Surfaces are two-sided: shade the side the viewer sees.
+    if normal.dot(to_viewer) < 0.0 {
+        normal = -normal;
+    }
+    let material = &scene.mesh.materials()[scene.mesh.material_of_triangle()[t] as usize];
+    let mut point = shading::surface_point(material, position, normal);
+    // A perturbed normal must not face away from the viewer (it would black out the pixel).
+    if point.normal.dot(to_viewer) <= 1e-4 {
+        point.normal = normal;
+    }
+    let shadow_origin = position + normal * scene.shadow_offset_m;
+    let mut radiance = Vec3::ZERO;
+    for &(to_light, irradiance) in &lights.lights {
+        // Light behind the geometric surface cannot reach this side, whatever the crinkles say.
+        if normal.dot(to_light) <= 0.0 {
+            continue;
+        }
+        let n_dot_l = point.normal.dot(to_light);
+        if n_dot_l <= 0.0 {
+            continue;
+        }
+        if scene
+            .bvh
+            .any_hit(&Ray::new(shadow_origin, to_light), 0.0, f32::INFINITY)
+        {
+            continue;
+        }
+        radiance += shading::brdf(&point, to_light, to_viewer) * (irradiance * n_dot_l);
+    }
+    radiance
+}
+
+/// Linear [0, 1] (clamped) to 8-bit sRGB.
+pub fn linear_to_srgb8(linear: f32) -> u8 {
+    let c = if linear.is_finite() { linear.clamp(0.0, 1.0) } else { 0.0 };
+    let encoded = if c <= 0.003_130_8 {
+        12.92 * c
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
+    };
+    (encoded * 255.0 + 0.5) as u8
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn srgb_encoding_reference_points() {
+        assert_eq!(linear_to_srgb8(0.0), 0);
+        assert_eq!(linear_to_srgb8(1.0), 255);
+        assert_eq!(linear_to_srgb8(2.0), 255);
+        assert_eq!(linear_to_srgb8(f32::NAN), 0);
+        // 0.2 linear = 0.4845 sRGB = 123.6 -> 124; 0.8 -> 0.9063 -> 231.
+        assert_eq!(linear_to_srgb8(0.2), 124);
+        assert_eq!(linear_to_srgb8(0.8), 231);
+        assert_eq!(linear_to_srgb8(0.002), 7);
+    }
+}
