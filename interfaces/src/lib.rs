@@ -6,9 +6,11 @@
 //!
 //! - [`crc`]: CRC-16/CCITT-FALSE (Cyphal transfer CRC) and CRC-32/IEEE (CCSDS message CRC).
 //! - [`cyphal`]: Cyphal/CAN v1.0 message transfers, classic CAN and CAN FD.
+//! - [`messages`]: the catalogue (port IDs, versions, fields) and the validating postcard codec.
 //! - [`ccsds`]: CCSDS Space Packets over UDP with segmentation and a per-message CRC-32.
 #![no_std]
 
 pub mod ccsds;
 pub mod crc;
 pub mod cyphal;
+pub mod messages;

@@ -1,0 +1,271 @@
+//! Catalogue tests: every message round-trips through postcard, the codec refuses invalid
+//! messages both ways, command failures map to the right acknowledgement status, and port IDs
+//! are unique and fit an 11-bit APID.
+
+mod common;
+
+use common::*;
+use interfaces::messages::{
+    decode, decode_command, encode, encoded_len, port, AckStatus, CameraFrame, CodecError, Command,
+    CommandAck, CommandKind, Event, HealthStatus, Message, PixelFormat, PredictionSource,
+    RenderedPrediction, SunVector, TargetPose, ValidationError,
+};
+use serde::{Deserialize, Serialize};
+
+fn round_trip<'a, M>(msg: &M, buf: &'a mut [u8]) -> M
+where
+    M: Message + Serialize + Deserialize<'a> + PartialEq + core::fmt::Debug,
+{
+    let expected_len = encoded_len(msg).unwrap();
+    let len = encode(msg, buf).unwrap().len();
+    assert_eq!(len, expected_len);
+    let back: M = decode(&buf[..len]).unwrap();
+    assert_eq!(&back, msg);
+    back
+}
+
+#[test]
+fn every_message_round_trips() {
+    let mut buf = vec![0u8; 1 << 16];
+    round_trip(&sun_vector(), &mut buf);
+    round_trip(&target_pose(), &mut buf);
+    round_trip(&health(), &mut buf);
+    for c in commands() {
+        round_trip(&c, &mut buf);
+        let len = encode(&c, &mut buf).unwrap().len();
+        assert_eq!(decode_command(&buf[..len]).unwrap(), c);
+    }
+    for e in events() {
+        round_trip(&e, &mut buf);
+    }
+    round_trip(
+        &CommandAck {
+            sequence: None,
+            opcode: None,
+            status: AckStatus::FormatError,
+            detail: 3,
+        },
+        &mut buf,
+    );
+    let mut rng = SplitMix64(1);
+    let pixels = rng.bytes(5 * 4 * 3);
+    let mask = rng.bytes(5 * 4);
+    let frame = CameraFrame {
+        header: header(5, 4, PixelFormat::Rgb8),
+        mask: Some(&mask),
+        pixels: &pixels,
+    };
+    let mut frame_buf = vec![0u8; 256];
+    round_trip(&frame, &mut frame_buf);
+    let len = encode(&frame, &mut frame_buf).unwrap().len();
+    let back: CameraFrame = decode(&frame_buf[..len]).unwrap();
+    // Borrowed, not copied: the pixels point into the receive buffer.
+    assert!(frame_buf.as_ptr_range().contains(&back.pixels.as_ptr()));
+    let prediction = RenderedPrediction {
+        header: header(5, 4, PixelFormat::Gray8),
+        source: PredictionSource::Command { sequence: 9 },
+        q_camera_from_target: [1.0, 0.0, 0.0, 0.0],
+        t_camera_from_target_m: [0.0, 0.0, 10.0],
+        sun_target: [1.0, 0.0, 0.0],
+        psnr_db: None,
+        ssim: None,
+        pixels: &pixels[..20],
+    };
+    let mut pred_buf = vec![0u8; 256];
+    round_trip(&prediction, &mut pred_buf);
+}
+
+#[test]
+fn image_bytes_are_written_as_one_length_prefixed_block() {
+    let pixels = [1u8, 2, 3, 4];
+    let frame = CameraFrame {
+        header: header(2, 2, PixelFormat::Gray8),
+        mask: None,
+        pixels: &pixels,
+    };
+    let mut buf = [0u8; 64];
+    let bytes = encode(&frame, &mut buf).unwrap();
+    // ... mask: None (0x00), then varint 4 and the raw pixels, at the very end.
+    assert_eq!(&bytes[bytes.len() - 6..], &[0x00, 4, 1, 2, 3, 4]);
+}
+
+#[test]
+fn fixed_layout_of_sun_vector() {
+    // Pin the wire format: varint time, three little-endian f32, bool.
+    let msg = SunVector {
+        time_us: 300,
+        sun_body: [1.0, 0.0, 0.0],
+        valid: true,
+    };
+    let mut buf = [0u8; 32];
+    let bytes = encode(&msg, &mut buf).unwrap();
+    let mut expected = vec![0xAC, 0x02];
+    expected.extend(1.0f32.to_le_bytes());
+    expected.extend(0.0f32.to_le_bytes());
+    expected.extend(0.0f32.to_le_bytes());
+    expected.push(1);
+    assert_eq!(bytes, &expected[..]);
+}
+
+#[test]
+fn invalid_messages_are_refused_on_encode_and_decode() {
+    let mut buf = [0u8; 128];
+    let mut sun = sun_vector();
+    sun.sun_body = [f32::NAN, 0.0, 1.0];
+    assert_eq!(
+        encode(&sun, &mut buf),
+        Err(CodecError::Invalid(ValidationError::NonFinite {
+            field: "sun_body"
+        }))
+    );
+    // An invalid-flagged sample is not checked: it carries no numbers to use.
+    sun.valid = false;
+    assert!(encode(&sun, &mut buf).is_ok());
+
+    // Encode a valid pose, then corrupt the quaternion in the bytes: decode must refuse it.
+    let pose = target_pose();
+    let len = encode(&pose, &mut buf).unwrap().len();
+    let q_offset = len - (4 * 4 + 3 * 4 + 4 + 4 + 1);
+    buf[q_offset..q_offset + 4].copy_from_slice(&2.0f32.to_le_bytes());
+    assert!(matches!(
+        decode::<TargetPose>(&buf[..len]),
+        Err(CodecError::Invalid(ValidationError::NotUnitNorm {
+            field: "q_camera_from_target",
+            ..
+        }))
+    ));
+
+    let mut h = health();
+    h.last_loss = Some(f32::INFINITY);
+    assert!(matches!(encode(&h, &mut buf), Err(CodecError::Invalid(_))));
+    h.last_loss = Some(0.1);
+    h.window_fill = 11;
+    assert!(matches!(encode(&h, &mut buf), Err(CodecError::Invalid(_))));
+
+    let pixels = [0u8; 11];
+    let frame = CameraFrame {
+        header: header(2, 2, PixelFormat::Rgb8),
+        mask: None,
+        pixels: &pixels,
+    };
+    assert_eq!(
+        encode(&frame, &mut buf),
+        Err(CodecError::Invalid(ValidationError::SizeMismatch {
+            field: "pixels",
+            expected: 12,
+            actual: 11
+        }))
+    );
+}
+
+#[test]
+fn truncation_trailing_bytes_and_small_buffers_are_errors() {
+    let mut buf = [0u8; 256];
+    let len = encode(&health(), &mut buf).unwrap().len();
+    for cut in 0..len {
+        assert!(decode::<HealthStatus>(&buf[..cut]).is_err(), "cut at {cut}");
+    }
+    // Trailing zeros are CAN FD padding: accepted. Anything else is not.
+    assert!(decode::<HealthStatus>(&buf[..len + 5]).is_ok());
+    buf[len + 2] = 1;
+    assert_eq!(
+        decode::<HealthStatus>(&buf[..len + 5]),
+        Err(CodecError::TrailingBytes)
+    );
+    let mut tiny = [0u8; 10];
+    assert_eq!(
+        encode(&health(), &mut tiny),
+        Err(CodecError::BufferTooSmall)
+    );
+}
+
+#[test]
+fn command_failures_map_to_ack_statuses() {
+    let mut buf = [0u8; 128];
+    // Unknown opcode 9 with sequence 77: varint 77, varint 9.
+    let err = decode_command(&[77, 9]).unwrap_err();
+    assert_eq!(err.status, AckStatus::InvalidOpcode);
+    assert_eq!(err.ack().sequence, Some(77));
+    assert_eq!(err.ack().opcode, Some(9));
+
+    // SET_MODE with a mode index that does not exist: format error, sequence known.
+    let err = decode_command(&[78, 5, 9]).unwrap_err();
+    assert_eq!(err.status, AckStatus::FormatError);
+    assert_eq!(err.sequence, Some(78));
+
+    // Empty and truncated input: format error, nothing known.
+    let err = decode_command(&[]).unwrap_err();
+    assert_eq!((err.status, err.sequence), (AckStatus::FormatError, None));
+    let err = decode_command(&[0x80]).unwrap_err();
+    assert_eq!(err.status, AckStatus::FormatError);
+
+    // RENDER with a non-unit Sun vector: validation error.
+    let mut req = render_request();
+    req.sun_target = [0.0, 0.0, 2.0];
+    let bad = Command {
+        sequence: 79,
+        kind: CommandKind::Render(req),
+    };
+    // Encode refuses it, so build the bytes from a valid command and patch the Sun vector.
+    let good = Command {
+        sequence: 79,
+        kind: CommandKind::Render(render_request()),
+    };
+    let len = encode(&good, &mut buf).unwrap().len();
+    buf[len - 4..len].copy_from_slice(&2.0f32.to_le_bytes());
+    let err = decode_command(&buf[..len]).unwrap_err();
+    assert_eq!(err.status, AckStatus::ValidationError);
+    assert_eq!(err.sequence, Some(79));
+    assert!(matches!(
+        err.validation,
+        Some(ValidationError::NotUnitNorm {
+            field: "sun_target",
+            ..
+        })
+    ));
+    assert!(encode(&bad, &mut buf).is_err());
+}
+
+#[test]
+fn opcodes_are_the_encoded_variant_index() {
+    let mut buf = [0u8; 128];
+    for c in commands() {
+        let bytes = encode(&c, &mut buf).unwrap();
+        // sequence 1000.. is a two-byte varint; the opcode follows.
+        assert_eq!(u32::from(bytes[2]), c.kind.opcode());
+    }
+    assert_eq!(
+        CommandKind::Render(render_request()).opcode() + 1,
+        CommandKind::OPCODE_COUNT
+    );
+}
+
+#[test]
+fn port_ids_are_unique_fit_an_apid_and_match_the_trait() {
+    let ids = port::ALL;
+    for (i, a) in ids.iter().enumerate() {
+        assert!(*a < 2047, "APID 2047 is the idle packet");
+        for b in &ids[i + 1..] {
+            assert_ne!(a, b);
+        }
+    }
+    let from_trait = [
+        SunVector::PORT_ID,
+        TargetPose::PORT_ID,
+        CameraFrame::PORT_ID,
+        RenderedPrediction::PORT_ID,
+        Command::PORT_ID,
+        CommandAck::PORT_ID,
+        HealthStatus::PORT_ID,
+        Event::PORT_ID,
+    ];
+    assert_eq!(from_trait, ids);
+    assert_eq!(
+        Command::CCSDS_PACKET_TYPE,
+        interfaces::ccsds::PacketType::Telecommand
+    );
+    assert_eq!(
+        HealthStatus::CCSDS_PACKET_TYPE,
+        interfaces::ccsds::PacketType::Telemetry
+    );
+}
