@@ -1,1 +1,742 @@
 //! Tile rasterizer for Gaussians: projection, binning, blending, and the backward pass.
+//!
+//! Stages (each a reusable function, so a shadow pass from a light camera is an
+//! addition): [`project_splats`] (per Gaussian, rayon), depth sort + [`bin::bin_tiles`]
+//! (serial radix/counting sorts), [`blend::blend_tile_forward`] (rayon over 16x16 tiles).
+//! Backward: [`blend::blend_tile_backward`] per tile writes one gradient record per
+//! tile-list entry; records are summed per Gaussian in tile order and pushed through
+//! [`project::project_backward`].
+//!
+//! Invariants:
+//! - outputs are pixel-major, row-major: `color[(y * W + x) * C + c]`;
+//! - `depth` is the alpha-weighted camera z, NOT normalised by alpha (divide by `alpha`
+//!   for the mean depth of what was hit); background depth is 0;
+//! - culled or invalid Gaussians (non-finite values, `|q|^2 < 1e-6`, z < near, opacity
+//!   below the cutoff, no pixel touched) have no effect on the output and get zero
+//!   gradients; nothing non-finite reaches the outputs or the gradients (a Gaussian whose
+//!   gradient is non-finite gets zeros, counted in `GaussianGrads::dropped_nonfinite`);
+//! - results do not depend on the thread count at all: every reduction runs in a fixed
+//!   order (tile order per Gaussian), and tiles never share memory.
+
+pub mod bin;
+pub mod blend;
+pub mod project;
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use crate::camera::Camera;
+use crate::model::{GaussianModel, Param};
+use bin::{PixelRect, TileBins, TileGrid, TILE_PIXELS, TILE_PX};
+use blend::{AlphaMode, Splat, REC_CHANNELS, REC_CONIC, REC_DEPTH, REC_OPACITY};
+use project::{CameraFrame, GaussianParams, ProjectedGrad, JACOBIAN_CLAMP_FACTOR};
+
+/// Largest accepted image side, pixels.
+pub const MAX_IMAGE_SIDE_PX: u32 = 1 << 15;
+
+/// Rasterizer settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RasterSettings {
+    /// Near plane, camera z, metres. Gaussians with a nearer centre are culled.
+    pub near_m: f32,
+    /// One value per channel, composited as `C + T_final * bg`; empty means zeros.
+    pub background: Vec<f32>,
+    /// Test-only: a C1 ramp instead of the 1/255 alpha step, and no early stop at
+    /// T < 1e-4, so finite differences can check the analytic gradients.
+    pub smooth_cutoff: bool,
+}
+
+impl Default for RasterSettings {
+    fn default() -> Self {
+        Self {
+            near_m: 0.01,
+            background: Vec::new(),
+            smooth_cutoff: false,
+        }
+    }
+}
+
+/// Borrowed per-Gaussian inputs for `N` Gaussians.
+#[derive(Clone, Copy, Debug)]
+pub struct GaussianView<'a> {
+    /// 3N, world frame.
+    pub means: &'a [f32],
+    /// 3N, natural log of the standard deviations.
+    pub log_scales: &'a [f32],
+    /// 4N, `[w, x, y, z]`, not necessarily unit.
+    pub rotations: &'a [f32],
+    /// N.
+    pub opacity_logits: &'a [f32],
+    /// N * n_channels, Gaussian-major.
+    pub channels: &'a [f32],
+    pub n_channels: usize,
+}
+
+impl<'a> GaussianView<'a> {
+    pub fn from_model(model: &'a GaussianModel, channels: &'a [f32], n_channels: usize) -> Self {
+        Self {
+            means: model.params.get(Param::Mean),
+            log_scales: model.params.get(Param::LogScale),
+            rotations: model.params.get(Param::Rotation),
+            opacity_logits: model.params.get(Param::OpacityLogit),
+            channels,
+            n_channels,
+        }
+    }
+
+    /// Number of Gaussians (from the opacity slice).
+    pub fn len(&self) -> usize {
+        self.opacity_logits.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.opacity_logits.is_empty()
+    }
+
+    fn params(&self, i: usize) -> GaussianParams {
+        let m = &self.means[3 * i..3 * i + 3];
+        let s = &self.log_scales[3 * i..3 * i + 3];
+        let q = &self.rotations[4 * i..4 * i + 4];
+        GaussianParams {
+            mean: [m[0], m[1], m[2]],
+            log_scale: [s[0], s[1], s[2]],
+            rotation: [q[0], q[1], q[2], q[3]],
+            opacity_logit: self.opacity_logits[i],
+        }
+    }
+
+    fn check(&self) -> Result<usize, RasterError> {
+        let n = self.len();
+        let expect = |what, expected: usize, got: usize| {
+            if expected == got {
+                Ok(())
+            } else {
+                Err(RasterError::Length {
+                    what,
+                    expected,
+                    got,
+                })
+            }
+        };
+        expect("means (3 per Gaussian)", 3 * n, self.means.len())?;
+        expect("log_scales (3 per Gaussian)", 3 * n, self.log_scales.len())?;
+        expect("rotations (4 per Gaussian)", 4 * n, self.rotations.len())?;
+        let nc = n
+            .checked_mul(self.n_channels)
+            .ok_or(RasterError::TooLarge("channel count overflows"))?;
+        expect(
+            "channels (n_channels per Gaussian)",
+            nc,
+            self.channels.len(),
+        )?;
+        if n >= u32::MAX as usize {
+            return Err(RasterError::TooLarge("more than u32::MAX Gaussians"));
+        }
+        Ok(n)
+    }
+}
+
+/// Rasterizer error: bad inputs are reported, never panicked on.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RasterError {
+    /// Width or height is zero.
+    EmptyImage { width: u32, height: u32 },
+    /// A slice has the wrong length.
+    Length {
+        what: &'static str,
+        expected: usize,
+        got: usize,
+    },
+    /// Camera intrinsics or pose unusable (non-finite, non-positive focal length...).
+    InvalidCamera(&'static str),
+    /// Settings unusable (near plane, background).
+    InvalidSettings(&'static str),
+    /// Image or list sizes beyond what the rasterizer indexes.
+    TooLarge(&'static str),
+    /// Pixel gradients contain NaN or Inf.
+    NonFiniteGradient(&'static str),
+    /// Backward called with inputs that differ from the forward's.
+    ForwardMismatch(&'static str),
+}
+
+impl std::fmt::Display for RasterError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RasterError::EmptyImage { width, height } => {
+                write!(f, "image of {width}x{height} pixels is empty")
+            }
+            RasterError::Length {
+                what,
+                expected,
+                got,
+            } => write!(f, "{what}: expected {expected} values, got {got}"),
+            RasterError::InvalidCamera(why) => write!(f, "invalid camera: {why}"),
+            RasterError::InvalidSettings(why) => write!(f, "invalid raster settings: {why}"),
+            RasterError::TooLarge(why) => write!(f, "too large: {why}"),
+            RasterError::NonFiniteGradient(what) => {
+                write!(f, "pixel gradient {what} contains NaN or Inf")
+            }
+            RasterError::ForwardMismatch(why) => {
+                write!(f, "backward inputs do not match the forward pass: {why}")
+            }
+        }
+    }
+}
+
+impl std::error::Error for RasterError {}
+
+/// Wall-clock split of one forward pass, milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ForwardTimings {
+    pub project_ms: f64,
+    pub sort_bin_ms: f64,
+    pub blend_ms: f64,
+}
+
+/// Wall-clock split of one backward pass, milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BackwardTimings {
+    pub blend_ms: f64,
+    pub reduce_project_ms: f64,
+}
+
+/// What backward needs from the forward pass.
+#[derive(Clone, Debug)]
+struct ForwardState {
+    camera: Camera,
+    settings: RasterSettings,
+    background: Vec<f32>,
+    n_gaussians: usize,
+    grid: TileGrid,
+    splats: Vec<Splat>,
+    splat_channels: Vec<f32>,
+    gaussian_of_rank: Vec<u32>,
+    bins: TileBins,
+    /// Tile-major final transmittance and last-blended index per pixel.
+    tile_transmittance: Vec<f32>,
+    tile_last: Vec<u32>,
+}
+
+/// Rendered images and per-Gaussian screen data.
+#[derive(Clone, Debug)]
+pub struct RenderOutput {
+    pub width: u32,
+    pub height: u32,
+    pub n_channels: usize,
+    /// `H * W * n_channels`, `(y * W + x) * C + c`.
+    pub color: Vec<f32>,
+    /// `H * W` accumulated opacity `1 - T_final`.
+    pub alpha: Vec<f32>,
+    /// `H * W` alpha-weighted camera z (not normalised by alpha).
+    pub depth: Vec<f32>,
+    /// Per Gaussian: screen radius in pixels beyond which its alpha is below the cutoff
+    /// (`sqrt(2 ln(o / cutoff) * lambda_max)`, at most about 3.3 sigma); 0 when culled.
+    pub radii_px: Vec<f32>,
+    /// Per Gaussian: survived culling and touched at least one tile.
+    pub visible: Vec<bool>,
+    pub timings: ForwardTimings,
+    state: ForwardState,
+}
+
+/// Loss gradients with respect to the rendered images (same layouts as [`RenderOutput`]).
+#[derive(Clone, Copy, Debug)]
+pub struct PixelGrads<'a> {
+    pub d_color: &'a [f32],
+    pub d_alpha: Option<&'a [f32]>,
+    pub d_depth: Option<&'a [f32]>,
+}
+
+/// Gradients of the loss with respect to the Gaussians (same layouts as [`GaussianView`]).
+#[derive(Clone, Debug, Default)]
+pub struct GaussianGrads {
+    pub d_means: Vec<f32>,
+    pub d_log_scales: Vec<f32>,
+    pub d_rotations: Vec<f32>,
+    pub d_opacity_logits: Vec<f32>,
+    pub d_channels: Vec<f32>,
+    /// Per Gaussian `|dL/d(mean2d)|` in NDC units (pixel gradient times W/2, H/2).
+    pub mean2d_grad_ndc: Vec<f32>,
+    /// Gaussians whose gradient came out non-finite and was replaced by zeros.
+    pub dropped_nonfinite: usize,
+    pub timings: BackwardTimings,
+}
+
+fn ms_since(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+/// Validates the camera and builds the projection frame.
+pub fn camera_frame(camera: &Camera, near_m: f32) -> Result<CameraFrame, RasterError> {
+    let k = &camera.intrinsics;
+    if k.width == 0 || k.height == 0 {
+        return Err(RasterError::EmptyImage {
+            width: k.width,
+            height: k.height,
+        });
+    }
+    if k.width > MAX_IMAGE_SIDE_PX || k.height > MAX_IMAGE_SIDE_PX {
+        return Err(RasterError::TooLarge("image side above 32768 pixels"));
+    }
+    if !(k.fx.is_finite() && k.fy.is_finite() && k.fx > 0.0 && k.fy > 0.0) {
+        return Err(RasterError::InvalidCamera(
+            "focal lengths must be finite and positive",
+        ));
+    }
+    if !(k.cx.is_finite() && k.cy.is_finite()) {
+        return Err(RasterError::InvalidCamera("principal point is not finite"));
+    }
+    let q = camera.rotation;
+    if !(q.is_finite() && camera.translation.is_finite()) {
+        return Err(RasterError::InvalidCamera("pose is not finite"));
+    }
+    if !(q.length_squared() > 1e-6) {
+        return Err(RasterError::InvalidCamera("rotation quaternion is zero"));
+    }
+    if !(near_m.is_finite() && near_m > 0.0) {
+        return Err(RasterError::InvalidSettings(
+            "near plane must be finite and positive",
+        ));
+    }
+    let m = glam::Mat3::from_quat(q.normalize());
+    let mut rot = [[0.0f32; 3]; 3];
+    for (r, row) in rot.iter_mut().enumerate() {
+        for (c, v) in row.iter_mut().enumerate() {
+            *v = m.col(c)[r];
+        }
+    }
+    let half_w = k.cx.max(k.width as f32 - k.cx).max(0.5 * k.width as f32);
+    let half_h = k.cy.max(k.height as f32 - k.cy).max(0.5 * k.height as f32);
+    Ok(CameraFrame {
+        rot_cam_from_world: rot,
+        translation: camera.translation.to_array(),
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        lim_x: JACOBIAN_CLAMP_FACTOR * half_w / k.fx,
+        lim_y: JACOBIAN_CLAMP_FACTOR * half_h / k.fy,
+        near_m,
+    })
+}
+
+/// Splats of the Gaussians that survived projection, with their original index.
+#[derive(Clone, Debug, Default)]
+pub struct ProjectedSet {
+    /// Per Gaussian: `Some(splat)` when it survived culling and touches the image.
+    pub splats: Vec<Option<Splat>>,
+    pub radii_px: Vec<f32>,
+}
+
+/// Pixel rectangle outside which `o exp(power) < cutoff` for certain.
+fn splat_rect(mean_px: [f32; 2], cov2: [f32; 3], q_max: f32, width: u32, height: u32) -> PixelRect {
+    // Extent of the ellipse d^T K d <= q_max along x is sqrt(q_max * Sigma_xx); the margin
+    // covers rounding in the conic and in exp.
+    let ext_x = (q_max * cov2[0]).sqrt() * 1.001 + 0.01;
+    let ext_y = (q_max * cov2[2]).sqrt() * 1.001 + 0.01;
+    let to_px = |v: f32, hi: u32| v.clamp(0.0, hi as f32) as u32;
+    // Pixel x is inside when |mean - (x + 0.5)| <= ext.
+    PixelRect {
+        x0: to_px((mean_px[0] - ext_x - 0.5).floor(), width),
+        y0: to_px((mean_px[1] - ext_y - 0.5).floor(), height),
+        x1: to_px((mean_px[0] + ext_x - 0.5).floor() + 1.0, width),
+        y1: to_px((mean_px[1] + ext_y - 0.5).floor() + 1.0, height),
+    }
+}
+
+/// Projects every Gaussian (rayon); culled ones and those touching no pixel are `None`.
+pub fn project_splats(
+    frame: &CameraFrame,
+    gaussians: &GaussianView,
+    mode: AlphaMode,
+    width: u32,
+    height: u32,
+) -> ProjectedSet {
+    let nc = gaussians.n_channels;
+    let cutoff = mode.cutoff();
+    let results: Vec<(Option<Splat>, f32)> = (0..gaussians.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            if !gaussians.channels[i * nc..i * nc + nc]
+                .iter()
+                .all(|v| v.is_finite())
+            {
+                return (None, 0.0);
+            }
+            let Ok(p) = project::project_forward(frame, &gaussians.params(i), cutoff) else {
+                return (None, 0.0);
+            };
+            let q_max = 2.0 * (p.opacity / cutoff).ln();
+            let [xx, xy, yy] = p.cov2;
+            let mid = 0.5 * (xx + yy);
+            let lambda_max = mid + (mid * mid - (xx * yy - xy * xy)).max(0.0).sqrt();
+            let radius = (q_max * lambda_max).sqrt();
+            let rect = splat_rect(p.mean_px, p.cov2, q_max, width, height);
+            if rect.is_empty() || !radius.is_finite() {
+                return (None, 0.0);
+            }
+            let splat = Splat {
+                mean_px: p.mean_px,
+                conic: p.conic,
+                opacity: p.opacity,
+                depth: p.t_cam[2],
+                rect,
+            };
+            (Some(splat), radius)
+        })
+        .collect();
+    let (splats, radii_px) = results.into_iter().unzip();
+    ProjectedSet { splats, radii_px }
+}
+
+/// Depth-sorts the visible splats: returns the Gaussian index of each rank.
+pub fn depth_order(splats: &[Option<Splat>]) -> Vec<u32> {
+    let mut keys = Vec::new();
+    let mut values = Vec::new();
+    for (i, s) in splats.iter().enumerate() {
+        if let Some(s) = s {
+            // Depths are >= near > 0, so the bit pattern orders like the value.
+            keys.push(s.depth.to_bits());
+            values.push(i as u32);
+        }
+    }
+    bin::radix_sort_u32(&mut keys, &mut values);
+    values
+}
+
+fn resolve_background(settings: &RasterSettings, nc: usize) -> Result<Vec<f32>, RasterError> {
+    if settings.background.is_empty() {
+        return Ok(vec![0.0; nc]);
+    }
+    if settings.background.len() != nc {
+        return Err(RasterError::Length {
+            what: "background (one value per channel)",
+            expected: nc,
+            got: settings.background.len(),
+        });
+    }
+    if !settings.background.iter().all(|v| v.is_finite()) {
+        return Err(RasterError::InvalidSettings("background is not finite"));
+    }
+    Ok(settings.background.clone())
+}
+
+/// Renders `gaussians` from `camera`.
+pub fn render(
+    camera: &Camera,
+    gaussians: &GaussianView,
+    settings: &RasterSettings,
+) -> Result<RenderOutput, RasterError> {
+    let frame = camera_frame(camera, settings.near_m)?;
+    let n = gaussians.check()?;
+    let nc = gaussians.n_channels;
+    let background = resolve_background(settings, nc)?;
+    let mode = AlphaMode {
+        smooth: settings.smooth_cutoff,
+    };
+    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+    let grid = TileGrid::new(width, height);
+
+    let t0 = Instant::now();
+    let projected = project_splats(&frame, gaussians, mode, width, height);
+    let project_ms = ms_since(t0);
+
+    let t1 = Instant::now();
+    let gaussian_of_rank = depth_order(&projected.splats);
+    let mut splats = Vec::with_capacity(gaussian_of_rank.len());
+    let mut splat_channels = Vec::with_capacity(gaussian_of_rank.len() * nc);
+    for &g in &gaussian_of_rank {
+        let g = g as usize;
+        if let Some(s) = projected.splats[g] {
+            splats.push(s);
+            splat_channels.extend_from_slice(&gaussians.channels[g * nc..g * nc + nc]);
+        }
+    }
+    let rects: Vec<PixelRect> = splats.iter().map(|s| s.rect).collect();
+    let total_entries: usize = rects.iter().map(|r| grid.tile_count(r)).sum();
+    if total_entries >= u32::MAX as usize {
+        return Err(RasterError::TooLarge("more than u32::MAX tile entries"));
+    }
+    let bins = bin::bin_tiles(&grid, &rects);
+    let sort_bin_ms = ms_since(t1);
+
+    let t2 = Instant::now();
+    let n_tiles = grid.n_tiles();
+    let tiles: Vec<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<u32>)> = (0..n_tiles)
+        .into_par_iter()
+        .map(|t| {
+            let mut color = vec![0.0f32; TILE_PIXELS * nc];
+            let mut depth = vec![0.0f32; TILE_PIXELS];
+            let mut trans = vec![0.0f32; TILE_PIXELS];
+            let mut last = vec![0u32; TILE_PIXELS];
+            let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
+            blend::blend_tile_forward(
+                &grid.tile_rect(t),
+                list,
+                &splats,
+                &splat_channels,
+                nc,
+                &background,
+                mode,
+                blend::TileForwardOut {
+                    color: &mut color,
+                    depth: &mut depth,
+                    transmittance: &mut trans,
+                    last: &mut last,
+                },
+            );
+            (color, depth, trans, last)
+        })
+        .collect();
+
+    let w = width as usize;
+    let h = height as usize;
+    let mut color = vec![0.0f32; w * h * nc];
+    let mut alpha = vec![0.0f32; w * h];
+    let mut depth = vec![0.0f32; w * h];
+    let tiles_x = grid.tiles_x as usize;
+    let tile_px = TILE_PX as usize;
+    alpha
+        .par_chunks_mut(w)
+        .zip(depth.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (alpha_row, depth_row))| {
+            for x in 0..w {
+                let tile = &tiles[(y / tile_px) * tiles_x + x / tile_px];
+                let p = (y % tile_px) * tile_px + x % tile_px;
+                alpha_row[x] = 1.0 - tile.2[p];
+                depth_row[x] = tile.1[p];
+            }
+        });
+    if nc > 0 {
+        color
+            .par_chunks_mut(w * nc)
+            .enumerate()
+            .for_each(|(y, row)| {
+                for x in 0..w {
+                    let tile = &tiles[(y / tile_px) * tiles_x + x / tile_px];
+                    let p = (y % tile_px) * tile_px + x % tile_px;
+                    row[x * nc..x * nc + nc].copy_from_slice(&tile.0[p * nc..p * nc + nc]);
+                }
+            });
+    }
+    let mut tile_transmittance = Vec::with_capacity(n_tiles * TILE_PIXELS);
+    let mut tile_last = Vec::with_capacity(n_tiles * TILE_PIXELS);
+    for (_, _, trans, last) in &tiles {
+        tile_transmittance.extend_from_slice(trans);
+        tile_last.extend_from_slice(last);
+    }
+    drop(tiles);
+    let blend_ms = ms_since(t2);
+
+    let mut radii_px = projected.radii_px;
+    let mut visible = vec![false; n];
+    for w in bins.rank_offsets.windows(2).zip(&gaussian_of_rank) {
+        let ((start, end), &g) = ((w.0[0], w.0[1]), w.1);
+        visible[g as usize] = end > start;
+    }
+    for (r, v) in radii_px.iter_mut().zip(&visible) {
+        if !v {
+            *r = 0.0;
+        }
+    }
+
+    Ok(RenderOutput {
+        width,
+        height,
+        n_channels: nc,
+        color,
+        alpha,
+        depth,
+        radii_px,
+        visible,
+        timings: ForwardTimings {
+            project_ms,
+            sort_bin_ms,
+            blend_ms,
+        },
+        state: ForwardState {
+            camera: *camera,
+            settings: settings.clone(),
+            background,
+            n_gaussians: n,
+            grid,
+            splats,
+            splat_channels,
+            gaussian_of_rank,
+            bins,
+            tile_transmittance,
+            tile_last,
+        },
+    })
+}
+
+fn check_grad_slice(what: &'static str, slice: &[f32], expected: usize) -> Result<(), RasterError> {
+    if slice.len() != expected {
+        return Err(RasterError::Length {
+            what,
+            expected,
+            got: slice.len(),
+        });
+    }
+    if !slice.iter().all(|v| v.is_finite()) {
+        return Err(RasterError::NonFiniteGradient(what));
+    }
+    Ok(())
+}
+
+/// Gradients of a loss with respect to the Gaussians, given its pixel gradients.
+/// `camera`, `gaussians` and `settings` must be those `forward` was rendered with.
+pub fn render_backward(
+    camera: &Camera,
+    gaussians: &GaussianView,
+    settings: &RasterSettings,
+    forward: &RenderOutput,
+    grads: &PixelGrads,
+) -> Result<GaussianGrads, RasterError> {
+    let st = &forward.state;
+    let frame = camera_frame(camera, settings.near_m)?;
+    let n = gaussians.check()?;
+    let nc = gaussians.n_channels;
+    if *camera != st.camera {
+        return Err(RasterError::ForwardMismatch("camera differs"));
+    }
+    if *settings != st.settings {
+        return Err(RasterError::ForwardMismatch("settings differ"));
+    }
+    if n != st.n_gaussians || nc != forward.n_channels {
+        return Err(RasterError::ForwardMismatch(
+            "number of Gaussians or channels differs",
+        ));
+    }
+    let pixels = forward.width as usize * forward.height as usize;
+    check_grad_slice("d_color", grads.d_color, pixels * nc)?;
+    if let Some(d) = grads.d_alpha {
+        check_grad_slice("d_alpha", d, pixels)?;
+    }
+    if let Some(d) = grads.d_depth {
+        check_grad_slice("d_depth", d, pixels)?;
+    }
+    let mode = AlphaMode {
+        smooth: settings.smooth_cutoff,
+    };
+    let grid = st.grid;
+    let bins = &st.bins;
+    let stride = REC_CHANNELS + nc;
+
+    let t0 = Instant::now();
+    let n_entries = bins.tile_ranks.len();
+    let mut records = vec![0.0f32; n_entries * stride];
+    let mut per_tile: Vec<&mut [f32]> = Vec::with_capacity(grid.n_tiles());
+    let mut rest: &mut [f32] = &mut records;
+    for t in 0..grid.n_tiles() {
+        let len = (bins.tile_offsets[t + 1] - bins.tile_offsets[t]) * stride;
+        let (head, tail) = rest.split_at_mut(len);
+        per_tile.push(head);
+        rest = tail;
+    }
+    let pixel_view = blend::PixelGradsView {
+        width: forward.width as usize,
+        d_color: grads.d_color,
+        d_alpha: grads.d_alpha,
+        d_depth: grads.d_depth,
+    };
+    per_tile
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(t, tile_records)| {
+            let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
+            let px = t * TILE_PIXELS..(t + 1) * TILE_PIXELS;
+            blend::blend_tile_backward(
+                &grid.tile_rect(t),
+                list,
+                &st.splats,
+                &st.splat_channels,
+                nc,
+                &st.background,
+                mode,
+                blend::TileForwardState {
+                    transmittance: &st.tile_transmittance[px.clone()],
+                    last: &st.tile_last[px],
+                },
+                &pixel_view,
+                tile_records,
+            );
+        });
+    let blend_ms = ms_since(t0);
+
+    let t1 = Instant::now();
+    let half_w = 0.5 * forward.width as f32;
+    let half_h = 0.5 * forward.height as f32;
+    type RankGrad = Result<(project::ParamGrad, Vec<f32>, f32), ()>;
+    let per_rank: Vec<RankGrad> = (0..st.splats.len())
+        .into_par_iter()
+        .with_min_len(256)
+        .map(|rank| {
+            let mut sum = vec![0.0f32; stride];
+            for &e in &bins.entry_of_rank[bins.rank_offsets[rank]..bins.rank_offsets[rank + 1]] {
+                let rec = &records[e as usize * stride..(e as usize + 1) * stride];
+                for (s, r) in sum.iter_mut().zip(rec) {
+                    *s += r;
+                }
+            }
+            let g = st.gaussian_of_rank[rank] as usize;
+            let splat = &st.splats[rank];
+            let p = project::project_forward(&frame, &gaussians.params(g), mode.cutoff())
+                .map_err(|_| ())?;
+            if p.mean_px != splat.mean_px
+                || p.conic != splat.conic
+                || p.opacity != splat.opacity
+                || p.t_cam[2] != splat.depth
+                || gaussians.channels[g * nc..g * nc + nc]
+                    != st.splat_channels[rank * nc..rank * nc + nc]
+            {
+                return Err(());
+            }
+            let d = ProjectedGrad {
+                d_mean_px: [sum[0], sum[1]],
+                d_conic: [sum[REC_CONIC], sum[REC_CONIC + 1], sum[REC_CONIC + 2]],
+                d_opacity: sum[REC_OPACITY],
+                d_depth: sum[REC_DEPTH],
+            };
+            let pg = project::project_backward(&frame, &p, &d);
+            let ndc = (sum[0] * half_w).hypot(sum[1] * half_h);
+            Ok((pg, sum[REC_CHANNELS..].to_vec(), ndc))
+        })
+        .collect();
+
+    let mut out = GaussianGrads {
+        d_means: vec![0.0; 3 * n],
+        d_log_scales: vec![0.0; 3 * n],
+        d_rotations: vec![0.0; 4 * n],
+        d_opacity_logits: vec![0.0; n],
+        d_channels: vec![0.0; nc * n],
+        mean2d_grad_ndc: vec![0.0; n],
+        dropped_nonfinite: 0,
+        timings: BackwardTimings::default(),
+    };
+    for (rank, res) in per_rank.into_iter().enumerate() {
+        let Ok((pg, d_ch, ndc)) = res else {
+            return Err(RasterError::ForwardMismatch(
+                "Gaussian parameters changed since the forward pass",
+            ));
+        };
+        let g = st.gaussian_of_rank[rank] as usize;
+        if !(pg.is_finite() && d_ch.iter().all(|v| v.is_finite()) && ndc.is_finite()) {
+            out.dropped_nonfinite += 1;
+            continue;
+        }
+        out.d_means[3 * g..3 * g + 3].copy_from_slice(&pg.d_mean);
+        out.d_log_scales[3 * g..3 * g + 3].copy_from_slice(&pg.d_log_scale);
+        out.d_rotations[4 * g..4 * g + 4].copy_from_slice(&pg.d_rotation);
+        out.d_opacity_logits[g] = pg.d_opacity_logit;
+        out.d_channels[nc * g..nc * g + nc].copy_from_slice(&d_ch);
+        out.mean2d_grad_ndc[g] = ndc;
+    }
+    out.timings = BackwardTimings {
+        blend_ms,
+        reduce_project_ms: ms_since(t1),
+    };
+    Ok(out)
+}

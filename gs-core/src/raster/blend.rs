@@ -1,0 +1,311 @@
+//! Front-to-back alpha blending of one tile, and its backward pass.
+//!
+//! Forward, per pixel: `alpha = min(0.99, o exp(power))`, skipped when below 1/255,
+//! and blending stops before a Gaussian that would take the transmittance below 1e-4.
+//! Colour = sum_i c_i alpha_i T_i + T_final * background, depth = sum_i z_i alpha_i T_i
+//! (not normalised by alpha), alpha = 1 - T_final.
+//!
+//! Backward walks the tile's list back to front, dividing the final transmittance by
+//! `1 - alpha_i` to rebuild `T_i`, and keeps per pixel the unnormalised colour of what
+//! lies behind (`S`), so `dC/dalpha_i = c_i T_i - S / (1 - alpha_i)`: no per-pixel lists.
+//! Per-Gaussian sums are written to one record per list entry (each entry belongs to
+//! exactly one tile, so tiles never write the same memory: no atomics, no races).
+//!
+//! Invariants:
+//! - forward and backward evaluate alpha with the same function [`eval_alpha`], so they
+//!   agree bit for bit on which Gaussians each pixel kept;
+//! - in smooth mode (test-only) the 1/255 step is a C1 ramp `alpha * smoothstep` over
+//!   `[0.5/255, 1.5/255]` and the early stop is off, so the image is C1 in the parameters
+//!   wherever `o exp(power) < 0.99`.
+
+use super::bin::{PixelRect, TILE_PIXELS, TILE_PX};
+
+pub const ALPHA_MAX: f32 = 0.99;
+pub const ALPHA_MIN: f32 = 1.0 / 255.0;
+pub const TRANSMITTANCE_STOP: f32 = 1e-4;
+/// Smooth-mode ramp: zero below `SMOOTH_LO`, the identity above `SMOOTH_HI`.
+pub const SMOOTH_LO: f32 = 0.5 / 255.0;
+pub const SMOOTH_HI: f32 = 1.5 / 255.0;
+
+/// Gradient record layout: `[d_mean_x, d_mean_y, d_conic_a, d_conic_b, d_conic_c,
+/// d_opacity, d_depth, d_channel_0, ...]`.
+pub const REC_MEAN_X: usize = 0;
+pub const REC_MEAN_Y: usize = 1;
+pub const REC_CONIC: usize = 2;
+pub const REC_OPACITY: usize = 5;
+pub const REC_DEPTH: usize = 6;
+pub const REC_CHANNELS: usize = 7;
+
+/// A projected Gaussian, in depth order, as blending reads it.
+#[derive(Clone, Copy, Debug, Default)]
+#[repr(C)]
+pub struct Splat {
+    pub mean_px: [f32; 2],
+    pub conic: [f32; 3],
+    pub opacity: f32,
+    pub depth: f32,
+    /// Pixels outside this rectangle are certain to get alpha below the cutoff.
+    pub rect: PixelRect,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AlphaMode {
+    pub smooth: bool,
+}
+
+impl AlphaMode {
+    /// Smallest alpha (before the smooth ramp) that a pixel keeps.
+    pub fn cutoff(&self) -> f32 {
+        if self.smooth {
+            SMOOTH_LO
+        } else {
+            ALPHA_MIN
+        }
+    }
+
+    fn stop(&self) -> f32 {
+        if self.smooth {
+            0.0
+        } else {
+            TRANSMITTANCE_STOP
+        }
+    }
+}
+
+/// One pixel's evaluation of one splat.
+#[derive(Clone, Copy, Debug)]
+pub struct AlphaEval {
+    pub alpha: f32,
+    /// d alpha / d (o exp(power)); zero where the 0.99 clamp is active.
+    pub d_alpha_d_raw: f32,
+    pub gauss: f32,
+    pub dx: f32,
+    pub dy: f32,
+}
+
+/// Alpha of splat `s` at the pixel centre `(px, py)`, or `None` when it is skipped.
+#[inline(always)]
+pub fn eval_alpha(s: &Splat, px: f32, py: f32, mode: AlphaMode) -> Option<AlphaEval> {
+    let dx = s.mean_px[0] - px;
+    let dy = s.mean_px[1] - py;
+    let [a, b, c] = s.conic;
+    let power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy;
+    let gauss = power.exp();
+    let raw = s.opacity * gauss;
+    let clamped = raw > ALPHA_MAX;
+    let alpha_c = if clamped { ALPHA_MAX } else { raw };
+    if !(alpha_c >= mode.cutoff()) {
+        return None;
+    }
+    let (alpha, d_alpha) = if mode.smooth && alpha_c < SMOOTH_HI {
+        let u = (alpha_c - SMOOTH_LO) / (SMOOTH_HI - SMOOTH_LO);
+        let ramp = u * u * (3.0 - 2.0 * u);
+        let d_ramp = 6.0 * u * (1.0 - u) / (SMOOTH_HI - SMOOTH_LO);
+        (alpha_c * ramp, ramp + alpha_c * d_ramp)
+    } else {
+        (alpha_c, 1.0)
+    };
+    Some(AlphaEval {
+        alpha,
+        d_alpha_d_raw: if clamped { 0.0 } else { d_alpha },
+        gauss,
+        dx,
+        dy,
+    })
+}
+
+/// One tile's forward outputs, tile-local pixel index `ly * 16 + lx`.
+pub struct TileForwardOut<'a> {
+    pub color: &'a mut [f32],
+    pub depth: &'a mut [f32],
+    pub transmittance: &'a mut [f32],
+    /// One past the list index of the last splat blended into each pixel.
+    pub last: &'a mut [u32],
+}
+
+fn overlap(a: &PixelRect, b: &PixelRect) -> PixelRect {
+    PixelRect {
+        x0: a.x0.max(b.x0),
+        y0: a.y0.max(b.y0),
+        x1: a.x1.min(b.x1),
+        y1: a.y1.min(b.y1),
+    }
+}
+
+/// Blends one tile front to back. `list` holds splat ranks in depth order.
+#[allow(clippy::too_many_arguments)]
+pub fn blend_tile_forward(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    splat_channels: &[f32],
+    n_channels: usize,
+    background: &[f32],
+    mode: AlphaMode,
+    out: TileForwardOut,
+) {
+    let nc = n_channels;
+    out.color.fill(0.0);
+    out.depth.fill(0.0);
+    out.transmittance.fill(1.0);
+    out.last.fill(0);
+    let mut done = [false; TILE_PIXELS];
+    let mut active = ((tile.x1 - tile.x0) * (tile.y1 - tile.y0)) as usize;
+    let stop = mode.stop();
+    for (j, &rank) in list.iter().enumerate() {
+        if active == 0 {
+            break;
+        }
+        let s = &splats[rank as usize];
+        let ch = &splat_channels[rank as usize * nc..rank as usize * nc + nc];
+        let r = overlap(&s.rect, tile);
+        for y in r.y0..r.y1 {
+            let py = y as f32 + 0.5;
+            let row = ((y - tile.y0) * TILE_PX) as usize;
+            for x in r.x0..r.x1 {
+                let p = row + (x - tile.x0) as usize;
+                if done[p] {
+                    continue;
+                }
+                let Some(e) = eval_alpha(s, x as f32 + 0.5, py, mode) else {
+                    continue;
+                };
+                let t = out.transmittance[p];
+                let t_next = t * (1.0 - e.alpha);
+                if t_next < stop {
+                    done[p] = true;
+                    active -= 1;
+                    continue;
+                }
+                let w = e.alpha * t;
+                for (acc, &c) in out.color[p * nc..p * nc + nc].iter_mut().zip(ch) {
+                    *acc += w * c;
+                }
+                out.depth[p] += w * s.depth;
+                out.transmittance[p] = t_next;
+                out.last[p] = j as u32 + 1;
+            }
+        }
+    }
+    if background.iter().any(|&b| b != 0.0) {
+        for p in 0..TILE_PIXELS {
+            let t = out.transmittance[p];
+            for (acc, &b) in out.color[p * nc..p * nc + nc].iter_mut().zip(background) {
+                *acc += t * b;
+            }
+        }
+    }
+}
+
+/// Pixel gradients for one tile, read from image-layout buffers.
+pub struct PixelGradsView<'a> {
+    pub width: usize,
+    pub d_color: &'a [f32],
+    pub d_alpha: Option<&'a [f32]>,
+    pub d_depth: Option<&'a [f32]>,
+}
+
+/// Forward state of one tile that backward needs.
+pub struct TileForwardState<'a> {
+    pub transmittance: &'a [f32],
+    pub last: &'a [u32],
+}
+
+/// Backward of one tile: writes one gradient record (`REC_CHANNELS + n_channels` values)
+/// per list entry into `records` (which holds exactly this tile's entries).
+#[allow(clippy::too_many_arguments)]
+pub fn blend_tile_backward(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    splat_channels: &[f32],
+    n_channels: usize,
+    background: &[f32],
+    mode: AlphaMode,
+    state: TileForwardState,
+    grads: &PixelGradsView,
+    records: &mut [f32],
+) {
+    let nc = n_channels;
+    let stride = REC_CHANNELS + nc;
+    // Behind-colour S per pixel: channels then depth.
+    let s_stride = nc + 1;
+    let mut behind = vec![0.0f32; TILE_PIXELS * s_stride];
+    let mut trans = [0.0f32; TILE_PIXELS];
+    let mut d_color = vec![0.0f32; TILE_PIXELS * nc];
+    let mut d_alpha_px = [0.0f32; TILE_PIXELS];
+    let mut d_depth_px = [0.0f32; TILE_PIXELS];
+    let mut max_last = 0u32;
+    for y in tile.y0..tile.y1 {
+        for x in tile.x0..tile.x1 {
+            let p = ((y - tile.y0) * TILE_PX + (x - tile.x0)) as usize;
+            let pix = y as usize * grads.width + x as usize;
+            let t_final = state.transmittance[p];
+            trans[p] = t_final;
+            for k in 0..nc {
+                behind[p * s_stride + k] = t_final * background[k];
+            }
+            d_color[p * nc..p * nc + nc].copy_from_slice(&grads.d_color[pix * nc..pix * nc + nc]);
+            if let Some(da) = grads.d_alpha {
+                d_alpha_px[p] = da[pix];
+            }
+            if let Some(dd) = grads.d_depth {
+                d_depth_px[p] = dd[pix];
+            }
+            max_last = max_last.max(state.last[p]);
+        }
+    }
+    records[max_last as usize * stride..].fill(0.0);
+    let mut acc = vec![0.0f32; stride];
+    for j in (0..max_last as usize).rev() {
+        let rank = list[j] as usize;
+        let s = &splats[rank];
+        let ch = &splat_channels[rank * nc..rank * nc + nc];
+        acc.fill(0.0);
+        let [ca, cb, cc] = s.conic;
+        let r = overlap(&s.rect, tile);
+        for y in r.y0..r.y1 {
+            let py = y as f32 + 0.5;
+            let row = ((y - tile.y0) * TILE_PX) as usize;
+            for x in r.x0..r.x1 {
+                let p = row + (x - tile.x0) as usize;
+                if j as u32 >= state.last[p] {
+                    continue;
+                }
+                let Some(e) = eval_alpha(s, x as f32 + 0.5, py, mode) else {
+                    continue;
+                };
+                let one_minus = 1.0 - e.alpha;
+                let inv_one_minus = 1.0 / one_minus;
+                let t = trans[p] * inv_one_minus;
+                trans[p] = t;
+                let w = e.alpha * t;
+                let mut d_alpha = 0.0;
+                let bh = &mut behind[p * s_stride..p * s_stride + s_stride];
+                let dc = &d_color[p * nc..p * nc + nc];
+                for k in 0..nc {
+                    let g = dc[k];
+                    acc[REC_CHANNELS + k] += w * g;
+                    d_alpha += g * (t * ch[k] - bh[k] * inv_one_minus);
+                    bh[k] += w * ch[k];
+                }
+                let gd = d_depth_px[p];
+                acc[REC_DEPTH] += w * gd;
+                d_alpha += gd * (t * s.depth - bh[nc] * inv_one_minus);
+                bh[nc] += w * s.depth;
+                d_alpha += d_alpha_px[p] * state.transmittance[p] * inv_one_minus;
+
+                let d_raw = d_alpha * e.d_alpha_d_raw;
+                acc[REC_OPACITY] += d_raw * e.gauss;
+                let d_power = d_raw * s.opacity * e.gauss;
+                let (dx, dy) = (e.dx, e.dy);
+                acc[REC_MEAN_X] -= d_power * (ca * dx + cb * dy);
+                acc[REC_MEAN_Y] -= d_power * (cb * dx + cc * dy);
+                acc[REC_CONIC] -= d_power * 0.5 * dx * dx;
+                acc[REC_CONIC + 1] -= d_power * dx * dy;
+                acc[REC_CONIC + 2] -= d_power * 0.5 * dy * dy;
+            }
+        }
+        records[j * stride..(j + 1) * stride].copy_from_slice(&acc);
+    }
+}
