@@ -344,7 +344,12 @@ fn split_and_recurse(
 
 /// The bin boundary (split before bin k) with the lowest SAH cost, or None when a leaf is
 /// cheaper (only allowed for small item counts).
-fn best_sah_split(items: &[BuildItem], centroid_bounds: &Aabb, axis: usize, bounds: &Aabb) -> Option<usize> {
+fn best_sah_split(
+    items: &[BuildItem],
+    centroid_bounds: &Aabb,
+    axis: usize,
+    bounds: &Aabb,
+) -> Option<usize> {
     let lo = centroid_bounds.min[axis];
     let scale = BIN_COUNT as f32 / (centroid_bounds.max[axis] - lo);
     let mut bin_bounds = [Aabb::EMPTY; BIN_COUNT];

@@ -171,7 +171,9 @@ impl FrameRequest {
         }
         let q = self.camera_from_target_rotation;
         if !q.is_finite() || (q.length() - 1.0).abs() > 1e-3 {
-            return Err(RenderError::InvalidPose(format!("rotation {q:?} is not a unit quaternion")));
+            return Err(RenderError::InvalidPose(format!(
+                "rotation {q:?} is not a unit quaternion"
+            )));
         }
         if !self.camera_from_target_translation_m.is_finite() {
             return Err(RenderError::InvalidPose(format!(
@@ -369,9 +371,30 @@ fn shade(scene: &Scene, lights: &Lights, ray: &Ray, hit: bvh::Hit) -> Vec3 {
     radiance
 }
 
+/// Camera-from-target pose (rotation, translation) of a camera at `eye_target` looking at
+/// `look_at_target`, with image "up" (-y) as close to `up_target` as possible. Returns None
+/// when the inputs are not finite, the eye sits on the look-at point, or up is parallel to the
+/// viewing direction.
+pub fn camera_pose_looking_at(
+    eye_target: Vec3,
+    look_at_target: Vec3,
+    up_target: Vec3,
+) -> Option<(Quat, Vec3)> {
+    let forward = (look_at_target - eye_target).try_normalize()?;
+    let right = forward.cross(up_target).try_normalize()?;
+    let down = forward.cross(right);
+    // Rows of the camera-from-target matrix are the camera axes in target coordinates.
+    let rotation = Quat::from_mat3(&glam::Mat3::from_cols(right, down, forward).transpose());
+    Some((rotation, -(rotation * eye_target)))
+}
+
 /// Linear [0, 1] (clamped) to 8-bit sRGB.
 pub fn linear_to_srgb8(linear: f32) -> u8 {
-    let c = if linear.is_finite() { linear.clamp(0.0, 1.0) } else { 0.0 };
+    let c = if linear.is_finite() {
+        linear.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     let encoded = if c <= 0.003_130_8 {
         12.92 * c
     } else {

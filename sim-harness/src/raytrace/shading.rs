@@ -73,7 +73,11 @@ pub fn brdf(point: &SurfacePoint, to_light: Vec3, to_viewer: Vec3) -> Vec3 {
 
 /// The material at `position_m` with geometric normal `geometric_normal` (unit, facing the
 /// viewer): applies the crinkle perturbation and the solar-cell grid.
-pub fn surface_point(material: &Material, position_m: Vec3, geometric_normal: Vec3) -> SurfacePoint {
+pub fn surface_point(
+    material: &Material,
+    position_m: Vec3,
+    geometric_normal: Vec3,
+) -> SurfacePoint {
     let mut point = SurfacePoint {
         base_color: Vec3::from_array(material.base_color_linear),
         metallic: material.metallic,
@@ -87,7 +91,9 @@ pub fn surface_point(material: &Material, position_m: Vec3, geometric_normal: Ve
             material.crinkle_amplitude,
         );
     }
-    if material.cell_pitch_m > 0.0 && on_cell_grid_line(position_m, geometric_normal, material.cell_pitch_m) {
+    if material.cell_pitch_m > 0.0
+        && on_cell_grid_line(position_m, geometric_normal, material.cell_pitch_m)
+    {
         // Silver interconnects / gaps between cells.
         point.base_color = Vec3::splat(0.55);
         point.metallic = 0.9;
@@ -126,7 +132,11 @@ fn crinkled_normal(normal: Vec3, p: Vec3, amplitude: f32) -> Vec3 {
 
 /// Three independent value-noise channels in [-1, 1].
 fn noise_vector(p: Vec3) -> Vec3 {
-    Vec3::new(value_noise(p, 0x51), value_noise(p, 0xA3), value_noise(p, 0xF7))
+    Vec3::new(
+        value_noise(p, 0x51),
+        value_noise(p, 0xA3),
+        value_noise(p, 0xF7),
+    )
 }
 
 /// Smoothly interpolated lattice noise in [-1, 1], hashed from integer cell coordinates.
@@ -171,7 +181,11 @@ mod tests {
             let theta = (i as f32 + 0.5) / n_theta as f32 * PI / 2.0;
             for j in 0..n_phi {
                 let phi = (j as f32 + 0.5) / n_phi as f32 * 2.0 * PI;
-                let l = Vec3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos());
+                let l = Vec3::new(
+                    theta.sin() * phi.cos(),
+                    theta.sin() * phi.sin(),
+                    theta.cos(),
+                );
                 let d_omega = theta.sin() * (PI / 2.0 / n_theta as f32) * (2.0 * PI / n_phi as f32);
                 sum += brdf(p, l, to_viewer) * l.z * d_omega;
             }

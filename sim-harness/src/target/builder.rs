@@ -54,7 +54,15 @@ impl MeshBuilder {
 
     /// A planar grid of `nu` x `nv` quads spanning `origin + s*edge_u + t*edge_v`, s, t in [0, 1],
     /// facing `edge_u x edge_v`.
-    pub fn quad_grid(&mut self, origin: Vec3, edge_u: Vec3, edge_v: Vec3, nu: u32, nv: u32, material: u16) {
+    pub fn quad_grid(
+        &mut self,
+        origin: Vec3,
+        edge_u: Vec3,
+        edge_v: Vec3,
+        nu: u32,
+        nv: u32,
+        material: u16,
+    ) {
         let (nu, nv) = (nu.max(1), nv.max(1));
         let first = self.vertices_m.len() as u32;
         for j in 0..=nv {
@@ -110,7 +118,13 @@ impl MeshBuilder {
 
     /// Axis-aligned box with one material everywhere.
     pub fn simple_box(&mut self, center: Vec3, half_extents_m: Vec3, cell_m: f32, material: u16) {
-        self.oriented_box(center, half_extents_m, Quat::IDENTITY, cell_m, [material; 6]);
+        self.oriented_box(
+            center,
+            half_extents_m,
+            Quat::IDENTITY,
+            cell_m,
+            [material; 6],
+        );
     }
 
     /// A frustum (cylinder when radii are equal) from `base` to `top`, `segments` around and
@@ -157,7 +171,9 @@ impl MeshBuilder {
             }
         }
         if caps {
-            for (centre, radius, outward) in [(base, base_radius_m, -axis), (top, top_radius_m, axis)] {
+            for (centre, radius, outward) in
+                [(base, base_radius_m, -axis), (top, top_radius_m, axis)]
+            {
                 if radius <= 0.0 {
                     continue;
                 }
@@ -305,12 +321,25 @@ mod tests {
             [m; 6],
         );
         let mesh = b.build().unwrap();
-        assert!((signed_volume(&mesh) - 6.0).abs() < 1e-3, "{}", signed_volume(&mesh));
+        assert!(
+            (signed_volume(&mesh) - 6.0).abs() < 1e-3,
+            "{}",
+            signed_volume(&mesh)
+        );
 
         let mut b = MeshBuilder::new();
         let m = b.material(Material::white_paint());
         let segments = 256;
-        b.frustum(Vec3::ZERO, Vec3::new(0.0, 2.0, 0.0), 1.0, 1.0, segments, 3, true, m);
+        b.frustum(
+            Vec3::ZERO,
+            Vec3::new(0.0, 2.0, 0.0),
+            1.0,
+            1.0,
+            segments,
+            3,
+            true,
+            m,
+        );
         let mesh = b.build().unwrap();
         // Inscribed polygon area: n/2 sin(2 pi / n) r^2, times height.
         let n = segments as f32;

@@ -26,11 +26,38 @@ pub fn cassini() -> TargetMesh {
     let dark = b.material(Material::dark_grey());
 
     // Propulsion module (gold MLI) and electronics bus (12-sided, aluminium).
-    b.frustum(Vec3::new(0.0, 0.0, -2.0), Vec3::new(0.0, 0.0, 1.0), 0.75, 0.75, 96, 24, true, gold);
-    b.frustum(Vec3::new(0.0, 0.0, 1.0), Vec3::new(0.0, 0.0, 1.6), 1.1, 1.1, 12, 4, true, alu);
+    b.frustum(
+        Vec3::new(0.0, 0.0, -2.0),
+        Vec3::new(0.0, 0.0, 1.0),
+        0.75,
+        0.75,
+        96,
+        24,
+        true,
+        gold,
+    );
+    b.frustum(
+        Vec3::new(0.0, 0.0, 1.0),
+        Vec3::new(0.0, 0.0, 1.6),
+        1.1,
+        1.1,
+        12,
+        4,
+        true,
+        alu,
+    );
     // High-gain antenna: 4 m dish, focal length R^2 / (4 depth) = 1.82 m.
     let (dish_radius, dish_depth, dish_vertex_z) = (2.0, 0.55, 1.75);
-    b.frustum(Vec3::new(0.0, 0.0, 1.6), Vec3::new(0.0, 0.0, 1.8), 0.5, 0.5, 32, 1, false, alu);
+    b.frustum(
+        Vec3::new(0.0, 0.0, 1.6),
+        Vec3::new(0.0, 0.0, 1.8),
+        0.5,
+        0.5,
+        32,
+        1,
+        false,
+        alu,
+    );
     b.dish(
         Vec3::new(0.0, 0.0, dish_vertex_z),
         Vec3::Z,
@@ -43,7 +70,17 @@ pub fn cassini() -> TargetMesh {
         white,
     );
     let focus_z = dish_vertex_z + dish_radius * dish_radius / (4.0 * dish_depth);
-    b.dish(Vec3::new(0.0, 0.0, focus_z + 0.08), -Vec3::Z, 0.3, 0.06, 0.03, 6, 48, white, alu);
+    b.dish(
+        Vec3::new(0.0, 0.0, focus_z + 0.08),
+        -Vec3::Z,
+        0.3,
+        0.06,
+        0.03,
+        6,
+        48,
+        white,
+        alu,
+    );
     for k in 0..3 {
         let angle = TAU * k as f32 / 3.0 + 0.5;
         let foot_radius = 1.3;
@@ -52,11 +89,38 @@ pub fn cassini() -> TargetMesh {
             foot_radius * angle.sin(),
             dish_vertex_z + dish_depth * (foot_radius / dish_radius).powi(2),
         );
-        b.frustum(foot, Vec3::new(0.0, 0.0, focus_z + 0.05), 0.025, 0.025, 8, 1, false, alu);
+        b.frustum(
+            foot,
+            Vec3::new(0.0, 0.0, focus_z + 0.05),
+            0.025,
+            0.025,
+            8,
+            1,
+            false,
+            alu,
+        );
     }
     // Magnetometer boom along +x from the electronics bus, with a sensor canister.
-    b.frustum(Vec3::new(1.05, 0.0, 1.3), Vec3::new(6.0, 0.0, 1.3), 0.05, 0.05, 12, 8, false, silver);
-    b.frustum(Vec3::new(6.0, 0.0, 1.3), Vec3::new(6.35, 0.0, 1.3), 0.12, 0.12, 24, 1, true, white);
+    b.frustum(
+        Vec3::new(1.05, 0.0, 1.3),
+        Vec3::new(6.0, 0.0, 1.3),
+        0.05,
+        0.05,
+        12,
+        8,
+        false,
+        silver,
+    );
+    b.frustum(
+        Vec3::new(6.0, 0.0, 1.3),
+        Vec3::new(6.35, 0.0, 1.3),
+        0.12,
+        0.12,
+        24,
+        1,
+        true,
+        white,
+    );
     // Three RTGs on struts below the bus, tilted outward, each with eight radial fins.
     for k in 0..3 {
         let angle = TAU * k as f32 / 3.0 + 1.1;
@@ -64,7 +128,16 @@ pub fn cassini() -> TargetMesh {
         let base = radial * 1.05 + Vec3::new(0.0, 0.0, -1.2);
         let axis = (radial * 0.4 - Vec3::Z).normalize();
         let top = base + axis * 1.1;
-        b.frustum(radial * 0.7 + Vec3::new(0.0, 0.0, -1.2), base, 0.04, 0.04, 8, 1, false, alu);
+        b.frustum(
+            radial * 0.7 + Vec3::new(0.0, 0.0, -1.2),
+            base,
+            0.04,
+            0.04,
+            8,
+            1,
+            false,
+            alu,
+        );
         b.frustum(base, top, 0.2, 0.2, 48, 6, true, dark);
         let centre = (base + top) * 0.5;
         let fin_rotation = Quat::from_rotation_arc(Vec3::Z, axis);
@@ -82,11 +155,38 @@ pub fn cassini() -> TargetMesh {
         }
     }
     // Probe (conical heat shield with gold MLI back cover) on the -y side.
-    b.frustum(Vec3::new(0.0, -0.8, -0.6), Vec3::new(0.0, -1.3, -0.6), 1.3, 0.4, 96, 8, true, gold);
+    b.frustum(
+        Vec3::new(0.0, -0.8, -0.6),
+        Vec3::new(0.0, -1.3, -0.6),
+        1.3,
+        0.4,
+        96,
+        8,
+        true,
+        gold,
+    );
     // Twin main engines below the propulsion module (open nozzles).
     for x in [-0.35f32, 0.35] {
-        b.frustum(Vec3::new(x, 0.0, -2.0), Vec3::new(x, 0.0, -2.15), 0.08, 0.08, 24, 1, false, alu);
-        b.frustum(Vec3::new(x, 0.0, -2.15), Vec3::new(x, 0.0, -2.9), 0.1, 0.32, 48, 6, false, dark);
+        b.frustum(
+            Vec3::new(x, 0.0, -2.0),
+            Vec3::new(x, 0.0, -2.15),
+            0.08,
+            0.08,
+            24,
+            1,
+            false,
+            alu,
+        );
+        b.frustum(
+            Vec3::new(x, 0.0, -2.15),
+            Vec3::new(x, 0.0, -2.9),
+            0.1,
+            0.32,
+            48,
+            6,
+            false,
+            dark,
+        );
     }
     // Shift so the origin is near the middle of the stack (z from -2.9 to ~3.7).
     recentered(b, Vec3::new(0.0, 0.0, -0.4))
@@ -149,18 +249,46 @@ pub fn rosetta() -> TargetMesh {
         false,
         alu,
     );
-    b.dish(Vec3::new(bus_half.x + 0.5, 0.0, 0.3), hga_axis, 1.1, 0.3, 0.04, 24, 96, white, white);
+    b.dish(
+        Vec3::new(bus_half.x + 0.5, 0.0, 0.3),
+        hga_axis,
+        1.1,
+        0.3,
+        0.04,
+        24,
+        96,
+        white,
+        white,
+    );
     // Lander (gold box with three legs) on -x.
     let lander_centre = Vec3::new(-bus_half.x - 0.45, 0.0, -0.2);
     b.simple_box(lander_centre, Vec3::new(0.45, 0.5, 0.4), 0.1, gold);
     for k in 0..3 {
         let angle = TAU * k as f32 / 3.0;
         let foot = lander_centre + Vec3::new(-0.9, 0.7 * angle.cos(), 0.7 * angle.sin());
-        b.frustum(lander_centre + Vec3::new(-0.45, 0.0, 0.0), foot, 0.03, 0.03, 8, 1, false, alu);
+        b.frustum(
+            lander_centre + Vec3::new(-0.45, 0.0, 0.0),
+            foot,
+            0.03,
+            0.03,
+            8,
+            1,
+            false,
+            alu,
+        );
     }
     // Navigation cameras / star trackers on +z.
     for x in [-0.8f32, 0.8] {
-        b.frustum(Vec3::new(x, 0.5, bus_half.z), Vec3::new(x, 0.5, bus_half.z + 0.35), 0.1, 0.12, 24, 1, true, dark);
+        b.frustum(
+            Vec3::new(x, 0.5, bus_half.z),
+            Vec3::new(x, 0.5, bus_half.z + 0.35),
+            0.1,
+            0.12,
+            24,
+            1,
+            true,
+            dark,
+        );
     }
     recentered(b, Vec3::ZERO)
 }
@@ -176,19 +304,58 @@ pub fn starlink() -> TargetMesh {
     let dark = b.material(Material::dark_grey());
 
     let bus_half = Vec3::new(1.6, 0.8, 0.12);
-    b.oriented_box(Vec3::ZERO, bus_half, Quat::IDENTITY, 0.08, [alu, alu, alu, alu, silver, alu]);
+    b.oriented_box(
+        Vec3::ZERO,
+        bus_half,
+        Quat::IDENTITY,
+        0.08,
+        [alu, alu, alu, alu, silver, alu],
+    );
     // Four phased-array antenna tiles and two parabolic backhaul antennas underneath.
     for (x, y) in [(-0.8f32, -0.4f32), (-0.8, 0.4), (0.8, -0.4), (0.8, 0.4)] {
-        b.simple_box(Vec3::new(x, y, -bus_half.z - 0.02), Vec3::new(0.7, 0.33, 0.02), 0.05, white);
+        b.simple_box(
+            Vec3::new(x, y, -bus_half.z - 0.02),
+            Vec3::new(0.7, 0.33, 0.02),
+            0.05,
+            white,
+        );
     }
     for x in [-0.2f32, 0.2] {
-        b.dish(Vec3::new(x, 0.0, -bus_half.z - 0.04), -Vec3::Z, 0.15, 0.05, 0.01, 8, 32, white, alu);
+        b.dish(
+            Vec3::new(x, 0.0, -bus_half.z - 0.04),
+            -Vec3::Z,
+            0.15,
+            0.05,
+            0.01,
+            8,
+            32,
+            white,
+            alu,
+        );
     }
     // Hall thruster at -x.
-    b.frustum(Vec3::new(-bus_half.x, 0.0, 0.0), Vec3::new(-bus_half.x - 0.15, 0.0, 0.0), 0.07, 0.09, 24, 1, false, dark);
+    b.frustum(
+        Vec3::new(-bus_half.x, 0.0, 0.0),
+        Vec3::new(-bus_half.x - 0.15, 0.0, 0.0),
+        0.07,
+        0.09,
+        24,
+        1,
+        false,
+        dark,
+    );
     // Boom from the +x edge and the array, tilted 20 degrees about x, cells facing +z (up).
     let boom_end = Vec3::new(bus_half.x + 0.6, 0.0, 0.35);
-    b.frustum(Vec3::new(bus_half.x, 0.0, 0.0), boom_end, 0.05, 0.05, 12, 2, true, alu);
+    b.frustum(
+        Vec3::new(bus_half.x, 0.0, 0.0),
+        boom_end,
+        0.05,
+        0.05,
+        12,
+        2,
+        true,
+        alu,
+    );
     let (array_len, array_width) = (10.0, 2.8);
     let tilt = Quat::from_rotation_x(20f32.to_radians());
     let array_centre = boom_end + Vec3::new(array_len / 2.0, 0.0, 0.0);
@@ -212,7 +379,10 @@ pub fn starlink() -> TargetMesh {
         alu,
     );
     // Body origin halfway along the whole craft.
-    recentered(b, Vec3::new(-(bus_half.x + 0.6 + array_len - bus_half.x) / 2.0, 0.0, 0.0))
+    recentered(
+        b,
+        Vec3::new(-(bus_half.x + 0.6 + array_len - bus_half.x) / 2.0, 0.0, 0.0),
+    )
 }
 
 /// Builds the mesh translated by `offset`.
@@ -228,9 +398,11 @@ mod tests {
 
     #[test]
     fn targets_have_tens_of_thousands_of_triangles_and_plausible_size() {
-        for (mesh, min_radius, max_radius) in
-            [(cassini(), 3.0, 8.0), (rosetta(), 10.0, 15.0), (starlink(), 4.0, 8.0)]
-        {
+        for (mesh, min_radius, max_radius) in [
+            (cassini(), 3.0, 8.0),
+            (rosetta(), 10.0, 15.0),
+            (starlink(), 4.0, 8.0),
+        ] {
             let n = mesh.triangle_count();
             assert!((20_000..150_000).contains(&n), "{n}");
             let r = mesh.bounding_radius_m();

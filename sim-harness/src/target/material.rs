@@ -168,7 +168,9 @@ mod tests {
             1.0
         );
         assert_eq!(
-            Material::preset_for_name("SolarPanel").unwrap().cell_pitch_m,
+            Material::preset_for_name("SolarPanel")
+                .unwrap()
+                .cell_pitch_m,
             0.16
         );
         assert!(Material::preset_for_name("rubber").is_none());
