@@ -1,1 +1,923 @@
 //! Synchronizer: pairs camera frames with pose and Sun telemetry interpolated to the frame time.
+//!
+//! Two bounded, time-ordered buffers hold the telemetry: target pose (camera-from-target
+//! rotation + target origin in the camera frame, with a quality) and the AOCS Sun vector
+//! (servicer body frame, with a validity flag). For a frame time t, the samples on both
+//! sides of t are interpolated (quaternion slerp along the shorter arc, linear translation,
+//! linear Sun vector renormalised), and the Sun is carried into the camera frame through
+//! the camera mounting and into the target frame through the pose.
+//!
+//! Invariants:
+//! - Buffers never exceed `buffer_capacity`; when full the oldest sample is dropped and counted.
+//! - Sample times are strictly increasing: older or equal time tags are dropped and counted.
+//! - Malformed samples (NaN/Inf, non-unit beyond tolerance, flagged invalid, low quality) are
+//!   kept as *invalid markers*: a frame they bracket is rejected as invalid, and no NaN
+//!   value is ever stored or returned.
+//! - Every final answer for a frame is counted exactly once ([`SyncCounters::frames`]);
+//!   [`SyncError::AwaitingTelemetry`] is not final and not counted.
+//!
+//! Times are integer microseconds on the spacecraft clock.
+
+use glam::{DQuat, DVec3, DVec4};
+use std::collections::VecDeque;
+use std::fmt;
+
+/// A target pose sample from relative navigation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseSample {
+    pub time_us: u64,
+    /// Rotation taking target-body vectors to camera-frame vectors.
+    pub camera_from_target: DQuat,
+    /// Target body origin expressed in the camera frame, metres.
+    pub target_in_camera_m: DVec3,
+    /// Navigation quality in [0, 1], 1 best; below `min_pose_quality` the sample is invalid.
+    pub quality: f64,
+}
+
+/// An AOCS Sun-vector sample.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SunSample {
+    pub time_us: u64,
+    /// Unit vector from the servicer towards the Sun, servicer body frame.
+    pub sun_in_body: DVec3,
+    /// The AOCS validity flag.
+    pub valid: bool,
+}
+
+/// The two telemetry streams.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stream {
+    Pose,
+    Sun,
+}
+
+/// Why a stored sample (or an interpolation of samples) is unusable.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum InvalidReason {
+    /// The sender's validity flag was cleared.
+    FlaggedInvalid,
+    /// A component was NaN or infinite.
+    NonFinite,
+    /// The quaternion or Sun vector norm differs from 1 by more than the tolerance.
+    NonUnit { norm: f64 },
+    /// Pose quality below the configured minimum.
+    LowQuality { quality: f64 },
+    /// The two bracketing Sun vectors are (nearly) opposite: no meaningful interpolation.
+    SunInterpolationDegenerate,
+    /// The camera sits at the target origin: no view direction.
+    ZeroRange,
+}
+
+/// Why a sample was dropped on arrival (it is not stored).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SampleDropped {
+    /// Older than the newest buffered sample.
+    OutOfOrder { time_us: u64, newest_time_us: u64 },
+    /// Same time tag as the newest buffered sample.
+    Duplicate { time_us: u64 },
+}
+
+/// How an accepted sample was stored.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SampleStatus {
+    Valid,
+    /// Stored as an invalid marker: frames it brackets are rejected.
+    Invalid(InvalidReason),
+}
+
+/// What is missing when a frame cannot be bracketed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MissingDetail {
+    NoSamples,
+    /// The frame is older than the oldest buffered sample.
+    BeforeOldest {
+        oldest_time_us: u64,
+    },
+    /// The sample before the frame is more than `max_gap_us` earlier.
+    GapBefore {
+        gap_us: u64,
+    },
+    /// The sample after the frame is more than `max_gap_us` later.
+    GapAfter {
+        gap_us: u64,
+    },
+    /// No sample after the frame yet, and the caller chose not to wait.
+    NoSampleAfter {
+        newest_time_us: u64,
+    },
+}
+
+/// Why a frame got no telemetry.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SyncError {
+    /// Not final: the sample after the frame time has not arrived yet; retry later.
+    AwaitingTelemetry { stream: Stream },
+    Missing {
+        stream: Stream,
+        detail: MissingDetail,
+    },
+    /// The newest sample is more than `stale_after_us` older than the frame.
+    Stale { stream: Stream, age_us: u64 },
+    Invalid {
+        stream: Stream,
+        reason: InvalidReason,
+    },
+}
+
+impl SyncError {
+    /// False only for [`SyncError::AwaitingTelemetry`].
+    pub fn is_final(&self) -> bool {
+        !matches!(self, Self::AwaitingTelemetry { .. })
+    }
+}
+
+impl fmt::Display for SyncError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::AwaitingTelemetry { stream } => {
+                write!(
+                    f,
+                    "{stream:?} telemetry after the frame time not received yet"
+                )
+            }
+            Self::Missing { stream, detail } => {
+                write!(f, "{stream:?} telemetry missing: {detail:?}")
+            }
+            Self::Stale { stream, age_us } => {
+                write!(
+                    f,
+                    "{stream:?} telemetry stale: newest sample {age_us} us before the frame"
+                )
+            }
+            Self::Invalid { stream, reason } => {
+                write!(f, "{stream:?} telemetry invalid: {reason:?}")
+            }
+        }
+    }
+}
+
+impl std::error::Error for SyncError {}
+
+/// Whether a frame may wait for telemetry after its time tag.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WaitPolicy {
+    /// Answer [`SyncError::AwaitingTelemetry`] (uncounted) when the later sample is still due.
+    MayWait,
+    /// Final answer now: a missing later sample is [`MissingDetail::NoSampleAfter`].
+    NoWait,
+}
+
+/// Synchronizer settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SyncConfig {
+    /// Samples kept per stream.
+    pub buffer_capacity: usize,
+    /// Largest allowed distance from the frame time to the sample on either side.
+    pub max_gap_us: u64,
+    /// A frame later than the newest sample by more than this is rejected as stale.
+    pub stale_after_us: u64,
+    /// Allowed |norm - 1| of incoming quaternions and Sun vectors (then renormalised).
+    pub unit_norm_tolerance: f64,
+    /// Poses with a lower quality are invalid.
+    pub min_pose_quality: f64,
+    /// Camera mounting: rotation taking servicer-body vectors to camera-frame vectors.
+    pub camera_from_body: DQuat,
+}
+
+impl Default for SyncConfig {
+    fn default() -> Self {
+        Self {
+            buffer_capacity: 256,
+            max_gap_us: 2_000_000,
+            stale_after_us: 10_000_000,
+            unit_norm_tolerance: 1e-3,
+            min_pose_quality: 0.0,
+            camera_from_body: DQuat::IDENTITY,
+        }
+    }
+}
+
+/// A refused [`SyncConfig`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SyncConfigError {
+    BufferTooSmall { capacity: usize },
+    ZeroMaxGap,
+    BadTolerance { tolerance: f64 },
+    BadMinPoseQuality { quality: f64 },
+    BadMounting { norm: f64 },
+}
+
+impl fmt::Display for SyncConfigError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::BufferTooSmall { capacity } => {
+                write!(
+                    f,
+                    "telemetry buffer capacity {capacity} < 2 cannot bracket a frame"
+                )
+            }
+            Self::ZeroMaxGap => write!(f, "max_gap_us must be positive"),
+            Self::BadTolerance { tolerance } => {
+                write!(f, "unit-norm tolerance {tolerance} is not in (0, 0.5)")
+            }
+            Self::BadMinPoseQuality { quality } => {
+                write!(f, "minimum pose quality {quality} is not a finite number")
+            }
+            Self::BadMounting { norm } => write!(
+                f,
+                "camera mounting quaternion has norm {norm}, not a finite unit quaternion"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for SyncConfigError {}
+
+impl SyncConfig {
+    pub fn validate(&self) -> Result<(), SyncConfigError> {
+        if self.buffer_capacity < 2 {
+            return Err(SyncConfigError::BufferTooSmall {
+                capacity: self.buffer_capacity,
+            });
+        }
+        if self.max_gap_us == 0 {
+            return Err(SyncConfigError::ZeroMaxGap);
+        }
+        let tolerance = self.unit_norm_tolerance;
+        if !(tolerance > 0.0 && tolerance < 0.5) {
+            return Err(SyncConfigError::BadTolerance { tolerance });
+        }
+        if !self.min_pose_quality.is_finite() {
+            return Err(SyncConfigError::BadMinPoseQuality {
+                quality: self.min_pose_quality,
+            });
+        }
+        let norm = self.camera_from_body.length();
+        if !self.camera_from_body.is_finite() || (norm - 1.0).abs() > tolerance {
+            return Err(SyncConfigError::BadMounting { norm });
+        }
+        Ok(())
+    }
+}
+
+/// Telemetry at a frame time, in every frame the pipeline needs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SyncedTelemetry {
+    pub time_us: u64,
+    pub camera_from_target: DQuat,
+    pub target_in_camera_m: DVec3,
+    /// The lower quality of the bracketing samples.
+    pub pose_quality: f64,
+    /// Unit Sun vector in the servicer body, camera and target body frames.
+    pub sun_in_body: DVec3,
+    pub sun_in_camera: DVec3,
+    pub sun_in_target: DVec3,
+    /// Unit vector from the target origin to the camera, target body frame (the keyframe w).
+    pub view_in_target: DVec3,
+    /// Distance between camera and target origin, metres.
+    pub range_m: f64,
+}
+
+/// Per-stream sample counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct StreamCounters {
+    pub stored_valid: u64,
+    /// Stored as invalid markers (flag, NaN, non-unit, low quality).
+    pub stored_invalid: u64,
+    pub dropped_out_of_order: u64,
+    pub dropped_duplicate: u64,
+    /// Oldest samples dropped because the buffer was full.
+    pub evicted_oldest: u64,
+}
+
+/// Final outcomes of frame synchronisation.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FrameCounters {
+    pub synced: u64,
+    pub rejected_missing: u64,
+    pub rejected_stale: u64,
+    pub rejected_invalid: u64,
+}
+
+/// Health counters of the synchronizer.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SyncCounters {
+    pub pose: StreamCounters,
+    pub sun: StreamCounters,
+    pub frames: FrameCounters,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct PoseValue {
+    camera_from_target: DQuat,
+    target_in_camera_m: DVec3,
+    quality: f64,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Stored<T> {
+    time_us: u64,
+    value: Result<T, InvalidReason>,
+}
+
+/// The samples around a frame time.
+enum Bracket<T> {
+    Exact(T),
+    Between { before: T, after: T, alpha: f64 },
+}
+
+/// Buffers telemetry and answers frame-time queries.
+#[derive(Clone, Debug)]
+pub struct Synchronizer {
+    config: SyncConfig,
+    camera_from_body: DQuat,
+    poses: VecDeque<Stored<PoseValue>>,
+    suns: VecDeque<Stored<DVec3>>,
+    counters: SyncCounters,
+}
+
+impl Synchronizer {
+    pub fn new(config: SyncConfig) -> Result<Self, SyncConfigError> {
+        config.validate()?;
+        Ok(Self {
+            config,
+            camera_from_body: config.camera_from_body.normalize(),
+            poses: VecDeque::with_capacity(config.buffer_capacity),
+            suns: VecDeque::with_capacity(config.buffer_capacity),
+            counters: SyncCounters::default(),
+        })
+    }
+
+    pub fn config(&self) -> &SyncConfig {
+        &self.config
+    }
+
+    pub fn counters(&self) -> SyncCounters {
+        self.counters
+    }
+
+    pub fn reset_counters(&mut self) {
+        self.counters = SyncCounters::default();
+    }
+
+    /// Buffered samples (valid and invalid markers) per stream.
+    pub fn buffered(&self, stream: Stream) -> usize {
+        match stream {
+            Stream::Pose => self.poses.len(),
+            Stream::Sun => self.suns.len(),
+        }
+    }
+
+    /// Drops all buffered telemetry (counters are kept).
+    pub fn clear(&mut self) {
+        self.poses.clear();
+        self.suns.clear();
+    }
+
+    pub fn push_pose(&mut self, sample: PoseSample) -> Result<SampleStatus, SampleDropped> {
+        let value = self.check_pose(&sample);
+        push_ordered(
+            &mut self.poses,
+            &mut self.counters.pose,
+            self.config.buffer_capacity,
+            sample.time_us,
+            value,
+        )
+    }
+
+    pub fn push_sun(&mut self, sample: SunSample) -> Result<SampleStatus, SampleDropped> {
+        let value = self.check_sun(&sample);
+        push_ordered(
+            &mut self.suns,
+            &mut self.counters.sun,
+            self.config.buffer_capacity,
+            sample.time_us,
+            value,
+        )
+    }
+
+    fn check_pose(&self, sample: &PoseSample) -> Result<PoseValue, InvalidReason> {
+        let q = sample.camera_from_target;
+        if !q.is_finite() || !sample.target_in_camera_m.is_finite() || !sample.quality.is_finite() {
+            return Err(InvalidReason::NonFinite);
+        }
+        let norm = q.length();
+        if (norm - 1.0).abs() > self.config.unit_norm_tolerance {
+            return Err(InvalidReason::NonUnit { norm });
+        }
+        if sample.quality < self.config.min_pose_quality {
+            return Err(InvalidReason::LowQuality {
+                quality: sample.quality,
+            });
+        }
+        Ok(PoseValue {
+            camera_from_target: q / norm,
+            target_in_camera_m: sample.target_in_camera_m,
+            quality: sample.quality,
+        })
+    }
+
+    fn check_sun(&self, sample: &SunSample) -> Result<DVec3, InvalidReason> {
+        if !sample.valid {
+            return Err(InvalidReason::FlaggedInvalid);
+        }
+        if !sample.sun_in_body.is_finite() {
+            return Err(InvalidReason::NonFinite);
+        }
+        let norm = sample.sun_in_body.length();
+        if (norm - 1.0).abs() > self.config.unit_norm_tolerance {
+            return Err(InvalidReason::NonUnit { norm });
+        }
+        Ok(sample.sun_in_body / norm)
+    }
+
+    /// Telemetry interpolated to `frame_time_us`, or why there is none.
+    ///
+    /// Pose is checked before Sun; a final rejection of either stream wins over waiting.
+    pub fn synchronize(
+        &mut self,
+        frame_time_us: u64,
+        policy: WaitPolicy,
+    ) -> Result<SyncedTelemetry, SyncError> {
+        let result = self.resolve(frame_time_us, policy);
+        let frames = &mut self.counters.frames;
+        match &result {
+            Ok(_) => frames.synced += 1,
+            Err(SyncError::AwaitingTelemetry { .. }) => {}
+            Err(SyncError::Missing { .. }) => frames.rejected_missing += 1,
+            Err(SyncError::Stale { .. }) => frames.rejected_stale += 1,
+            Err(SyncError::Invalid { .. }) => frames.rejected_invalid += 1,
+        }
+        result
+    }
+
+    fn resolve(&self, t: u64, policy: WaitPolicy) -> Result<SyncedTelemetry, SyncError> {
+        let pose = bracket(&self.poses, t, Stream::Pose, &self.config, policy);
+        let sun = bracket(&self.suns, t, Stream::Sun, &self.config, policy);
+        let (pose, sun) = match (pose, sun) {
+            (Ok(p), Ok(s)) => (p, s),
+            (Err(e), _) if e.is_final() => return Err(e),
+            (_, Err(e)) if e.is_final() => return Err(e),
+            (Err(e), _) | (_, Err(e)) => return Err(e),
+        };
+
+        let (camera_from_target, target_in_camera_m, pose_quality) = match pose {
+            Bracket::Exact(p) => (p.camera_from_target, p.target_in_camera_m, p.quality),
+            Bracket::Between {
+                before,
+                after,
+                alpha,
+            } => (
+                slerp_shortest(before.camera_from_target, after.camera_from_target, alpha),
+                before
+                    .target_in_camera_m
+                    .lerp(after.target_in_camera_m, alpha),
+                before.quality.min(after.quality),
+            ),
+        };
+        let sun_in_body = match sun {
+            Bracket::Exact(s) => s,
+            Bracket::Between {
+                before,
+                after,
+                alpha,
+            } => {
+                let mixed = before.lerp(after, alpha);
+                // Opposite samples cancel; below this the direction is numerical noise.
+                if mixed.length() < 1e-6 {
+                    return Err(SyncError::Invalid {
+                        stream: Stream::Sun,
+                        reason: InvalidReason::SunInterpolationDegenerate,
+                    });
+                }
+                mixed.normalize()
+            }
+        };
+
+        let range_m = target_in_camera_m.length();
+        if range_m <= 1e-9 {
+            return Err(SyncError::Invalid {
+                stream: Stream::Pose,
+                reason: InvalidReason::ZeroRange,
+            });
+        }
+        let target_from_camera = camera_from_target.conjugate();
+        // Camera centre in the target frame is -R^T t; its direction is the view vector.
+        let view_in_target = (-(target_from_camera * target_in_camera_m) / range_m).normalize();
+        let sun_in_camera = (self.camera_from_body * sun_in_body).normalize();
+        let sun_in_target = (target_from_camera * sun_in_camera).normalize();
+        Ok(SyncedTelemetry {
+            time_us: t,
+            camera_from_target,
+            target_in_camera_m,
+            pose_quality,
+            sun_in_body,
+            sun_in_camera,
+            sun_in_target,
+            view_in_target,
+            range_m,
+        })
+    }
+}
+
+fn push_ordered<T>(
+    buffer: &mut VecDeque<Stored<T>>,
+    counters: &mut StreamCounters,
+    capacity: usize,
+    time_us: u64,
+    value: Result<T, InvalidReason>,
+) -> Result<SampleStatus, SampleDropped> {
+    if let Some(newest) = buffer.back() {
+        if time_us == newest.time_us {
+            counters.dropped_duplicate += 1;
+            return Err(SampleDropped::Duplicate { time_us });
+        }
+        if time_us < newest.time_us {
+            counters.dropped_out_of_order += 1;
+            return Err(SampleDropped::OutOfOrder {
+                time_us,
+                newest_time_us: newest.time_us,
+            });
+        }
+    }
+    if buffer.len() >= capacity {
+        buffer.pop_front();
+        counters.evicted_oldest += 1;
+    }
+    let status = match &value {
+        Ok(_) => {
+            counters.stored_valid += 1;
+            SampleStatus::Valid
+        }
+        Err(reason) => {
+            counters.stored_invalid += 1;
+            SampleStatus::Invalid(*reason)
+        }
+    };
+    buffer.push_back(Stored { time_us, value });
+    Ok(status)
+}
+
+fn bracket<T: Copy>(
+    buffer: &VecDeque<Stored<T>>,
+    t: u64,
+    stream: Stream,
+    config: &SyncConfig,
+    policy: WaitPolicy,
+) -> Result<Bracket<T>, SyncError> {
+    let usable = |s: &Stored<T>| {
+        s.value
+            .map_err(|reason| SyncError::Invalid { stream, reason })
+    };
+    let missing = |detail| SyncError::Missing { stream, detail };
+    let (Some(oldest), Some(newest)) = (buffer.front(), buffer.back()) else {
+        return Err(missing(MissingDetail::NoSamples));
+    };
+    let index = buffer.partition_point(|s| s.time_us < t);
+    if let Some(exact) = buffer.get(index).filter(|s| s.time_us == t) {
+        return usable(exact).map(Bracket::Exact);
+    }
+    if index == 0 {
+        return Err(missing(MissingDetail::BeforeOldest {
+            oldest_time_us: oldest.time_us,
+        }));
+    }
+    if index == buffer.len() {
+        let age_us = t - newest.time_us;
+        if age_us > config.stale_after_us {
+            return Err(SyncError::Stale { stream, age_us });
+        }
+        return Err(match policy {
+            WaitPolicy::MayWait => SyncError::AwaitingTelemetry { stream },
+            WaitPolicy::NoWait => missing(MissingDetail::NoSampleAfter {
+                newest_time_us: newest.time_us,
+            }),
+        });
+    }
+    let before = &buffer[index - 1];
+    let after = &buffer[index];
+    let gap_before = t - before.time_us;
+    let gap_after = after.time_us - t;
+    if gap_before > config.max_gap_us {
+        return Err(missing(MissingDetail::GapBefore { gap_us: gap_before }));
+    }
+    if gap_after > config.max_gap_us {
+        return Err(missing(MissingDetail::GapAfter { gap_us: gap_after }));
+    }
+    let alpha = gap_before as f64 / (after.time_us - before.time_us) as f64;
+    Ok(Bracket::Between {
+        before: usable(before)?,
+        after: usable(after)?,
+        alpha,
+    })
+}
+
+/// Spherical linear interpolation of unit quaternions along the shorter arc.
+///
+/// q and -q are the same rotation; flipping `end` into `start`'s hemisphere makes the
+/// path the short one. The arc angle comes from atan2 of the chord lengths, which stays
+/// accurate for tiny angles where acos(dot) loses half the digits; only when the angle
+/// underflows does linear interpolation take over.
+pub fn slerp_shortest(start: DQuat, end: DQuat, alpha: f64) -> DQuat {
+    let a = DVec4::from(start);
+    let mut b = DVec4::from(end);
+    if a.dot(b) < 0.0 {
+        b = -b;
+    }
+    let theta = 2.0 * (a - b).length().atan2((a + b).length());
+    let sin_theta = theta.sin();
+    let mixed = if sin_theta < 1e-300 {
+        a * (1.0 - alpha) + b * alpha
+    } else {
+        a * (((1.0 - alpha) * theta).sin() / sin_theta) + b * ((alpha * theta).sin() / sin_theta)
+    };
+    DQuat::from_vec4(mixed.normalize())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(time_us: u64) -> PoseSample {
+        PoseSample {
+            time_us,
+            camera_from_target: DQuat::IDENTITY,
+            target_in_camera_m: DVec3::new(0.0, 0.0, 10.0),
+            quality: 1.0,
+        }
+    }
+
+    fn sun(time_us: u64) -> SunSample {
+        SunSample {
+            time_us,
+            sun_in_body: DVec3::X,
+            valid: true,
+        }
+    }
+
+    fn sync() -> Synchronizer {
+        Synchronizer::new(SyncConfig {
+            buffer_capacity: 4,
+            max_gap_us: 1_000,
+            stale_after_us: 5_000,
+            ..SyncConfig::default()
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn config_validation_names_the_problem() {
+        let bad = |f: fn(&mut SyncConfig)| {
+            let mut c = SyncConfig::default();
+            f(&mut c);
+            c.validate().unwrap_err()
+        };
+        assert_eq!(
+            bad(|c| c.buffer_capacity = 1),
+            SyncConfigError::BufferTooSmall { capacity: 1 }
+        );
+        assert_eq!(bad(|c| c.max_gap_us = 0), SyncConfigError::ZeroMaxGap);
+        assert!(matches!(
+            bad(|c| c.unit_norm_tolerance = f64::NAN),
+            SyncConfigError::BadTolerance { .. }
+        ));
+        assert!(matches!(
+            bad(|c| c.camera_from_body = DQuat::from_xyzw(0.0, 0.0, 0.0, 2.0)),
+            SyncConfigError::BadMounting { .. }
+        ));
+    }
+
+    #[test]
+    fn exact_and_interpolated_samples() {
+        let mut s = sync();
+        s.push_pose(pose(1_000)).unwrap();
+        s.push_sun(sun(1_000)).unwrap();
+        let mut p = pose(2_000);
+        p.camera_from_target = DQuat::from_rotation_z(1.0);
+        p.target_in_camera_m = DVec3::new(0.0, 0.0, 20.0);
+        p.quality = 0.5;
+        s.push_pose(p).unwrap();
+        s.push_sun(SunSample {
+            sun_in_body: DVec3::Y,
+            ..sun(2_000)
+        })
+        .unwrap();
+        let exact = s.synchronize(1_000, WaitPolicy::NoWait).unwrap();
+        assert_eq!(exact.camera_from_target, DQuat::IDENTITY);
+        assert_eq!(exact.view_in_target, DVec3::new(0.0, 0.0, -1.0));
+        let mid = s.synchronize(1_500, WaitPolicy::NoWait).unwrap();
+        let expected = DQuat::from_rotation_z(0.5);
+        assert!(mid.camera_from_target.dot(expected).abs() > 1.0 - 1e-12);
+        assert!((mid.target_in_camera_m.z - 15.0).abs() < 1e-12);
+        assert_eq!(mid.pose_quality, 0.5);
+        let half = std::f64::consts::FRAC_1_SQRT_2;
+        assert!((mid.sun_in_body - DVec3::new(half, half, 0.0)).length() < 1e-12);
+        assert_eq!(s.counters().frames.synced, 2);
+    }
+
+    #[test]
+    fn each_rejection_kind_is_reported_and_counted() {
+        let mut s = sync();
+        assert_eq!(
+            s.synchronize(10, WaitPolicy::MayWait),
+            Err(SyncError::Missing {
+                stream: Stream::Pose,
+                detail: MissingDetail::NoSamples
+            })
+        );
+        for t in [1_000, 1_500, 4_000] {
+            s.push_pose(pose(t)).unwrap();
+            s.push_sun(sun(t)).unwrap();
+        }
+        // Before the oldest sample.
+        assert!(matches!(
+            s.synchronize(900, WaitPolicy::MayWait),
+            Err(SyncError::Missing {
+                detail: MissingDetail::BeforeOldest {
+                    oldest_time_us: 1_000
+                },
+                ..
+            })
+        ));
+        // 2_600 us gap between 1_500 and 4_000: both sides more than 1_000 away at 2_700.
+        assert!(matches!(
+            s.synchronize(2_700, WaitPolicy::MayWait),
+            Err(SyncError::Missing {
+                detail: MissingDetail::GapBefore { gap_us: 1_200 },
+                ..
+            })
+        ));
+        assert!(matches!(
+            s.synchronize(2_400, WaitPolicy::MayWait),
+            Err(SyncError::Missing {
+                detail: MissingDetail::GapAfter { gap_us: 1_600 },
+                ..
+            })
+        ));
+        // After the newest: wait, or give up, or stale.
+        assert_eq!(
+            s.synchronize(4_500, WaitPolicy::MayWait),
+            Err(SyncError::AwaitingTelemetry {
+                stream: Stream::Pose
+            })
+        );
+        assert!(matches!(
+            s.synchronize(4_500, WaitPolicy::NoWait),
+            Err(SyncError::Missing {
+                detail: MissingDetail::NoSampleAfter {
+                    newest_time_us: 4_000
+                },
+                ..
+            })
+        ));
+        assert_eq!(
+            s.synchronize(9_001, WaitPolicy::MayWait),
+            Err(SyncError::Stale {
+                stream: Stream::Pose,
+                age_us: 5_001
+            })
+        );
+        // Invalid Sun flag at 4_800 brackets a frame at 4_500.
+        s.push_pose(pose(5_000)).unwrap();
+        assert_eq!(
+            s.push_sun(SunSample {
+                valid: false,
+                ..sun(4_800)
+            }),
+            Ok(SampleStatus::Invalid(InvalidReason::FlaggedInvalid))
+        );
+        assert_eq!(
+            s.synchronize(4_500, WaitPolicy::MayWait),
+            Err(SyncError::Invalid {
+                stream: Stream::Sun,
+                reason: InvalidReason::FlaggedInvalid
+            })
+        );
+        let c = s.counters().frames;
+        assert_eq!(
+            (
+                c.synced,
+                c.rejected_missing,
+                c.rejected_stale,
+                c.rejected_invalid
+            ),
+            (0, 5, 1, 1)
+        );
+    }
+
+    #[test]
+    fn malformed_samples_become_invalid_markers_and_never_leak_nan() {
+        let mut s = sync();
+        let mut nan_pose = pose(1_000);
+        nan_pose.camera_from_target = DQuat::from_xyzw(f64::NAN, 0.0, 0.0, 1.0);
+        assert_eq!(
+            s.push_pose(nan_pose),
+            Ok(SampleStatus::Invalid(InvalidReason::NonFinite))
+        );
+        let mut long = pose(2_000);
+        long.camera_from_target = DQuat::from_xyzw(0.0, 0.0, 0.0, 1.01);
+        assert!(matches!(
+            s.push_pose(long),
+            Ok(SampleStatus::Invalid(InvalidReason::NonUnit { .. }))
+        ));
+        assert!(matches!(
+            s.push_sun(SunSample {
+                sun_in_body: DVec3::new(0.0, 0.5, 0.0),
+                ..sun(1_000)
+            }),
+            Ok(SampleStatus::Invalid(InvalidReason::NonUnit { .. }))
+        ));
+        s.push_sun(sun(2_000)).unwrap();
+        assert!(matches!(
+            s.synchronize(1_500, WaitPolicy::NoWait),
+            Err(SyncError::Invalid {
+                stream: Stream::Pose,
+                reason: InvalidReason::NonFinite
+            })
+        ));
+        // Slightly off-unit inside the tolerance is renormalised.
+        let mut near = pose(3_000);
+        near.camera_from_target = DQuat::from_xyzw(0.0, 0.0, 0.0, 1.0005);
+        assert_eq!(s.push_pose(near), Ok(SampleStatus::Valid));
+        s.push_sun(sun(3_000)).unwrap();
+        let out = s.synchronize(3_000, WaitPolicy::NoWait).unwrap();
+        assert!((out.camera_from_target.length() - 1.0).abs() < 1e-15);
+        assert_eq!(s.counters().pose.stored_invalid, 2);
+        assert_eq!(s.counters().sun.stored_invalid, 1);
+    }
+
+    #[test]
+    fn out_of_order_duplicates_and_overflow_are_counted() {
+        let mut s = sync();
+        for t in [10, 20, 30] {
+            s.push_sun(sun(t)).unwrap();
+        }
+        assert_eq!(
+            s.push_sun(sun(30)),
+            Err(SampleDropped::Duplicate { time_us: 30 })
+        );
+        assert_eq!(
+            s.push_sun(sun(25)),
+            Err(SampleDropped::OutOfOrder {
+                time_us: 25,
+                newest_time_us: 30
+            })
+        );
+        for t in [40, 50, 60] {
+            s.push_sun(sun(t)).unwrap();
+        }
+        assert_eq!(s.buffered(Stream::Sun), 4);
+        let c = s.counters().sun;
+        assert_eq!(
+            (
+                c.stored_valid,
+                c.dropped_duplicate,
+                c.dropped_out_of_order,
+                c.evicted_oldest
+            ),
+            (6, 1, 1, 2)
+        );
+        s.reset_counters();
+        assert_eq!(s.counters(), SyncCounters::default());
+    }
+
+    #[test]
+    fn degenerate_geometry_is_invalid() {
+        let mut s = sync();
+        let mut at_origin = pose(0);
+        at_origin.target_in_camera_m = DVec3::ZERO;
+        s.push_pose(at_origin).unwrap();
+        s.push_sun(sun(0)).unwrap();
+        assert!(matches!(
+            s.synchronize(0, WaitPolicy::NoWait),
+            Err(SyncError::Invalid {
+                reason: InvalidReason::ZeroRange,
+                ..
+            })
+        ));
+        s.push_pose(pose(1_000)).unwrap();
+        s.push_pose(pose(2_000)).unwrap();
+        s.push_sun(SunSample {
+            sun_in_body: -DVec3::X,
+            ..sun(2_000)
+        })
+        .unwrap();
+        assert!(matches!(
+            s.synchronize(1_000, WaitPolicy::NoWait),
+            Err(SyncError::Invalid {
+                stream: Stream::Sun,
+                reason: InvalidReason::SunInterpolationDegenerate
+            })
+        ));
+    }
+
+    #[test]
+    fn slerp_takes_the_short_way() {
+        let a = DQuat::from_rotation_z(0.2);
+        let b = DQuat::from_rotation_z(0.6);
+        let mid = slerp_shortest(a, -b, 0.5);
+        assert!(mid.dot(DQuat::from_rotation_z(0.4)).abs() > 1.0 - 1e-12);
+        assert_eq!(slerp_shortest(a, b, 0.0), a);
+        assert!(slerp_shortest(a, b, 1.0).dot(b) > 1.0 - 1e-15);
+    }
+}
