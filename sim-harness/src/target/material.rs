@@ -21,6 +21,9 @@ pub struct Material {
     pub cell_pitch_m: f32,
 }
 
+/// Constructor of a preset material.
+type PresetMaker = fn() -> Material;
+
 /// Lowest roughness allowed: a perfectly smooth GGX lobe is a delta the tracer cannot sample.
 pub const MIN_ROUGHNESS: f32 = 0.02;
 
@@ -119,7 +122,7 @@ impl Material {
     /// The preset whose name (or a known alias) occurs in `name`, if any ("Gold_MLI_2" -> gold MLI).
     pub fn preset_for_name(name: &str) -> Option<Material> {
         let lower = name.to_ascii_lowercase();
-        let presets: [(&[&str], fn() -> Material); 5] = [
+        let presets: [(&[&str], PresetMaker); 5] = [
             (&["gold", "kapton"], Material::gold_mli),
             (&["silver", "mli"], Material::silver_mli),
             (&["solar", "cell"], Material::solar_cell),
