@@ -309,3 +309,168 @@ pub fn blend_tile_backward(
         records[j * stride..(j + 1) * stride].copy_from_slice(&acc);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const NC: usize = 2;
+
+    fn tile() -> PixelRect {
+        PixelRect {
+            x0: 16,
+            y0: 32,
+            x1: 32,
+            y1: 48,
+        }
+    }
+
+    /// Five wide splats, each clipped by its rectangle to a few pixels where its alpha is
+    /// far above 1/255, stacked so that the central pixels stop early (hard mode):
+    /// T = 0.05, 2.5e-3, 1.25e-4 after three, and the fourth (raw alpha 0.9) would take
+    /// it to 1.25e-5 < 1e-4.
+    fn splats() -> (Vec<Splat>, Vec<f32>) {
+        let rect = |x0, y0, x1, y1| PixelRect { x0, y0, x1, y1 };
+        let s = |mx: f32, my: f32, o: f32, z: f32, r: PixelRect| Splat {
+            mean_px: [mx, my],
+            conic: [0.004, 0.001, 0.006],
+            opacity: o,
+            depth: z,
+            rect: r,
+        };
+        let splats = vec![
+            s(20.0, 36.0, 0.96, 1.0, rect(18, 34, 24, 40)),
+            s(22.0, 37.0, 0.96, 1.5, rect(20, 35, 26, 41)),
+            s(21.0, 38.0, 0.96, 2.0, rect(19, 36, 25, 42)),
+            s(23.0, 36.5, 0.9, 2.5, rect(17, 33, 27, 43)),
+            s(20.5, 39.0, 0.6, 3.0, rect(16, 32, 30, 46)),
+        ];
+        let channels = vec![0.9, 0.1, 0.2, 0.7, 0.5, 0.5, 0.3, 0.8, 0.6, 0.4];
+        (splats, channels)
+    }
+
+    fn render_tile(splats: &[Splat], channels: &[f32]) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<u32>) {
+        let mut color = vec![0.0; TILE_PIXELS * NC];
+        let mut depth = vec![0.0; TILE_PIXELS];
+        let mut trans = vec![0.0; TILE_PIXELS];
+        let mut last = vec![0; TILE_PIXELS];
+        blend_tile_forward(
+            &tile(),
+            &[0, 1, 2, 3, 4],
+            splats,
+            channels,
+            NC,
+            &[0.25, 0.75],
+            AlphaMode { smooth: false },
+            TileForwardOut {
+                color: &mut color,
+                depth: &mut depth,
+                transmittance: &mut trans,
+                last: &mut last,
+            },
+        );
+        (color, depth, trans, last)
+    }
+
+    /// Loss weights in image layout for an image 48 wide, 48 high (the tile is inside).
+    fn weights() -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let mut state = 99u32;
+        let mut next = || {
+            state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+            (state >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+        };
+        let n = 48 * 48;
+        let c: Vec<f32> = (0..n * NC).map(|_| next()).collect();
+        let a: Vec<f32> = (0..n).map(|_| next()).collect();
+        let d: Vec<f32> = (0..n).map(|_| next()).collect();
+        (c, a, d)
+    }
+
+    fn loss(splats: &[Splat], channels: &[f32]) -> f64 {
+        let (wc, wa, wd) = weights();
+        let (color, depth, trans, _) = render_tile(splats, channels);
+        let t = tile();
+        let mut sum = 0.0f64;
+        for y in t.y0..t.y1 {
+            for x in t.x0..t.x1 {
+                let p = ((y - t.y0) * TILE_PX + (x - t.x0)) as usize;
+                let pix = (y * 48 + x) as usize;
+                for k in 0..NC {
+                    sum += (wc[pix * NC + k] * color[p * NC + k]) as f64;
+                }
+                sum += (wa[pix] * (1.0 - trans[p])) as f64 + (wd[pix] * depth[p]) as f64;
+            }
+        }
+        sum
+    }
+
+    /// Hard mode with the early stop active: backward matches central differences of
+    /// every splat quantity, and the stopped splats get exactly zero. The rectangles keep
+    /// every kept alpha far from 1/255 and the stop margins are large, so steps of 1e-3
+    /// (relative) never change which splats a pixel keeps. Tolerance 1e-2 relative plus
+    /// 1e-3 absolute covers f32 noise of the ~1e-6 loss rounding over 2h.
+    #[test]
+    fn hard_mode_backward_matches_finite_differences_with_early_stop() {
+        let (splats, channels) = splats();
+        let (_, _, trans, last) = render_tile(&splats, &channels);
+        // The stack really stops early in some pixels and not in others.
+        assert!(trans.iter().any(|&t| t < 2e-4 && t > 1e-4));
+        assert!(last.iter().any(|&l| l == 5));
+        let (wc, wa, wd) = weights();
+        let mut records = vec![f32::NAN; 5 * (REC_CHANNELS + NC)];
+        blend_tile_backward(
+            &tile(),
+            &[0, 1, 2, 3, 4],
+            &splats,
+            &channels,
+            NC,
+            &[0.25, 0.75],
+            AlphaMode { smooth: false },
+            TileForwardState {
+                transmittance: &trans,
+                last: &last,
+            },
+            &PixelGradsView {
+                width: 48,
+                d_color: &wc,
+                d_alpha: Some(&wa),
+                d_depth: Some(&wd),
+            },
+            &mut records,
+        );
+        let stride = REC_CHANNELS + NC;
+        for i in 0..5 {
+            let rec = &records[i * stride..(i + 1) * stride];
+            let mut check =
+                |name: &str, an: f32, bump: &dyn Fn(&mut Vec<Splat>, &mut Vec<f32>, f32)| {
+                    let h = 1e-3f32;
+                    let (mut sp, mut ch) = (splats.clone(), channels.clone());
+                    bump(&mut sp, &mut ch, h);
+                    let plus = loss(&sp, &ch);
+                    let (mut sp, mut ch) = (splats.clone(), channels.clone());
+                    bump(&mut sp, &mut ch, -h);
+                    let minus = loss(&sp, &ch);
+                    let fd = (plus - minus) / (2.0 * h as f64);
+                    let tol = 1e-3 + 1e-2 * fd.abs().max(an.abs() as f64);
+                    assert!(
+                        (fd - an as f64).abs() < tol,
+                        "splat {i} {name}: fd {fd} analytic {an}"
+                    );
+                };
+            check("mean x", rec[REC_MEAN_X], &|s, _, h| s[i].mean_px[0] += h);
+            check("mean y", rec[REC_MEAN_Y], &|s, _, h| s[i].mean_px[1] += h);
+            // Conic entries are ~5e-3: perturb them relatively.
+            for k in 0..3 {
+                let an = rec[REC_CONIC + k] * 1e-3;
+                check("conic", an, &|s, _, h| s[i].conic[k] += h * 1e-3);
+            }
+            check("opacity", rec[REC_OPACITY], &|s, _, h| s[i].opacity += h);
+            check("depth", rec[REC_DEPTH], &|s, _, h| s[i].depth += h);
+            for k in 0..NC {
+                check("channel", rec[REC_CHANNELS + k], &|_, c, h| {
+                    c[i * NC + k] += h
+                });
+            }
+        }
+    }
+}
