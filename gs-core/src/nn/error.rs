@@ -18,6 +18,9 @@ pub enum NnError {
     NonFinite { what: &'static str, index: usize },
     /// A Gaussian index pointed past the end of the parameter arrays.
     Index { index: usize, len: usize },
+    /// A geometric quantity had no defined value (a Gaussian at the camera centre, a zero
+    /// Sun vector); `index` is the Gaussian's index where there is one.
+    Degenerate { what: &'static str, index: usize },
 }
 
 impl std::fmt::Display for NnError {
@@ -30,10 +33,13 @@ impl std::fmt::Display for NnError {
             } => write!(f, "{what}: expected {expected} values, got {got}"),
             NnError::Config(msg) => write!(f, "invalid network configuration: {msg}"),
             NnError::NonFinite { what, index } => {
-                write!(f, "{what}: non-finite value at flat index {index}")
+                write!(f, "{what}: non-finite value at index {index}")
             }
             NnError::Index { index, len } => {
                 write!(f, "Gaussian index {index} out of range (model has {len})")
+            }
+            NnError::Degenerate { what, index } => {
+                write!(f, "{what} is undefined (index {index})")
             }
         }
     }

@@ -1,0 +1,225 @@
+//! The appearance network Phi of the paper: per-Gaussian colour from the Gaussian's
+//! appearance feature, the Sun direction and the viewing direction.
+//!
+//! Network: input -> 3 x 256 ReLU -> 3 (RGB through a sigmoid), PyTorch-default init.
+//! Input row of Gaussian `i` for image `j` (width `feature_dim + 2 * 3 * 2L`):
+//! `[f_i (feature_dim) | gamma_L(sun_j) (6L) | gamma_L(view_ij) (6L)]`, with
+//! `view_ij = (camera_centre_j - mu_i) / |camera_centre_j - mu_i|`, the unit vector from the
+//! Gaussian to the camera. Means, camera centre and Sun direction must be in one frame (the
+//! target body frame); the Sun direction is normalised here.
+//!
+//! Rows are assembled only for the listed Gaussians (e.g. those that survived culling), in
+//! list order; [`AppearanceNet::scatter_input_grad`] routes the input gradient back to the
+//! features and, through the view direction, to the means. The Sun direction is data, so it
+//! gets no gradient.
+
+use rayon::prelude::*;
+
+use super::encoding::PositionalEncoding;
+use super::error::{check_finite, check_len, NnError};
+use super::gather::{check_indices, check_rows_finite, rows_of, unit_vector};
+use super::mlp::{HiddenActivation, Init, Mlp};
+
+/// Hidden widths of Phi (paper: 3 x 256-D hidden layers).
+pub const APPEARANCE_HIDDEN: [usize; 3] = [256, 256, 256];
+
+/// RGB.
+pub const APPEARANCE_OUTPUT: usize = 3;
+
+/// Phi with its encoding and the feature width it expects.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AppearanceNet {
+    /// The network; its flat `params()` is one optimiser group.
+    pub mlp: Mlp,
+    encoding: PositionalEncoding,
+    feature_dim: usize,
+}
+
+/// Unit vector from `mean` to `camera_centre` and the distance, in f32.
+fn view_direction(mean: &[f32], camera_centre: [f32; 3]) -> ([f32; 3], f32) {
+    let d = [
+        camera_centre[0] - mean[0],
+        camera_centre[1] - mean[1],
+        camera_centre[2] - mean[2],
+    ];
+    let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    ([d[0] / r, d[1] / r, d[2] / r], r)
+}
+
+impl AppearanceNet {
+    /// A fresh Phi for features of `feature_dim` values (72 in the paper).
+    pub fn new(
+        feature_dim: usize,
+        encoding: PositionalEncoding,
+        seed: u64,
+    ) -> Result<Self, NnError> {
+        if feature_dim == 0 {
+            return Err(NnError::Config(
+                "appearance feature width must be positive".into(),
+            ));
+        }
+        let widths = Self::widths_for(feature_dim, encoding);
+        let mlp = Mlp::new(
+            &widths,
+            HiddenActivation::Relu,
+            Init::TorchLinearDefault,
+            seed,
+        )?;
+        Ok(Self {
+            mlp,
+            encoding,
+            feature_dim,
+        })
+    }
+
+    /// Wraps a loaded network, checking that its shape is Phi's for these settings.
+    pub fn from_mlp(
+        mlp: Mlp,
+        feature_dim: usize,
+        encoding: PositionalEncoding,
+    ) -> Result<Self, NnError> {
+        let widths = Self::widths_for(feature_dim, encoding);
+        if mlp.widths() != widths || mlp.hidden_activation() != HiddenActivation::Relu {
+            return Err(NnError::Config(format!(
+                "appearance network must be {widths:?} with ReLU, got {:?} with {:?}",
+                mlp.widths(),
+                mlp.hidden_activation()
+            )));
+        }
+        Ok(Self {
+            mlp,
+            encoding,
+            feature_dim,
+        })
+    }
+
+    fn widths_for(feature_dim: usize, encoding: PositionalEncoding) -> Vec<usize> {
+        let mut widths = vec![feature_dim + 2 * encoding.width(3)];
+        widths.extend(APPEARANCE_HIDDEN);
+        widths.push(APPEARANCE_OUTPUT);
+        widths
+    }
+
+    pub fn feature_dim(&self) -> usize {
+        self.feature_dim
+    }
+
+    pub fn encoding(&self) -> PositionalEncoding {
+        self.encoding
+    }
+
+    /// Values per input row: `feature_dim + 12 L`.
+    pub fn input_width(&self) -> usize {
+        self.mlp.input_width()
+    }
+
+    /// Fills `input` (resized to `gaussians.len() x input_width()`) with one row per listed
+    /// Gaussian. `features` is the model's `count x feature_dim` group, `means` its
+    /// `count x 3` group.
+    pub fn assemble_input(
+        &self,
+        gaussians: &[u32],
+        features: &[f32],
+        means: &[f32],
+        sun_dir: [f32; 3],
+        camera_centre: [f32; 3],
+        input: &mut Vec<f32>,
+    ) -> Result<(), NnError> {
+        let count = rows_of("appearance features", features, self.feature_dim)?;
+        check_len("Gaussian means", means.len(), count * 3)?;
+        check_indices(gaussians, count)?;
+        check_rows_finite("appearance feature", features, self.feature_dim, gaussians)?;
+        check_rows_finite("Gaussian mean", means, 3, gaussians)?;
+        let sun = unit_vector("Sun direction", sun_dir)?;
+        check_finite("camera centre", &camera_centre)?;
+        for &g in gaussians {
+            let (_, r) = view_direction(&means[g as usize * 3..g as usize * 3 + 3], camera_centre);
+            if !(r > 0.0 && r.is_finite()) {
+                return Err(NnError::Degenerate {
+                    what: "view direction (Gaussian at the camera centre)",
+                    index: g as usize,
+                });
+            }
+        }
+
+        let width = self.input_width();
+        let f_dim = self.feature_dim;
+        let enc_width = self.encoding.width(3);
+        let mut sun_code = vec![0.0f32; enc_width];
+        self.encoding.encode_unchecked(&sun, &mut sun_code);
+        input.clear();
+        input.resize(gaussians.len() * width, 0.0);
+        input
+            .par_chunks_mut(width)
+            .zip(gaussians.par_iter())
+            .for_each(|(row, &g)| {
+                let g = g as usize;
+                row[..f_dim].copy_from_slice(&features[g * f_dim..(g + 1) * f_dim]);
+                row[f_dim..f_dim + enc_width].copy_from_slice(&sun_code);
+                let (view, _) = view_direction(&means[g * 3..g * 3 + 3], camera_centre);
+                self.encoding
+                    .encode_unchecked(&view, &mut row[f_dim + enc_width..]);
+            });
+        Ok(())
+    }
+
+    /// Adds the gradient of the assembled input (`d_input`, `gaussians.len() x input_width()`)
+    /// into `d_features` (`count x feature_dim`) and, through the view direction, into
+    /// `d_means` (`count x 3`). Repeated indices accumulate. Nothing is written on error.
+    pub fn scatter_input_grad(
+        &self,
+        gaussians: &[u32],
+        means: &[f32],
+        camera_centre: [f32; 3],
+        d_input: &[f32],
+        d_features: &mut [f32],
+        d_means: &mut [f32],
+    ) -> Result<(), NnError> {
+        let count = rows_of("appearance feature gradient", d_features, self.feature_dim)?;
+        check_len("Gaussian means", means.len(), count * 3)?;
+        check_len("Gaussian mean gradient", d_means.len(), count * 3)?;
+        let width = self.input_width();
+        check_len(
+            "appearance input gradient",
+            d_input.len(),
+            gaussians.len() * width,
+        )?;
+        check_indices(gaussians, count)?;
+        check_finite("appearance input gradient", d_input)?;
+        check_rows_finite("Gaussian mean", means, 3, gaussians)?;
+        check_finite("camera centre", &camera_centre)?;
+
+        let f_dim = self.feature_dim;
+        let view_start = f_dim + self.encoding.width(3);
+        // Per-row mean gradients in parallel, then a sequential scatter (fixed order).
+        let d_mean_rows: Vec<[f32; 3]> = d_input
+            .par_chunks(width)
+            .zip(gaussians.par_iter())
+            .map(|(row, &g)| {
+                let g = g as usize;
+                let (view, r) = view_direction(&means[g * 3..g * 3 + 3], camera_centre);
+                let mut d_view = [0.0f32; 3];
+                self.encoding
+                    .backward_unchecked(&view, &row[view_start..], &mut d_view);
+                // d view / d mean = -(I - v v^T) / r.
+                let along = d_view[0] * view[0] + d_view[1] * view[1] + d_view[2] * view[2];
+                [
+                    -(d_view[0] - along * view[0]) / r,
+                    -(d_view[1] - along * view[1]) / r,
+                    -(d_view[2] - along * view[2]) / r,
+                ]
+            })
+            .collect();
+        check_finite("appearance mean gradient", d_mean_rows.as_flattened())?;
+        for ((row, &g), d_mean) in d_input.chunks_exact(width).zip(gaussians).zip(&d_mean_rows) {
+            let g = g as usize;
+            for (acc, &v) in d_features[g * f_dim..(g + 1) * f_dim].iter_mut().zip(row) {
+                *acc += v;
+            }
+            for (acc, &v) in d_means[g * 3..g * 3 + 3].iter_mut().zip(d_mean) {
+                *acc += v;
+            }
+        }
+        Ok(())
+    }
+}
