@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# in-vm-tests.sh: runs inside the vcan micro-VM (via run-can-tests.sh); not meant for the host.
+#
+# Usage: in-vm-tests.sh <transport_socketcan test binary> <can_echo_peer binary> <venv python>
+# Runs the Rust SocketCAN tests, then the python-can <-> Rust peer pytest, both against
+# $VCAN_IFACE; runs both even if the first fails, and fails if either does.
+set -uo pipefail
+if [ "$#" -ne 3 ] || [ -z "${VCAN_IFACE:-}" ]; then
+    echo "usage (inside run-in-vm.sh): $0 <test-binary> <peer-binary> <python>" >&2
+    exit 2
+fi
+test_binary=$1 peer_binary=$2 python=$3
+status=0
+now_ms() { echo $(($(date +%s%N) / 1000000)); }
+
+started_ms=$(now_ms)
+echo "== Rust SocketCAN transport tests on $VCAN_IFACE ($test_binary)"
+"$test_binary" --color never || status=1
+echo "[vcan] Rust tests took $(($(now_ms) - started_ms)) ms"
+
+started_ms=$(now_ms)
+echo "== python-can <-> Rust peer on $VCAN_IFACE"
+PYTHONDONTWRITEBYTECODE=1 CAN_PEER_BIN=$peer_binary \
+    "$python" -m pytest -q -p no:cacheprovider --color=no tests/bus/test_can_peer_vcan.py || status=1
+echo "[vcan] pytest took $(($(now_ms) - started_ms)) ms"
+exit "$status"
