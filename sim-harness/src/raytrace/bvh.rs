@@ -406,3 +406,65 @@ fn partition_in_place(items: &mut [BuildItem], goes_left: impl Fn(&BuildItem) ->
     }
     boundary
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raytrace::rng::SplitMix64;
+
+    fn random_vec(rng: &mut SplitMix64, scale: f32) -> Vec3 {
+        Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * (2.0 * scale)
+            - Vec3::splat(scale)
+    }
+
+    #[test]
+    fn bvh_agrees_with_brute_force() {
+        let mut rng = SplitMix64::new(5);
+        // Small random triangles in a 10 m cube, plus a few duplicates and degenerate ones.
+        let mut corners: Vec<[Vec3; 3]> = (0..3000)
+            .map(|_| {
+                let c = random_vec(&mut rng, 5.0);
+                [
+                    c + random_vec(&mut rng, 0.4),
+                    c + random_vec(&mut rng, 0.4),
+                    c + random_vec(&mut rng, 0.4),
+                ]
+            })
+            .collect();
+        corners.extend_from_within(0..50);
+        corners.push([Vec3::ONE; 3]);
+        let bvh = Bvh::build(&corners);
+        let packed: Vec<PackedTriangle> = corners
+            .iter()
+            .map(|[a, b, c]| PackedTriangle {
+                v0: *a,
+                edge1: *b - *a,
+                edge2: *c - *a,
+            })
+            .collect();
+        let mut hits = 0;
+        for _ in 0..3000 {
+            let origin = random_vec(&mut rng, 8.0);
+            let target = random_vec(&mut rng, 3.0);
+            let ray = Ray::new(origin, target - origin);
+            let brute = packed
+                .iter()
+                .filter_map(|t| intersect(t, &ray, 0.0, f32::INFINITY))
+                .fold(f32::INFINITY, f32::min);
+            let hit = bvh.closest_hit(&ray, 0.0, f32::INFINITY);
+            match hit {
+                Some(h) => {
+                    hits += 1;
+                    assert_eq!(h.t, brute);
+                    let tri = &packed[h.triangle_index as usize];
+                    assert_eq!(intersect(tri, &ray, 0.0, f32::INFINITY), Some(h.t));
+                }
+                None => assert_eq!(brute, f32::INFINITY),
+            }
+            assert_eq!(bvh.any_hit(&ray, 0.0, f32::INFINITY), brute.is_finite());
+            // Limited range: only hits closer than t_max count.
+            assert_eq!(bvh.any_hit(&ray, 0.0, 0.5), brute < 0.5);
+        }
+        assert!(hits > 500, "{hits}");
+    }
+}

@@ -34,8 +34,8 @@ impl Material {
             name: "gold_mli".into(),
             base_color_linear: [0.95, 0.64, 0.26],
             metallic: 1.0,
-            roughness: 0.28,
-            crinkle_amplitude: 0.35,
+            roughness: 0.35,
+            crinkle_amplitude: 0.5,
             crinkle_scale_m: 0.06,
             cell_pitch_m: 0.0,
         }
@@ -47,8 +47,8 @@ impl Material {
             name: "silver_mli".into(),
             base_color_linear: [0.90, 0.90, 0.88],
             metallic: 1.0,
-            roughness: 0.25,
-            crinkle_amplitude: 0.35,
+            roughness: 0.32,
+            crinkle_amplitude: 0.5,
             crinkle_scale_m: 0.06,
             cell_pitch_m: 0.0,
         }
