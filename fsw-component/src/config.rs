@@ -1,1 +1,578 @@
 //! Component configuration (config/component.toml).
+//!
+//! Every section and field has a default, so a file only states what differs; unknown
+//! keys are errors (a misspelt key must not silently fall back to a default).
+//! [`ComponentConfig::validate`] checks ranges and cross-field consistency and names the
+//! offending key; [`ComponentConfig::load`] reads, parses and validates in one step.
+//! Quaternions are written `[w, x, y, z]` like the bus messages.
+
+use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
+use crate::sync::SyncConfig;
+use glam::DQuat;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::net::{IpAddr, Ipv4Addr, SocketAddr};
+use std::path::{Path, PathBuf};
+
+/// Largest Cyphal/CAN node-ID.
+pub const MAX_NODE_ID: u8 = 127;
+/// Linux interface names are at most IFNAMSIZ - 1 = 15 bytes.
+pub const MAX_INTERFACE_NAME_BYTES: usize = 15;
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ComponentConfig {
+    pub node: NodeConfig,
+    pub can: CanConfig,
+    pub udp: UdpConfig,
+    pub camera: CameraConfig,
+    pub sync: SyncSettings,
+    pub training: TrainingConfig,
+    pub checkpoint: CheckpointConfig,
+    pub queues: QueueConfig,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NodeConfig {
+    /// Cyphal node-ID of this component, 0-127.
+    pub node_id: u8,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CanConfig {
+    pub enabled: bool,
+    /// SocketCAN interface, e.g. "can0" or "vcan0".
+    pub interface: String,
+    /// Use CAN FD (64-byte frames; the interface needs MTU 72).
+    pub fd: bool,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct UdpConfig {
+    pub enabled: bool,
+    /// Local address the receiving sockets bind to.
+    pub bind_ip: IpAddr,
+    /// Camera frames arrive here (0: any free port, for tests).
+    pub frames_port: u16,
+    /// Pose, Sun telemetry and commands arrive here when sent over UDP (0: any free port).
+    pub telemetry_port: u16,
+    /// Rendered predictions are sent to this address.
+    pub predictions_to: SocketAddr,
+    /// Health status, events and command acknowledgements are sent to this address.
+    pub health_to: SocketAddr,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraConfig {
+    /// Camera mounting: rotation taking servicer-body vectors to camera-frame vectors, [w, x, y, z].
+    pub camera_from_body_wxyz: [f64; 4],
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SyncSettings {
+    /// Telemetry samples kept per stream.
+    pub buffer_capacity: usize,
+    /// Largest distance from a frame time to the telemetry sample on either side.
+    pub max_gap_ms: u64,
+    /// A frame later than the newest telemetry by more than this is stale.
+    pub stale_after_ms: u64,
+    /// How long a frame may wait for the telemetry sample after its time tag.
+    pub max_wait_ms: u64,
+    /// Allowed |norm - 1| of quaternions and Sun vectors.
+    pub unit_norm_tolerance: f64,
+    /// Poses with a lower quality are rejected.
+    pub min_pose_quality: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainingConfig {
+    /// Training preset name (config/presets, e.g. "cpu" or "paper").
+    pub preset: String,
+    /// Keyframe window size W.
+    pub window_size: usize,
+    /// A frame becomes a keyframe when its view moved more than this, degrees.
+    pub min_view_angle_deg: f64,
+    /// Worker threads of the trainer (fixed for bit-identical results).
+    pub threads: usize,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CheckpointConfig {
+    /// Checkpoint file (written atomically: temporary file, then rename).
+    pub path: PathBuf,
+    /// Seconds between periodic checkpoints; 0 disables them.
+    pub period_s: u64,
+    /// Resume from `path` at start when it exists.
+    pub resume: bool,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct QueueConfig {
+    /// Synchronised frames waiting for the trainer (oldest dropped when full).
+    pub frames: usize,
+    /// Frames waiting for telemetry after their time tag.
+    pub pending_frames: usize,
+    /// Commands waiting for execution (rejected BUSY when full).
+    pub commands: usize,
+    /// Outgoing predictions (oldest dropped when full).
+    pub predictions: usize,
+}
+
+impl Default for NodeConfig {
+    fn default() -> Self {
+        Self { node_id: 42 }
+    }
+}
+
+impl Default for CanConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            interface: "vcan0".to_string(),
+            fd: true,
+        }
+    }
+}
+
+impl Default for UdpConfig {
+    fn default() -> Self {
+        let localhost = IpAddr::V4(Ipv4Addr::LOCALHOST);
+        Self {
+            enabled: true,
+            bind_ip: localhost,
+            frames_port: 15_001,
+            telemetry_port: 15_002,
+            predictions_to: SocketAddr::new(localhost, 15_003),
+            health_to: SocketAddr::new(localhost, 15_004),
+        }
+    }
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        Self {
+            camera_from_body_wxyz: [1.0, 0.0, 0.0, 0.0],
+        }
+    }
+}
+
+impl Default for SyncSettings {
+    fn default() -> Self {
+        let sync = SyncConfig::default();
+        Self {
+            buffer_capacity: sync.buffer_capacity,
+            max_gap_ms: sync.max_gap_us / 1_000,
+            stale_after_ms: sync.stale_after_us / 1_000,
+            max_wait_ms: 1_000,
+            unit_norm_tolerance: sync.unit_norm_tolerance,
+            min_pose_quality: sync.min_pose_quality,
+        }
+    }
+}
+
+impl Default for TrainingConfig {
+    fn default() -> Self {
+        let window = WindowConfig::default();
+        Self {
+            preset: "cpu".to_string(),
+            window_size: window.capacity,
+            min_view_angle_deg: window.min_view_angle_deg,
+            threads: 2,
+        }
+    }
+}
+
+impl Default for CheckpointConfig {
+    fn default() -> Self {
+        Self {
+            path: PathBuf::from("out/component/checkpoint.bin"),
+            period_s: 300,
+            resume: false,
+        }
+    }
+}
+
+impl Default for QueueConfig {
+    fn default() -> Self {
+        Self {
+            frames: 4,
+            pending_frames: 8,
+            commands: 16,
+            predictions: 8,
+        }
+    }
+}
+
+/// A configuration problem: the key (as written in the TOML file) and what is wrong.
+#[derive(Debug)]
+pub enum ConfigError {
+    Read {
+        path: PathBuf,
+        error: std::io::Error,
+    },
+    Parse {
+        path: PathBuf,
+        message: String,
+    },
+    Invalid {
+        key: &'static str,
+        problem: String,
+    },
+}
+
+impl fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Read { path, error } => {
+                write!(f, "cannot read config {}: {error}", path.display())
+            }
+            Self::Parse { path, message } => {
+                write!(f, "config {} is not valid: {message}", path.display())
+            }
+            Self::Invalid { key, problem } => write!(f, "config key `{key}`: {problem}"),
+        }
+    }
+}
+
+impl std::error::Error for ConfigError {}
+
+fn invalid(key: &'static str, problem: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid {
+        key,
+        problem: problem.into(),
+    }
+}
+
+impl ComponentConfig {
+    /// Parses TOML text (`origin` names it in errors) and validates it.
+    pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
+        let config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: origin.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Reads, parses and validates a config file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
+            path: path.to_path_buf(),
+            error,
+        })?;
+        Self::from_toml_str(&text, path)
+    }
+
+    /// The TOML text of this configuration.
+    pub fn to_toml_string(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot serialise: {e}\n"))
+    }
+
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if self.node.node_id > MAX_NODE_ID {
+            return Err(invalid(
+                "node.node_id",
+                format!(
+                    "{} is above the Cyphal maximum {MAX_NODE_ID}",
+                    self.node.node_id
+                ),
+            ));
+        }
+        let name = &self.can.interface;
+        if name.is_empty()
+            || name.len() > MAX_INTERFACE_NAME_BYTES
+            || !name
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b"_-.".contains(&b))
+        {
+            return Err(invalid(
+                "can.interface",
+                format!("{name:?} is not a network interface name (1-15 of [A-Za-z0-9_.-])"),
+            ));
+        }
+        if !self.can.enabled && !self.udp.enabled {
+            return Err(invalid(
+                "can.enabled",
+                "both CAN and UDP are disabled: the component could not receive anything",
+            ));
+        }
+        let u = &self.udp;
+        if u.frames_port != 0 && u.frames_port == u.telemetry_port {
+            return Err(invalid(
+                "udp.telemetry_port",
+                format!("same as udp.frames_port ({})", u.frames_port),
+            ));
+        }
+        for (key, address) in [
+            ("udp.predictions_to", u.predictions_to),
+            ("udp.health_to", u.health_to),
+        ] {
+            if address.port() == 0 || address.ip().is_unspecified() {
+                return Err(invalid(
+                    key,
+                    format!("{address} is not a destination (needs an address and a port)"),
+                ));
+            }
+        }
+        self.sync_config()?;
+        self.window_config()?;
+        let preset = &self.training.preset;
+        if preset.is_empty()
+            || !preset
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b"_-".contains(&b))
+        {
+            return Err(invalid(
+                "training.preset",
+                format!("{preset:?} is not a preset name ([A-Za-z0-9_-]+)"),
+            ));
+        }
+        if self.training.threads == 0 {
+            return Err(invalid("training.threads", "must be at least 1"));
+        }
+        if self.checkpoint.path.as_os_str().is_empty() {
+            return Err(invalid("checkpoint.path", "must not be empty"));
+        }
+        if self.checkpoint.path.file_name().is_none() {
+            return Err(invalid(
+                "checkpoint.path",
+                format!("{} does not name a file", self.checkpoint.path.display()),
+            ));
+        }
+        for (key, capacity) in [
+            ("queues.frames", self.queues.frames),
+            ("queues.pending_frames", self.queues.pending_frames),
+            ("queues.commands", self.queues.commands),
+            ("queues.predictions", self.queues.predictions),
+        ] {
+            if capacity == 0 {
+                return Err(invalid(key, "queue capacity must be at least 1"));
+            }
+        }
+        if self.sync.max_wait_ms > self.sync.stale_after_ms {
+            return Err(invalid(
+                "sync.max_wait_ms",
+                format!(
+                    "{} ms exceeds sync.stale_after_ms ({} ms): frames would wait for telemetry already stale",
+                    self.sync.max_wait_ms, self.sync.stale_after_ms
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Camera mounting as a unit quaternion (validated).
+    pub fn camera_from_body(&self) -> Result<DQuat, ConfigError> {
+        let [w, x, y, z] = self.camera.camera_from_body_wxyz;
+        let q = DQuat::from_xyzw(x, y, z, w);
+        let norm = q.length();
+        if !q.is_finite() || (norm - 1.0).abs() > 1e-6 {
+            return Err(invalid(
+                "camera.camera_from_body_wxyz",
+                format!("norm {norm} is not 1 (within 1e-6): not a rotation"),
+            ));
+        }
+        Ok(q / norm)
+    }
+
+    /// The synchronizer settings this configuration describes.
+    pub fn sync_config(&self) -> Result<SyncConfig, ConfigError> {
+        let s = &self.sync;
+        let sync = SyncConfig {
+            buffer_capacity: s.buffer_capacity,
+            max_gap_us: s.max_gap_ms.saturating_mul(1_000),
+            stale_after_us: s.stale_after_ms.saturating_mul(1_000),
+            unit_norm_tolerance: s.unit_norm_tolerance,
+            min_pose_quality: s.min_pose_quality,
+            camera_from_body: self.camera_from_body()?,
+        };
+        sync.validate().map_err(|e| {
+            let key = match e {
+                crate::sync::SyncConfigError::BufferTooSmall { .. } => "sync.buffer_capacity",
+                crate::sync::SyncConfigError::ZeroMaxGap => "sync.max_gap_ms",
+                crate::sync::SyncConfigError::BadTolerance { .. } => "sync.unit_norm_tolerance",
+                crate::sync::SyncConfigError::BadMinPoseQuality { .. } => "sync.min_pose_quality",
+                crate::sync::SyncConfigError::BadMounting { .. } => "camera.camera_from_body_wxyz",
+            };
+            invalid(key, e.to_string())
+        })?;
+        Ok(sync)
+    }
+
+    /// The keyframe window settings this configuration describes.
+    pub fn window_config(&self) -> Result<WindowConfig, ConfigError> {
+        let window = WindowConfig {
+            capacity: self.training.window_size,
+            min_view_angle_deg: self.training.min_view_angle_deg,
+        };
+        KeyframeWindow::<()>::new(window).map_err(|e| {
+            let key = match e {
+                KeyframeError::CapacityTooSmall { .. } => "training.window_size",
+                _ => "training.min_view_angle_deg",
+            };
+            invalid(key, e.to_string())
+        })?;
+        Ok(window)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<ComponentConfig, ConfigError> {
+        ComponentConfig::from_toml_str(text, Path::new("test.toml"))
+    }
+
+    fn invalid_key(text: &str) -> &'static str {
+        match parse(text) {
+            Err(ConfigError::Invalid { key, .. }) => key,
+            other => panic!("expected an invalid key for {text:?}, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn empty_file_gives_the_defaults() {
+        let config = parse("").unwrap();
+        assert_eq!(config, ComponentConfig::default());
+        assert_eq!(config.window_config().unwrap(), WindowConfig::default());
+        assert_eq!(config.sync_config().unwrap(), SyncConfig::default());
+    }
+
+    #[test]
+    fn defaults_round_trip_through_toml() {
+        let text = ComponentConfig::default().to_toml_string();
+        assert_eq!(parse(&text).unwrap(), ComponentConfig::default());
+    }
+
+    #[test]
+    fn unknown_keys_and_wrong_types_are_parse_errors() {
+        for text in [
+            "[node]\nnode_idd = 3\n",
+            "[nodes]\nnode_id = 3\n",
+            "[node]\nnode_id = \"three\"\n",
+            "[node]\nnode_id = 300\n",
+            "[udp]\nbind_ip = \"localhost\"\n",
+            "[camera]\ncamera_from_body_wxyz = [1.0, 0.0, 0.0]\n",
+        ] {
+            match parse(text) {
+                Err(ConfigError::Parse { message, .. }) => {
+                    assert!(!message.is_empty(), "{text:?}")
+                }
+                other => panic!("expected a parse error for {text:?}, got {other:?}"),
+            }
+        }
+        let message = parse("[node]\nnode_idd = 3\n").unwrap_err().to_string();
+        assert!(message.contains("node_idd"), "{message}");
+    }
+
+    #[test]
+    fn validation_names_the_key() {
+        assert_eq!(invalid_key("[node]\nnode_id = 128\n"), "node.node_id");
+        assert_eq!(invalid_key("[can]\ninterface = \"\"\n"), "can.interface");
+        assert_eq!(
+            invalid_key("[can]\ninterface = \"a_very_long_ifname0\"\n"),
+            "can.interface"
+        );
+        assert_eq!(
+            invalid_key("[can]\nenabled = false\n[udp]\nenabled = false\n"),
+            "can.enabled"
+        );
+        assert_eq!(
+            invalid_key("[udp]\nframes_port = 9000\ntelemetry_port = 9000\n"),
+            "udp.telemetry_port"
+        );
+        assert_eq!(
+            invalid_key("[udp]\npredictions_to = \"0.0.0.0:9000\"\n"),
+            "udp.predictions_to"
+        );
+        assert_eq!(
+            invalid_key("[udp]\nhealth_to = \"127.0.0.1:0\"\n"),
+            "udp.health_to"
+        );
+        assert_eq!(
+            invalid_key("[camera]\ncamera_from_body_wxyz = [1.0, 1.0, 0.0, 0.0]\n"),
+            "camera.camera_from_body_wxyz"
+        );
+        assert_eq!(
+            invalid_key("[camera]\ncamera_from_body_wxyz = [nan, 0.0, 0.0, 0.0]\n"),
+            "camera.camera_from_body_wxyz"
+        );
+        assert_eq!(
+            invalid_key("[sync]\nbuffer_capacity = 1\n"),
+            "sync.buffer_capacity"
+        );
+        assert_eq!(invalid_key("[sync]\nmax_gap_ms = 0\n"), "sync.max_gap_ms");
+        assert_eq!(
+            invalid_key("[sync]\nunit_norm_tolerance = 0.0\n"),
+            "sync.unit_norm_tolerance"
+        );
+        assert_eq!(
+            invalid_key("[sync]\nmax_wait_ms = 20000\n"),
+            "sync.max_wait_ms"
+        );
+        assert_eq!(
+            invalid_key("[training]\nwindow_size = 1\n"),
+            "training.window_size"
+        );
+        assert_eq!(
+            invalid_key("[training]\nmin_view_angle_deg = -5.0\n"),
+            "training.min_view_angle_deg"
+        );
+        assert_eq!(
+            invalid_key("[training]\npreset = \"../etc\"\n"),
+            "training.preset"
+        );
+        assert_eq!(invalid_key("[training]\nthreads = 0\n"), "training.threads");
+        assert_eq!(
+            invalid_key("[checkpoint]\npath = \"\"\n"),
+            "checkpoint.path"
+        );
+        assert_eq!(
+            invalid_key("[checkpoint]\npath = \"out/..\"\n"),
+            "checkpoint.path"
+        );
+        assert_eq!(invalid_key("[queues]\ncommands = 0\n"), "queues.commands");
+        let message = parse("[node]\nnode_id = 128\n").unwrap_err().to_string();
+        assert_eq!(
+            message,
+            "config key `node.node_id`: 128 is above the Cyphal maximum 127"
+        );
+    }
+
+    #[test]
+    fn mounting_rotates_as_documented() {
+        // 90 degrees about camera-body z: body x maps to camera y.
+        let half = std::f64::consts::FRAC_1_SQRT_2;
+        let config = parse(&format!(
+            "[camera]\ncamera_from_body_wxyz = [{half}, 0.0, 0.0, {half}]\n"
+        ))
+        .unwrap();
+        let q = config.camera_from_body().unwrap();
+        assert!((q * glam::DVec3::X - glam::DVec3::Y).length() < 1e-12);
+        assert_eq!(config.sync_config().unwrap().camera_from_body, q);
+    }
+
+    #[test]
+    fn committed_component_toml_parses_and_validates() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/component.toml");
+        let config = ComponentConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        // The committed file documents the defaults: it must state them exactly.
+        assert_eq!(config, ComponentConfig::default());
+    }
+
+    #[test]
+    fn missing_file_is_a_read_error() {
+        let e = ComponentConfig::load(Path::new("/nonexistent/component.toml")).unwrap_err();
+        assert!(matches!(e, ConfigError::Read { .. }));
+        assert!(e.to_string().contains("/nonexistent/component.toml"));
+    }
+}
