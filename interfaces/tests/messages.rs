@@ -269,3 +269,87 @@ fn port_ids_are_unique_fit_an_apid_and_match_the_trait() {
         interfaces::ccsds::PacketType::Telemetry
     );
 }
+
+#[test]
+fn documented_maximum_sizes_are_exact() {
+    use interfaces::messages::{ErrorCode, EventKind, FrameHeader, Mode, RenderRequest};
+    let sun = SunVector {
+        time_us: u64::MAX,
+        sun_body: [1.0, 0.0, 0.0],
+        valid: true,
+    };
+    assert_eq!(encoded_len(&sun).unwrap(), SunVector::MAX_ENCODED_LEN);
+    let mut pose = target_pose();
+    pose.time_us = u64::MAX;
+    assert_eq!(encoded_len(&pose).unwrap(), TargetPose::MAX_ENCODED_LEN);
+    let render = Command {
+        sequence: u32::MAX,
+        kind: CommandKind::Render(RenderRequest {
+            q_camera_from_target: [1.0, 0.0, 0.0, 0.0],
+            t_camera_from_target_m: [0.0; 3],
+            sun_target: [1.0, 0.0, 0.0],
+        }),
+    };
+    assert_eq!(encoded_len(&render).unwrap(), Command::MAX_ENCODED_LEN);
+    let ack = CommandAck {
+        sequence: Some(u32::MAX),
+        opcode: Some(u32::MAX),
+        status: AckStatus::Busy,
+        detail: u16::MAX,
+    };
+    assert_eq!(encoded_len(&ack).unwrap(), CommandAck::MAX_ENCODED_LEN);
+    let h = HealthStatus {
+        time_us: u64::MAX,
+        mode: Mode::PredictOnly,
+        uptime_s: u32::MAX,
+        frames_received: u32::MAX,
+        frames_used: u32::MAX,
+        frames_dropped: u32::MAX,
+        decode_errors: u32::MAX,
+        crc_errors: u32::MAX,
+        commands_accepted: u32::MAX,
+        commands_rejected: u32::MAX,
+        gaussians: u32::MAX,
+        rounds: u32::MAX,
+        last_round_duration_ms: Some(u32::MAX),
+        last_loss: Some(1.0),
+        last_prediction_psnr_db: Some(1.0),
+        window_fill: 255,
+        window_capacity: 255,
+        frame_queue_depth: u16::MAX,
+        publish_queue_depth: u16::MAX,
+        memory_bytes: u64::MAX,
+    };
+    assert_eq!(encoded_len(&h).unwrap(), HealthStatus::MAX_ENCODED_LEN);
+    let e = Event {
+        time_us: u64::MAX,
+        kind: EventKind::Error {
+            code: ErrorCode::Internal,
+            detail: u32::MAX,
+        },
+    };
+    assert_eq!(encoded_len(&e).unwrap(), Event::MAX_ENCODED_LEN);
+    let header = FrameHeader {
+        frame_id: u32::MAX,
+        time_us: u64::MAX,
+        width: u16::MAX,
+        height: u16::MAX,
+        format: PixelFormat::Gray8,
+    };
+    assert_eq!(encoded_len(&header).unwrap(), FrameHeader::MAX_ENCODED_LEN);
+    let prediction = RenderedPrediction {
+        header,
+        source: PredictionSource::Command { sequence: u32::MAX },
+        q_camera_from_target: [1.0, 0.0, 0.0, 0.0],
+        t_camera_from_target_m: [0.0; 3],
+        sun_target: [1.0, 0.0, 0.0],
+        psnr_db: Some(1.0),
+        ssim: Some(1.0),
+        pixels: &[],
+    };
+    // One byte for the empty pixel string's length.
+    assert_eq!(
+        encoded_len(&prediction).unwrap(),
+        RenderedPrediction::MAX_FIXED_ENCODED_LEN + 1
+    );
+}

@@ -69,6 +69,11 @@ pub struct Command {
     pub kind: CommandKind,
 }
 
+impl Command {
+    /// Largest possible encoding (a RENDER command), bytes.
+    pub const MAX_ENCODED_LEN: usize = 46;
+}
+
 impl Message for Command {
     const PORT_ID: u16 = port::COMMAND;
     const VERSION: Version = Version { major: 1, minor: 0 };
@@ -105,6 +110,11 @@ pub struct CommandAck {
     pub status: AckStatus,
     /// Status-specific detail code (0 when none), e.g. an [`super::ErrorCode`] index.
     pub detail: u16,
+}
+
+impl CommandAck {
+    /// Largest possible encoding, bytes.
+    pub const MAX_ENCODED_LEN: usize = 16;
 }
 
 impl Message for CommandAck {

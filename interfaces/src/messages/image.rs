@@ -33,6 +33,9 @@ pub struct FrameHeader {
 }
 
 impl FrameHeader {
+    /// Largest possible encoding, bytes.
+    pub const MAX_ENCODED_LEN: usize = 22;
+
     pub fn pixel_count(&self) -> usize {
         usize::from(self.width) * usize::from(self.height)
     }
@@ -101,6 +104,11 @@ pub struct RenderedPrediction<'a> {
     pub ssim: Option<f32>,
     #[serde(borrow, serialize_with = "bytes::serialize")]
     pub pixels: &'a [u8],
+}
+
+impl RenderedPrediction<'_> {
+    /// Largest encoding of everything but the pixel bytes and their length varint, bytes.
+    pub const MAX_FIXED_ENCODED_LEN: usize = 78;
 }
 
 impl Message for RenderedPrediction<'_> {

@@ -38,6 +38,11 @@ pub struct HealthStatus {
     pub memory_bytes: u64,
 }
 
+impl HealthStatus {
+    /// Largest possible encoding, bytes.
+    pub const MAX_ENCODED_LEN: usize = 95;
+}
+
 impl Message for HealthStatus {
     const PORT_ID: u16 = port::HEALTH_STATUS;
     const VERSION: Version = Version { major: 1, minor: 0 };
@@ -90,6 +95,11 @@ pub enum EventKind {
 pub struct Event {
     pub time_us: u64,
     pub kind: EventKind,
+}
+
+impl Event {
+    /// Largest possible encoding, bytes.
+    pub const MAX_ENCODED_LEN: usize = 17;
 }
 
 impl Message for Event {

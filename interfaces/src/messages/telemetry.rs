@@ -17,6 +17,11 @@ pub struct SunVector {
     pub valid: bool,
 }
 
+impl SunVector {
+    /// Largest possible encoding, bytes (varints at their widest).
+    pub const MAX_ENCODED_LEN: usize = 23;
+}
+
 impl Message for SunVector {
     const PORT_ID: u16 = port::SUN_VECTOR;
     const VERSION: Version = Version { major: 1, minor: 0 };
@@ -44,6 +49,11 @@ pub struct TargetPose {
     /// 1-sigma attitude uncertainty, radians.
     pub attitude_sigma_rad: f32,
     pub valid: bool,
+}
+
+impl TargetPose {
+    /// Largest possible encoding, bytes.
+    pub const MAX_ENCODED_LEN: usize = 47;
 }
 
 impl Message for TargetPose {
