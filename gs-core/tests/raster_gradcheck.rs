@@ -227,7 +227,7 @@ fn check_scene(seed: u64) {
         assert_eq!(analytic.len(), len);
         let g_max = analytic.iter().fold(0.0f32, |m, v| m.max(v.abs())) as f64;
         assert!(g_max > 0.0, "{group:?}: all gradients zero");
-        for idx in 0..len {
+        for (idx, &an) in analytic.iter().enumerate() {
             let mut plus = scene.clone();
             *param_mut(&mut plus, group, idx) += h;
             let mut minus = scene.clone();
@@ -236,7 +236,7 @@ fn check_scene(seed: u64) {
             let step =
                 (*param_mut(&mut plus, group, idx) - *param_mut(&mut minus, group, idx)) as f64;
             let fd = (loss(&plus, &w) - loss(&minus, &w)) / step;
-            let an = analytic[idx] as f64;
+            let an = an as f64;
             let tol = 2e-2 * fd.abs().max(an.abs()) + 2e-3 * g_max;
             worst_ratio = worst_ratio.max((fd - an).abs() / tol);
             if (fd - an).abs() > tol {

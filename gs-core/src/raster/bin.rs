@@ -99,7 +99,7 @@ pub fn radix_sort_u32(keys: &mut Vec<u32>, values: &mut Vec<u32>) {
             counts[((k >> shift) as usize) & (BUCKETS - 1)] += 1;
         }
         // Skip passes where every key falls in one bucket (common for the high bits).
-        if counts.iter().any(|&c| c == n) {
+        if counts.contains(&n) {
             shift += BITS;
             continue;
         }

@@ -94,7 +94,8 @@ pub fn eval_alpha(s: &Splat, px: f32, py: f32, mode: AlphaMode) -> Option<AlphaE
     let raw = s.opacity * gauss;
     let clamped = raw > ALPHA_MAX;
     let alpha_c = if clamped { ALPHA_MAX } else { raw };
-    if !(alpha_c >= mode.cutoff()) {
+    // Written so that a NaN alpha is skipped too.
+    if alpha_c.is_nan() || alpha_c < mode.cutoff() {
         return None;
     }
     let (alpha, d_alpha) = if mode.smooth && alpha_c < SMOOTH_HI {
@@ -316,6 +317,9 @@ mod tests {
 
     const NC: usize = 2;
 
+    /// Perturbs one splat quantity (splats, channels, step).
+    type Bump<'a> = &'a dyn Fn(&mut [Splat], &mut [f32], f32);
+
     fn tile() -> PixelRect {
         PixelRect {
             x0: 16,
@@ -415,7 +419,7 @@ mod tests {
         let (_, _, trans, last) = render_tile(&splats, &channels);
         // The stack really stops early in some pixels and not in others.
         assert!(trans.iter().any(|&t| t < 2e-4 && t > 1e-4));
-        assert!(last.iter().any(|&l| l == 5));
+        assert!(last.contains(&5));
         let (wc, wa, wd) = weights();
         let mut records = vec![f32::NAN; 5 * (REC_CHANNELS + NC)];
         blend_tile_backward(
@@ -441,22 +445,21 @@ mod tests {
         let stride = REC_CHANNELS + NC;
         for i in 0..5 {
             let rec = &records[i * stride..(i + 1) * stride];
-            let mut check =
-                |name: &str, an: f32, bump: &dyn Fn(&mut Vec<Splat>, &mut Vec<f32>, f32)| {
-                    let h = 1e-3f32;
-                    let (mut sp, mut ch) = (splats.clone(), channels.clone());
-                    bump(&mut sp, &mut ch, h);
-                    let plus = loss(&sp, &ch);
-                    let (mut sp, mut ch) = (splats.clone(), channels.clone());
-                    bump(&mut sp, &mut ch, -h);
-                    let minus = loss(&sp, &ch);
-                    let fd = (plus - minus) / (2.0 * h as f64);
-                    let tol = 1e-3 + 1e-2 * fd.abs().max(an.abs() as f64);
-                    assert!(
-                        (fd - an as f64).abs() < tol,
-                        "splat {i} {name}: fd {fd} analytic {an}"
-                    );
-                };
+            let check = |name: &str, an: f32, bump: Bump| {
+                let h = 1e-3f32;
+                let (mut sp, mut ch) = (splats.clone(), channels.clone());
+                bump(&mut sp, &mut ch, h);
+                let plus = loss(&sp, &ch);
+                let (mut sp, mut ch) = (splats.clone(), channels.clone());
+                bump(&mut sp, &mut ch, -h);
+                let minus = loss(&sp, &ch);
+                let fd = (plus - minus) / (2.0 * h as f64);
+                let tol = 1e-3 + 1e-2 * fd.abs().max(an.abs() as f64);
+                assert!(
+                    (fd - an as f64).abs() < tol,
+                    "splat {i} {name}: fd {fd} analytic {an}"
+                );
+            };
             check("mean x", rec[REC_MEAN_X], &|s, _, h| s[i].mean_px[0] += h);
             check("mean y", rec[REC_MEAN_Y], &|s, _, h| s[i].mean_px[1] += h);
             // Conic entries are ~5e-3: perturb them relatively.

@@ -201,6 +201,14 @@ pub struct BackwardTimings {
     pub reduce_project_ms: f64,
 }
 
+/// One tile's blended pixels, tile-local index `ly * 16 + lx`.
+struct TileImages {
+    color: Vec<f32>,
+    depth: Vec<f32>,
+    transmittance: Vec<f32>,
+    last: Vec<u32>,
+}
+
 /// What backward needs from the forward pass.
 #[derive(Clone, Debug)]
 struct ForwardState {
@@ -290,7 +298,7 @@ pub fn camera_frame(camera: &Camera, near_m: f32) -> Result<CameraFrame, RasterE
     if !(q.is_finite() && camera.translation.is_finite()) {
         return Err(RasterError::InvalidCamera("pose is not finite"));
     }
-    if !(q.length_squared() > 1e-6) {
+    if q.length_squared() <= 1e-6 {
         return Err(RasterError::InvalidCamera("rotation quaternion is zero"));
     }
     if !(near_m.is_finite() && near_m > 0.0) {
@@ -463,7 +471,7 @@ pub fn render(
 
     let t2 = Instant::now();
     let n_tiles = grid.n_tiles();
-    let tiles: Vec<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<u32>)> = (0..n_tiles)
+    let tiles: Vec<TileImages> = (0..n_tiles)
         .into_par_iter()
         .map(|t| {
             let mut color = vec![0.0f32; TILE_PIXELS * nc];
@@ -486,7 +494,12 @@ pub fn render(
                     last: &mut last,
                 },
             );
-            (color, depth, trans, last)
+            TileImages {
+                color,
+                depth,
+                transmittance: trans,
+                last,
+            }
         })
         .collect();
 
@@ -505,8 +518,8 @@ pub fn render(
             for x in 0..w {
                 let tile = &tiles[(y / tile_px) * tiles_x + x / tile_px];
                 let p = (y % tile_px) * tile_px + x % tile_px;
-                alpha_row[x] = 1.0 - tile.2[p];
-                depth_row[x] = tile.1[p];
+                alpha_row[x] = 1.0 - tile.transmittance[p];
+                depth_row[x] = tile.depth[p];
             }
         });
     if nc > 0 {
@@ -517,15 +530,15 @@ pub fn render(
                 for x in 0..w {
                     let tile = &tiles[(y / tile_px) * tiles_x + x / tile_px];
                     let p = (y % tile_px) * tile_px + x % tile_px;
-                    row[x * nc..x * nc + nc].copy_from_slice(&tile.0[p * nc..p * nc + nc]);
+                    row[x * nc..x * nc + nc].copy_from_slice(&tile.color[p * nc..p * nc + nc]);
                 }
             });
     }
     let mut tile_transmittance = Vec::with_capacity(n_tiles * TILE_PIXELS);
     let mut tile_last = Vec::with_capacity(n_tiles * TILE_PIXELS);
-    for (_, _, trans, last) in &tiles {
-        tile_transmittance.extend_from_slice(trans);
-        tile_last.extend_from_slice(last);
+    for tile in &tiles {
+        tile_transmittance.extend_from_slice(&tile.transmittance);
+        tile_last.extend_from_slice(&tile.last);
     }
     drop(tiles);
     let blend_ms = ms_since(t2);

@@ -13,6 +13,9 @@
 //!   differentiates every step, including the Jacobian clamp (a clamped ratio passes no
 //!   gradient to x or y, but its `1/z` factor does pass gradient to z).
 
+// Small fixed-size matrix code reads best with explicit indices.
+#![allow(clippy::needless_range_loop)]
+
 /// Added to the 2D covariance diagonal, px^2 (anti-aliasing floor of 3DGS).
 pub const COV2D_DILATION_PX2: f32 = 0.3;
 /// x/z and y/z are clamped to this multiple of tan(fov/2) when building the Jacobian.
@@ -156,11 +159,11 @@ pub fn project_forward(
     }
     let q = g.rotation;
     let q_norm2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
-    if !(q_norm2 >= MIN_QUAT_NORM2) || !q_norm2.is_finite() {
+    if q_norm2.is_nan() || q_norm2 < MIN_QUAT_NORM2 || !q_norm2.is_finite() {
         return Err(Culled::DegenerateQuaternion);
     }
     let opacity = sigmoid(g.opacity_logit);
-    if !(opacity >= alpha_threshold) {
+    if opacity.is_nan() || opacity < alpha_threshold {
         return Err(Culled::Transparent);
     }
 
@@ -173,7 +176,7 @@ pub fn project_forward(
         return Err(Culled::NonFinite);
     }
     let z = t_cam[2];
-    if !(z >= frame.near_m) {
+    if z.is_nan() || z < frame.near_m {
         return Err(Culled::BehindNearPlane);
     }
 
@@ -230,7 +233,7 @@ pub fn project_forward(
         dot3(&tc[1], &t_mat[1]) + COV2D_DILATION_PX2,
     ];
     let det = cov2[0] * cov2[2] - cov2[1] * cov2[1];
-    if !(det > 0.0) || !det.is_finite() || !all_finite(&cov2) {
+    if det.is_nan() || det <= 0.0 || !det.is_finite() || !all_finite(&cov2) {
         return Err(Culled::DegenerateCovariance);
     }
     let inv_det = 1.0 / det;
@@ -401,7 +404,7 @@ mod tests {
 
     fn frame() -> CameraFrame {
         CameraFrame {
-            rot_cam_from_world: quat_to_mat([0.9, 0.1, -0.3, 0.2].map(|v| v / 0.9695360714)),
+            rot_cam_from_world: quat_to_mat([0.9, 0.1, -0.3, 0.2].map(|v| v / 0.969_536_07)),
             translation: [0.1, -0.2, 4.0],
             fx: 120.0,
             fy: 110.0,
