@@ -141,6 +141,7 @@ def test_pycyphal_receives_our_frames(frames_bin: str, mtu: int) -> None:
                 received = b"".join(bytes(f) for f in transfer.fragmented_payload)
                 assert same_up_to_padding(received, payload), (size, received.hex(), payload.hex())
                 assert transfer.source_node_id == 17
+                assert transfer.priority == Priority.NOMINAL
                 assert transfer.transfer_id == tid % 32
             stats = session.sample_statistics()
             assert stats.transfers == len(SIZES)
@@ -228,3 +229,19 @@ def test_our_decoder_rejects_what_pycyphal_would_reject(frames_bin: str) -> None
     out = rust_decode(frames_bin, lines + lines)
     assert len([x for x in out if x.startswith("TRANSFER")]) == 1
     assert any("DuplicateTransfer" in x for x in out)
+
+
+def test_our_decoder_reads_candump_logs_with_timestamps(frames_bin: str) -> None:
+    """candump `.log` lines carry timestamps: the same transfer-ID repeated within the 2 s
+    transfer-ID timeout is a duplicate, after it a new transfer (the sender restarted)."""
+    lines = rust_encode(frames_bin, 100, 9, 4, 64, payload_of(80, 3))
+    assert len(lines) == 2
+
+    def log(t: float) -> list[str]:
+        return [f"({t:.6f}) vcan0 {line}" for line in lines]
+
+    out = rust_decode(frames_bin, log(1700000000.0) + log(1700000001.5) + log(1700000003.1))
+    transfers = [x for x in out if x.startswith("TRANSFER")]
+    assert len(transfers) == 2, out
+    assert sum("DuplicateTransfer" in x for x in out) == 1
+    assert out[-1] == "COUNTERS frames=6 transfers=2 rejected=2"

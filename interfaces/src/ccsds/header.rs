@@ -61,6 +61,8 @@ pub enum HeaderError {
     FieldOutOfRange,
 }
 
+impl core::error::Error for HeaderError {}
+
 impl fmt::Display for HeaderError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(match self {

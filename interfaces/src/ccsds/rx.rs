@@ -54,6 +54,8 @@ pub enum CcsdsRxError {
     Timeout,
 }
 
+impl core::error::Error for CcsdsRxError {}
+
 impl fmt::Display for CcsdsRxError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(match self {

@@ -102,6 +102,8 @@ pub enum CanIdError {
     FieldOutOfRange,
 }
 
+impl core::error::Error for CanIdError {}
+
 impl fmt::Display for CanIdError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {

@@ -57,6 +57,8 @@ pub enum CanRxError {
     TransferTimeout,
 }
 
+impl core::error::Error for CanRxError {}
+
 impl fmt::Display for CanRxError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let text = match self {

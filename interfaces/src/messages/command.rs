@@ -138,6 +138,24 @@ pub struct CommandDecodeError {
     pub validation: Option<ValidationError>,
 }
 
+impl core::fmt::Display for CommandDecodeError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "command refused ({:?})", self.status)?;
+        if let Some(sequence) = self.sequence {
+            write!(f, ", sequence {sequence}")?;
+        }
+        if let Some(opcode) = self.opcode {
+            write!(f, ", opcode {opcode}")?;
+        }
+        if let Some(v) = &self.validation {
+            write!(f, ": {v}")?;
+        }
+        Ok(())
+    }
+}
+
+impl core::error::Error for CommandDecodeError {}
+
 impl CommandDecodeError {
     /// The acknowledgement to send back.
     pub fn ack(&self) -> CommandAck {

@@ -86,6 +86,8 @@ pub enum CodecError {
     Invalid(ValidationError),
 }
 
+impl core::error::Error for CodecError {}
+
 impl fmt::Display for CodecError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {

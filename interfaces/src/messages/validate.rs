@@ -33,6 +33,8 @@ pub enum ValidationError {
     },
 }
 
+impl core::error::Error for ValidationError {}
+
 impl fmt::Display for ValidationError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
