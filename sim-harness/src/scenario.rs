@@ -307,11 +307,14 @@ impl CameraIntrinsics {
     }
 }
 
-/// Closest-approach range of the automatic e/i-separated orbit is chosen so the target's
-/// bounding sphere spans this fraction of the smaller half field of view.
-pub const AUTO_FILL_OF_HALF_FOV: f64 = 0.8;
-/// The automatic orbit's relative e and i vectors point along +y (phase 90 deg).
-const AUTO_EI_PHASE_RAD: f64 = std::f64::consts::FRAC_PI_2;
+/// Closest-approach range of the automatic e/i-separated orbit is chosen so a sphere of the
+/// target's framing radius (see `TargetSize`) spans this fraction of the smaller half field of
+/// view: 1.0 = it just fits the frame height. The range then grows to 2.24 times that.
+pub const AUTO_FILL_OF_HALF_FOV: f64 = 1.0;
+/// The automatic orbit's relative e and i vectors point along +y or -y (phase +-90 deg: radial
+/// and normal motion in quadrature, the largest along-track offset at the ascending node);
+/// of the two, the one that starts with the servicer on the sunlit side is used.
+const AUTO_EI_PHASES_RAD: [f64; 2] = [std::f64::consts::FRAC_PI_2, -std::f64::consts::FRAC_PI_2];
 
 fn check_finite(field: &str, value: f64) -> Result<(), ScenarioError> {
     if value.is_finite() {
@@ -627,10 +630,10 @@ impl Scenario {
         }
     }
 
-    /// The relative orbit: the configured one, or the automatic e/i-separated one whose closest
-    /// approach lets a sphere of the target's framing radius fill `AUTO_FILL_OF_HALF_FOV` of
-    /// the smaller half field of view.
-    pub fn roe(&self, target: TargetSize) -> Roe {
+    /// The relative orbit: the configured one, or the automatic e/i-separated one (at e/i phase
+    /// `auto_phase_rad`) whose closest approach lets a sphere of the target's framing radius
+    /// fill `AUTO_FILL_OF_HALF_FOV` of the smaller half field of view.
+    pub fn roe(&self, target: TargetSize, auto_phase_rad: f64) -> Roe {
         let a = self.chief_orbit.semi_major_axis_km * 1000.0;
         match &self.relative_orbit {
             Some(r) => Roe::from_scaled_m([r.da_m, r.dl_m, r.dex_m, r.dey_m, r.dix_m, r.diy_m], a),
@@ -638,7 +641,7 @@ impl Scenario {
                 let half_fov = self.camera_intrinsics().min_half_fov_rad();
                 let separation_m =
                     target.framing_radius_m / (AUTO_FILL_OF_HALF_FOV * half_fov).tan();
-                Roe::e_i_separated(separation_m, AUTO_EI_PHASE_RAD, a)
+                Roe::e_i_separated(separation_m, auto_phase_rad, a)
             }
         }
     }
@@ -651,7 +654,7 @@ impl Scenario {
         let geometry = RendezvousGeometry {
             epoch: self.utc_epoch()?,
             chief: self.chief_elements(),
-            roe: self.roe(target),
+            roe: self.roe(target, AUTO_EI_PHASES_RAD[0]),
             target_attitude: TumbleAttitude {
                 q_inertial_from_body_at_epoch: unit_quaternion(
                     "attitude.initial_quaternion",
@@ -666,6 +669,21 @@ impl Scenario {
             )?,
             earth_albedo_strength: self.render.earth_albedo,
             eclipse_below_sun_fraction: self.render.eclipse_below_sun_fraction,
+        };
+        // Automatic orbit: start on the sunlit side (smaller Sun phase angle at the first frame),
+        // so short runs do not begin with a backlit target.
+        let geometry = if self.relative_orbit.is_none() {
+            let flipped = RendezvousGeometry {
+                roe: self.roe(target, AUTO_EI_PHASES_RAD[1]),
+                ..geometry
+            };
+            if flipped.at(0.0).phase_angle_rad < geometry.at(0.0).phase_angle_rad {
+                flipped
+            } else {
+                geometry
+            }
+        } else {
+            geometry
         };
         // The relative orbit is periodic up to the along-track drift: check one orbit and the
         // whole run, sampled finely enough (at most 0.5 deg of orbit between samples).
@@ -806,8 +824,8 @@ mod tests {
         let min_rn = geometry.roe.min_radial_normal_separation_m(a);
         let half_fov = s.camera_intrinsics().min_half_fov_rad();
         // At the closest approach (radial-normal minimum, zero along-track) the bounding sphere
-        // subtends 80 % of the half field of view.
-        assert!(((radius_m / min_rn).atan() - 0.8 * half_fov).abs() < 1e-9);
+        // just fits the smaller field of view.
+        assert!(((radius_m / min_rn).atan() - half_fov).abs() < 1e-9);
         let ranges: Vec<f64> = (0..1200)
             .map(|i| geometry.servicer_rtn_m(i as f64 * 5.0).length())
             .collect();
@@ -817,6 +835,35 @@ mod tests {
             (closest - min_rn).abs() < 0.05 && farthest < 2.25 * min_rn,
             "{closest} {farthest}"
         );
+    }
+
+    #[test]
+    fn automatic_relative_orbit_starts_on_the_sunlit_side() {
+        for raan_deg in [0.0, 60.0, 150.0, 240.0, 330.0] {
+            let mut s = Scenario::default();
+            s.chief_orbit.raan_deg = raan_deg;
+            let geometry = s.geometry(TargetSize::sphere(3.0)).unwrap();
+            let phase_deg = geometry.at(0.0).phase_angle_rad.to_degrees();
+            assert!(
+                phase_deg < 90.0,
+                "RAAN {raan_deg}: starts {phase_deg} deg from the Sun"
+            );
+            // A configured orbit is used as given, even when backlit.
+            let roe_m = geometry
+                .roe
+                .scaled_m(s.chief_orbit.semi_major_axis_km * 1000.0);
+            s.relative_orbit = Some(RelativeOrbitConfig {
+                dey_m: -roe_m[3],
+                diy_m: -roe_m[5],
+                ..RelativeOrbitConfig::default()
+            });
+            let mirrored = s.geometry(TargetSize::sphere(3.0)).unwrap();
+            let mirrored_deg = mirrored.at(0.0).phase_angle_rad.to_degrees();
+            assert!(
+                (mirrored_deg - (180.0 - phase_deg)).abs() < 0.5,
+                "{mirrored_deg}"
+            );
+        }
     }
 
     #[test]
