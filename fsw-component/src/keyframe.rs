@@ -276,8 +276,7 @@ impl<P> KeyframeWindow<P> {
         self.generation += 1;
         // At most one keyframe over capacity after a single insertion.
         let evicted = if self.keyframes.len() > self.capacity {
-            let index = most_redundant_index(&self.keyframes);
-            Some(self.keyframes.remove(index))
+            most_redundant_index(&self.keyframes).map(|index| self.keyframes.remove(index))
         } else {
             None
         };
@@ -285,15 +284,18 @@ impl<P> KeyframeWindow<P> {
     }
 }
 
-/// Index (into a newest-first slice with more than two entries) of the keyframe to evict.
+/// Index (into a newest-first slice) of the keyframe to evict; `None` when every
+/// keyframe is protected.
 ///
 /// Scores use only non-protected keyframes (j in [3, n] of the paper). With a single
 /// non-protected keyframe there is nothing to compare with and it is the one evicted.
 /// Ties resolve to the older keyframe (larger index), hence the `>=` while scanning
 /// from newest to oldest.
-pub fn most_redundant_index<P>(keyframes_newest_first: &[Keyframe<P>]) -> usize {
+pub fn most_redundant_index<P>(keyframes_newest_first: &[Keyframe<P>]) -> Option<usize> {
     let n = keyframes_newest_first.len();
-    debug_assert!(n > PROTECTED_NEWEST);
+    if n <= PROTECTED_NEWEST {
+        return None;
+    }
     let mut best_index = n - 1;
     let mut best_score = f64::NEG_INFINITY;
     for i in PROTECTED_NEWEST..n {
@@ -313,7 +315,7 @@ pub fn most_redundant_index<P>(keyframes_newest_first: &[Keyframe<P>]) -> usize 
             best_index = i;
         }
     }
-    best_index
+    Some(best_index)
 }
 
 #[cfg(test)]
@@ -464,6 +466,16 @@ mod tests {
         let out = w.offer(frame(4, 95.0));
         assert_eq!(out.evicted_id(), Some(1));
         assert_eq!(w.ids(), vec![4, 3, 2]);
+    }
+
+    #[test]
+    fn nothing_to_evict_among_protected_keyframes() {
+        assert_eq!(most_redundant_index::<()>(&[]), None);
+        assert_eq!(most_redundant_index(&[frame(1, 0.0), frame(2, 90.0)]), None);
+        assert_eq!(
+            most_redundant_index(&[frame(1, 0.0), frame(2, 90.0), frame(3, 0.0)]),
+            Some(2)
+        );
     }
 
     #[test]
