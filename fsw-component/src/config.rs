@@ -92,7 +92,7 @@ pub struct SyncSettings {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrainingConfig {
-    /// Training preset name (config/presets, e.g. "cpu" or "paper").
+    /// Training preset name (a preset under config/, e.g. "cpu" or "paper").
     pub preset: String,
     /// Keyframe window size W.
     pub window_size: usize,
