@@ -121,3 +121,102 @@ impl RendezvousGeometry {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::orbit::kepler::RtnFrame;
+
+    fn geometry() -> RendezvousGeometry {
+        RendezvousGeometry {
+            epoch: UtcEpoch::new(2024, 6, 1, 6, 30, 0.0).unwrap(),
+            chief: KeplerElements {
+                semi_major_axis_m: 6_948_300.0,
+                eccentricity: 0.0,
+                inclination_rad: 97.8f64.to_radians(),
+                raan_rad: 1.0,
+                arg_perigee_rad: 0.0,
+                mean_anomaly_rad: 0.2,
+            },
+            roe: Roe::from_scaled_m([0.0, 5.0, 3.0, 30.0, 3.0, 30.0], 6_948_300.0),
+            target_attitude: TumbleAttitude {
+                q_inertial_from_body_at_epoch: DQuat::from_euler(
+                    glam::EulerRot::ZXY,
+                    0.4,
+                    1.0,
+                    -0.3,
+                ),
+                axis_body: DVec3::X,
+                rate_rad_s: 2f64.to_radians(),
+            },
+            q_body_from_camera: DQuat::from_rotation_y(0.5),
+            earth_albedo_strength: 0.3,
+            eclipse_below_sun_fraction: 0.5,
+        }
+    }
+
+    #[test]
+    fn frames_are_consistent_with_each_other() {
+        let geo = geometry();
+        for k in 0..200 {
+            let t = k as f64 * 37.0;
+            let g = geo.at(t);
+            // Camera on target: the target centre projects onto the principal point.
+            assert!((g.t_camera_from_target_m - DVec3::new(0.0, 0.0, g.range_m)).length() < 1e-9);
+            assert!((g.range_m - g.servicer_rtn_m.length()).abs() < 1e-9);
+            // The same Sun in every frame.
+            assert!(
+                (g.q_camera_from_target * g.sun_dir_target - g.sun_dir_camera).length() < 1e-12
+            );
+            assert!(
+                (geo.q_body_from_camera * g.sun_dir_camera - g.sun_dir_servicer_body).length()
+                    < 1e-12
+            );
+            let sun_eci = sun_position_eci_m(geo.epoch.centuries_tt_since_j2000(t));
+            let sun_inertial = (sun_eci - g.chief_position_eci_m).normalize();
+            assert!((g.q_inertial_from_target * g.sun_dir_target - sun_inertial).length() < 1e-12);
+            // The camera position seen from the target matches the RTN position.
+            let chief = geo.chief.propagated(t).state();
+            let rtn = RtnFrame::from_state(&chief);
+            let q_inertial_from_camera =
+                g.q_inertial_from_target * g.q_camera_from_target.inverse();
+            let camera_pos = q_inertial_from_camera * (-g.t_camera_from_target_m);
+            assert!((rtn.to_rtn(camera_pos) - g.servicer_rtn_m).length() < 1e-8);
+            // Image "up" (-y) leans towards the orbit normal.
+            assert!((q_inertial_from_camera * DVec3::NEG_Y).dot(rtn.normal) > 0.0);
+            // Earth below the chief, and the eclipse flag follows the visible fraction.
+            assert!(
+                (g.q_inertial_from_target * g.earth_dir_target + chief.position_m.normalize())
+                    .length()
+                    < 1e-12
+            );
+            assert_eq!(g.eclipse, g.sun_visible_fraction < 0.5);
+            assert!(g.earth_fill_strength >= 0.0 && g.earth_fill_strength <= 0.3);
+            if g.eclipse {
+                assert_eq!(g.earth_fill_strength, 0.0);
+            }
+            let phase = (camera_pos / g.range_m).dot(sun_inertial).acos();
+            assert!((phase - g.phase_angle_rad).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn an_orbit_has_both_sunlight_and_eclipse_at_low_beta() {
+        // RAAN 1 rad in June at i = 97.8 deg: the Sun is near the orbit plane.
+        let geo = geometry();
+        let period = geo.chief.period_s();
+        let flags: Vec<bool> = (0..600)
+            .map(|k| geo.at(k as f64 * period / 600.0).eclipse)
+            .collect();
+        let eclipsed = flags.iter().filter(|&&e| e).count();
+        assert!(
+            eclipsed > 100 && eclipsed < 300,
+            "{eclipsed} of 600 samples in eclipse"
+        );
+        // One contiguous shadow pass per orbit (two flag changes, counting wrap-around).
+        let changes = (0..600)
+            .filter(|&k| flags[k] != flags[(k + 1) % 600])
+            .count();
+        assert_eq!(changes, 2);
+    }
+}
