@@ -222,3 +222,18 @@ fn telecommand_and_telemetry_on_one_apid_are_separate_sessions() {
     assert_eq!(m.packet_type, PacketType::Telemetry);
     assert_eq!(m.payload.len(), 2000);
 }
+
+#[test]
+fn apid_filter_rejects_before_allocating_a_session() {
+    let mut r: CcsdsReassembler<Vec<u8>, 1> =
+        CcsdsReassembler::new(vec![0u8; 8192]).with_apid_filter(|a| a == 200);
+    let foreign = packets(999, &payload(3000), 0, 1472);
+    let wanted = packets(200, &payload(3000), 0, 1472);
+    assert_eq!(r.push(&foreign[0], 0), Err(CcsdsRxError::NotSubscribed));
+    let mut last = None;
+    for p in &wanted {
+        last = r.push(p, 0).unwrap().map(|m| m.payload.len());
+    }
+    assert_eq!(last, Some(3000));
+    assert_eq!(r.counters().rejected_not_subscribed, 1);
+}

@@ -72,9 +72,15 @@ fn seeds() -> Vec<Vec<u8>> {
         }
         out.push(s);
         let mut s = vec![2u8];
-        for p in message_packets(PacketType::Telemetry, *port, bytes, i as u16, 300 + (97 * i) % 1172)
-            .unwrap()
-            .take(20)
+        for p in message_packets(
+            PacketType::Telemetry,
+            *port,
+            bytes,
+            i as u16,
+            300 + (97 * i) % 1172,
+        )
+        .unwrap()
+        .take(20)
         {
             s.extend((p.len() as u16).to_le_bytes());
             s.extend(10u16.to_le_bytes());

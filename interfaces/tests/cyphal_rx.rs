@@ -324,3 +324,16 @@ fn malformed_frames_are_counted_by_reason() {
     rx.reset_counters();
     assert_eq!(rx.counters().frames, 0);
 }
+
+#[test]
+fn subject_filter_rejects_before_allocating_a_session() {
+    let mut rx: CanReassembler<Vec<u8>, 1> =
+        CanReassembler::new(vec![0u8; 256]).with_subject_filter(|s| s == 100);
+    let long: Vec<u8> = (0..30).collect();
+    let foreign = frames(7509, 9, 0, &long, Mtu::Classic);
+    let wanted = frames(100, 9, 0, &long, Mtu::Classic);
+    // The foreign transfer would hold the only session mid-transfer; filtered, it cannot.
+    rx.push(foreign[0].id, &foreign[0].data, 0).unwrap_err();
+    assert_eq!(feed(&mut rx, &wanted, 0).0, vec![long]);
+    assert_eq!(rx.counters().rejected_not_subscribed, 1);
+}

@@ -38,6 +38,8 @@ pub enum CcsdsRxError {
     LengthMismatch,
     /// Idle packet (APID 2047): carries nothing.
     IdlePacket,
+    /// An APID the APID filter does not accept.
+    NotSubscribed,
     /// Continuation or Last without a started message.
     MissingFirst,
     /// Sequence count not the expected next one (loss or reordering).
@@ -65,6 +67,7 @@ impl fmt::Display for CcsdsRxError {
             CcsdsRxError::SecondaryHeaderUnsupported => "secondary header not supported",
             CcsdsRxError::LengthMismatch => "packet length field disagrees with datagram size",
             CcsdsRxError::IdlePacket => "idle packet",
+            CcsdsRxError::NotSubscribed => "APID not subscribed",
             CcsdsRxError::MissingFirst => "continuation without a first segment",
             CcsdsRxError::SequenceGap => "sequence count gap or reorder",
             CcsdsRxError::Duplicate => "duplicate sequence count",
@@ -87,6 +90,7 @@ pub struct CcsdsRxCounters {
     pub rejected_secondary_header: u64,
     pub rejected_length_mismatch: u64,
     pub rejected_idle: u64,
+    pub rejected_not_subscribed: u64,
     pub rejected_missing_first: u64,
     pub rejected_sequence_gap: u64,
     pub rejected_duplicate: u64,
@@ -105,6 +109,7 @@ impl CcsdsRxCounters {
             CcsdsRxError::SecondaryHeaderUnsupported => &mut self.rejected_secondary_header,
             CcsdsRxError::LengthMismatch => &mut self.rejected_length_mismatch,
             CcsdsRxError::IdlePacket => &mut self.rejected_idle,
+            CcsdsRxError::NotSubscribed => &mut self.rejected_not_subscribed,
             CcsdsRxError::MissingFirst => &mut self.rejected_missing_first,
             CcsdsRxError::SequenceGap => &mut self.rejected_sequence_gap,
             CcsdsRxError::Duplicate => &mut self.rejected_duplicate,
@@ -124,6 +129,7 @@ impl CcsdsRxCounters {
             self.rejected_secondary_header,
             self.rejected_length_mismatch,
             self.rejected_idle,
+            self.rejected_not_subscribed,
             self.rejected_missing_first,
             self.rejected_sequence_gap,
             self.rejected_duplicate,
@@ -199,6 +205,7 @@ pub struct CcsdsReassembler<B, const N: usize> {
     slot_len: usize,
     sessions: [Session; N],
     timeout_us: u64,
+    apid_filter: Option<fn(u16) -> bool>,
     counters: CcsdsRxCounters,
 }
 
@@ -218,12 +225,20 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CcsdsReassembler<B, N> {
             slot_len,
             sessions: [IDLE_SESSION; N],
             timeout_us: DEFAULT_MESSAGE_TIMEOUT_US,
+            apid_filter: None,
             counters: CcsdsRxCounters::default(),
         }
     }
 
     pub fn with_timeout_us(mut self, timeout_us: u64) -> Self {
         self.timeout_us = timeout_us;
+        self
+    }
+
+    /// Only APIDs for which `filter` returns true get a session; others are rejected as
+    /// [`CcsdsRxError::NotSubscribed`] before they can occupy memory.
+    pub fn with_apid_filter(mut self, filter: fn(u16) -> bool) -> Self {
+        self.apid_filter = Some(filter);
         self
     }
 
@@ -309,6 +324,11 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CcsdsReassembler<B, N> {
         }
         if header.apid == IDLE_APID {
             return Err(CcsdsRxError::IdlePacket);
+        }
+        if let Some(filter) = self.apid_filter {
+            if !filter(header.apid) {
+                return Err(CcsdsRxError::NotSubscribed);
+            }
         }
         let starts = matches!(
             header.sequence_flags,

@@ -31,6 +31,8 @@ pub enum CanRxError {
     ForeignCanId,
     /// A service transfer frame: not supported here.
     ServiceFrame,
+    /// A subject the subject filter does not accept.
+    NotSubscribed,
     /// No data at all: a Cyphal frame has at least the tail byte.
     MissingTailByte,
     /// Data length not a valid CAN/CAN FD length.
@@ -64,6 +66,7 @@ impl fmt::Display for CanRxError {
         let text = match self {
             CanRxError::ForeignCanId => "CAN ID is not a Cyphal message ID",
             CanRxError::ServiceFrame => "service transfers are not supported",
+            CanRxError::NotSubscribed => "subject not subscribed",
             CanRxError::MissingTailByte => "frame has no tail byte",
             CanRxError::InvalidLength => "frame length is not a valid CAN FD length",
             CanRxError::StartToggleClear => "start frame with toggle 0 (UAVCAN v0)",
@@ -92,6 +95,7 @@ pub struct CanRxCounters {
     pub abandoned_transfers: u64,
     pub rejected_foreign_can_id: u64,
     pub rejected_service_frame: u64,
+    pub rejected_not_subscribed: u64,
     pub rejected_missing_tail_byte: u64,
     pub rejected_invalid_length: u64,
     pub rejected_start_toggle_clear: u64,
@@ -111,6 +115,7 @@ impl CanRxCounters {
         let counter = match error {
             CanRxError::ForeignCanId => &mut self.rejected_foreign_can_id,
             CanRxError::ServiceFrame => &mut self.rejected_service_frame,
+            CanRxError::NotSubscribed => &mut self.rejected_not_subscribed,
             CanRxError::MissingTailByte => &mut self.rejected_missing_tail_byte,
             CanRxError::InvalidLength => &mut self.rejected_invalid_length,
             CanRxError::StartToggleClear => &mut self.rejected_start_toggle_clear,
@@ -132,6 +137,7 @@ impl CanRxCounters {
         [
             self.rejected_foreign_can_id,
             self.rejected_service_frame,
+            self.rejected_not_subscribed,
             self.rejected_missing_tail_byte,
             self.rejected_invalid_length,
             self.rejected_start_toggle_clear,
@@ -215,6 +221,7 @@ pub struct CanReassembler<B, const N: usize> {
     slot_len: usize,
     sessions: [Session; N],
     transfer_id_timeout_us: u64,
+    subject_filter: Option<fn(u16) -> bool>,
     counters: CanRxCounters,
 }
 
@@ -226,12 +233,20 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CanReassembler<B, N> {
             slot_len,
             sessions: [IDLE_SESSION; N],
             transfer_id_timeout_us: DEFAULT_TRANSFER_ID_TIMEOUT_US,
+            subject_filter: None,
             counters: CanRxCounters::default(),
         }
     }
 
     pub fn with_transfer_id_timeout_us(mut self, timeout_us: u64) -> Self {
         self.transfer_id_timeout_us = timeout_us;
+        self
+    }
+
+    /// Only subjects for which `filter` returns true get a session; others are rejected as
+    /// [`CanRxError::NotSubscribed`] before they can occupy memory.
+    pub fn with_subject_filter(mut self, filter: fn(u16) -> bool) -> Self {
+        self.subject_filter = Some(filter);
         self
     }
 
@@ -309,6 +324,11 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CanReassembler<B, N> {
             CanIdError::ServiceTransfer => CanRxError::ServiceFrame,
             _ => CanRxError::ForeignCanId,
         })?;
+        if let Some(filter) = self.subject_filter {
+            if !filter(meta.subject_id) {
+                return Err(CanRxError::NotSubscribed);
+            }
+        }
         let Some((&tail_byte, body)) = data.split_last() else {
             return Err(CanRxError::MissingTailByte);
         };

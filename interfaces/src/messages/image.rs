@@ -36,12 +36,15 @@ impl FrameHeader {
     /// Largest possible encoding, bytes.
     pub const MAX_ENCODED_LEN: usize = 22;
 
+    // Saturating: on a 32-bit flight computer 65535 x 65535 x 3 overflows usize; a saturated
+    // size can never match a real buffer, so validation still fails cleanly.
     pub fn pixel_count(&self) -> usize {
-        usize::from(self.width) * usize::from(self.height)
+        usize::from(self.width).saturating_mul(usize::from(self.height))
     }
 
     pub fn image_bytes(&self) -> usize {
-        self.pixel_count() * self.format.bytes_per_pixel()
+        self.pixel_count()
+            .saturating_mul(self.format.bytes_per_pixel())
     }
 
     fn check_image(&self, pixels: &[u8]) -> Result<(), ValidationError> {
