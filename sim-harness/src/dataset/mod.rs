@@ -160,11 +160,19 @@ fn unit_f32(v: DVec3) -> Vec3 {
     v.as_vec3().normalize()
 }
 
-/// The render request for a frame geometry.
+/// The render request for a frame geometry. In the penumbra (part of the Sun's disc hidden,
+/// not flagged as eclipse) the Sun is dimmed by the visible fraction f: the renderer has one
+/// exposure for all lights, so exposure is scaled by f and the Earth fill by 1/f, which leaves
+/// the fill's contribution unchanged.
 pub fn frame_request(scenario: &Scenario, g: &FrameGeometry, seed: u64) -> FrameRequest {
+    let sun_scale = if g.eclipse {
+        1.0
+    } else {
+        g.sun_visible_fraction.clamp(1e-3, 1.0)
+    };
     let earth_albedo = (g.earth_fill_strength > 0.0).then(|| EarthFill {
         dir_target: unit_f32(g.earth_dir_target),
-        strength: g.earth_fill_strength as f32,
+        strength: (g.earth_fill_strength / sun_scale) as f32,
     });
     FrameRequest {
         camera: pinhole(&scenario.camera_intrinsics()),
@@ -174,7 +182,7 @@ pub fn frame_request(scenario: &Scenario, g: &FrameGeometry, seed: u64) -> Frame
         sun_lit: !g.eclipse,
         earth_albedo,
         samples_per_pixel: scenario.render.samples_per_pixel,
-        exposure: scenario.render.exposure as f32,
+        exposure: (scenario.render.exposure * sun_scale) as f32,
         seed,
     }
 }
@@ -478,5 +486,31 @@ fn truth_record(g: &FrameGeometry, servicer_rtn_m: Option<DVec3>) -> TruthRecord
         range_m: g.range_m,
         phase_angle_deg: g.phase_angle_rad.to_degrees(),
         servicer_rtn_m: servicer_rtn_m.map(|v| v.to_array()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scenario::TargetSize;
+
+    #[test]
+    fn penumbra_dims_the_sun_but_not_the_earth_fill() {
+        let scenario = Scenario::default();
+        let geometry = scenario.geometry(TargetSize::sphere(3.0)).unwrap();
+        let mut g = geometry.at(0.0);
+        assert!(!g.eclipse && g.sun_visible_fraction == 1.0 && g.earth_fill_strength > 0.0);
+        let full = frame_request(&scenario, &g, 1);
+        assert_eq!(full.exposure, 1.0);
+        g.sun_visible_fraction = 0.8;
+        let partial = frame_request(&scenario, &g, 1);
+        assert!((partial.exposure - 0.8).abs() < 1e-6);
+        let fill = |r: &FrameRequest| r.earth_albedo.unwrap().strength * r.exposure;
+        assert!((fill(&partial) - fill(&full)).abs() < 1e-6);
+        g.eclipse = true;
+        g.sun_visible_fraction = 0.2;
+        g.earth_fill_strength = 0.0;
+        let dark = frame_request(&scenario, &g, 1);
+        assert!(!dark.sun_lit && dark.earth_albedo.is_none());
     }
 }
