@@ -276,3 +276,58 @@ fn command_line_reports_bad_files_clearly() {
     assert!(!dir.join("out").exists(), "nothing written on error");
     std::fs::remove_dir_all(dir).unwrap();
 }
+
+#[test]
+fn obj_targets_load_relative_to_the_scenario_file() {
+    let dir = temp_dir("obj");
+    std::fs::create_dir_all(dir.join("models")).unwrap();
+    // A 2 m cube centred on the body origin.
+    let mut obj = String::new();
+    for z in [-1.0, 1.0] {
+        for y in [-1.0, 1.0] {
+            for x in [-1.0, 1.0] {
+                obj.push_str(&format!("v {x} {y} {z}\n"));
+            }
+        }
+    }
+    for f in [
+        "1 3 4 2", "5 6 8 7", "1 2 6 5", "3 7 8 4", "1 5 7 3", "2 4 8 6",
+    ] {
+        obj.push_str(&format!("f {f}\n"));
+    }
+    std::fs::write(dir.join("models/cube.obj"), obj).unwrap();
+    let scenario_path = dir.join("cube.toml");
+    std::fs::write(
+        &scenario_path,
+        "[target]\nobj = \"models/cube.obj\"\nsurface_points = 50\n[sequence]\nframes = 2\neval_views = 1\n\
+         [camera]\ndownsample = 16\n[render]\nsamples_per_pixel = 1\n",
+    )
+    .unwrap();
+    let scenario = Scenario::load(&scenario_path).unwrap();
+    assert_eq!(scenario.name, "cube");
+    let summary = generate(
+        &scenario,
+        &dir.join("out"),
+        GenerateOptions::default(),
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(summary.target_triangles, 12);
+    assert!((summary.target_bounding_radius_m - 3f64.sqrt()).abs() < 1e-6);
+    let mask = image::open(dir.join("out/masks/000000.png"))
+        .unwrap()
+        .to_luma8();
+    assert!(mask.as_raw().contains(&255));
+    // A missing mesh is an error naming the file.
+    std::fs::write(&scenario_path, "[target]\nobj = \"models/missing.obj\"\n").unwrap();
+    let err = generate(
+        &Scenario::load(&scenario_path).unwrap(),
+        &dir.join("out2"),
+        GenerateOptions::default(),
+        &mut |_| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("missing.obj"), "{err}");
+    std::fs::remove_dir_all(dir).unwrap();
+}
