@@ -309,12 +309,18 @@ fn malformed_frames_are_counted_by_reason() {
         rx.push(0xFFFF_FFFF, &[0xE0], 0),
         Err(CanRxError::ForeignCanId)
     );
+    // A CANopen-style standard frame would parse as a Cyphal ID if its format were ignored.
+    assert_eq!(
+        rx.push_frame(false, 0x701, &[0xE0], 0),
+        Err(CanRxError::StandardFrame)
+    );
     // Multi-frame transfer whose frames carry no CRC bytes at all.
     assert_eq!(rx.push(id, &[0xA0], 0), Ok(None));
     assert_eq!(rx.push(id, &[0x40], 0), Err(CanRxError::CrcMismatch));
     let c = rx.counters();
-    assert_eq!(c.frames, 9);
-    assert_eq!(c.rejected_total(), 8);
+    assert_eq!(c.frames, 10);
+    assert_eq!(c.rejected_total(), 9);
+    assert_eq!(c.rejected_standard_frame, 1);
     assert_eq!(c.rejected_missing_tail_byte, 1);
     assert_eq!(c.rejected_invalid_length, 2);
     assert_eq!(c.rejected_start_toggle_clear, 1);

@@ -27,6 +27,8 @@ pub const DEFAULT_TRANSFER_ID_TIMEOUT_US: u64 = 2_000_000;
 /// Why a frame was not taken.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CanRxError {
+    /// A standard (11-bit ID) frame: Cyphal/CAN uses extended frames only.
+    StandardFrame,
     /// The CAN ID is not a Cyphal/CAN message ID (too wide, reserved bits set).
     ForeignCanId,
     /// A service transfer frame: not supported here.
@@ -64,6 +66,7 @@ impl core::error::Error for CanRxError {}
 impl fmt::Display for CanRxError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let text = match self {
+            CanRxError::StandardFrame => "standard 11-bit frame: not Cyphal",
             CanRxError::ForeignCanId => "CAN ID is not a Cyphal message ID",
             CanRxError::ServiceFrame => "service transfers are not supported",
             CanRxError::NotSubscribed => "subject not subscribed",
@@ -93,6 +96,7 @@ pub struct CanRxCounters {
     pub frames: u64,
     pub transfers: u64,
     pub abandoned_transfers: u64,
+    pub rejected_standard_frame: u64,
     pub rejected_foreign_can_id: u64,
     pub rejected_service_frame: u64,
     pub rejected_not_subscribed: u64,
@@ -113,6 +117,7 @@ pub struct CanRxCounters {
 impl CanRxCounters {
     fn count(&mut self, error: CanRxError) {
         let counter = match error {
+            CanRxError::StandardFrame => &mut self.rejected_standard_frame,
             CanRxError::ForeignCanId => &mut self.rejected_foreign_can_id,
             CanRxError::ServiceFrame => &mut self.rejected_service_frame,
             CanRxError::NotSubscribed => &mut self.rejected_not_subscribed,
@@ -135,6 +140,7 @@ impl CanRxCounters {
     /// All rejected frames, whatever the reason.
     pub fn rejected_total(&self) -> u64 {
         [
+            self.rejected_standard_frame,
             self.rejected_foreign_can_id,
             self.rejected_service_frame,
             self.rejected_not_subscribed,
@@ -279,7 +285,26 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CanReassembler<B, N> {
         }
     }
 
-    /// Feeds one received frame (29-bit ID, data including the tail byte).
+    /// Feeds one received frame of either CAN ID format: standard (11-bit) frames are not
+    /// Cyphal and are counted and rejected here, extended ones go to [`Self::push`].
+    pub fn push_frame<'a>(
+        &'a mut self,
+        is_extended: bool,
+        can_id: u32,
+        data: &'a [u8],
+        timestamp_us: u64,
+    ) -> Result<Option<ReceivedTransfer<'a>>, CanRxError> {
+        if !is_extended {
+            self.counters.frames += 1;
+            self.counters.count(CanRxError::StandardFrame);
+            return Err(CanRxError::StandardFrame);
+        }
+        self.push(can_id, data, timestamp_us)
+    }
+
+    /// Feeds one received extended frame: `can_id` is the bare 29-bit identifier (no
+    /// SocketCAN EFF/RTR/ERR flag bits, which would make it a foreign ID), `data` includes the
+    /// tail byte. Use [`Self::push_frame`] when standard frames may arrive too.
     pub fn push<'a>(
         &'a mut self,
         can_id: u32,
