@@ -6,6 +6,7 @@
 //!   `IIIIIIII#DATA` (classic) or `IIIIIIII##0DATA` (CAN FD, flags nibble 0).
 //! `cyphal_frames decode`
 //!   reads frames from stdin, one per line, in the same notation or as candump log lines
+//!   (3-digit IDs are standard frames, counted and rejected)
 //!   `(1700000000.000000) vcan0 IIIIIIII#DATA` (the timestamp is then used), reassembles them
 //!   and prints `TRANSFER subject=S source=N tid=T payload=HEX` per completed transfer,
 //!   `REJECT line=L reason=R` per rejected frame and a final `COUNTERS frames=F transfers=T
@@ -71,8 +72,9 @@ fn encode(args: &[String]) -> Result<(), String> {
     Ok(())
 }
 
-/// (timestamp_us, can_id, data) from one text line.
-fn parse_line(line: &str, line_no: u64) -> Result<(u64, u32, Vec<u8>), String> {
+/// (timestamp_us, is_extended, can_id, data) from one text line. As in candump, an ID of 8
+/// hex digits is extended (29-bit), of 3 digits standard (11-bit).
+fn parse_line(line: &str, line_no: u64) -> Result<(u64, bool, u32, Vec<u8>), String> {
     let tokens: Vec<&str> = line.split_whitespace().collect();
     let frame = tokens
         .iter()
@@ -95,7 +97,7 @@ fn parse_line(line: &str, line_no: u64) -> Result<(u64, u32, Vec<u8>), String> {
     };
     let id = u32::from_str_radix(id_text, 16)
         .map_err(|_| format!("line {line_no}: bad ID {id_text}"))?;
-    Ok((timestamp_us, id, hex_decode(data_text)?))
+    Ok((timestamp_us, id_text.len() > 3, id, hex_decode(data_text)?))
 }
 
 fn decode() -> Result<(), String> {
@@ -107,8 +109,8 @@ fn decode() -> Result<(), String> {
             continue;
         }
         let line_no = index as u64 + 1;
-        let (timestamp_us, id, data) = parse_line(&line, line_no)?;
-        let text = match rx.push(id, &data, timestamp_us) {
+        let (timestamp_us, is_extended, id, data) = parse_line(&line, line_no)?;
+        let text = match rx.push_frame(is_extended, id, &data, timestamp_us) {
             Ok(Some(t)) => format!(
                 "TRANSFER subject={} source={} tid={} payload={}",
                 t.subject_id,
