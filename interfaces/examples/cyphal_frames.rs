@@ -6,8 +6,8 @@
 //!   `IIIIIIII#DATA` (classic) or `IIIIIIII##0DATA` (CAN FD, flags nibble 0).
 //! `cyphal_frames decode`
 //!   reads frames from stdin, one per line, in the same notation or as candump log lines
-//!   (3-digit IDs are standard frames, counted and rejected)
-//!   `(1700000000.000000) vcan0 IIIIIIII#DATA` (the timestamp is then used), reassembles them
+//!   `(1700000000.000000) vcan0 IIIIIIII#DATA` (the timestamp is then used; 3-digit IDs are
+//!   standard frames, counted and rejected), reassembles them
 //!   and prints `TRANSFER subject=S source=N tid=T payload=HEX` per completed transfer,
 //!   `REJECT line=L reason=R` per rejected frame and a final `COUNTERS frames=F transfers=T
 //!   rejected=R` line.
