@@ -477,9 +477,9 @@ mod tests {
         let rm = glam::Mat3::from_quat(q);
         let d = glam::Mat3::from_diagonal(Vec3::new(s[0] * s[0], s[1] * s[1], s[2] * s[2]));
         let expected = rm * d * rm.transpose();
-        for a in 0..3 {
-            for b in 0..3 {
-                let got = cov[a][b] / m.len() as f64;
+        for (a, row) in cov.iter().enumerate() {
+            for (b, entry) in row.iter().enumerate() {
+                let got = entry / m.len() as f64;
                 let want = expected.col(b)[a] as f64;
                 // 8000 samples: standard error of a covariance entry ~ 4 / sqrt(8000) = 0.045.
                 assert!((got - want).abs() < 0.15, "cov[{a}][{b}] {got} vs {want}");

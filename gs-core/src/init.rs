@@ -381,7 +381,7 @@ mod tests {
                 Vec3::new(rng.next_f32() * 4.0, rng.next_f32(), z)
             })
             .collect();
-        pts.extend_from_slice(&pts[..20].to_vec());
+        pts.extend_from_within(..20);
         let fast = mean_neighbour_dist2(&pts);
         let slow = brute_force(&pts);
         for (a, b) in fast.iter().zip(&slow) {

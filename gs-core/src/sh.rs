@@ -266,12 +266,12 @@ pub fn sh_to_rgb_backward(
                 d_rest: [0.0; 45],
                 d_mean: Vec3::ZERO,
             };
-            for c in 0..3 {
-                out.d_dc[c] = basis[0] * g[c];
+            for (d, gc) in out.d_dc.iter_mut().zip(&g) {
+                *d = basis[0] * gc;
             }
-            for k in 1..coeffs {
-                for c in 0..3 {
-                    out.d_rest[(k - 1) * 3 + c] = basis[k] * g[c];
+            for (chunk, b) in out.d_rest.chunks_exact_mut(3).zip(&basis[1..coeffs]) {
+                for (d, gc) in chunk.iter_mut().zip(&g) {
+                    *d = b * gc;
                 }
             }
             if let (Some((dir, len)), true) = (view, coeffs > 1) {
@@ -380,21 +380,17 @@ mod tests {
             let phi = i as f64 * std::f64::consts::PI * (3.0 - 5f64.sqrt());
             let d = Vec3::new((r * phi.cos()) as f32, (r * phi.sin()) as f32, z as f32);
             let b = sh_basis(3, d);
-            for a in 0..16 {
-                for c in 0..16 {
-                    gram[a][c] += b[a] as f64 * b[c] as f64 * 4.0 * std::f64::consts::PI / n as f64;
+            for (row, ba) in gram.iter_mut().zip(&b) {
+                for (entry, bc) in row.iter_mut().zip(&b) {
+                    *entry += *ba as f64 * *bc as f64 * 4.0 * std::f64::consts::PI / n as f64;
                 }
             }
         }
-        for a in 0..16 {
-            for c in 0..16 {
+        for (a, row) in gram.iter().enumerate() {
+            for (c, entry) in row.iter().enumerate() {
                 let expected = if a == c { 1.0 } else { 0.0 };
                 // Quadrature error of 20k Fibonacci points on degree-6 polynomials.
-                assert!(
-                    (gram[a][c] - expected).abs() < 2e-3,
-                    "gram[{a}][{c}] = {}",
-                    gram[a][c]
-                );
+                assert!((entry - expected).abs() < 2e-3, "gram[{a}][{c}] = {entry}");
             }
         }
     }

@@ -1,1 +1,569 @@
 //! Vanilla 3DGS training loop over posed images.
+//!
+//! One iteration (1-based, as in 3DGS): take the next view of a seeded shuffle (the
+//! order is reshuffled each time every view has been used once), evaluate SH colour at
+//! the active degree (+1 every `sh_degree_interval` iterations up to the model's degree),
+//! render, take `(1 - lambda) L1 + lambda (1 - SSIM)` against the view's image (on its
+//! mask, see [`crate::loss`]), backpropagate through the rasterizer and the SH colour, and
+//! take one Adam step with the 3DGS learning rates (position rate on the exponential
+//! schedule times the scene extent). While `iteration < densify_until_iter` it gathers
+//! densification statistics, densifies and prunes every `densify_interval` iterations
+//! after `densify_from_iter`, and resets opacities every `opacity_reset_interval`.
+//!
+//! Invariants:
+//! - deterministic: same model, views, config and thread count give bit-identical
+//!   results (the only randomness is a [`SplitMix64`] seeded from `config.seed`);
+//! - a step whose gradients contain NaN/Inf is never applied: it is counted in
+//!   `TrainResult::skipped_non_finite_steps` and its densification stats are dropped;
+//! - bad views or configuration are reported before any work, as [`TrainError`].
+
+use std::time::Instant;
+
+use glam::Vec3;
+
+use crate::camera::Camera;
+use crate::densify::{
+    densify_and_prune, reset_opacity, DensifyConfig, DensifyReport, DensifyStats,
+};
+use crate::init::SplitMix64;
+use crate::loss::{photometric_loss, psnr, ssim, ImageShape, LossError};
+use crate::model::{GaussianModel, Param, ParamSet};
+use crate::optim::{Adam, ExponentialSchedule, GroupRates, OptimError};
+use crate::raster::{
+    render, render_backward, GaussianView, PixelGrads, RasterError, RasterSettings,
+};
+use crate::sh::{sh_to_rgb, sh_to_rgb_backward, ShError};
+
+/// Per-group learning rates (3DGS defaults).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LearningRates {
+    /// Position rate at the start, times the scene extent.
+    pub position_init: f32,
+    /// Position rate at `position_max_steps`, times the scene extent.
+    pub position_final: f32,
+    /// Iterations over which the position rate decays; `None`: the whole run.
+    pub position_max_steps: Option<u64>,
+    pub sh_dc: f32,
+    pub sh_rest: f32,
+    pub opacity: f32,
+    pub scale: f32,
+    pub rotation: f32,
+    pub feature: f32,
+    pub shadow_latent: f32,
+}
+
+impl Default for LearningRates {
+    fn default() -> Self {
+        Self {
+            position_init: 1.6e-4,
+            position_final: 1.6e-6,
+            position_max_steps: None,
+            sh_dc: 2.5e-3,
+            sh_rest: 2.5e-3 / 20.0,
+            opacity: 0.025,
+            scale: 5e-3,
+            rotation: 1e-3,
+            feature: 0.0,
+            shadow_latent: 0.0,
+        }
+    }
+}
+
+/// Training configuration (3DGS defaults where it has one).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainConfig {
+    pub iterations: usize,
+    pub lr: LearningRates,
+    pub densify: DensifyConfig,
+    pub densify_from_iter: usize,
+    pub densify_until_iter: usize,
+    pub densify_interval: usize,
+    /// 0 disables opacity resets.
+    pub opacity_reset_interval: usize,
+    /// Opacities are capped at this value by a reset.
+    pub opacity_reset_value: f32,
+    /// The active SH degree grows by one every this many iterations.
+    pub sh_degree_interval: usize,
+    pub lambda_dssim: f32,
+    pub seed: u64,
+    /// RGB background composited behind the Gaussians.
+    pub background: [f32; 3],
+    /// Scene extent (metres) for the position rate and densification; `None`: 1.1 times
+    /// the largest distance of a camera centre from their mean (3DGS `getNerfppNorm`).
+    pub scene_extent: Option<f32>,
+    pub near_m: f32,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            iterations: 30_000,
+            lr: LearningRates::default(),
+            densify: DensifyConfig::default(),
+            densify_from_iter: 500,
+            densify_until_iter: 15_000,
+            densify_interval: 100,
+            opacity_reset_interval: 3000,
+            opacity_reset_value: 0.01,
+            sh_degree_interval: 1000,
+            lambda_dssim: 0.2,
+            seed: 0,
+            background: [0.0; 3],
+            scene_extent: None,
+            near_m: 0.01,
+        }
+    }
+}
+
+/// One posed training image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainView {
+    pub camera: Camera,
+    /// `H * W * 3` RGB in [0, 1], pixel-major.
+    pub image: Vec<f32>,
+    /// Optional `H * W` foreground weights in [0, 1].
+    pub mask: Option<Vec<f32>>,
+}
+
+/// What one iteration did, for progress reporting.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IterationStats {
+    /// 1-based.
+    pub iteration: usize,
+    pub view_index: usize,
+    pub loss: f32,
+    pub l1: f32,
+    pub ssim: f32,
+    pub gaussians: usize,
+    pub active_sh_degree: u32,
+    pub position_lr: f32,
+    /// Whether this iteration's step was skipped for non-finite gradients.
+    pub skipped: bool,
+    pub densified: Option<DensifyReport>,
+    pub opacity_reset: bool,
+    /// Wall-clock split, milliseconds (informative only; not part of determinism).
+    pub forward_ms: f64,
+    pub backward_ms: f64,
+    pub step_ms: f64,
+}
+
+/// The trained model and its history.
+#[derive(Clone, Debug)]
+pub struct TrainResult {
+    pub model: GaussianModel,
+    /// Loss of every iteration.
+    pub losses: Vec<f32>,
+    /// Steps refused because a gradient was NaN or infinite.
+    pub skipped_non_finite_steps: usize,
+    /// Gaussians whose gradient the rasterizer replaced by zeros (non-finite), summed.
+    pub raster_dropped_gradients: usize,
+    /// Densification steps, with their iteration.
+    pub densify_reports: Vec<(usize, DensifyReport)>,
+    pub scene_extent: f32,
+}
+
+/// Training error.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TrainError {
+    NoViews,
+    /// A view is unusable; `reason` says why.
+    BadView {
+        index: usize,
+        reason: String,
+    },
+    /// A configuration value is unusable; the message says which.
+    Config(String),
+    /// The starting model holds NaN or infinite values.
+    NonFiniteModel {
+        param: Param,
+        index: usize,
+    },
+    Raster(RasterError),
+    Loss(LossError),
+    Sh(ShError),
+    Optim(OptimError),
+    Densify(crate::densify::DensifyError),
+}
+
+impl std::fmt::Display for TrainError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TrainError::NoViews => write!(f, "no training views"),
+            TrainError::BadView { index, reason } => write!(f, "view {index}: {reason}"),
+            TrainError::Config(why) => write!(f, "training config: {why}"),
+            TrainError::NonFiniteModel { param, index } => write!(
+                f,
+                "starting model has a non-finite {} value at index {index}",
+                param.name()
+            ),
+            TrainError::Raster(e) => write!(f, "rasterizer: {e}"),
+            TrainError::Loss(e) => write!(f, "loss: {e}"),
+            TrainError::Sh(e) => write!(f, "SH colour: {e}"),
+            TrainError::Optim(e) => write!(f, "optimiser: {e}"),
+            TrainError::Densify(e) => write!(f, "densification: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for TrainError {}
+
+impl From<RasterError> for TrainError {
+    fn from(e: RasterError) -> Self {
+        TrainError::Raster(e)
+    }
+}
+impl From<LossError> for TrainError {
+    fn from(e: LossError) -> Self {
+        TrainError::Loss(e)
+    }
+}
+impl From<ShError> for TrainError {
+    fn from(e: ShError) -> Self {
+        TrainError::Sh(e)
+    }
+}
+impl From<OptimError> for TrainError {
+    fn from(e: OptimError) -> Self {
+        TrainError::Optim(e)
+    }
+}
+impl From<crate::densify::DensifyError> for TrainError {
+    fn from(e: crate::densify::DensifyError) -> Self {
+        TrainError::Densify(e)
+    }
+}
+
+/// 3DGS `getNerfppNorm` radius: 1.1 times the largest distance of a camera centre from
+/// the mean centre. Zero for a single camera.
+pub fn camera_extent(cameras: &[Camera]) -> f32 {
+    if cameras.is_empty() {
+        return 0.0;
+    }
+    let centres: Vec<Vec3> = cameras.iter().map(Camera::position).collect();
+    let mean = centres.iter().copied().sum::<Vec3>() / centres.len() as f32;
+    1.1 * centres
+        .iter()
+        .map(|c| (*c - mean).length())
+        .fold(0.0f32, f32::max)
+}
+
+fn image_shape(camera: &Camera) -> ImageShape {
+    ImageShape::new(
+        camera.intrinsics.width as usize,
+        camera.intrinsics.height as usize,
+        3,
+    )
+}
+
+fn check_view(index: usize, view: &TrainView) -> Result<(), TrainError> {
+    let bad = |reason: String| TrainError::BadView { index, reason };
+    let shape = image_shape(&view.camera);
+    if shape.pixels() == 0 {
+        return Err(bad("camera image size is zero".into()));
+    }
+    if view.image.len() != shape.values() {
+        return Err(bad(format!(
+            "image has {} values, camera needs {} (H * W * 3)",
+            view.image.len(),
+            shape.values()
+        )));
+    }
+    if let Some(i) = view.image.iter().position(|v| !v.is_finite()) {
+        return Err(bad(format!("image value {i} is not finite")));
+    }
+    if let Some(mask) = &view.mask {
+        if mask.len() != shape.pixels() {
+            return Err(bad(format!(
+                "mask has {} values, camera needs {} (H * W)",
+                mask.len(),
+                shape.pixels()
+            )));
+        }
+        if let Some(i) = mask.iter().position(|v| !(0.0..=1.0).contains(v)) {
+            return Err(bad(format!("mask value {i} is not in [0, 1]")));
+        }
+        if mask.iter().all(|&v| v == 0.0) {
+            return Err(bad("mask is zero everywhere".into()));
+        }
+    }
+    Ok(())
+}
+
+fn check_config(config: &TrainConfig) -> Result<(), TrainError> {
+    let err = |s: &str| Err(TrainError::Config(s.to_string()));
+    if !(0.0..=1.0).contains(&config.lambda_dssim) {
+        return err("lambda_dssim must be in [0, 1]");
+    }
+    if config.densify_interval == 0 {
+        return err("densify_interval must be positive");
+    }
+    if config.sh_degree_interval == 0 {
+        return err("sh_degree_interval must be positive");
+    }
+    if !config.background.iter().all(|v| v.is_finite()) {
+        return err("background must be finite");
+    }
+    let lr = &config.lr;
+    let rates = [
+        lr.position_init,
+        lr.position_final,
+        lr.sh_dc,
+        lr.sh_rest,
+        lr.opacity,
+        lr.scale,
+        lr.rotation,
+        lr.feature,
+        lr.shadow_latent,
+    ];
+    if !rates.iter().all(|r| r.is_finite() && *r >= 0.0) {
+        return err("learning rates must be finite and non-negative");
+    }
+    if !(config.opacity_reset_value > 0.0 && config.opacity_reset_value < 1.0) {
+        return err("opacity_reset_value must be in (0, 1)");
+    }
+    Ok(())
+}
+
+/// Active SH degree at a 1-based iteration (3DGS: one up every `interval` iterations).
+pub fn active_sh_degree(iteration: usize, interval: usize, model_degree: u32) -> u32 {
+    ((iteration / interval.max(1)) as u32).min(model_degree)
+}
+
+/// Renders `model` from `camera` as RGB (`H * W * 3`) at SH degree `sh_degree`.
+pub fn render_rgb(
+    model: &GaussianModel,
+    camera: &Camera,
+    sh_degree: u32,
+    background: [f32; 3],
+) -> Result<Vec<f32>, TrainError> {
+    let colours = sh_to_rgb(&model.params, sh_degree, camera.position())?;
+    let view = GaussianView::from_model(model, &colours, 3);
+    let settings = RasterSettings {
+        background: background.to_vec(),
+        ..RasterSettings::default()
+    };
+    Ok(render(camera, &view, &settings)?.color)
+}
+
+/// PSNR and SSIM of one view's render against its image (whole image, unmasked).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewScore {
+    pub psnr_db: f32,
+    pub ssim: f32,
+}
+
+/// Scores `model` on `views` at the model's full SH degree.
+pub fn evaluate(
+    model: &GaussianModel,
+    views: &[TrainView],
+    background: [f32; 3],
+) -> Result<Vec<ViewScore>, TrainError> {
+    views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            check_view(i, v)?;
+            let img = render_rgb(model, &v.camera, model.layout().sh_degree, background)?;
+            let shape = image_shape(&v.camera);
+            Ok(ViewScore {
+                psnr_db: psnr(&img, &v.image, shape)?,
+                ssim: ssim(&img, &v.image, shape)?,
+            })
+        })
+        .collect()
+}
+
+fn group_rates(lr: &LearningRates, position_lr: f32) -> GroupRates {
+    let mut r = [0.0f32; Param::COUNT];
+    r[Param::Mean.index()] = position_lr;
+    r[Param::LogScale.index()] = lr.scale;
+    r[Param::Rotation.index()] = lr.rotation;
+    r[Param::OpacityLogit.index()] = lr.opacity;
+    r[Param::ShDc.index()] = lr.sh_dc;
+    r[Param::ShRest.index()] = lr.sh_rest;
+    r[Param::Feature.index()] = lr.feature;
+    r[Param::ShadowLatent.index()] = lr.shadow_latent;
+    r
+}
+
+/// Parameter-shaped gradients from the rasterizer's per-Gaussian gradients.
+fn gather_grads(params: &ParamSet, g: &crate::raster::GaussianGrads) -> ParamSet {
+    let mut out = params.zeros_like();
+    out.get_mut(Param::Mean).copy_from_slice(&g.d_means);
+    out.get_mut(Param::LogScale)
+        .copy_from_slice(&g.d_log_scales);
+    out.get_mut(Param::Rotation).copy_from_slice(&g.d_rotations);
+    out.get_mut(Param::OpacityLogit)
+        .copy_from_slice(&g.d_opacity_logits);
+    out
+}
+
+/// Trains `model` on `views`; `progress` sees every iteration.
+pub fn train(
+    model: GaussianModel,
+    views: &[TrainView],
+    config: &TrainConfig,
+    mut progress: impl FnMut(&IterationStats),
+) -> Result<TrainResult, TrainError> {
+    if views.is_empty() {
+        return Err(TrainError::NoViews);
+    }
+    for (i, v) in views.iter().enumerate() {
+        check_view(i, v)?;
+    }
+    check_config(config)?;
+    if let Some((param, index)) = Adam::first_non_finite(&model.params) {
+        return Err(TrainError::NonFiniteModel { param, index });
+    }
+    let scene_extent = match config.scene_extent {
+        Some(e) => e,
+        None => camera_extent(&views.iter().map(|v| v.camera).collect::<Vec<_>>()),
+    };
+    if !(scene_extent.is_finite() && scene_extent > 0.0) {
+        return Err(TrainError::Config(format!(
+            "scene extent {scene_extent} is not positive (one camera position?): set scene_extent"
+        )));
+    }
+
+    let mut model = model;
+    let model_degree = model.layout().sh_degree;
+    let mut adam = Adam::new(&model.params);
+    let mut stats = DensifyStats::new(model.len());
+    let mut rng = SplitMix64::new(config.seed);
+    let schedule = ExponentialSchedule {
+        lr_init: config.lr.position_init * scene_extent,
+        lr_final: config.lr.position_final * scene_extent,
+        delay_steps: 0,
+        delay_mult: 0.01,
+        max_steps: config
+            .lr
+            .position_max_steps
+            .unwrap_or(config.iterations as u64),
+    };
+    let settings = RasterSettings {
+        near_m: config.near_m,
+        background: config.background.to_vec(),
+        smooth_cutoff: false,
+    };
+
+    let mut order: Vec<usize> = Vec::new();
+    let mut losses = Vec::with_capacity(config.iterations);
+    let mut skipped_steps = 0;
+    let mut raster_dropped = 0;
+    let mut reports = Vec::new();
+    for iteration in 1..=config.iterations {
+        if order.is_empty() {
+            order = (0..views.len()).collect();
+            rng.shuffle(&mut order);
+        }
+        let view_index = order.pop().expect("refilled above");
+        let view = &views[view_index];
+        let camera = &view.camera;
+        let position_lr = schedule.at(iteration as u64);
+        let degree = active_sh_degree(iteration, config.sh_degree_interval, model_degree);
+
+        let t0 = Instant::now();
+        let colours = sh_to_rgb(&model.params, degree, camera.position())?;
+        let gview = GaussianView::from_model(&model, &colours, 3);
+        let forward = render(camera, &gview, &settings)?;
+        let shape = image_shape(camera);
+        let loss = photometric_loss(
+            &forward.color,
+            &view.image,
+            view.mask.as_deref(),
+            shape,
+            config.lambda_dssim,
+        )?;
+        let t1 = Instant::now();
+        // A non-finite loss gradient (a model gone numerically wild) is counted and
+        // skipped rather than handed to the rasterizer, which rejects it.
+        let loss_finite = loss.loss.is_finite() && loss.d_rendered.iter().all(|v| v.is_finite());
+        let backward = if loss_finite {
+            let pixel_grads = PixelGrads {
+                d_color: &loss.d_rendered,
+                d_alpha: None,
+                d_depth: None,
+            };
+            let g = render_backward(camera, &gview, &settings, &forward, &pixel_grads)?;
+            raster_dropped += g.dropped_nonfinite;
+            let mut grads = gather_grads(&model.params, &g);
+            sh_to_rgb_backward(
+                &model.params,
+                degree,
+                camera.position(),
+                &g.d_channels,
+                &mut grads,
+            )?;
+            Adam::first_non_finite(&grads)
+                .is_none()
+                .then_some((g, grads))
+        } else {
+            None
+        };
+        let t2 = Instant::now();
+
+        let skipped = backward.is_none();
+        let mut densified = None;
+        let mut opacity_reset = false;
+        if let Some((g, grads)) = backward {
+            adam.step(
+                &mut model.params,
+                &grads,
+                &group_rates(&config.lr, position_lr),
+            )?;
+            if iteration < config.densify_until_iter {
+                stats.accumulate(&g.mean2d_grad_ndc, &forward.visible, &forward.radii_px)?;
+                if iteration > config.densify_from_iter && iteration % config.densify_interval == 0
+                {
+                    let screen_limit = iteration > config.opacity_reset_interval
+                        && config.opacity_reset_interval > 0;
+                    let report = densify_and_prune(
+                        &mut model,
+                        &mut adam,
+                        &mut stats,
+                        &config.densify,
+                        scene_extent,
+                        screen_limit,
+                        &mut rng,
+                    )?;
+                    reports.push((iteration, report));
+                    densified = Some(report);
+                }
+                if config.opacity_reset_interval > 0
+                    && iteration % config.opacity_reset_interval == 0
+                {
+                    reset_opacity(&mut model, &mut adam, config.opacity_reset_value);
+                    opacity_reset = true;
+                }
+            }
+        } else {
+            skipped_steps += 1;
+        }
+        let t3 = Instant::now();
+        losses.push(loss.loss);
+        progress(&IterationStats {
+            iteration,
+            view_index,
+            loss: loss.loss,
+            l1: loss.l1,
+            ssim: loss.ssim,
+            gaussians: model.len(),
+            active_sh_degree: degree,
+            position_lr,
+            skipped,
+            densified,
+            opacity_reset,
+            forward_ms: (t1 - t0).as_secs_f64() * 1e3,
+            backward_ms: (t2 - t1).as_secs_f64() * 1e3,
+            step_ms: (t3 - t2).as_secs_f64() * 1e3,
+        });
+    }
+    Ok(TrainResult {
+        model,
+        losses,
+        skipped_non_finite_steps: skipped_steps,
+        raster_dropped_gradients: raster_dropped,
+        densify_reports: reports,
+        scene_extent,
+    })
+}
