@@ -3,7 +3,7 @@
 #
 # Usage: bash tests/vcan/run-can-tests.sh   (from anywhere; CARGO_TARGET_DIR is honoured)
 #
-# On the host: builds fsw-component's transport_socketcan test binary and the can_echo_peer
+# On the host: builds fsw-component's unit-test and transport_socketcan test binaries and the can_echo_peer
 # example (default target CPU: the emulated CPU has no AVX-512), and the Python venv
 # (tests/setup_venv.sh). In the VM: runs those prebuilt binaries (no cargo) and the python-can
 # pytest in tests/bus/ against vcan0 (see in-vm-tests.sh). Exits non-zero if anything fails.
@@ -30,8 +30,10 @@ print(paths[0])'
 }
 
 echo "[vcan] building the SocketCAN test binary and the Rust CAN peer" >&2
+unit_test_binary=$(cargo_executable test -p fsw-component --lib --no-run)
 test_binary=$(cargo_executable test -p fsw-component --test transport_socketcan --no-run)
 peer_binary=$(cargo_executable build -p fsw-component --example can_echo_peer)
 python=$(bash tests/setup_venv.sh)
 
-bash tests/vcan/run-in-vm.sh bash tests/vcan/in-vm-tests.sh "$test_binary" "$peer_binary" "$python"
+bash tests/vcan/run-in-vm.sh bash tests/vcan/in-vm-tests.sh \
+    "$unit_test_binary" "$test_binary" "$peer_binary" "$python"
