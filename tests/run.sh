@@ -9,3 +9,9 @@ echo "== cargo clippy"
 cargo clippy --workspace --all-targets -- -D warnings
 echo "== cargo test"
 cargo test --workspace
+
+echo "== python test environment"
+python=$(bash tests/setup_venv.sh)
+
+echo "== Cyphal interoperability (pycyphal)"
+"$python" -m pytest tests/interop -q
