@@ -1,7 +1,8 @@
 //! Ray-tracer benchmark: for each built-in target prints the triangle count, BVH build time and
-//! the median time per 960x600 frame (SPEED intrinsics downsampled by 2) at 1 and 4 samples per
-//! pixel, over several viewpoints. With `--png DIR` it also writes frames of every target under a
-//! few Sun directions (and one eclipse frame with Earth fill) for a person to look at.
+//! the median time per 960x600 frame (SPEED intrinsics downsampled by 2) over several viewpoints:
+//! framed (whole craft in view) at 1 and 4 samples per pixel, and close (0.4 times the range,
+//! the craft fills the frame) at 1 sample. With `--png DIR` it also writes frames of every
+//! target under a few Sun directions (and one eclipse frame with Earth fill) to look at.
 //!
 //! Run: `cargo run --release -p sim-harness --example render_bench [-- --png /tmp/renders]`
 
@@ -80,8 +81,14 @@ fn main() {
     }
     println!("threads: {}", rayon::current_num_threads());
     println!(
-        "{:<10} {:>10} {:>10} {:>8} {:>14} {:>14}",
-        "target", "triangles", "radius_m", "bvh_ms", "frame_1spp_ms", "frame_4spp_ms"
+        "{:<10} {:>10} {:>10} {:>8} {:>14} {:>14} {:>16}",
+        "target",
+        "triangles",
+        "radius_m",
+        "bvh_ms",
+        "frame_1spp_ms",
+        "frame_4spp_ms",
+        "close_1spp_ms"
     );
     for kind in BuiltinTarget::ALL {
         let mesh = builtin_target(kind);
@@ -94,11 +101,12 @@ fn main() {
         let half_fov_y = (camera().cy / camera().fy).atan();
         let range_m = radius_m / 0.9 / half_fov_y.tan();
         let sun = Vec3::new(0.6, -0.3, 0.75).normalize();
-        let mut timings = [Vec::new(), Vec::new()];
-        for (slot, spp) in [(0, 1), (1, 4)] {
+        // Framed (whole craft in view) at 1 and 4 samples, and close (craft fills the frame).
+        let mut timings = [Vec::new(), Vec::new(), Vec::new()];
+        for (slot, spp, range_factor) in [(0, 1, 1.0), (1, 4, 1.0), (2, 1, 0.4)] {
             for _ in 0..REPEATS {
                 for dir in view_directions() {
-                    let req = request(dir * range_m, sun, spp);
+                    let req = request(dir * range_m * range_factor, sun, spp);
                     let start = Instant::now();
                     let frame = render_frame(&scene, &req);
                     timings[slot].push(start.elapsed().as_secs_f64() * 1e3);
@@ -106,15 +114,16 @@ fn main() {
                 }
             }
         }
-        let [t1, t4] = timings.map(median_ms);
+        let [t1, t4, t_close] = timings.map(median_ms);
         println!(
-            "{:<10} {:>10} {:>10.2} {:>8.1} {:>14.1} {:>14.1}",
+            "{:<10} {:>10} {:>10.2} {:>8.1} {:>14.1} {:>14.1} {:>16.1}",
             kind.name(),
             triangles,
             radius_m,
             bvh_ms,
             t1,
-            t4
+            t4,
+            t_close
         );
         if let Some(dir) = &png_dir {
             let suns = [
