@@ -26,7 +26,7 @@ use crate::densify::{
     densify_and_prune, reset_opacity, DensifyConfig, DensifyReport, DensifyStats,
 };
 use crate::init::SplitMix64;
-use crate::loss::{photometric_loss, psnr, ssim, ImageShape, LossError};
+use crate::loss::{photometric_loss, psnr, ssim, ImageShape, LossError, LossOutput};
 use crate::model::{GaussianModel, Param, ParamSet};
 use crate::optim::{Adam, ExponentialSchedule, GroupRates, OptimError};
 use crate::raster::{
@@ -467,13 +467,23 @@ pub fn train(
         let gview = GaussianView::from_model(&model, &colours, 3);
         let forward = render(camera, &gview, &settings)?;
         let shape = image_shape(camera);
-        let loss = photometric_loss(
-            &forward.color,
-            &view.image,
-            view.mask.as_deref(),
-            shape,
-            config.lambda_dssim,
-        )?;
+        // A non-finite render (values overflowing f32) cannot be scored: count and skip.
+        let loss = if forward.color.iter().all(|v| v.is_finite()) {
+            photometric_loss(
+                &forward.color,
+                &view.image,
+                view.mask.as_deref(),
+                shape,
+                config.lambda_dssim,
+            )?
+        } else {
+            LossOutput {
+                loss: f32::NAN,
+                l1: f32::NAN,
+                ssim: f32::NAN,
+                d_rendered: Vec::new(),
+            }
+        };
         let t1 = Instant::now();
         // A non-finite loss gradient (a model gone numerically wild) is counted and
         // skipped rather than handed to the rasterizer, which rejects it.
