@@ -4,7 +4,7 @@
 //! the craft fills the frame) at 1 sample. With `--png DIR` it also writes frames of every
 //! target under a few Sun directions (and one eclipse frame with Earth fill) to look at.
 //!
-//! Run: `cargo run --release -p sim-harness --example render_bench [-- --png /tmp/renders]`
+//! Run: `cargo run --release -p sim-harness --example render_bench [-- --png DIR [--png-range 0.5]]`
 
 use glam::Vec3;
 use sim_harness::raytrace::{
@@ -73,6 +73,14 @@ fn main() {
         .position(|a| a == "--png")
         .and_then(|i| args.get(i + 1))
         .map(PathBuf::from);
+    // Distance of the PNG views as a fraction of the framing range (below 1 zooms in).
+    let png_range_factor: f32 = args
+        .iter()
+        .position(|a| a == "--png-range")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+        .filter(|f: &f32| f.is_finite() && *f > 0.0)
+        .unwrap_or(1.0);
     if let Some(dir) = &png_dir {
         if let Err(e) = std::fs::create_dir_all(dir) {
             eprintln!("cannot create {}: {e}", dir.display());
@@ -134,12 +142,14 @@ fn main() {
             ];
             for (view_index, view) in view_directions().into_iter().enumerate() {
                 for (sun_name, sun) in suns {
-                    let frame = render_frame(&scene, &request(view * range_m, sun, 4));
+                    let eye = view * range_m * png_range_factor;
+                    let frame = render_frame(&scene, &request(eye, sun, 4));
                     let name = format!("{}_view{view_index}_{sun_name}.png", kind.name());
                     write_png(&frame, &dir.join(name));
                 }
             }
-            let mut eclipse = request(view_directions()[0] * range_m, sun, 4);
+            let eye = view_directions()[0] * range_m * png_range_factor;
+            let mut eclipse = request(eye, sun, 4);
             eclipse.sun_lit = false;
             eclipse.earth_albedo = Some(EarthFill {
                 dir_target: Vec3::new(0.2, -1.0, -0.6).normalize(),

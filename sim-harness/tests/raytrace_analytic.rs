@@ -527,3 +527,52 @@ fn invalid_requests_are_errors_and_render_black() {
         assert!(frame.depth_m.iter().all(|d| *d == f32::INFINITY));
     }
 }
+
+#[test]
+fn edge_pixels_average_their_coverage() {
+    // A plate whose edge x = 3 mm cuts pixel column 32 (x in [0, 10 mm]) at 30%: with several
+    // jittered samples that column's radiance is ~0.7 of its fully covered neighbour's.
+    let mut b = MeshBuilder::new();
+    let m = b.material(Material {
+        roughness: 1.0,
+        ..Material::white_paint()
+    });
+    b.quad_grid(
+        Vec3::new(0.003, -10.0, 0.0),
+        Vec3::new(10.0, 0.0, 0.0),
+        Vec3::new(0.0, 20.0, 0.0),
+        1,
+        1,
+        m,
+    );
+    let scene = Scene::new(b.build().unwrap());
+    let (width, height) = (64u32, 256u32);
+    for (spp, tolerance) in [(16u32, 0.03f32), (5, 0.05)] {
+        let mut req = request(
+            PinholeCamera {
+                fx: 1000.0,
+                fy: 1000.0,
+                cx: 32.0,
+                cy: 128.0,
+                width,
+                height,
+            },
+            Vec3::new(0.0, 0.0, 10.0),
+            Vec3::ZERO,
+            Vec3::Y,
+            Vec3::new(0.2, 0.1, 1.0),
+        );
+        req.samples_per_pixel = spp;
+        let radiance = render_radiance(&scene, &req).unwrap();
+        let mut ratio_sum = 0.0;
+        for y in 0..height as usize {
+            let row = &radiance.radiance_rgb[y * width as usize..];
+            assert_eq!(row[31], [0.0; 3], "column 31 lies entirely off the plate");
+            ratio_sum += row[32][0] / row[33][0];
+            // The centre ray of column 32 (x = 5 mm) hits the plate.
+            assert_eq!(radiance.mask[y * width as usize + 32], 255);
+        }
+        let mean = ratio_sum / height as f32;
+        assert!((mean - 0.7).abs() < tolerance, "spp {spp}: {mean}");
+    }
+}

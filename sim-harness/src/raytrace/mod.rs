@@ -284,8 +284,11 @@ pub fn render_radiance(scene: &Scene, req: &FrameRequest) -> Result<RadianceFram
                     centre_hit.map_or(Vec3::ZERO, |hit| shade(scene, &lights, &centre_ray, hit))
                 } else {
                     let mut rng = SplitMix64::new(mix64(req.seed ^ mix64(pixel_index)));
-                    let columns = (spp as f32).sqrt().ceil() as u32;
-                    let rows = spp.div_ceil(columns);
+                    // A square count gets a jittered grid; any other count jittered rows
+                    // (uniform x), so that every sub-pixel area is sampled equally.
+                    let side = (spp as f32).sqrt().round() as u32;
+                    let columns = if side * side == spp { side } else { 1 };
+                    let rows = spp / columns;
                     let mut sum = Vec3::ZERO;
                     for k in 0..spp {
                         let (i, j) = (k % columns, k / columns);

@@ -241,7 +241,7 @@ pub fn rosetta() -> TargetMesh {
     let hga_axis = Quat::from_rotation_y(-FRAC_PI_2 / 3.0) * Vec3::X;
     b.frustum(
         Vec3::new(bus_half.x, 0.0, 0.3),
-        Vec3::new(bus_half.x + 0.5, 0.0, 0.3),
+        Vec3::new(bus_half.x + 0.45, 0.0, 0.3),
         0.06,
         0.06,
         16,
