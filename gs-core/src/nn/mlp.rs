@@ -352,7 +352,7 @@ impl Mlp {
         input: &[f32],
         rows: usize,
         keep_hidden: bool,
-    ) -> Result<(Vec<f32>, Option<Vec<Vec<f32>>>), NnError> {
+    ) -> Result<MlpForward, NnError> {
         self.check_input(input, rows)?;
         let (n_in, n_out) = (self.input_width(), self.output_width());
         let hidden_per_row = self.hidden_floats_per_row();
@@ -375,12 +375,16 @@ impl Mlp {
         } else {
             None
         };
-        Ok((output, hidden))
+        Ok(MlpForward {
+            rows,
+            output,
+            hidden_by_block: hidden,
+        })
     }
 
     /// Inference: sigmoid outputs, row-major `rows x out`. Keeps nothing for backward.
     pub fn forward(&self, input: &[f32], rows: usize) -> Result<Vec<f32>, NnError> {
-        Ok(self.forward_impl(input, rows, false)?.0)
+        Ok(self.forward_impl(input, rows, false)?.output)
     }
 
     /// Forward for training; `mode` decides what is kept for [`Mlp::backward`].
@@ -390,12 +394,7 @@ impl Mlp {
         rows: usize,
         mode: TapeMode,
     ) -> Result<MlpForward, NnError> {
-        let (output, hidden_by_block) = self.forward_impl(input, rows, mode == TapeMode::Cache)?;
-        Ok(MlpForward {
-            rows,
-            output,
-            hidden_by_block,
-        })
+        self.forward_impl(input, rows, mode == TapeMode::Cache)
     }
 
     /// Backward of one block: adds the weight gradients into `d_params` (zeroed by the
