@@ -85,6 +85,22 @@ fn malformed_and_out_of_range_files_are_parse_errors() {
 }
 
 #[test]
+fn missing_material_library_is_an_error() {
+    let dir = std::env::temp_dir().join(format!("render_mtl_test_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("lost_mtl.obj");
+    std::fs::write(
+        &path,
+        "mtllib nowhere.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl x\nf 1 2 3\n",
+    )
+    .unwrap();
+    let err = load_obj(&path).unwrap_err();
+    std::fs::remove_dir_all(&dir).unwrap();
+    assert!(matches!(err, TargetError::Parse { .. }), "{err:?}");
+    assert!(err.to_string().contains("material library"), "{err}");
+}
+
+#[test]
 fn file_without_faces_is_an_error() {
     let dir = std::env::temp_dir().join(format!("render_obj_test_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

@@ -3,8 +3,9 @@
 //! and faces without a material get a neutral default.
 //!
 //! Invariants: the result passes `TargetMesh::new` (all indices checked, vertices finite); a
-//! missing or unreadable `.mtl` falls back to the default material rather than failing, since the
-//! geometry is still usable; a missing or malformed `.obj` is an error naming the file.
+//! missing or malformed `.obj`, or a named `.mtl` that cannot be loaded, is an error naming the
+//! file (never a silent loss of the materials). Faces using a material the library lacks get
+//! the default.
 
 use super::{Material, TargetError, TargetMesh};
 use glam::Vec3;
@@ -35,7 +36,12 @@ pub fn load_obj(path: &Path) -> Result<TargetMesh, TargetError> {
             message: other.to_string(),
         },
     })?;
-    let obj_materials = materials.unwrap_or_default();
+    // tobj reports an error here only when a `mtllib` was named and none could be loaded; a
+    // file without `mtllib` gives an empty list (every face then gets the default material).
+    let obj_materials = materials.map_err(|e| TargetError::Parse {
+        path: path.to_path_buf(),
+        message: format!("its material library (mtllib) cannot be loaded: {e}"),
+    })?;
 
     let mut ours: Vec<Material> = obj_materials.iter().map(map_material).collect();
     let default_index = ours.len();
