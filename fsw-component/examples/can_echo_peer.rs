@@ -58,12 +58,15 @@ async fn serve(interface: String) -> Result<(), TransportError> {
                 let stats = transport.stats();
                 println!(
                     "STATS frames_received={} frames_sent={} dropped_standard_id={} \
-                     dropped_remote={} dropped_error_frames={} send_errors={}",
+                     dropped_remote={} dropped_error_frames={} dropped_malformed={} \
+                     dropped_receive_queue_full={} send_errors={}",
                     stats.frames_received,
                     stats.frames_sent,
                     stats.dropped_standard_id,
                     stats.dropped_remote,
                     stats.dropped_error_frames,
+                    stats.dropped_malformed,
+                    stats.dropped_receive_queue_full,
                     stats.send_errors
                 );
                 return Ok(());

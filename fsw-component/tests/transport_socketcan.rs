@@ -4,7 +4,8 @@
 //!
 //! Checks: exact classic and FD round trips (IDs, every data length, the FD flag), that a
 //! classic socket neither sends nor sees FD frames, that standard-ID and remote frames are
-//! dropped and counted without hiding valid ones, no loss under concurrent senders, and the
+//! dropped and counted without hiding valid ones, no loss under concurrent senders, every
+//! frame of a flood either received or counted as a kernel queue drop, and the
 //! diagnoses for a missing interface and for FD on a classic-only interface.
 //!
 //! All tests share one bus, and a CAN socket sees every frame on it: each test holds
@@ -214,6 +215,51 @@ async fn concurrent_senders_lose_no_frame() {
     assert_eq!(
         sender.stats().frames_sent,
         (SENDERS * FRAMES_PER_SENDER) as u64
+    );
+}
+
+#[tokio::test]
+async fn a_flood_beyond_the_receive_queue_is_counted_not_lost_silently() {
+    let Some(iface) = vcan_iface("a_flood_beyond_the_receive_queue_is_counted_not_lost_silently")
+    else {
+        return;
+    };
+    let _bus = BUS_LOCK.lock().await;
+    // Far more than a socket's receive queue holds (rmem_default: a few hundred frames).
+    const FLOOD_FRAMES: usize = 3000;
+    let receiver = open(&iface, true);
+    let sender = open(&iface, true);
+    for index in 0..FLOOD_FRAMES {
+        let frame = RawCanFrame::fd(index as u32, &data_for(index, 64)).unwrap();
+        sender.send(&frame).await.unwrap();
+    }
+    // Drain what the kernel queued, in order, until the bus stays quiet.
+    let mut queued = Vec::new();
+    while let Ok(frame) = tokio::time::timeout(Duration::from_millis(500), receiver.recv()).await {
+        queued.push(frame.unwrap());
+    }
+    assert!(
+        queued.len() < FLOOD_FRAMES,
+        "the flood did not overflow the receive queue; raise FLOOD_FRAMES"
+    );
+    for (index, frame) in queued.iter().enumerate() {
+        assert_eq!(
+            frame.id() as usize,
+            index,
+            "the queue keeps the first frames in order"
+        );
+    }
+    // The kernel reports drops with the next frame it queues.
+    let marker = RawCanFrame::classic(0x1FFF_0000, &[0xAA]).unwrap();
+    sender.send(&marker).await.unwrap();
+    assert_eq!(receive(&receiver).await, marker);
+
+    let stats = receiver.stats();
+    assert_eq!(stats.frames_received, queued.len() as u64 + 1);
+    assert_eq!(
+        stats.dropped_receive_queue_full,
+        (FLOOD_FRAMES - queued.len()) as u64,
+        "every flood frame is either received or counted as dropped"
     );
 }
 

@@ -111,6 +111,7 @@ def test_python_frames_are_echoed_by_the_rust_transport(bus, peer):
     assert stats["frames_received"] == len(sent) + 1  # + the stop frame
     assert stats["frames_sent"] == len(sent)
     assert stats["dropped_standard_id"] == 0
+    assert stats["dropped_receive_queue_full"] == 0
 
 
 def test_rust_burst_is_received_exactly_by_python(bus, peer):

@@ -1,26 +1,31 @@
-//! SocketCAN transport over the `socketcan` crate's tokio sockets, classic or FD.
+//! SocketCAN transport: `socketcan` sockets (classic or FD) driven by tokio's `AsyncFd`.
 //!
 //! Opening checks, in order, that the kernel has CAN sockets, that the interface exists,
 //! that it is a CAN interface and (FD mode) that its MTU carries FD frames, so each
 //! misconfiguration gets its own [`TransportError`]. Receiving passes on extended-ID data
 //! frames only: standard-ID, remote and error frames are dropped and counted (Cyphal uses
-//! extended IDs only). A classic transport neither sends nor receives FD frames; an FD
-//! transport does both kinds. Counters are atomics, so `&self` can be shared between a
-//! receiving task and sending tasks.
+//! extended IDs only), and frames the kernel dropped on a full receive queue are counted
+//! too (SO_RXQ_OVFL, see `can_recv`), so nothing is lost silently. A classic transport
+//! neither sends nor receives FD frames; an FD transport does both kinds. Counters are
+//! atomics, so `&self` can be shared between a receiving task and sending tasks.
 
 use std::fs;
+use std::os::fd::{AsRawFd, RawFd};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use socketcan::{
-    CanAddr, CanAnyFrame, CanDataFrame, CanFdFrame, CanFrame, EmbeddedFrame, ExtendedId, Id, Socket,
+    CanAddr, CanDataFrame, CanFdFrame, CanFrame, EmbeddedFrame, ExtendedId, Id, Socket,
 };
+use tokio::io::unix::AsyncFd;
+use tokio::io::Interest;
 
+use super::can_recv::{self, Received};
 use super::{RawCanFrame, TransportError};
 
 /// Link type of CAN interfaces in /sys/class/net/IFACE/type (ARPHRD_CAN).
 const ARPHRD_CAN: u32 = 280;
 /// MTU of an interface that carries CAN FD frames (sizeof(struct canfd_frame)).
-const CANFD_MTU_BYTES: u32 = 72;
+const CANFD_MTU_BYTES: u32 = can_recv::CANFD_MTU_BYTES as u32;
 
 /// Which interface to open, and whether to use CAN FD.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -40,6 +45,11 @@ pub struct CanStats {
     pub dropped_standard_id: u64,
     pub dropped_remote: u64,
     pub dropped_error_frames: u64,
+    /// Reads no kernel frame has the shape of (never seen in practice; counted, not trusted).
+    pub dropped_malformed: u64,
+    /// Frames the kernel dropped because this socket's receive queue was full, as reported
+    /// with the next frame received (SO_RXQ_OVFL).
+    pub dropped_receive_queue_full: u64,
 }
 
 #[derive(Default)]
@@ -50,21 +60,34 @@ struct CanCounters {
     dropped_standard_id: AtomicU64,
     dropped_remote: AtomicU64,
     dropped_error_frames: AtomicU64,
+    dropped_malformed: AtomicU64,
+    dropped_receive_queue_full: AtomicU64,
 }
 
 fn bump(counter: &AtomicU64) {
     counter.fetch_add(1, Ordering::Relaxed);
 }
 
-enum CanSocketKind {
-    Classic(socketcan::tokio::CanSocket),
-    Fd(socketcan::tokio::CanFdSocket),
+/// The blocking-API socket from `socketcan`, driven non-blocking through tokio's `AsyncFd`.
+enum SyncSocket {
+    Classic(socketcan::CanSocket),
+    Fd(socketcan::CanFdSocket),
+}
+
+impl AsRawFd for SyncSocket {
+    fn as_raw_fd(&self) -> RawFd {
+        match self {
+            Self::Classic(socket) => socket.as_raw_fd(),
+            Self::Fd(socket) => socket.as_raw_fd(),
+        }
+    }
 }
 
 /// An open raw CAN socket on one interface.
 pub struct CanTransport {
     interface: String,
-    socket: CanSocketKind,
+    fd_mode: bool,
+    socket: AsyncFd<SyncSocket>,
     counters: CanCounters,
 }
 
@@ -72,7 +95,7 @@ impl std::fmt::Debug for CanTransport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("CanTransport")
             .field("interface", &self.interface)
-            .field("fd", &self.is_fd())
+            .field("fd", &self.fd_mode)
             .field("stats", &self.stats())
             .finish()
     }
@@ -122,22 +145,36 @@ impl CanTransport {
                 }
             }
         }
-        let open_error = |source| TransportError::Io {
-            operation: "open CAN socket",
-            target: interface.to_string(),
-            source,
+        let io_error = |operation| {
+            move |source| TransportError::Io {
+                operation,
+                target: interface.to_string(),
+                source,
+            }
         };
         let socket = if config.fd {
-            CanSocketKind::Fd(
-                socketcan::tokio::CanFdSocket::open_addr(&address).map_err(open_error)?,
+            SyncSocket::Fd(
+                socketcan::CanFdSocket::open_addr(&address).map_err(io_error("open CAN socket"))?,
             )
         } else {
-            CanSocketKind::Classic(
-                socketcan::tokio::CanSocket::open_addr(&address).map_err(open_error)?,
+            SyncSocket::Classic(
+                socketcan::CanSocket::open_addr(&address).map_err(io_error("open CAN socket"))?,
             )
         };
+        match &socket {
+            SyncSocket::Classic(inner) => inner.set_nonblocking(true),
+            SyncSocket::Fd(inner) => inner.set_nonblocking(true),
+        }
+        .map_err(io_error("make CAN socket non-blocking"))?;
+        can_recv::enable_drop_count(socket.as_raw_fd())
+            .map_err(io_error("enable SO_RXQ_OVFL on CAN socket"))?;
+        // SAFETY: `SyncSocket` owns its file descriptor for its whole life and `as_raw_fd`
+        // always returns that same descriptor, as `register` requires.
+        let socket = unsafe { AsyncFd::register(socket) }
+            .map_err(|error| io_error("register CAN socket with tokio")(error.into_parts().1))?;
         Ok(Self {
             interface: interface.to_string(),
+            fd_mode: config.fd,
             socket,
             counters: CanCounters::default(),
         })
@@ -150,7 +187,7 @@ impl CanTransport {
 
     /// Whether this transport was opened in FD mode.
     pub fn is_fd(&self) -> bool {
-        matches!(self.socket, CanSocketKind::Fd(_))
+        self.fd_mode
     }
 
     /// A snapshot of the counters.
@@ -163,30 +200,37 @@ impl CanTransport {
             dropped_standard_id: c.dropped_standard_id.load(Ordering::Relaxed),
             dropped_remote: c.dropped_remote.load(Ordering::Relaxed),
             dropped_error_frames: c.dropped_error_frames.load(Ordering::Relaxed),
+            dropped_malformed: c.dropped_malformed.load(Ordering::Relaxed),
+            dropped_receive_queue_full: c.dropped_receive_queue_full.load(Ordering::Relaxed),
         }
     }
 
     /// Sends one frame; waits while the socket's send buffer is full. Kernel errors (e.g.
     /// ENOBUFS when a real controller's queue is full, ENETDOWN) are returned and counted.
     pub async fn send(&self, frame: &RawCanFrame) -> Result<(), TransportError> {
+        if frame.is_fd() && !self.fd_mode {
+            return Err(TransportError::FdFrameOnClassicTransport {
+                interface: self.interface.clone(),
+            });
+        }
         let id = Id::Extended(frame_id(frame));
-        let result = match (&self.socket, frame.is_fd()) {
-            (CanSocketKind::Classic(_), true) => {
-                return Err(TransportError::FdFrameOnClassicTransport {
-                    interface: self.interface.clone(),
-                });
-            }
-            (CanSocketKind::Classic(socket), false) => {
-                socket
-                    .write_frame(CanFrame::Data(classic_data_frame(id, frame)?))
-                    .await
-            }
-            (CanSocketKind::Fd(socket), false) => {
-                socket.write_frame(&classic_data_frame(id, frame)?).await
-            }
-            (CanSocketKind::Fd(socket), true) => {
-                socket.write_frame(&fd_data_frame(id, frame)?).await
-            }
+        let result = if frame.is_fd() {
+            let fd_frame = fd_data_frame(id, frame)?;
+            self.socket
+                .async_io(Interest::WRITABLE, |socket| match socket {
+                    SyncSocket::Fd(inner) => inner.write_frame(&fd_frame),
+                    // Refused above: an FD frame never reaches a classic socket.
+                    SyncSocket::Classic(_) => Err(std::io::ErrorKind::Unsupported.into()),
+                })
+                .await
+        } else {
+            let classic_frame = classic_data_frame(id, frame)?;
+            self.socket
+                .async_io(Interest::WRITABLE, |socket| match socket {
+                    SyncSocket::Classic(inner) => inner.write_frame(&CanFrame::Data(classic_frame)),
+                    SyncSocket::Fd(inner) => inner.write_frame(&classic_frame),
+                })
+                .await
         };
         match result {
             Ok(()) => {
@@ -206,54 +250,37 @@ impl CanTransport {
 
     /// Waits for the next extended-ID data frame, dropping (and counting) anything else.
     pub async fn recv(&self) -> Result<RawCanFrame, TransportError> {
+        let mut buffer = [0u8; can_recv::CANFD_MTU_BYTES];
         loop {
-            let any = match &self.socket {
-                CanSocketKind::Classic(socket) => socket.read_frame().await.map(CanAnyFrame::from),
-                CanSocketKind::Fd(socket) => socket.read_frame().await,
+            let (len, drops_total) = self
+                .socket
+                .async_io(Interest::READABLE, |socket| {
+                    can_recv::recv_frame(socket.as_raw_fd(), &mut buffer)
+                })
+                .await
+                .map_err(|source| TransportError::Io {
+                    operation: "receive CAN frame",
+                    target: self.interface.clone(),
+                    source,
+                })?;
+            if let Some(total) = drops_total {
+                // The kernel's count is cumulative per socket; concurrent readers may see
+                // them out of order, so keep the largest.
+                self.counters
+                    .dropped_receive_queue_full
+                    .fetch_max(u64::from(total), Ordering::Relaxed);
             }
-            .map_err(|source| TransportError::Io {
-                operation: "receive CAN frame",
-                target: self.interface.clone(),
-                source,
-            })?;
-            if let Some(frame) = self.accept(&any) {
-                bump(&self.counters.frames_received);
-                return Ok(frame);
-            }
-        }
-    }
-
-    /// The frame as a [`RawCanFrame`] when it is an extended-ID data frame; counts the rest.
-    fn accept(&self, any: &CanAnyFrame) -> Option<RawCanFrame> {
-        let (id, data, fd) = match any {
-            CanAnyFrame::Normal(frame) => (frame.id(), frame.data(), false),
-            CanAnyFrame::Fd(frame) => (frame.id(), frame.data(), true),
-            CanAnyFrame::Remote(_) => {
-                bump(&self.counters.dropped_remote);
-                return None;
-            }
-            CanAnyFrame::Error(_) => {
-                bump(&self.counters.dropped_error_frames);
-                return None;
-            }
-        };
-        let Id::Extended(id) = id else {
-            bump(&self.counters.dropped_standard_id);
-            return None;
-        };
-        // The kernel only hands out frames of valid lengths, so these cannot fail; a frame
-        // that did would be dropped as an error frame rather than passed on.
-        let frame = if fd {
-            RawCanFrame::fd(id.as_raw(), data)
-        } else {
-            RawCanFrame::classic(id.as_raw(), data)
-        };
-        match frame {
-            Ok(frame) => Some(frame),
-            Err(_) => {
-                bump(&self.counters.dropped_error_frames);
-                None
-            }
+            let counter = match can_recv::parse_frame(&buffer[..len]) {
+                Received::Frame(frame) => {
+                    bump(&self.counters.frames_received);
+                    return Ok(frame);
+                }
+                Received::StandardId => &self.counters.dropped_standard_id,
+                Received::Remote => &self.counters.dropped_remote,
+                Received::ErrorFrame => &self.counters.dropped_error_frames,
+                Received::Malformed => &self.counters.dropped_malformed,
+            };
+            bump(counter);
         }
     }
 }

@@ -8,6 +8,7 @@
 
 pub mod can;
 pub mod can_frame;
+mod can_recv;
 mod error;
 pub mod udp;
 
