@@ -58,9 +58,11 @@ impl Material {
     pub fn solar_cell() -> Material {
         Material {
             name: "solar_cell".into(),
-            base_color_linear: [0.015, 0.022, 0.07],
+            // Cover glass over dark blue cells: low albedo, but a broad enough glossy lobe that
+            // arrays stay visible away from the mirror direction, as in flight imagery.
+            base_color_linear: [0.035, 0.05, 0.14],
             metallic: 0.0,
-            roughness: 0.12,
+            roughness: 0.22,
             crinkle_amplitude: 0.0,
             crinkle_scale_m: 1.0,
             cell_pitch_m: 0.16,
