@@ -12,8 +12,10 @@
 //! exactly one tile, so tiles never write the same memory: no atomics, no races).
 //!
 //! Invariants:
-//! - forward and backward evaluate alpha with the same function [`eval_alpha`], so they
-//!   agree bit for bit on which Gaussians each pixel kept;
+//! - forward and backward evaluate alpha with the same functions (`row_gauss`, [`alpha_of`]),
+//!   so they agree bit for bit on which Gaussians each pixel kept;
+//! - a splat is only evaluated inside its rectangle (a conservative bound of where its
+//!   alpha reaches the cutoff), so binning never changes the image.
 //! - in smooth mode (test-only) the 1/255 step is a C1 ramp `alpha * smoothstep` over
 //!   `[0.5/255, 1.5/255]` and the early stop is off, so the image is C1 in the parameters
 //!   wherever `o exp(power) < 0.99`.
@@ -72,26 +74,48 @@ impl AlphaMode {
     }
 }
 
-/// One pixel's evaluation of one splat.
-#[derive(Clone, Copy, Debug)]
-pub struct AlphaEval {
-    pub alpha: f32,
-    /// d alpha / d (o exp(power)); zero where the 0.99 clamp is active.
-    pub d_alpha_d_raw: f32,
-    pub gauss: f32,
-    pub dx: f32,
-    pub dy: f32,
+/// `exp(x)` to about 2 ulp for `x` in [-87, 88] (clamped outside; NaN gives `exp(-87)`).
+/// Branch-free arithmetic, so a fixed-width loop of it vectorises; forward and backward
+/// both call it, so they agree bit for bit.
+#[inline(always)]
+pub fn fast_exp(x: f32) -> f32 {
+    const LOG2E: f32 = std::f32::consts::LOG2_E;
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    // f32::max returns the non-NaN operand, so NaN maps to the lower bound.
+    let x = x.max(-87.0).min(88.0);
+    // Round to nearest with the 1.5 * 2^23 trick (SSE2 has no round instruction).
+    let n = (x * LOG2E + 12_582_912.0) - 12_582_912.0;
+    let r = x - n * LN2_HI - n * LN2_LO;
+    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
+        + 1.666_666_5e-1)
+        * r
+        + 5.000_000_1e-1;
+    let e = p * r * r + r + 1.0;
+    let scale = f32::from_bits(((n as i32 + 127) as u32) << 23);
+    e * scale
 }
 
-/// Alpha of splat `s` at the pixel centre `(px, py)`, or `None` when it is skipped.
+/// `exp(power)` of splat `s` at the 16 pixel centres of row `py` starting at `x_origin`.
 #[inline(always)]
-pub fn eval_alpha(s: &Splat, px: f32, py: f32, mode: AlphaMode) -> Option<AlphaEval> {
-    let dx = s.mean_px[0] - px;
+fn row_gauss(s: &Splat, py: f32, x_origin: u32, out: &mut [f32; TILE_PX as usize]) {
     let dy = s.mean_px[1] - py;
     let [a, b, c] = s.conic;
-    let power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy;
-    let gauss = power.exp();
-    let raw = s.opacity * gauss;
+    let dx0 = s.mean_px[0] - (x_origin as f32 + 0.5);
+    let base = -0.5 * c * dy * dy;
+    let bdy = b * dy;
+    for (i, o) in out.iter_mut().enumerate() {
+        let dx = dx0 - i as f32;
+        let power = -0.5 * a * dx * dx - bdy * dx + base;
+        *o = fast_exp(power);
+    }
+}
+
+/// Alpha of a splat of opacity `o` where its Gaussian is `gauss`, with d alpha /
+/// d (o gauss) (zero where the 0.99 clamp is active), or `None` when it is skipped.
+#[inline(always)]
+pub fn alpha_of(o: f32, gauss: f32, mode: AlphaMode) -> Option<(f32, f32)> {
+    let raw = o * gauss;
     let clamped = raw > ALPHA_MAX;
     let alpha_c = if clamped { ALPHA_MAX } else { raw };
     // Written so that a NaN alpha is skipped too.
@@ -106,9 +130,33 @@ pub fn eval_alpha(s: &Splat, px: f32, py: f32, mode: AlphaMode) -> Option<AlphaE
     } else {
         (alpha_c, 1.0)
     };
+    Some((alpha, if clamped { 0.0 } else { d_alpha }))
+}
+
+/// One pixel's evaluation of one splat.
+#[derive(Clone, Copy, Debug)]
+pub struct AlphaEval {
+    pub alpha: f32,
+    /// d alpha / d (o exp(power)); zero where the 0.99 clamp is active.
+    pub d_alpha_d_raw: f32,
+    pub gauss: f32,
+    pub dx: f32,
+    pub dy: f32,
+}
+
+/// Alpha of splat `s` at the pixel centre `(px, py)`, or `None` when it is skipped.
+/// Same arithmetic as the tile loops (`fast_exp`, [`alpha_of`]); it ignores `s.rect`.
+#[inline(always)]
+pub fn eval_alpha(s: &Splat, px: f32, py: f32, mode: AlphaMode) -> Option<AlphaEval> {
+    let dx = s.mean_px[0] - px;
+    let dy = s.mean_px[1] - py;
+    let [a, b, c] = s.conic;
+    let power = -0.5 * a * dx * dx - b * dy * dx + -0.5 * c * dy * dy;
+    let gauss = fast_exp(power);
+    let (alpha, d_alpha_d_raw) = alpha_of(s.opacity, gauss, mode)?;
     Some(AlphaEval {
         alpha,
-        d_alpha_d_raw: if clamped { 0.0 } else { d_alpha },
+        d_alpha_d_raw,
         gauss,
         dx,
         dy,
@@ -133,6 +181,13 @@ fn overlap(a: &PixelRect, b: &PixelRect) -> PixelRect {
     }
 }
 
+/// Bit `lx` set for the tile columns `x0 - tile.x0 .. x1 - tile.x0`.
+fn column_mask(r: &PixelRect, tile: &PixelRect) -> u16 {
+    let lo = r.x0 - tile.x0;
+    let hi = r.x1 - tile.x0;
+    (((1u32 << hi) - 1) & !((1u32 << lo) - 1)) as u16
+}
+
 /// Blends one tile front to back. `list` holds splat ranks in depth order.
 #[allow(clippy::too_many_arguments)]
 pub fn blend_tile_forward(
@@ -150,35 +205,56 @@ pub fn blend_tile_forward(
     out.depth.fill(0.0);
     out.transmittance.fill(1.0);
     out.last.fill(0);
-    let mut done = [false; TILE_PIXELS];
-    let mut active = ((tile.x1 - tile.x0) * (tile.y1 - tile.y0)) as usize;
+    let full = column_mask(
+        &PixelRect {
+            x0: tile.x0,
+            y0: 0,
+            x1: tile.x1,
+            y1: 0,
+        },
+        tile,
+    );
+    // Per tile row, the columns still blending.
+    let mut row_active = [0u16; TILE_PX as usize];
+    for m in row_active.iter_mut().take((tile.y1 - tile.y0) as usize) {
+        *m = full;
+    }
+    let mut n_active = ((tile.x1 - tile.x0) * (tile.y1 - tile.y0)) as usize;
     let stop = mode.stop();
+    let mut gauss = [0.0f32; TILE_PX as usize];
     for (j, &rank) in list.iter().enumerate() {
-        if active == 0 {
+        if n_active == 0 {
             break;
         }
         let s = &splats[rank as usize];
         let ch = &splat_channels[rank as usize * nc..rank as usize * nc + nc];
         let r = overlap(&s.rect, tile);
+        if r.is_empty() {
+            continue;
+        }
+        let cols = column_mask(&r, tile);
         for y in r.y0..r.y1 {
-            let py = y as f32 + 0.5;
-            let row = ((y - tile.y0) * TILE_PX) as usize;
-            for x in r.x0..r.x1 {
-                let p = row + (x - tile.x0) as usize;
-                if done[p] {
-                    continue;
-                }
-                let Some(e) = eval_alpha(s, x as f32 + 0.5, py, mode) else {
+            let ly = (y - tile.y0) as usize;
+            let mut bits = row_active[ly] & cols;
+            if bits == 0 {
+                continue;
+            }
+            row_gauss(s, y as f32 + 0.5, tile.x0, &mut gauss);
+            while bits != 0 {
+                let lx = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let Some((alpha, _)) = alpha_of(s.opacity, gauss[lx], mode) else {
                     continue;
                 };
+                let p = ly * TILE_PX as usize + lx;
                 let t = out.transmittance[p];
-                let t_next = t * (1.0 - e.alpha);
+                let t_next = t * (1.0 - alpha);
                 if t_next < stop {
-                    done[p] = true;
-                    active -= 1;
+                    row_active[ly] &= !(1u16 << lx);
+                    n_active -= 1;
                     continue;
                 }
-                let w = e.alpha * t;
+                let w = alpha * t;
                 for (acc, &c) in out.color[p * nc..p * nc + nc].iter_mut().zip(ch) {
                     *acc += w * c;
                 }
@@ -227,6 +303,7 @@ pub fn blend_tile_backward(
     grads: &PixelGradsView,
     records: &mut [f32],
 ) {
+    const T: usize = TILE_PX as usize;
     let nc = n_channels;
     let stride = REC_CHANNELS + nc;
     // Behind-colour S per pixel: channels then depth.
@@ -236,10 +313,11 @@ pub fn blend_tile_backward(
     let mut d_color = vec![0.0f32; TILE_PIXELS * nc];
     let mut d_alpha_px = [0.0f32; TILE_PIXELS];
     let mut d_depth_px = [0.0f32; TILE_PIXELS];
-    let mut max_last = 0u32;
+    let mut row_max_last = [0u32; T];
     for y in tile.y0..tile.y1 {
+        let ly = (y - tile.y0) as usize;
         for x in tile.x0..tile.x1 {
-            let p = ((y - tile.y0) * TILE_PX + (x - tile.x0)) as usize;
+            let p = ly * T + (x - tile.x0) as usize;
             let pix = y as usize * grads.width + x as usize;
             let t_final = state.transmittance[p];
             trans[p] = t_final;
@@ -253,61 +331,87 @@ pub fn blend_tile_backward(
             if let Some(dd) = grads.d_depth {
                 d_depth_px[p] = dd[pix];
             }
-            max_last = max_last.max(state.last[p]);
+            row_max_last[ly] = row_max_last[ly].max(state.last[p]);
         }
     }
-    records[max_last as usize * stride..].fill(0.0);
-    let mut acc = vec![0.0f32; stride];
-    for j in (0..max_last as usize).rev() {
+    let max_last = row_max_last.iter().copied().max().unwrap_or(0) as usize;
+    records[max_last * stride..].fill(0.0);
+    let mut acc_ch = vec![0.0f32; nc];
+    let mut gauss = [0.0f32; T];
+    for j in (0..max_last).rev() {
         let rank = list[j] as usize;
         let s = &splats[rank];
         let ch = &splat_channels[rank * nc..rank * nc + nc];
-        acc.fill(0.0);
-        let [ca, cb, cc] = s.conic;
+        let rec = &mut records[j * stride..(j + 1) * stride];
         let r = overlap(&s.rect, tile);
+        if r.is_empty() {
+            rec.fill(0.0);
+            continue;
+        }
+        let cols = column_mask(&r, tile);
+        acc_ch.fill(0.0);
+        let (mut d_mx, mut d_my, mut d_a, mut d_b, mut d_c, mut d_o, mut d_z) =
+            (0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32);
+        let [ca, cb, cc] = s.conic;
+        let dx0 = s.mean_px[0] - (tile.x0 as f32 + 0.5);
         for y in r.y0..r.y1 {
+            let ly = (y - tile.y0) as usize;
+            if j as u32 >= row_max_last[ly] {
+                continue;
+            }
             let py = y as f32 + 0.5;
-            let row = ((y - tile.y0) * TILE_PX) as usize;
-            for x in r.x0..r.x1 {
-                let p = row + (x - tile.x0) as usize;
+            row_gauss(s, py, tile.x0, &mut gauss);
+            let dy = s.mean_px[1] - py;
+            let mut bits = cols;
+            while bits != 0 {
+                let lx = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let p = ly * T + lx;
                 if j as u32 >= state.last[p] {
                     continue;
                 }
-                let Some(e) = eval_alpha(s, x as f32 + 0.5, py, mode) else {
+                let Some((alpha, d_alpha_d_raw)) = alpha_of(s.opacity, gauss[lx], mode) else {
                     continue;
                 };
-                let one_minus = 1.0 - e.alpha;
-                let inv_one_minus = 1.0 / one_minus;
+                let inv_one_minus = 1.0 / (1.0 - alpha);
                 let t = trans[p] * inv_one_minus;
                 trans[p] = t;
-                let w = e.alpha * t;
+                let w = alpha * t;
                 let mut d_alpha = 0.0;
                 let bh = &mut behind[p * s_stride..p * s_stride + s_stride];
                 let dc = &d_color[p * nc..p * nc + nc];
                 for k in 0..nc {
                     let g = dc[k];
-                    acc[REC_CHANNELS + k] += w * g;
+                    acc_ch[k] += w * g;
                     d_alpha += g * (t * ch[k] - bh[k] * inv_one_minus);
                     bh[k] += w * ch[k];
                 }
                 let gd = d_depth_px[p];
-                acc[REC_DEPTH] += w * gd;
+                d_z += w * gd;
                 d_alpha += gd * (t * s.depth - bh[nc] * inv_one_minus);
                 bh[nc] += w * s.depth;
                 d_alpha += d_alpha_px[p] * state.transmittance[p] * inv_one_minus;
 
-                let d_raw = d_alpha * e.d_alpha_d_raw;
-                acc[REC_OPACITY] += d_raw * e.gauss;
-                let d_power = d_raw * s.opacity * e.gauss;
-                let (dx, dy) = (e.dx, e.dy);
-                acc[REC_MEAN_X] -= d_power * (ca * dx + cb * dy);
-                acc[REC_MEAN_Y] -= d_power * (cb * dx + cc * dy);
-                acc[REC_CONIC] -= d_power * 0.5 * dx * dx;
-                acc[REC_CONIC + 1] -= d_power * dx * dy;
-                acc[REC_CONIC + 2] -= d_power * 0.5 * dy * dy;
+                let d_raw = d_alpha * d_alpha_d_raw;
+                let g = gauss[lx];
+                d_o += d_raw * g;
+                let d_power = d_raw * s.opacity * g;
+                let dx = dx0 - lx as f32;
+                d_mx -= d_power * (ca * dx + cb * dy);
+                d_my -= d_power * (cb * dx + cc * dy);
+                d_a -= d_power * 0.5 * dx * dx;
+                d_b -= d_power * dx * dy;
+                d_c -= d_power * 0.5 * dy * dy;
             }
         }
-        records[j * stride..(j + 1) * stride].copy_from_slice(&acc);
+        rec[REC_MEAN_X] = d_mx;
+        rec[REC_MEAN_Y] = d_my;
+        rec[REC_CONIC] = d_a;
+        rec[REC_CONIC + 1] = d_b;
+        rec[REC_CONIC + 2] = d_c;
+        rec[REC_OPACITY] = d_o;
+        rec[REC_DEPTH] = d_z;
+        rec[REC_CHANNELS..].copy_from_slice(&acc_ch);
     }
 }
 
@@ -406,6 +510,23 @@ mod tests {
             }
         }
         sum
+    }
+
+    #[test]
+    fn fast_exp_is_accurate_and_safe() {
+        let mut worst = 0.0f64;
+        let mut x = -87.0f32;
+        while x < 10.0 {
+            let exact = (x as f64).exp();
+            worst = worst.max(((fast_exp(x) as f64) - exact).abs() / exact);
+            x += 0.0013;
+        }
+        assert!(worst < 3e-7, "relative error {worst}");
+        assert_eq!(fast_exp(0.0), 1.0);
+        assert!(fast_exp(-1e30) > 0.0 && fast_exp(-1e30) < 1e-37);
+        assert!(fast_exp(f32::NAN).is_finite());
+        assert!(fast_exp(f32::NEG_INFINITY) < 1e-37);
+        assert!(fast_exp(1e30).is_finite());
     }
 
     /// Hard mode with the early stop active: backward matches central differences of

@@ -201,14 +201,6 @@ pub struct BackwardTimings {
     pub reduce_project_ms: f64,
 }
 
-/// One tile's blended pixels, tile-local index `ly * 16 + lx`.
-struct TileImages {
-    color: Vec<f32>,
-    depth: Vec<f32>,
-    transmittance: Vec<f32>,
-    last: Vec<u32>,
-}
-
 /// What backward needs from the forward pass.
 #[derive(Clone, Debug)]
 struct ForwardState {
@@ -245,6 +237,13 @@ pub struct RenderOutput {
     pub visible: Vec<bool>,
     pub timings: ForwardTimings,
     state: ForwardState,
+}
+
+impl RenderOutput {
+    /// Number of (tile, Gaussian) pairs blended: the rasterizer's work measure.
+    pub fn tile_entry_count(&self) -> usize {
+        self.state.bins.tile_ranks.len()
+    }
 }
 
 /// Loss gradients with respect to the rendered images (same layouts as [`RenderOutput`]).
@@ -471,13 +470,20 @@ pub fn render(
 
     let t2 = Instant::now();
     let n_tiles = grid.n_tiles();
-    let tiles: Vec<TileImages> = (0..n_tiles)
-        .into_par_iter()
-        .map(|t| {
-            let mut color = vec![0.0f32; TILE_PIXELS * nc];
-            let mut depth = vec![0.0f32; TILE_PIXELS];
-            let mut trans = vec![0.0f32; TILE_PIXELS];
-            let mut last = vec![0u32; TILE_PIXELS];
+    // Tile-major buffers; a colour chunk of at least one float per pixel keeps the chunk
+    // size non-zero when there are no channels.
+    let color_chunk = TILE_PIXELS * nc.max(1);
+    let mut tile_color = vec![0.0f32; n_tiles * color_chunk];
+    let mut tile_depth = vec![0.0f32; n_tiles * TILE_PIXELS];
+    let mut tile_transmittance = vec![0.0f32; n_tiles * TILE_PIXELS];
+    let mut tile_last = vec![0u32; n_tiles * TILE_PIXELS];
+    tile_color
+        .par_chunks_mut(color_chunk)
+        .zip(tile_depth.par_chunks_mut(TILE_PIXELS))
+        .zip(tile_transmittance.par_chunks_mut(TILE_PIXELS))
+        .zip(tile_last.par_chunks_mut(TILE_PIXELS))
+        .enumerate()
+        .for_each(|(t, (((color, depth), trans), last))| {
             let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
             blend::blend_tile_forward(
                 &grid.tile_rect(t),
@@ -488,20 +494,13 @@ pub fn render(
                 &background,
                 mode,
                 blend::TileForwardOut {
-                    color: &mut color,
-                    depth: &mut depth,
-                    transmittance: &mut trans,
-                    last: &mut last,
+                    color: &mut color[..TILE_PIXELS * nc],
+                    depth,
+                    transmittance: trans,
+                    last,
                 },
             );
-            TileImages {
-                color,
-                depth,
-                transmittance: trans,
-                last,
-            }
-        })
-        .collect();
+        });
 
     let w = width as usize;
     let h = height as usize;
@@ -510,16 +509,20 @@ pub fn render(
     let mut depth = vec![0.0f32; w * h];
     let tiles_x = grid.tiles_x as usize;
     let tile_px = TILE_PX as usize;
+    let tile_pixel = |x: usize, y: usize| {
+        ((y / tile_px) * tiles_x + x / tile_px) * TILE_PIXELS
+            + (y % tile_px) * tile_px
+            + x % tile_px
+    };
     alpha
         .par_chunks_mut(w)
         .zip(depth.par_chunks_mut(w))
         .enumerate()
         .for_each(|(y, (alpha_row, depth_row))| {
             for x in 0..w {
-                let tile = &tiles[(y / tile_px) * tiles_x + x / tile_px];
-                let p = (y % tile_px) * tile_px + x % tile_px;
-                alpha_row[x] = 1.0 - tile.transmittance[p];
-                depth_row[x] = tile.depth[p];
+                let q = tile_pixel(x, y);
+                alpha_row[x] = 1.0 - tile_transmittance[q];
+                depth_row[x] = tile_depth[q];
             }
         });
     if nc > 0 {
@@ -528,19 +531,17 @@ pub fn render(
             .enumerate()
             .for_each(|(y, row)| {
                 for x in 0..w {
-                    let tile = &tiles[(y / tile_px) * tiles_x + x / tile_px];
-                    let p = (y % tile_px) * tile_px + x % tile_px;
-                    row[x * nc..x * nc + nc].copy_from_slice(&tile.color[p * nc..p * nc + nc]);
+                    let q = tile_pixel(x, y);
+                    let tile = q / TILE_PIXELS;
+                    let p = q % TILE_PIXELS;
+                    let src =
+                        &tile_color[tile * color_chunk + p * nc..tile * color_chunk + p * nc + nc];
+                    row[x * nc..x * nc + nc].copy_from_slice(src);
                 }
             });
     }
-    let mut tile_transmittance = Vec::with_capacity(n_tiles * TILE_PIXELS);
-    let mut tile_last = Vec::with_capacity(n_tiles * TILE_PIXELS);
-    for tile in &tiles {
-        tile_transmittance.extend_from_slice(&tile.transmittance);
-        tile_last.extend_from_slice(&tile.last);
-    }
-    drop(tiles);
+    drop(tile_color);
+    drop(tile_depth);
     let blend_ms = ms_since(t2);
 
     let mut radii_px = projected.radii_px;
@@ -682,12 +683,15 @@ pub fn render_backward(
     let t1 = Instant::now();
     let half_w = 0.5 * forward.width as f32;
     let half_h = 0.5 * forward.height as f32;
-    type RankGrad = Result<(project::ParamGrad, Vec<f32>, f32), ()>;
-    let per_rank: Vec<RankGrad> = (0..st.splats.len())
-        .into_par_iter()
+    // Per-rank sums of the records stay in `sums` (the channel part is the channel
+    // gradient); everything else is folded into the projection backward.
+    let mut sums = vec![0.0f32; st.splats.len() * stride];
+    type RankGrad = Result<(project::ParamGrad, f32), ()>;
+    let per_rank: Vec<RankGrad> = sums
+        .par_chunks_mut(stride)
+        .enumerate()
         .with_min_len(256)
-        .map(|rank| {
-            let mut sum = vec![0.0f32; stride];
+        .map(|(rank, sum)| {
             for &e in &bins.entry_of_rank[bins.rank_offsets[rank]..bins.rank_offsets[rank + 1]] {
                 let rec = &records[e as usize * stride..(e as usize + 1) * stride];
                 for (s, r) in sum.iter_mut().zip(rec) {
@@ -715,7 +719,7 @@ pub fn render_backward(
             };
             let pg = project::project_backward(&frame, &p, &d);
             let ndc = (sum[0] * half_w).hypot(sum[1] * half_h);
-            Ok((pg, sum[REC_CHANNELS..].to_vec(), ndc))
+            Ok((pg, ndc))
         })
         .collect();
 
@@ -730,12 +734,13 @@ pub fn render_backward(
         timings: BackwardTimings::default(),
     };
     for (rank, res) in per_rank.into_iter().enumerate() {
-        let Ok((pg, d_ch, ndc)) = res else {
+        let Ok((pg, ndc)) = res else {
             return Err(RasterError::ForwardMismatch(
                 "Gaussian parameters changed since the forward pass",
             ));
         };
         let g = st.gaussian_of_rank[rank] as usize;
+        let d_ch = &sums[rank * stride + REC_CHANNELS..(rank + 1) * stride];
         if !(pg.is_finite() && d_ch.iter().all(|v| v.is_finite()) && ndc.is_finite()) {
             out.dropped_nonfinite += 1;
             continue;
@@ -744,7 +749,7 @@ pub fn render_backward(
         out.d_log_scales[3 * g..3 * g + 3].copy_from_slice(&pg.d_log_scale);
         out.d_rotations[4 * g..4 * g + 4].copy_from_slice(&pg.d_rotation);
         out.d_opacity_logits[g] = pg.d_opacity_logit;
-        out.d_channels[nc * g..nc * g + nc].copy_from_slice(&d_ch);
+        out.d_channels[nc * g..nc * g + nc].copy_from_slice(d_ch);
         out.mean2d_grad_ndc[g] = ndc;
     }
     out.timings = BackwardTimings {

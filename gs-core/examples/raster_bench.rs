@@ -1,0 +1,353 @@
+//! Rasterizer benchmark: forward and backward time on an object-like scene.
+//!
+//! The scene is a satellite-sized body (a 1.2 x 1.2 x 1.6 m box bus with two 2.6 x 1.1 m
+//! solar panels) covered by flat Gaussians sampled uniformly by area, seen from a
+//! three-quarter view at the distance where the rendered alpha exceeds 0.5 on about a
+//! third of the pixels. For 10K, 50K, 100K Gaussians at 480x300 and 960x600 it reports
+//! median forward and backward times (over `--runs`, default 7, after one warm-up), the
+//! per-stage split and the peak resident memory.
+//!
+//! `cargo run --release -p gs-core --example raster_bench -- [--json] [--runs N] [--quick]`
+//! prints a human table on stdout; with `--json` the table goes to stderr and stdout
+//! carries one JSON object per configuration.
+
+use std::time::Instant;
+
+use glam::{Quat, Vec3};
+use gs_core::raster::{render, render_backward, GaussianView, PixelGrads, RasterSettings};
+use gs_core::{Camera, Intrinsics};
+
+struct SplitMix64(u64);
+
+impl SplitMix64 {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
+        let u = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
+        lo + (hi - lo) * u
+    }
+}
+
+/// A flat rectangle: centre, two half-edge vectors, and a base colour.
+struct Face {
+    centre: Vec3,
+    half_u: Vec3,
+    half_v: Vec3,
+    colour: [f32; 3],
+}
+
+impl Face {
+    fn area(&self) -> f32 {
+        4.0 * self.half_u.length() * self.half_v.length()
+    }
+}
+
+fn satellite_faces() -> Vec<Face> {
+    let mut faces = Vec::new();
+    let half = Vec3::new(0.6, 0.6, 0.8);
+    let gold = [0.8, 0.6, 0.2];
+    for axis in 0..3 {
+        for sign in [-1.0f32, 1.0] {
+            let mut n = Vec3::ZERO;
+            n[axis] = sign * half[axis];
+            let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+            let mut u = Vec3::ZERO;
+            u[a] = half[a];
+            let mut v = Vec3::ZERO;
+            v[b] = half[b];
+            faces.push(Face {
+                centre: n,
+                half_u: u,
+                half_v: v,
+                colour: gold,
+            });
+        }
+    }
+    for sign in [-1.0f32, 1.0] {
+        // Panels on +-x, both sides of each (front blue cells, back grey).
+        for (offset, colour) in [(0.005f32, [0.1, 0.15, 0.5]), (-0.005, [0.5, 0.5, 0.5])] {
+            faces.push(Face {
+                centre: Vec3::new(sign * (0.6 + 0.2 + 1.3), offset, 0.0),
+                half_u: Vec3::new(1.3, 0.0, 0.0),
+                half_v: Vec3::new(0.0, 0.0, 0.55),
+                colour,
+            });
+        }
+    }
+    faces
+}
+
+struct Scene {
+    means: Vec<f32>,
+    log_scales: Vec<f32>,
+    rotations: Vec<f32>,
+    opacity_logits: Vec<f32>,
+    channels: Vec<f32>,
+}
+
+impl Scene {
+    fn view(&self) -> GaussianView<'_> {
+        GaussianView {
+            means: &self.means,
+            log_scales: &self.log_scales,
+            rotations: &self.rotations,
+            opacity_logits: &self.opacity_logits,
+            channels: &self.channels,
+            n_channels: 3,
+        }
+    }
+}
+
+fn satellite_scene(n: usize, seed: u64) -> Scene {
+    let faces = satellite_faces();
+    let total_area: f32 = faces.iter().map(Face::area).sum();
+    let mut rng = SplitMix64(seed);
+    // Tangent sigma so that neighbours overlap (mean spacing sqrt(area / n)).
+    let spacing = (total_area / n as f32).sqrt();
+    let mut s = Scene {
+        means: Vec::with_capacity(3 * n),
+        log_scales: Vec::with_capacity(3 * n),
+        rotations: Vec::with_capacity(4 * n),
+        opacity_logits: Vec::with_capacity(n),
+        channels: Vec::with_capacity(3 * n),
+    };
+    for _ in 0..n {
+        let mut pick = rng.uniform(0.0, total_area);
+        let mut face = &faces[0];
+        for f in &faces {
+            face = f;
+            if pick < f.area() {
+                break;
+            }
+            pick -= f.area();
+        }
+        let p = face.centre
+            + face.half_u * rng.uniform(-1.0, 1.0)
+            + face.half_v * rng.uniform(-1.0, 1.0);
+        s.means.extend(p.to_array());
+        let tangent = spacing * rng.uniform(0.5, 1.0);
+        s.log_scales.extend([
+            tangent.ln(),
+            (tangent * rng.uniform(0.4, 1.0)).ln(),
+            (0.1 * tangent).ln(),
+        ]);
+        // Local x, y along the face, z along the normal, spun randomly about the normal.
+        let basis = Quat::from_mat3(&glam::Mat3::from_cols(
+            face.half_u.normalize(),
+            face.half_v.normalize(),
+            face.half_u.cross(face.half_v).normalize(),
+        ));
+        let q = basis * Quat::from_rotation_z(rng.uniform(0.0, std::f32::consts::TAU));
+        s.rotations.extend([q.w, q.x, q.y, q.z]);
+        s.opacity_logits.push(rng.uniform(0.5, 3.0));
+        for c in face.colour {
+            s.channels
+                .push((c + rng.uniform(-0.1, 0.1)).clamp(0.0, 1.0));
+        }
+    }
+    s
+}
+
+fn camera_at(distance_m: f32, width: u32, height: u32) -> Camera {
+    let dir = Vec3::new(0.6, -0.7, 0.4).normalize();
+    Camera::look_at(
+        Intrinsics::from_fov_x(0.7, width, height),
+        dir * distance_m,
+        Vec3::ZERO,
+        Vec3::Z,
+    )
+}
+
+fn coverage(scene: &Scene, cam: &Camera) -> f32 {
+    let out = render(cam, &scene.view(), &RasterSettings::default()).expect("render");
+    out.alpha.iter().filter(|&&a| a > 0.5).count() as f32 / out.alpha.len() as f32
+}
+
+/// Distance at which about a third of the pixels are covered (bisection on a coarse render).
+fn calibrate_distance() -> f32 {
+    let scene = satellite_scene(20_000, 1);
+    let (mut near, mut far) = (3.0f32, 60.0f32);
+    for _ in 0..14 {
+        let mid = 0.5 * (near + far);
+        if coverage(&scene, &camera_at(mid, 240, 150)) > 1.0 / 3.0 {
+            near = mid;
+        } else {
+            far = mid;
+        }
+    }
+    0.5 * (near + far)
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+fn peak_rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<f64>().ok())
+        })
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+struct Row {
+    gaussians: usize,
+    width: u32,
+    height: u32,
+    visible: usize,
+    tile_entries_per_gaussian: f64,
+    coverage: f32,
+    forward_ms: f64,
+    backward_ms: f64,
+    project_ms: f64,
+    sort_bin_ms: f64,
+    blend_ms: f64,
+    backward_blend_ms: f64,
+    backward_reduce_project_ms: f64,
+}
+
+fn bench(n: usize, width: u32, height: u32, distance_m: f32, runs: usize) -> Row {
+    let scene = satellite_scene(n, 7);
+    let cam = camera_at(distance_m, width, height);
+    let settings = RasterSettings::default();
+    // A fixed, dense pixel gradient (as from an L1 loss against a flat grey target).
+    let d_color: Vec<f32> = (0..width as usize * height as usize * 3)
+        .map(|i| if i % 7 < 3 { 1.0 } else { -1.0 } / (width * height) as f32)
+        .collect();
+    let mut fwd = Vec::new();
+    let mut bwd = Vec::new();
+    let (mut proj, mut sort, mut blend, mut bblend, mut bred) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut visible = 0;
+    let mut cov = 0.0;
+    for run in 0..=runs {
+        let t0 = Instant::now();
+        let out = render(&cam, &scene.view(), &settings).expect("render");
+        let forward_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let t1 = Instant::now();
+        let grads = render_backward(
+            &cam,
+            &scene.view(),
+            &settings,
+            &out,
+            &PixelGrads {
+                d_color: &d_color,
+                d_alpha: None,
+                d_depth: None,
+            },
+        )
+        .expect("backward");
+        let backward_ms = t1.elapsed().as_secs_f64() * 1e3;
+        std::hint::black_box(&grads);
+        if run == 0 {
+            visible = out.visible.iter().filter(|&&v| v).count();
+            cov = out.alpha.iter().filter(|&&a| a > 0.5).count() as f32 / out.alpha.len() as f32;
+            continue; // warm-up
+        }
+        fwd.push(forward_ms);
+        bwd.push(backward_ms);
+        proj.push(out.timings.project_ms);
+        sort.push(out.timings.sort_bin_ms);
+        blend.push(out.timings.blend_ms);
+        bblend.push(grads.timings.blend_ms);
+        bred.push(grads.timings.reduce_project_ms);
+    }
+    let out = render(&cam, &scene.view(), &settings).expect("render");
+    let entries = out.tile_entry_count();
+    Row {
+        gaussians: n,
+        width,
+        height,
+        visible,
+        tile_entries_per_gaussian: entries as f64 / visible.max(1) as f64,
+        coverage: cov,
+        forward_ms: median(&mut fwd),
+        backward_ms: median(&mut bwd),
+        project_ms: median(&mut proj),
+        sort_bin_ms: median(&mut sort),
+        blend_ms: median(&mut blend),
+        backward_blend_ms: median(&mut bblend),
+        backward_reduce_project_ms: median(&mut bred),
+    }
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let json = args.iter().any(|a| a == "--json");
+    let quick = args.iter().any(|a| a == "--quick");
+    let runs = args
+        .iter()
+        .position(|a| a == "--runs")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse::<usize>().ok())
+        .unwrap_or(7)
+        .max(1);
+    let threads = rayon::current_num_threads();
+    let distance_m = calibrate_distance();
+    let sizes: &[usize] = if quick {
+        &[10_000]
+    } else {
+        &[10_000, 50_000, 100_000]
+    };
+    let resolutions: &[(u32, u32)] = if quick {
+        &[(480, 300)]
+    } else {
+        &[(480, 300), (960, 600)]
+    };
+
+    let mut table = String::new();
+    table += &format!(
+        "raster_bench: satellite scene at {distance_m:.2} m, {threads} threads, median of {runs} runs (ms)\n"
+    );
+    table += &format!(
+        "{:>8} {:>9} {:>7} {:>5} {:>6} | {:>8} {:>8} {:>8} | {:>7} {:>7} {:>7} | {:>8} {:>8} | {:>7}\n",
+        "gauss", "image", "visible", "cover", "tiles/g", "forward", "backward", "total",
+        "project", "sort", "blend", "bwd-blnd", "bwd-red", "rss MB"
+    );
+    for &n in sizes {
+        for &(w, h) in resolutions {
+            let r = bench(n, w, h, distance_m, runs);
+            let rss = peak_rss_mb();
+            table += &format!(
+                "{:>8} {:>9} {:>7} {:>5.2} {:>6.2} | {:>8.1} {:>8.1} {:>8.1} | {:>7.1} {:>7.1} {:>7.1} | {:>8.1} {:>8.1} | {:>7.0}\n",
+                r.gaussians,
+                format!("{}x{}", r.width, r.height),
+                r.visible,
+                r.coverage,
+                r.tile_entries_per_gaussian,
+                r.forward_ms,
+                r.backward_ms,
+                r.forward_ms + r.backward_ms,
+                r.project_ms,
+                r.sort_bin_ms,
+                r.blend_ms,
+                r.backward_blend_ms,
+                r.backward_reduce_project_ms,
+                rss
+            );
+            if json {
+                println!(
+                    "{{\"gaussians\":{},\"width\":{},\"height\":{},\"threads\":{},\"forward_ms\":{:.3},\"backward_ms\":{:.3},\"peak_rss_mb\":{:.1},\"visible\":{},\"coverage\":{:.3},\"tile_entries_per_gaussian\":{:.3},\"project_ms\":{:.3},\"sort_bin_ms\":{:.3},\"blend_ms\":{:.3},\"backward_blend_ms\":{:.3},\"backward_reduce_project_ms\":{:.3},\"runs\":{}}}",
+                    r.gaussians, r.width, r.height, threads, r.forward_ms, r.backward_ms, rss,
+                    r.visible, r.coverage, r.tile_entries_per_gaussian, r.project_ms, r.sort_bin_ms,
+                    r.blend_ms, r.backward_blend_ms, r.backward_reduce_project_ms, runs
+                );
+            }
+        }
+    }
+    if json {
+        eprint!("{table}");
+    } else {
+        print!("{table}");
+    }
+}
