@@ -4,7 +4,8 @@
 //! products at the measured GEMM rate) and the ratio of the MLP time to that floor, so the
 //! cost of everything around the GEMMs (bias, activation, tape, gradient reduction) shows.
 //!
-//! Run: `cargo run --release -p gs-core --example mlp_bench [-- --json] [-- --quick]`.
+//! Run: `cargo run --release -p gs-core --example mlp_bench -- [--json] [--quick] [--reps N]
+//! [--mlp-only]` (`--mlp-only` skips the GEMM table but still measures the floors quietly).
 //! Times are the minimum over repetitions (the machine is shared; the minimum is the least
 //! disturbed). `--json` prints one JSON object per line instead of the tables.
 
@@ -123,7 +124,13 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let json = args.iter().any(|a| a == "--json");
     let quick = args.iter().any(|a| a == "--quick");
-    let reps = if quick { 1 } else { 3 };
+    let reps = args
+        .iter()
+        .position(|a| a == "--reps")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse::<usize>().ok())
+        .unwrap_or(if quick { 1 } else { 3 });
+    let mlp_only = args.iter().any(|a| a == "--mlp-only");
     let row_counts: &[usize] = if quick {
         &[10_000]
     } else {
@@ -141,7 +148,7 @@ fn main() {
         },
     ];
 
-    if !json {
+    if !json && !mlp_only {
         println!("GEMM (row-blocked, {BLOCK_ROWS} rows per block), GFLOP/s");
         println!(
             "{:>8} {:>8} {:>7} {:>12} {:>12}",
@@ -180,7 +187,7 @@ fn main() {
                             _ => floor_bwd[ni][ri][pi] += t,
                         }
                         per_thread.push(flops / t / 1e9);
-                        if json {
+                        if json && !mlp_only {
                             println!(
                                 "{{\"kind\":\"gemm\",\"product\":\"{}\",\"rows\":{rows},\"k\":{k},\"n\":{n},\"threads\":{threads},\"seconds\":{t:.6},\"gflops\":{:.2}}}",
                                 product.name(),
@@ -190,7 +197,7 @@ fn main() {
                     }
                     rates.push((product, per_thread));
                 }
-                if !json && !seen_shapes.contains(&(rows, k, n)) {
+                if !json && !mlp_only && !seen_shapes.contains(&(rows, k, n)) {
                     for (product, per_thread) in rates {
                         println!(
                             "{:>8} {:>8} {:>7} {:>12.1} {:>12.1}",

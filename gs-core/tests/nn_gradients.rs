@@ -1003,3 +1003,17 @@ fn isotropic_loss_gradient_matches_finite_differences() {
         }
     }
 }
+
+#[test]
+fn zero_rows_is_a_valid_empty_batch() {
+    let mlp = Mlp::new(&[3, 4, 2], HiddenActivation::Relu, Init::KaimingUniform, 1).unwrap();
+    for mode in [TapeMode::Cache, TapeMode::Recompute] {
+        let fwd = mlp.forward_train(&[], 0, mode).unwrap();
+        assert!(fwd.output.is_empty());
+        let mut d_params = vec![0.5f32; mlp.num_params()];
+        let mut d_input: Vec<f32> = Vec::new();
+        mlp.backward(&[], &fwd, &[], &mut d_params, Some(&mut d_input))
+            .unwrap();
+        assert!(d_params.iter().all(|v| *v == 0.5));
+    }
+}

@@ -62,8 +62,13 @@ pub(crate) fn check_len(what: &'static str, values: usize, expected: usize) -> R
 
 /// `Ok` when every value is finite; otherwise the first offending flat index.
 pub(crate) fn check_finite(what: &'static str, values: &[f32]) -> Result<(), NnError> {
-    match values.iter().position(|v| !v.is_finite()) {
-        None => Ok(()),
-        Some(index) => Err(NnError::NonFinite { what, index }),
+    // Branch-free sweep first (vectorises); the index search runs only on failure.
+    let all_finite = values
+        .chunks(64)
+        .all(|chunk| chunk.iter().fold(true, |ok, v| ok & v.is_finite()));
+    if all_finite {
+        return Ok(());
     }
+    let index = values.iter().position(|v| !v.is_finite()).unwrap_or(0);
+    Err(NnError::NonFinite { what, index })
 }
