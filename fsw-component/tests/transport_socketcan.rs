@@ -225,9 +225,15 @@ async fn a_flood_beyond_the_receive_queue_is_counted_not_lost_silently() {
         return;
     };
     let _bus = BUS_LOCK.lock().await;
-    // Far more than a socket's receive queue holds (rmem_default: a few hundred frames).
-    const FLOOD_FRAMES: usize = 3000;
+    const FLOOD_FRAMES: usize = 1000;
     let receiver = open(&iface, true);
+    // Small on purpose, so the flood overflows it whatever rmem_default is.
+    let granted = receiver.set_receive_buffer_bytes(16 * 1024).unwrap();
+    assert_eq!(
+        granted,
+        2 * 16 * 1024,
+        "Linux reports twice the requested size"
+    );
     let sender = open(&iface, true);
     for index in 0..FLOOD_FRAMES {
         let frame = RawCanFrame::fd(index as u32, &data_for(index, 64)).unwrap();

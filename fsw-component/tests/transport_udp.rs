@@ -1,5 +1,6 @@
 //! UDP transport on loopback: round trips, the 1472-byte limit on both sides, counted
-//! oversize drops, and that no valid datagram is lost around an oversize one.
+//! oversize drops, that no valid datagram is lost around an oversize one, and that a flood
+//! beyond the kernel receive buffer is fully accounted for (received + kernel drops).
 
 use std::net::{Ipv4Addr, SocketAddr};
 use std::time::Duration;
@@ -119,6 +120,43 @@ async fn oversize_incoming_datagrams_are_dropped_counted_and_do_not_hide_valid_o
     );
     assert_eq!(stats.datagrams_received, 2);
     assert_eq!(stats.bytes_received, (100 + MAX_DATAGRAM_BYTES) as u64);
+}
+
+#[tokio::test]
+async fn a_flood_beyond_the_receive_buffer_is_received_or_counted_as_dropped() {
+    const FLOOD_DATAGRAMS: usize = 1000;
+    let receiver = UdpTransport::bind(loopback_any_port()).await.unwrap();
+    // Small on purpose, so the flood overflows it on any machine (shrinking is never capped).
+    let granted = receiver.set_receive_buffer_bytes(32 * 1024).unwrap();
+    assert_eq!(granted, receiver.receive_buffer_bytes().unwrap());
+    assert_eq!(receiver.stats().dropped_receive_queue_full, Some(0));
+
+    let raw = std::net::UdpSocket::bind(loopback_any_port()).unwrap();
+    for index in 0..FLOOD_DATAGRAMS {
+        let mut datagram = payload(index as u8, 1000);
+        datagram[..4].copy_from_slice(&(index as u32).to_le_bytes());
+        raw.send_to(&datagram, receiver.local_addr()).unwrap();
+    }
+    let mut received_indices = Vec::new();
+    let mut out = [0u8; MAX_DATAGRAM_BYTES];
+    while let Ok(result) =
+        tokio::time::timeout(Duration::from_millis(300), receiver.recv_from(&mut out)).await
+    {
+        let (len, _) = result.unwrap();
+        assert_eq!(len, 1000);
+        received_indices.push(u32::from_le_bytes([out[0], out[1], out[2], out[3]]) as usize);
+    }
+    assert!(
+        received_indices.len() < FLOOD_DATAGRAMS,
+        "the flood did not overflow a 32 KiB buffer"
+    );
+    assert!(received_indices.windows(2).all(|pair| pair[0] < pair[1]));
+    let dropped = receiver.stats().dropped_receive_queue_full.unwrap();
+    assert_eq!(
+        received_indices.len() as u64 + dropped,
+        FLOOD_DATAGRAMS as u64,
+        "every datagram is either received or counted as dropped by the kernel"
+    );
 }
 
 #[tokio::test]

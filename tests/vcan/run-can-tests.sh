@@ -17,22 +17,28 @@ case "${RUSTFLAGS:-}${CARGO_ENCODED_RUSTFLAGS:-}" in
     ;;
 esac
 
-# The executable of the one artifact cargo reports for "$@" (JSON messages on stdout).
+# The executable of target "$1" that cargo builds for the rest of the arguments (it reports
+# every artifact as JSON on stdout; a test build may also build the crate's binaries).
 cargo_executable() {
+    local target_name=$1
+    shift
     cargo "$@" --message-format=json |
         python3 -c '
 import json, sys
+name = sys.argv[1]
 paths = [m["executable"] for m in map(json.loads, sys.stdin)
-         if m.get("reason") == "compiler-artifact" and m.get("executable")]
+         if m.get("reason") == "compiler-artifact" and m.get("executable")
+         and m["target"]["name"] == name]
 if len(paths) != 1:
-    sys.exit(f"expected one executable, cargo reported {paths}")
-print(paths[0])'
+    sys.exit(f"expected one executable for {name}, cargo reported {paths}")
+print(paths[0])' "$target_name"
 }
 
 echo "[vcan] building the SocketCAN test binary and the Rust CAN peer" >&2
-unit_test_binary=$(cargo_executable test -p fsw-component --lib --no-run)
-test_binary=$(cargo_executable test -p fsw-component --test transport_socketcan --no-run)
-peer_binary=$(cargo_executable build -p fsw-component --example can_echo_peer)
+unit_test_binary=$(cargo_executable fsw_component test -p fsw-component --lib --no-run)
+test_binary=$(cargo_executable transport_socketcan \
+    test -p fsw-component --test transport_socketcan --no-run)
+peer_binary=$(cargo_executable can_echo_peer build -p fsw-component --example can_echo_peer)
 python=$(bash tests/setup_venv.sh)
 
 bash tests/vcan/run-in-vm.sh bash tests/vcan/in-vm-tests.sh \

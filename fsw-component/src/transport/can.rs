@@ -20,7 +20,7 @@ use tokio::io::unix::AsyncFd;
 use tokio::io::Interest;
 
 use super::can_recv::{self, Received};
-use super::{RawCanFrame, TransportError};
+use super::{sockopt, RawCanFrame, TransportError};
 
 /// Link type of CAN interfaces in /sys/class/net/IFACE/type (ARPHRD_CAN).
 const ARPHRD_CAN: u32 = 280;
@@ -188,6 +188,18 @@ impl CanTransport {
     /// Whether this transport was opened in FD mode.
     pub fn is_fd(&self) -> bool {
         self.fd_mode
+    }
+
+    /// Asks for a kernel receive buffer of `bytes` and returns the size granted (Linux
+    /// reports twice the request; without CAP_NET_ADMIN it is capped at net.core.rmem_max).
+    pub fn set_receive_buffer_bytes(&self, bytes: usize) -> Result<usize, TransportError> {
+        sockopt::set_receive_buffer(self.socket.as_raw_fd(), bytes).map_err(|source| {
+            TransportError::Io {
+                operation: "set CAN receive buffer size",
+                target: self.interface.clone(),
+                source,
+            }
+        })
     }
 
     /// A snapshot of the counters.

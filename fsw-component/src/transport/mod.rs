@@ -10,6 +10,7 @@ pub mod can;
 pub mod can_frame;
 mod can_recv;
 mod error;
+mod sockopt;
 pub mod udp;
 
 pub use can::{CanStats, CanTransport, CanTransportConfig};

@@ -4,14 +4,18 @@
 //! datagram is ever IP-fragmented. Sending more is refused with an error; a received
 //! datagram above the limit is dropped and counted (it is read into a buffer one byte
 //! larger than the limit, so "filled the whole buffer" means "oversize"; the kernel
-//! truncates the rest). Counters are atomics so `&self` can be shared between tasks.
+//! truncates the rest). Datagrams the kernel dropped because the receive buffer was full
+//! are read from the socket's row in /proc/net/udp{,6}; grow the buffer with
+//! [`UdpTransport::set_receive_buffer_bytes`] for bursts such as camera frames. Counters
+//! are atomics so `&self` can be shared between tasks.
 
 use std::net::SocketAddr;
+use std::os::fd::AsRawFd;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use tokio::net::UdpSocket;
 
-use super::TransportError;
+use super::{sockopt, TransportError};
 
 /// Largest datagram payload sent or accepted, in bytes.
 pub const MAX_DATAGRAM_BYTES: usize = 1472;
@@ -25,6 +29,9 @@ pub struct UdpStats {
     pub send_errors: u64,
     pub oversize_send_rejected: u64,
     pub oversize_received_dropped: u64,
+    /// Datagrams the kernel dropped on a full receive buffer (the socket's `drops` in
+    /// /proc/net/udp); `None` when that table cannot be read here.
+    pub dropped_receive_queue_full: Option<u64>,
 }
 
 #[derive(Debug, Default)]
@@ -46,6 +53,7 @@ fn add(counter: &AtomicU64, amount: u64) {
 pub struct UdpTransport {
     socket: UdpSocket,
     local_addr: SocketAddr,
+    socket_inode: Option<u64>,
     counters: UdpCounters,
 }
 
@@ -69,6 +77,7 @@ impl UdpTransport {
             .local_addr()
             .map_err(io_error("read local address of UDP socket"))?;
         Ok(Self {
+            socket_inode: sockopt::socket_inode(socket.as_raw_fd()),
             socket,
             local_addr,
             counters: UdpCounters::default(),
@@ -80,7 +89,38 @@ impl UdpTransport {
         self.local_addr
     }
 
-    /// A snapshot of the counters.
+    /// Asks for a kernel receive buffer of `bytes` and returns the size granted (Linux
+    /// reports twice the request; without CAP_NET_ADMIN it is capped at net.core.rmem_max).
+    pub fn set_receive_buffer_bytes(&self, bytes: usize) -> Result<usize, TransportError> {
+        sockopt::set_receive_buffer(self.socket.as_raw_fd(), bytes).map_err(|source| {
+            TransportError::Io {
+                operation: "set UDP receive buffer size",
+                target: self.local_addr.to_string(),
+                source,
+            }
+        })
+    }
+
+    /// The kernel receive buffer size in bytes.
+    pub fn receive_buffer_bytes(&self) -> Result<usize, TransportError> {
+        sockopt::receive_buffer(self.socket.as_raw_fd()).map_err(|source| TransportError::Io {
+            operation: "read UDP receive buffer size",
+            target: self.local_addr.to_string(),
+            source,
+        })
+    }
+
+    fn kernel_drops(&self) -> Option<u64> {
+        let table_path = if self.local_addr.is_ipv6() {
+            "/proc/net/udp6"
+        } else {
+            "/proc/net/udp"
+        };
+        let table = std::fs::read_to_string(table_path).ok()?;
+        sockopt::drops_from_proc_table(&table, self.socket_inode?)
+    }
+
+    /// A snapshot of the counters (reads /proc for the kernel's drop count).
     pub fn stats(&self) -> UdpStats {
         let c = &self.counters;
         UdpStats {
@@ -90,6 +130,7 @@ impl UdpTransport {
             send_errors: c.send_errors.load(Ordering::Relaxed),
             oversize_send_rejected: c.oversize_send_rejected.load(Ordering::Relaxed),
             oversize_received_dropped: c.oversize_received_dropped.load(Ordering::Relaxed),
+            dropped_receive_queue_full: self.kernel_drops(),
         }
     }
 
