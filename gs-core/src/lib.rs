@@ -14,6 +14,7 @@ pub mod ply;
 pub mod raster;
 pub mod regularizer;
 pub mod sh;
+pub mod sunaware;
 pub mod train;
 
 pub use camera::{Camera, Intrinsics};

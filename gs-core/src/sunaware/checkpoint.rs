@@ -1,0 +1,499 @@
+//! Checkpoint of a whole [`SunAwareTrainer`]: resuming from it continues bit-exactly.
+//!
+//! File layout (all integers and floats little-endian):
+//! ```text
+//! magic     8 bytes  b"SUNGSCKP"
+//! version   u32      1
+//! length    u64      payload bytes
+//! payload   length bytes (below)
+//! checksum  u64      FNV-1a 64 of the payload
+//! ```
+//! Payload, in order:
+//! 1. config: variant u8 (0..3 = a..d), sh_degree u32, sh_degree_interval u64,
+//!    feature_dim u64, shadow_latent_dim u64, encoding_frequencies u64, lambda_dssim f32,
+//!    lambda_iso f32, iso_reduction u8 (0 sum, 1 mean over entries), light projection u8
+//!    (0 perspective, 1 orthographic), light resolution u32, footprint radius f32, depth bias
+//!    fraction f32, fov margin f32, 11 learning rates f32 (position init, position final,
+//!    sh dc, sh rest, opacity, scale, rotation, feature, shadow latent, appearance MLP, shadow
+//!    MLP), densify 6 f32 (grad threshold, percent dense, min opacity, max screen radius,
+//!    max world scale fraction, split divisor), size_prune u8, max_gaussians u64,
+//!    background 3 f32, near_m f32, seed u64, feature_init_std f32;
+//! 2. scene box: min 3 f32, max 3 f32;
+//! 3. Gaussians: count u64, then each group of `Param::ALL` in order (count x width f32,
+//!    widths from the config's layout);
+//! 4. Gaussian Adam: beta1 f32, beta2 f32, eps f32, step u64, first moments (groups as in
+//!    3), second moments;
+//! 5. Phi then Psi, each: present u8; if 1: weight count u64, weights f32, Adam first
+//!    moments f32, second moments f32 (same count), step u64;
+//! 6. densification statistics: count x f32 gradient sums, count x u32 visible counts,
+//!    count x f32 max radii;
+//! 7. counters u64: steps, skipped_nonfinite, raster_dropped, densify_count.
+//!
+//! There is no other state: densification draws from streams seeded by the config's seed
+//! and `densify_count`, and online rounds shuffle with seeds derived from the round number.
+//! Loading checks the magic, version, length, checksum, every count against the bytes left
+//! (before allocating) and every value for finiteness; any failure is a
+//! [`SunAwareError::Checkpoint`] naming the problem.
+
+use std::io::{Read, Write};
+use std::path::Path;
+
+use crate::densify::{DensifyConfig, DensifyStats};
+use crate::model::{GaussianModel, Param, ParamSet};
+use crate::nn::SceneBox;
+use crate::optim::Adam;
+use crate::regularizer::IsoReduction;
+
+use super::config::{LightConfig, LightProjection, SunAwareConfig, SunAwareRates, Variant};
+use super::error::SunAwareError;
+use super::model::SunAwareModel;
+use super::trainer::{FlatAdam, SunAwareTrainer};
+
+pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
+pub const VERSION: u32 = 1;
+
+/// FNV-1a, 64 bit.
+pub fn fnv1a64(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+struct Writer(Vec<u8>);
+
+impl Writer {
+    fn u8(&mut self, v: u8) {
+        self.0.push(v);
+    }
+    fn u32(&mut self, v: u32) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn u64(&mut self, v: u64) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn f32(&mut self, v: f32) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn f32s(&mut self, v: &[f32]) {
+        for &x in v {
+            self.f32(x);
+        }
+    }
+    fn params(&mut self, p: &ParamSet) {
+        for g in Param::ALL {
+            self.f32s(p.get(g));
+        }
+    }
+}
+
+struct Reader<'a> {
+    buf: &'a [u8],
+    pos: usize,
+}
+
+fn ck(m: impl Into<String>) -> SunAwareError {
+    SunAwareError::Checkpoint(m.into())
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8], SunAwareError> {
+        if self.buf.len() - self.pos < n {
+            return Err(ck(format!("truncated while reading {what}")));
+        }
+        let s = &self.buf[self.pos..self.pos + n];
+        self.pos += n;
+        Ok(s)
+    }
+    fn u8(&mut self, what: &str) -> Result<u8, SunAwareError> {
+        Ok(self.take(1, what)?[0])
+    }
+    fn u32(&mut self, what: &str) -> Result<u32, SunAwareError> {
+        Ok(u32::from_le_bytes(
+            self.take(4, what)?.try_into().expect("4 bytes"),
+        ))
+    }
+    fn u64(&mut self, what: &str) -> Result<u64, SunAwareError> {
+        Ok(u64::from_le_bytes(
+            self.take(8, what)?.try_into().expect("8 bytes"),
+        ))
+    }
+    fn usize(&mut self, what: &str) -> Result<usize, SunAwareError> {
+        usize::try_from(self.u64(what)?).map_err(|_| ck(format!("{what} does not fit in memory")))
+    }
+    fn f32(&mut self, what: &str) -> Result<f32, SunAwareError> {
+        let v = f32::from_le_bytes(self.take(4, what)?.try_into().expect("4 bytes"));
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(ck(format!("{what} is not finite")))
+        }
+    }
+    fn f32s(&mut self, n: usize, what: &str) -> Result<Vec<f32>, SunAwareError> {
+        let bytes = n
+            .checked_mul(4)
+            .ok_or_else(|| ck(format!("{what}: count overflows")))?;
+        let raw = self.take(bytes, what)?;
+        let out: Vec<f32> = raw
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+            .collect();
+        if let Some(i) = out.iter().position(|v| !v.is_finite()) {
+            return Err(ck(format!("{what}: value {i} is not finite")));
+        }
+        Ok(out)
+    }
+    fn params(&mut self, into: &mut ParamSet, what: &str) -> Result<(), SunAwareError> {
+        for g in Param::ALL {
+            let n = into.get(g).len();
+            let v = self.f32s(n, &format!("{what} {}", g.name()))?;
+            into.get_mut(g).copy_from_slice(&v);
+        }
+        Ok(())
+    }
+}
+
+fn write_config(w: &mut Writer, c: &SunAwareConfig) {
+    w.u8(c.variant.code());
+    w.u32(c.sh_degree);
+    w.u64(c.sh_degree_interval);
+    w.u64(c.feature_dim as u64);
+    w.u64(c.shadow_latent_dim as u64);
+    w.u64(c.encoding_frequencies as u64);
+    w.f32(c.lambda_dssim);
+    w.f32(c.lambda_iso);
+    w.u8(match c.iso_reduction {
+        IsoReduction::Sum => 0,
+        IsoReduction::MeanOverEntries => 1,
+    });
+    w.u8(match c.light.projection {
+        LightProjection::Perspective => 0,
+        LightProjection::Orthographic => 1,
+    });
+    w.u32(c.light.resolution_px);
+    w.f32(c.light.footprint_radius_px);
+    w.f32(c.light.depth_bias_fraction);
+    w.f32(c.light.fov_margin);
+    let r = &c.lr;
+    w.f32s(&[
+        r.position_init,
+        r.position_final,
+        r.sh_dc,
+        r.sh_rest,
+        r.opacity,
+        r.scale,
+        r.rotation,
+        r.feature,
+        r.shadow_latent,
+        r.appearance_mlp,
+        r.shadow_mlp,
+    ]);
+    let d = &c.densify;
+    w.f32s(&[
+        d.grad_threshold,
+        d.percent_dense,
+        d.min_opacity,
+        d.max_screen_radius_px,
+        d.max_world_scale_fraction,
+        d.split_scale_divisor,
+    ]);
+    w.u8(c.size_prune as u8);
+    w.u64(c.max_gaussians as u64);
+    w.f32s(&c.background);
+    w.f32(c.near_m);
+    w.u64(c.seed);
+    w.f32(c.feature_init_std);
+}
+
+fn read_config(r: &mut Reader) -> Result<SunAwareConfig, SunAwareError> {
+    let code = r.u8("variant")?;
+    let variant = Variant::from_code(code).ok_or_else(|| ck(format!("unknown variant {code}")))?;
+    let sh_degree = r.u32("sh_degree")?;
+    let sh_degree_interval = r.u64("sh_degree_interval")?;
+    let feature_dim = r.usize("feature_dim")?;
+    let shadow_latent_dim = r.usize("shadow_latent_dim")?;
+    let encoding_frequencies = r.usize("encoding_frequencies")?;
+    let lambda_dssim = r.f32("lambda_dssim")?;
+    let lambda_iso = r.f32("lambda_iso")?;
+    let iso_reduction = match r.u8("iso_reduction")? {
+        0 => IsoReduction::Sum,
+        1 => IsoReduction::MeanOverEntries,
+        other => return Err(ck(format!("unknown iso reduction {other}"))),
+    };
+    let projection = match r.u8("light projection")? {
+        0 => LightProjection::Perspective,
+        1 => LightProjection::Orthographic,
+        other => return Err(ck(format!("unknown light projection {other}"))),
+    };
+    let light = LightConfig {
+        projection,
+        resolution_px: r.u32("light resolution")?,
+        footprint_radius_px: r.f32("footprint radius")?,
+        depth_bias_fraction: r.f32("depth bias")?,
+        fov_margin: r.f32("fov margin")?,
+    };
+    let v = r.f32s(11, "learning rates")?;
+    let lr = SunAwareRates {
+        position_init: v[0],
+        position_final: v[1],
+        sh_dc: v[2],
+        sh_rest: v[3],
+        opacity: v[4],
+        scale: v[5],
+        rotation: v[6],
+        feature: v[7],
+        shadow_latent: v[8],
+        appearance_mlp: v[9],
+        shadow_mlp: v[10],
+    };
+    // The grad threshold may be infinite in memory only transiently; stored values are finite.
+    let d = r.f32s(6, "densify settings")?;
+    let densify = DensifyConfig {
+        grad_threshold: d[0],
+        percent_dense: d[1],
+        min_opacity: d[2],
+        max_screen_radius_px: d[3],
+        max_world_scale_fraction: d[4],
+        split_scale_divisor: d[5],
+    };
+    let size_prune = r.u8("size_prune")? != 0;
+    let max_gaussians = r.usize("max_gaussians")?;
+    let bg = r.f32s(3, "background")?;
+    let config = SunAwareConfig {
+        variant,
+        sh_degree,
+        sh_degree_interval,
+        feature_dim,
+        shadow_latent_dim,
+        encoding_frequencies,
+        lambda_dssim,
+        lambda_iso,
+        iso_reduction,
+        light,
+        lr,
+        densify,
+        size_prune,
+        max_gaussians,
+        background: [bg[0], bg[1], bg[2]],
+        near_m: r.f32("near_m")?,
+        seed: r.u64("seed")?,
+        feature_init_std: r.f32("feature_init_std")?,
+    };
+    config
+        .validate()
+        .map_err(|e| ck(format!("stored configuration is invalid: {e}")))?;
+    Ok(config)
+}
+
+fn write_net(w: &mut Writer, params: Option<&[f32]>, adam: &FlatAdam) {
+    match params {
+        None => w.u8(0),
+        Some(p) => {
+            w.u8(1);
+            w.u64(p.len() as u64);
+            w.f32s(p);
+            w.f32s(&adam.m);
+            w.f32s(&adam.v);
+            w.u64(adam.step);
+        }
+    }
+}
+
+fn read_net(
+    r: &mut Reader,
+    params: Option<&mut [f32]>,
+    what: &str,
+) -> Result<FlatAdam, SunAwareError> {
+    let present = r.u8(what)? != 0;
+    match (present, params) {
+        (false, None) => Ok(FlatAdam::new(0)),
+        (true, Some(params)) => {
+            let n = r.usize(what)?;
+            if n != params.len() {
+                return Err(ck(format!(
+                    "{what} has {n} weights, the configuration needs {}",
+                    params.len()
+                )));
+            }
+            params.copy_from_slice(&r.f32s(n, what)?);
+            let m = r.f32s(n, what)?;
+            let v = r.f32s(n, what)?;
+            let step = r.u64(what)?;
+            Ok(FlatAdam { m, v, step })
+        }
+        _ => Err(ck(format!(
+            "{what}: presence does not match the configuration"
+        ))),
+    }
+}
+
+/// Serialises the trainer (model, optimiser, statistics, counters) to bytes.
+pub fn to_bytes(t: &SunAwareTrainer) -> Vec<u8> {
+    let mut w = Writer(Vec::new());
+    let m = &t.model;
+    write_config(&mut w, &m.config);
+    w.f32s(&m.scene_box.min_m());
+    w.f32s(&m.scene_box.max_m());
+    w.u64(m.len() as u64);
+    w.params(&m.gaussians.params);
+    w.f32(t.adam.beta1);
+    w.f32(t.adam.beta2);
+    w.f32(t.adam.eps);
+    w.u64(t.adam.step);
+    w.params(&t.adam.m);
+    w.params(&t.adam.v);
+    write_net(
+        &mut w,
+        m.appearance.as_ref().map(|n| n.mlp.params()),
+        &t.appearance_adam,
+    );
+    write_net(
+        &mut w,
+        m.shadow.as_ref().map(|n| n.mlp.params()),
+        &t.shadow_adam,
+    );
+    w.f32s(&t.densify_stats.grad_accum);
+    for &c in &t.densify_stats.visible_count {
+        w.u32(c);
+    }
+    w.f32s(&t.densify_stats.max_radius_px);
+    w.u64(t.steps);
+    w.u64(t.skipped_nonfinite);
+    w.u64(t.raster_dropped);
+    w.u64(t.densify_count);
+    let payload = w.0;
+    let mut out = Vec::with_capacity(payload.len() + 28);
+    out.extend_from_slice(&MAGIC);
+    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+    out.extend_from_slice(&payload);
+    out.extend_from_slice(&fnv1a64(&payload).to_le_bytes());
+    out
+}
+
+/// Restores a trainer from [`to_bytes`]'s output.
+pub fn from_bytes(bytes: &[u8]) -> Result<SunAwareTrainer, SunAwareError> {
+    if bytes.len() < 28 {
+        return Err(ck("file is shorter than the header"));
+    }
+    if bytes[..8] != MAGIC {
+        return Err(ck("not a Sun-aware checkpoint (bad magic)"));
+    }
+    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+    if version != VERSION {
+        return Err(ck(format!(
+            "version {version} is not supported (this build reads {VERSION})"
+        )));
+    }
+    let len = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes"));
+    if len != (bytes.len() - 28) as u64 {
+        return Err(ck(format!(
+            "payload length {len} does not match the file ({} bytes of payload)",
+            bytes.len() - 28
+        )));
+    }
+    let payload = &bytes[20..bytes.len() - 8];
+    let stored = u64::from_le_bytes(bytes[bytes.len() - 8..].try_into().expect("8 bytes"));
+    if fnv1a64(payload) != stored {
+        return Err(ck("checksum mismatch (file corrupted)"));
+    }
+    let mut r = Reader {
+        buf: payload,
+        pos: 0,
+    };
+    let config = read_config(&mut r)?;
+    let lo = r.f32s(3, "scene box min")?;
+    let hi = r.f32s(3, "scene box max")?;
+    let scene_box = SceneBox::new([lo[0], lo[1], lo[2]], [hi[0], hi[1], hi[2]])?;
+    let n = r.usize("Gaussian count")?;
+    let layout = config.layout();
+    let row_bytes: usize = layout.dims().iter().sum::<usize>() * 4;
+    let fits = n
+        .checked_mul(row_bytes)
+        .is_some_and(|b| b <= payload.len() - r.pos);
+    if !fits {
+        return Err(ck(format!("Gaussian count {n} exceeds the file")));
+    }
+    let mut gaussians = GaussianModel::new(layout)?;
+    gaussians.params.push_zeros(n);
+    r.params(&mut gaussians.params, "Gaussians")?;
+    // Networks are rebuilt with the configured shapes, then overwritten with the weights.
+    let mut model = SunAwareModel::new(gaussians.clone(), scene_box, config)?;
+    model.gaussians = gaussians;
+    let mut adam = Adam::new(&model.gaussians.params);
+    adam.beta1 = r.f32("Adam beta1")?;
+    adam.beta2 = r.f32("Adam beta2")?;
+    adam.eps = r.f32("Adam eps")?;
+    adam.step = r.u64("Adam step")?;
+    r.params(&mut adam.m, "Adam first moment")?;
+    r.params(&mut adam.v, "Adam second moment")?;
+    let appearance_adam = read_net(
+        &mut r,
+        model.appearance.as_mut().map(|n| n.mlp.params_mut()),
+        "appearance MLP",
+    )?;
+    let shadow_adam = read_net(
+        &mut r,
+        model.shadow.as_mut().map(|n| n.mlp.params_mut()),
+        "shadow MLP",
+    )?;
+    let mut stats = DensifyStats::new(n);
+    stats.grad_accum = r.f32s(n, "densify gradient sums")?;
+    for c in stats.visible_count.iter_mut() {
+        *c = r.u32("densify visible counts")?;
+    }
+    stats.max_radius_px = r.f32s(n, "densify max radii")?;
+    let steps = r.u64("steps")?;
+    let skipped_nonfinite = r.u64("skipped steps")?;
+    let raster_dropped = r.u64("dropped gradients")?;
+    let densify_count = r.u64("densify count")?;
+    if r.pos != payload.len() {
+        return Err(ck(format!(
+            "{} unexpected bytes after the last field",
+            payload.len() - r.pos
+        )));
+    }
+    Ok(SunAwareTrainer {
+        model,
+        adam,
+        appearance_adam,
+        shadow_adam,
+        densify_stats: stats,
+        steps,
+        skipped_nonfinite,
+        raster_dropped,
+        densify_count,
+    })
+}
+
+/// Writes a checkpoint.
+pub fn save<W: Write>(t: &SunAwareTrainer, mut out: W) -> Result<(), SunAwareError> {
+    out.write_all(&to_bytes(t))?;
+    out.flush()?;
+    Ok(())
+}
+
+/// Reads a checkpoint.
+pub fn load<R: Read>(mut input: R) -> Result<SunAwareTrainer, SunAwareError> {
+    let mut bytes = Vec::new();
+    input.read_to_end(&mut bytes)?;
+    from_bytes(&bytes)
+}
+
+/// Writes a checkpoint file (through a temporary beside it, renamed into place, so a crash
+/// never leaves a half-written checkpoint under the final name).
+pub fn save_file(t: &SunAwareTrainer, path: impl AsRef<Path>) -> Result<(), SunAwareError> {
+    let path = path.as_ref();
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    std::fs::write(&tmp, to_bytes(t))?;
+    std::fs::rename(&tmp, path)?;
+    Ok(())
+}
+
+/// Reads a checkpoint file.
+pub fn load_file(path: impl AsRef<Path>) -> Result<SunAwareTrainer, SunAwareError> {
+    from_bytes(&std::fs::read(path)?)
+}

@@ -1,0 +1,388 @@
+//! Settings of the Sun-aware pipeline: which of the paper's configurations (a)-(d), network
+//! and encoding sizes, the light camera of the shadow pass, learning rates, densification.
+//!
+//! Invariants checked by [`SunAwareConfig::validate`]: every rate finite and >= 0, weights in
+//! range, light settings positive; the parameter layout follows from the variant alone
+//! ([`SunAwareConfig::layout`]).
+
+use std::str::FromStr;
+
+use crate::densify::DensifyConfig;
+use crate::model::ModelLayout;
+use crate::regularizer::IsoReduction;
+
+use super::error::SunAwareError;
+
+/// The four configurations of the paper's Table I.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Variant {
+    /// Plain 3DGS: SH colour.
+    A,
+    /// + appearance MLP Phi on features, Sun and view vectors.
+    B,
+    /// + shadow splatting (visibility refined by Psi, image = RGB * S).
+    C,
+    /// + isotropic scale loss.
+    D,
+}
+
+impl Variant {
+    pub const ALL: [Variant; 4] = [Variant::A, Variant::B, Variant::C, Variant::D];
+
+    /// Colour from Phi rather than SH.
+    pub fn uses_appearance_mlp(self) -> bool {
+        self != Variant::A
+    }
+
+    /// Shadow pass and channel S.
+    pub fn uses_shadow(self) -> bool {
+        matches!(self, Variant::C | Variant::D)
+    }
+
+    /// `lambda_iso L_iso` in the loss.
+    pub fn uses_isotropic_loss(self) -> bool {
+        self == Variant::D
+    }
+
+    /// Lower-case letter as in the table.
+    pub fn name(self) -> &'static str {
+        match self {
+            Variant::A => "a",
+            Variant::B => "b",
+            Variant::C => "c",
+            Variant::D => "d",
+        }
+    }
+
+    pub(crate) fn code(self) -> u8 {
+        self as u8
+    }
+
+    pub(crate) fn from_code(code: u8) -> Option<Self> {
+        Self::ALL.get(code as usize).copied()
+    }
+}
+
+impl FromStr for Variant {
+    type Err = SunAwareError;
+
+    /// `a`..`d` (either case).
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "a" => Ok(Variant::A),
+            "b" => Ok(Variant::B),
+            "c" => Ok(Variant::C),
+            "d" => Ok(Variant::D),
+            other => Err(SunAwareError::Config(format!(
+                "unknown configuration {other:?}: expected one of a, b, c, d"
+            ))),
+        }
+    }
+}
+
+impl std::fmt::Display for Variant {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// How the light camera projects.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LightProjection {
+    /// A pinhole at the camera-to-target distance along the Sun vector (the paper, GS3).
+    Perspective,
+    /// Parallel rays along the Sun vector: the Sun is a directional source.
+    Orthographic,
+}
+
+/// The shadow pass's light camera.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LightConfig {
+    pub projection: LightProjection,
+    /// Side of the square light image, pixels. The field of view (or the orthographic
+    /// extent) is fitted to the scene box's bounding sphere, so this sets the resolution
+    /// of the shadows.
+    pub resolution_px: u32,
+    /// `V_i` averages the transmittance over pixels whose centres lie within this distance
+    /// of the Gaussian's projected centre (DESIGN.md: about 2 px).
+    pub footprint_radius_px: f32,
+    /// Occluders must be nearer to the light than `depth_i - bias` to shadow Gaussian `i`;
+    /// the bias is this fraction of the scene box's bounding radius (so `i` and its
+    /// immediate neighbours on the same surface do not shadow themselves).
+    pub depth_bias_fraction: f32,
+    /// Field of view (or orthographic extent) = bounding sphere times this margin.
+    pub fov_margin: f32,
+}
+
+impl Default for LightConfig {
+    fn default() -> Self {
+        Self {
+            projection: LightProjection::Perspective,
+            resolution_px: 256,
+            footprint_radius_px: 2.0,
+            depth_bias_fraction: 0.02,
+            fov_margin: 1.05,
+        }
+    }
+}
+
+/// Learning rates per group (3DGS defaults for the geometry; DESIGN.md section 3).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SunAwareRates {
+    /// Position rate at the start of a round, times the scene extent.
+    pub position_init: f32,
+    /// Position rate at the end of a round, times the scene extent (log-linear decay).
+    pub position_final: f32,
+    pub sh_dc: f32,
+    pub sh_rest: f32,
+    pub opacity: f32,
+    pub scale: f32,
+    pub rotation: f32,
+    pub feature: f32,
+    pub shadow_latent: f32,
+    pub appearance_mlp: f32,
+    pub shadow_mlp: f32,
+}
+
+impl Default for SunAwareRates {
+    fn default() -> Self {
+        Self {
+            position_init: 1.6e-4,
+            position_final: 1.6e-6,
+            sh_dc: 2.5e-3,
+            sh_rest: 2.5e-3 / 20.0,
+            opacity: 0.025,
+            scale: 5e-3,
+            rotation: 1e-3,
+            // As the SH DC rate: the feature plays the role of the colour coefficients.
+            feature: 2.5e-3,
+            shadow_latent: 2.5e-3,
+            appearance_mlp: 5e-4,
+            shadow_mlp: 1e-3,
+        }
+    }
+}
+
+/// Everything that shapes a Sun-aware model and its training.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SunAwareConfig {
+    pub variant: Variant,
+    /// SH degree of configuration (a).
+    pub sh_degree: u32,
+    /// The active SH degree grows by one every this many steps (3DGS: 1000).
+    pub sh_degree_interval: u64,
+    /// Width of the appearance feature f_i (paper: 72).
+    pub feature_dim: usize,
+    /// Width of the shadow latent l_i (paper: 6).
+    pub shadow_latent_dim: usize,
+    /// L of the positional encoding (DESIGN.md: 4).
+    pub encoding_frequencies: usize,
+    /// Weight of (1 - SSIM) in the photometric loss (paper: 0.2).
+    pub lambda_dssim: f32,
+    /// Weight of L_iso in configuration (d). Default 10 with [`IsoReduction::MeanOverEntries`]:
+    /// MonoGS's setting, which the paper cites for this loss. The mean keeps the pull per
+    /// Gaussian constant while densification grows the model (the paper's plain sum with a
+    /// fixed weight would strengthen with every added Gaussian), and with scales of a few
+    /// centimetres on a metre-sized target it is of the order of the photometric loss.
+    pub lambda_iso: f32,
+    pub iso_reduction: IsoReduction,
+    pub light: LightConfig,
+    pub lr: SunAwareRates,
+    pub densify: DensifyConfig,
+    /// Prune Gaussians whose screen radius or world size is too big at densification.
+    pub size_prune: bool,
+    /// Densification stops adding Gaussians at this count (pruning continues).
+    pub max_gaussians: usize,
+    /// RGB behind the Gaussians (the shadow channel's background is 1: background unshadowed).
+    pub background: [f32; 3],
+    pub near_m: f32,
+    /// Seeds the networks, the features and densification.
+    pub seed: u64,
+    /// Standard deviation of the random initial appearance features.
+    pub feature_init_std: f32,
+}
+
+impl Default for SunAwareConfig {
+    fn default() -> Self {
+        Self {
+            variant: Variant::D,
+            sh_degree: 3,
+            sh_degree_interval: 1000,
+            feature_dim: 72,
+            shadow_latent_dim: 6,
+            encoding_frequencies: 4,
+            lambda_dssim: 0.2,
+            lambda_iso: 10.0,
+            iso_reduction: IsoReduction::MeanOverEntries,
+            light: LightConfig::default(),
+            lr: SunAwareRates::default(),
+            densify: DensifyConfig::default(),
+            size_prune: false,
+            max_gaussians: 200_000,
+            background: [0.0; 3],
+            near_m: 0.01,
+            seed: 0,
+            feature_init_std: 0.1,
+        }
+    }
+}
+
+impl SunAwareConfig {
+    /// Defaults for one variant.
+    pub fn for_variant(variant: Variant) -> Self {
+        Self {
+            variant,
+            ..Self::default()
+        }
+    }
+
+    /// Parameter groups the variant needs.
+    pub fn layout(&self) -> ModelLayout {
+        let v = self.variant;
+        ModelLayout {
+            sh_degree: if v.uses_appearance_mlp() {
+                0
+            } else {
+                self.sh_degree
+            },
+            feature_dim: if v.uses_appearance_mlp() {
+                self.feature_dim
+            } else {
+                0
+            },
+            shadow_latent_dim: if v.uses_shadow() {
+                self.shadow_latent_dim
+            } else {
+                0
+            },
+        }
+    }
+
+    /// Checks every setting; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), SunAwareError> {
+        let bad = |m: String| Err(SunAwareError::Config(m));
+        if self.sh_degree > 3 {
+            return bad(format!("sh_degree {} is above 3", self.sh_degree));
+        }
+        if self.sh_degree_interval == 0 {
+            return bad("sh_degree_interval must be positive".into());
+        }
+        if self.variant.uses_appearance_mlp() && self.feature_dim == 0 {
+            return bad("feature_dim must be positive for configurations b-d".into());
+        }
+        if self.variant.uses_shadow() && self.shadow_latent_dim == 0 {
+            return bad("shadow_latent_dim must be positive for configurations c-d".into());
+        }
+        if !(1..=crate::nn::encoding::MAX_FREQUENCIES).contains(&self.encoding_frequencies) {
+            return bad(format!(
+                "encoding_frequencies {} is outside 1..={}",
+                self.encoding_frequencies,
+                crate::nn::encoding::MAX_FREQUENCIES
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.lambda_dssim) {
+            return bad(format!(
+                "lambda_dssim {} is outside [0, 1]",
+                self.lambda_dssim
+            ));
+        }
+        if !(self.lambda_iso.is_finite() && self.lambda_iso >= 0.0) {
+            return bad(format!(
+                "lambda_iso {} must be finite and >= 0",
+                self.lambda_iso
+            ));
+        }
+        let l = &self.light;
+        if l.resolution_px < 8 || l.resolution_px > 8192 {
+            return bad(format!(
+                "light.resolution_px {} is outside 8..=8192",
+                l.resolution_px
+            ));
+        }
+        if !(l.footprint_radius_px.is_finite() && l.footprint_radius_px >= 0.5) {
+            return bad("light.footprint_radius_px must be finite and >= 0.5".into());
+        }
+        if !(l.depth_bias_fraction.is_finite() && l.depth_bias_fraction >= 0.0) {
+            return bad("light.depth_bias_fraction must be finite and >= 0".into());
+        }
+        if !(l.fov_margin.is_finite() && (1.0..=4.0).contains(&l.fov_margin)) {
+            return bad("light.fov_margin must be in [1, 4]".into());
+        }
+        let r = &self.lr;
+        let rates = [
+            ("position_init", r.position_init),
+            ("position_final", r.position_final),
+            ("sh_dc", r.sh_dc),
+            ("sh_rest", r.sh_rest),
+            ("opacity", r.opacity),
+            ("scale", r.scale),
+            ("rotation", r.rotation),
+            ("feature", r.feature),
+            ("shadow_latent", r.shadow_latent),
+            ("appearance_mlp", r.appearance_mlp),
+            ("shadow_mlp", r.shadow_mlp),
+        ];
+        for (name, v) in rates {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(format!(
+                    "learning rate {name} = {v} must be finite and >= 0"
+                ));
+            }
+        }
+        if self.max_gaussians == 0 {
+            return bad("max_gaussians must be positive".into());
+        }
+        if !self.background.iter().all(|v| v.is_finite()) {
+            return bad("background must be finite".into());
+        }
+        if !(self.near_m.is_finite() && self.near_m > 0.0) {
+            return bad("near_m must be finite and positive".into());
+        }
+        if !(self.feature_init_std.is_finite() && self.feature_init_std >= 0.0) {
+            return bad("feature_init_std must be finite and >= 0".into());
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn variants_parse_and_name_round_trip() {
+        for v in Variant::ALL {
+            assert_eq!(v.name().parse::<Variant>().unwrap(), v);
+            assert_eq!(Variant::from_code(v.code()), Some(v));
+        }
+        assert_eq!(" C ".parse::<Variant>().unwrap(), Variant::C);
+        assert!("e".parse::<Variant>().is_err());
+        assert!(!Variant::B.uses_shadow() && Variant::C.uses_shadow());
+        assert!(Variant::D.uses_isotropic_loss() && !Variant::C.uses_isotropic_loss());
+    }
+
+    #[test]
+    fn layout_follows_the_variant() {
+        let a = SunAwareConfig::for_variant(Variant::A).layout();
+        assert_eq!((a.sh_degree, a.feature_dim, a.shadow_latent_dim), (3, 0, 0));
+        let b = SunAwareConfig::for_variant(Variant::B).layout();
+        assert_eq!(
+            (b.sh_degree, b.feature_dim, b.shadow_latent_dim),
+            (0, 72, 0)
+        );
+        let d = SunAwareConfig::for_variant(Variant::D).layout();
+        assert_eq!((d.feature_dim, d.shadow_latent_dim), (72, 6));
+    }
+
+    #[test]
+    fn bad_settings_are_named() {
+        let mut c = SunAwareConfig::default();
+        c.lr.feature = f32::NAN;
+        let msg = c.validate().unwrap_err().to_string();
+        assert!(msg.contains("feature"), "{msg}");
+        let mut c = SunAwareConfig::default();
+        c.light.resolution_px = 2;
+        assert!(c.validate().unwrap_err().to_string().contains("resolution"));
+        assert!(SunAwareConfig::default().validate().is_ok());
+    }
+}

@@ -1,0 +1,330 @@
+//! The shadow pass: per-Gaussian Sun visibility `V_i` seen from a light camera.
+//!
+//! The light camera sits on the Sun vector at the image camera's distance from the target
+//! centre (at least 1.5 scene radii, so it is outside the box) and looks at the centre:
+//! - [`LightProjection::Perspective`]: a pinhole whose field of view just covers the scene
+//!   box's bounding sphere (times a margin), as in the paper;
+//! - [`LightProjection::Orthographic`]: parallel projection along the Sun vector with the
+//!   same image extent, the exact model of a directional source. The 2D covariance is the
+//!   camera-frame covariance's x/y block times the pixel scale squared (plus the
+//!   rasterizer's 0.3 px^2 dilation).
+//!
+//! Splats are depth-sorted and binned into 16x16 tiles (the rasterizer's own
+//! [`crate::raster::project_splats`], [`crate::raster::depth_order`] and
+//! [`crate::raster::bin::bin_tiles`]). For each pixel, the tile list is walked front to back;
+//! each Gaussian `i` whose projected centre lies within `footprint_radius_px` of the pixel
+//! centre reads the transmittance of everything nearer than `depth_i - bias` (so `i` never
+//! shadows itself) and accumulates it weighted by its own footprint `exp(power_i)` there.
+//! `V_i = sum(w T) / sum(w)`, or 1 when no pixel saw it (culled or outside the light image:
+//! nothing is known to block the Sun). Alphas and cutoffs are the rasterizer's
+//! (`min(0.99, o exp(power))`, skip below 1/255, `T < 1e-4` counts as 0).
+//!
+//! Invariants: `V_i` in [0, 1]; no gradient (it is data for Psi); deterministic for any
+//! thread count (tiles are independent, the per-Gaussian sums run in tile order).
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::camera::{Camera, Intrinsics};
+use crate::model::{GaussianModel, Param};
+use crate::nn::SceneBox;
+use crate::raster::bin::{bin_tiles, PixelRect, TileGrid};
+use crate::raster::blend::{AlphaMode, Splat, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_STOP};
+use crate::raster::project::COV2D_DILATION_PX2;
+use crate::raster::{camera_frame, depth_order, project_splats, GaussianView};
+
+use super::config::{LightConfig, LightProjection};
+use super::error::SunAwareError;
+
+/// Centre and bounding-sphere radius of a scene box, metres.
+pub fn box_sphere(scene_box: &SceneBox) -> (Vec3, f32) {
+    let lo = Vec3::from_array(scene_box.min_m());
+    let hi = Vec3::from_array(scene_box.max_m());
+    ((lo + hi) * 0.5, 0.5 * (hi - lo).length())
+}
+
+/// Where the light camera is and how it maps the scene to its image.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LightCamera {
+    /// Pose (and, for perspective, intrinsics) of the light camera.
+    pub camera: Camera,
+    pub projection: LightProjection,
+    /// Orthographic only: pixels per metre in the image plane.
+    pub ortho_px_per_m: f32,
+    /// Occluder depth bias, metres.
+    pub depth_bias_m: f32,
+}
+
+/// The light camera for an image taken from `camera_centre` with the Sun along `sun_dir`
+/// (unit vector from the target towards the Sun, target body frame).
+pub fn light_camera(
+    sun_dir: Vec3,
+    camera_centre: Vec3,
+    scene_box: &SceneBox,
+    config: &LightConfig,
+) -> Result<LightCamera, SunAwareError> {
+    if !(sun_dir.is_finite() && sun_dir.length_squared() > 1e-12) {
+        return Err(SunAwareError::BadObservation(format!(
+            "Sun vector {sun_dir:?} is not a finite non-zero vector"
+        )));
+    }
+    if !camera_centre.is_finite() {
+        return Err(SunAwareError::BadObservation(
+            "camera centre is not finite".into(),
+        ));
+    }
+    let sun = sun_dir.normalize();
+    let (centre, radius) = box_sphere(scene_box);
+    let distance = (camera_centre - centre).length().max(1.5 * radius);
+    let eye = centre + sun * distance;
+    let up = if sun.z.abs() < 0.9 { Vec3::Z } else { Vec3::X };
+    let side = config.resolution_px;
+    let extent = radius * config.fov_margin;
+    let half_angle = (extent / distance).clamp(1e-6, 0.999).asin();
+    let intrinsics = Intrinsics::from_fov_x(2.0 * half_angle, side, side);
+    Ok(LightCamera {
+        camera: Camera::look_at(intrinsics, eye, centre, up),
+        projection: config.projection,
+        ortho_px_per_m: 0.5 * side as f32 / extent,
+        depth_bias_m: config.depth_bias_fraction * radius,
+    })
+}
+
+fn quat_to_mat(q: [f32; 4]) -> [[f32; 3]; 3] {
+    let [w, x, y, z] = q;
+    [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ]
+}
+
+/// Pixel rectangle outside which `o exp(power) < cutoff` (the rasterizer's bound).
+fn splat_rect(mean_px: [f32; 2], cov2: [f32; 3], q_max: f32, width: u32, height: u32) -> PixelRect {
+    let ext_x = (q_max * cov2[0]).sqrt() * 1.001 + 0.01;
+    let ext_y = (q_max * cov2[2]).sqrt() * 1.001 + 0.01;
+    let to_px = |v: f32, hi: u32| v.clamp(0.0, hi as f32) as u32;
+    PixelRect {
+        x0: to_px((mean_px[0] - ext_x - 0.5).floor(), width),
+        y0: to_px((mean_px[1] - ext_y - 0.5).floor(), height),
+        x1: to_px((mean_px[0] + ext_x - 0.5).floor() + 1.0, width),
+        y1: to_px((mean_px[1] + ext_y - 0.5).floor() + 1.0, height),
+    }
+}
+
+/// Orthographic splat of Gaussian `i`, or `None` when culled.
+fn ortho_splat(model: &GaussianModel, i: usize, light: &LightCamera, near_m: f32) -> Option<Splat> {
+    let p = &model.params;
+    let mean = p.row(Param::Mean, i);
+    let log_scale = p.row(Param::LogScale, i);
+    let q = p.row(Param::Rotation, i);
+    let logit = p.row(Param::OpacityLogit, i)[0];
+    let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+    if !(finite(mean) && finite(log_scale) && finite(q) && logit.is_finite()) {
+        return None;
+    }
+    let q_norm2 = q.iter().map(|v| v * v).sum::<f32>();
+    if !(q_norm2.is_finite() && q_norm2 >= 1e-6) {
+        return None;
+    }
+    let opacity = 1.0 / (1.0 + (-logit).exp());
+    if opacity.is_nan() || opacity < ALPHA_MIN {
+        return None;
+    }
+    let cam = &light.camera;
+    let t = cam.world_to_camera(Vec3::new(mean[0], mean[1], mean[2]));
+    if !(t.is_finite() && t.z >= near_m) {
+        return None;
+    }
+    let qn = q_norm2.sqrt();
+    let r = quat_to_mat([q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn]);
+    let s = [log_scale[0].exp(), log_scale[1].exp(), log_scale[2].exp()];
+    // Rows 0 and 1 of W R S, W the world-to-camera rotation: the image-plane axes.
+    let w = glam::Mat3::from_quat(cam.rotation.normalize());
+    let mut m = [[0.0f32; 3]; 2];
+    for (row, m_row) in m.iter_mut().enumerate() {
+        let axis = w.row(row);
+        for (c, v) in m_row.iter_mut().enumerate() {
+            let col = Vec3::new(r[0][c], r[1][c], r[2][c]);
+            *v = axis.dot(col) * s[c];
+        }
+    }
+    let k = light.ortho_px_per_m;
+    let k2 = k * k;
+    let dot = |a: &[f32; 3], b: &[f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let xx = k2 * dot(&m[0], &m[0]) + COV2D_DILATION_PX2;
+    let xy = k2 * dot(&m[0], &m[1]);
+    let yy = k2 * dot(&m[1], &m[1]) + COV2D_DILATION_PX2;
+    let det = xx * yy - xy * xy;
+    if !(det.is_finite() && det > 0.0) {
+        return None;
+    }
+    let conic = [yy / det, -xy / det, xx / det];
+    let side = cam.intrinsics.width;
+    let half = 0.5 * side as f32;
+    let mean_px = [k * t.x + half, k * t.y + half];
+    let q_max = 2.0 * (opacity / ALPHA_MIN).ln();
+    let rect = splat_rect(mean_px, [xx, xy, yy], q_max, side, side);
+    if rect.is_empty() || !mean_px.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    Some(Splat {
+        mean_px,
+        conic,
+        opacity,
+        depth: t.z,
+        rect,
+    })
+}
+
+/// Splats of every Gaussian in the light camera (`None`: culled or off the light image).
+pub fn light_splats(
+    model: &GaussianModel,
+    light: &LightCamera,
+    near_m: f32,
+) -> Result<Vec<Option<Splat>>, SunAwareError> {
+    let side = light.camera.intrinsics.width;
+    match light.projection {
+        LightProjection::Perspective => {
+            let frame = camera_frame(&light.camera, near_m)?;
+            let view = GaussianView::from_model(model, &[], 0);
+            let mode = AlphaMode { smooth: false };
+            Ok(project_splats(&frame, &view, mode, side, side).splats)
+        }
+        LightProjection::Orthographic => Ok((0..model.len())
+            .into_par_iter()
+            .with_min_len(1024)
+            .map(|i| ortho_splat(model, i, light, near_m))
+            .collect()),
+    }
+}
+
+/// The rasterizer's alpha of an occluder at a pixel centre: `min(0.99, o exp(power))`.
+fn occluder_alpha(s: &Splat, px: f32, py: f32) -> f32 {
+    let dx = s.mean_px[0] - px;
+    let dy = s.mean_px[1] - py;
+    let [a, b, c] = s.conic;
+    let raw = s.opacity * (-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy).exp();
+    if raw.is_nan() {
+        0.0
+    } else {
+        raw.min(ALPHA_MAX)
+    }
+}
+
+/// `V_i` for every Gaussian from its splats in the light image (see the module docs).
+pub fn visibility_from_splats(
+    splats: &[Option<Splat>],
+    side_px: u32,
+    footprint_radius_px: f32,
+    depth_bias_m: f32,
+) -> Vec<f32> {
+    let n = splats.len();
+    let order = depth_order(splats);
+    let ranked: Vec<Splat> = order.iter().filter_map(|&g| splats[g as usize]).collect();
+    let grid = TileGrid::new(side_px, side_px);
+    let rects: Vec<PixelRect> = ranked.iter().map(|s| s.rect).collect();
+    let bins = bin_tiles(&grid, &rects);
+    let r2 = footprint_radius_px * footprint_radius_px;
+    let per_tile: Vec<Vec<[f32; 2]>> = (0..grid.n_tiles())
+        .into_par_iter()
+        .map(|t| {
+            let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
+            let mut acc = vec![[0.0f32; 2]; list.len()];
+            let rect = grid.tile_rect(t);
+            for py in rect.y0..rect.y1 {
+                for px in rect.x0..rect.x1 {
+                    let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+                    let mut trans = 1.0f32;
+                    let mut next_occluder = 0;
+                    for (k, &rank) in list.iter().enumerate() {
+                        let s = &ranked[rank as usize];
+                        let dx = s.mean_px[0] - fx;
+                        let dy = s.mean_px[1] - fy;
+                        if dx * dx + dy * dy > r2 {
+                            continue;
+                        }
+                        let [a, b, c] = s.conic;
+                        let weight = (-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy).exp();
+                        if weight.is_nan() || weight <= 1e-6 {
+                            continue;
+                        }
+                        let limit = s.depth - depth_bias_m;
+                        while next_occluder < list.len()
+                            && ranked[list[next_occluder] as usize].depth < limit
+                        {
+                            if trans >= TRANSMITTANCE_STOP {
+                                let o = &ranked[list[next_occluder] as usize];
+                                let alpha = occluder_alpha(o, fx, fy);
+                                if alpha >= ALPHA_MIN {
+                                    trans *= 1.0 - alpha;
+                                }
+                            }
+                            next_occluder += 1;
+                        }
+                        let seen = if trans < TRANSMITTANCE_STOP {
+                            0.0
+                        } else {
+                            trans
+                        };
+                        acc[k][0] += weight;
+                        acc[k][1] += weight * seen;
+                    }
+                }
+            }
+            acc
+        })
+        .collect();
+    let mut sum_w = vec![0.0f64; n];
+    let mut sum_wt = vec![0.0f64; n];
+    for (t, acc) in per_tile.iter().enumerate() {
+        let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
+        for (&rank, a) in list.iter().zip(acc) {
+            let g = order[rank as usize] as usize;
+            sum_w[g] += a[0] as f64;
+            sum_wt[g] += a[1] as f64;
+        }
+    }
+    sum_w
+        .iter()
+        .zip(&sum_wt)
+        .map(|(&w, &wt)| {
+            if w > 0.0 {
+                ((wt / w) as f32).clamp(0.0, 1.0)
+            } else {
+                1.0
+            }
+        })
+        .collect()
+}
+
+/// `V_i` of every Gaussian for one image: light camera, splats, visibility.
+pub fn sun_visibility(
+    model: &GaussianModel,
+    sun_dir: Vec3,
+    camera_centre: Vec3,
+    scene_box: &SceneBox,
+    config: &LightConfig,
+    near_m: f32,
+) -> Result<Vec<f32>, SunAwareError> {
+    let light = light_camera(sun_dir, camera_centre, scene_box, config)?;
+    let splats = light_splats(model, &light, near_m)?;
+    Ok(visibility_from_splats(
+        &splats,
+        config.resolution_px,
+        config.footprint_radius_px,
+        light.depth_bias_m,
+    ))
+}

@@ -1,0 +1,539 @@
+//! The Sun-aware model (Gaussians + Phi + Psi + scene box + settings) and the forward and
+//! backward pass of one image.
+//!
+//! Forward for a camera and a Sun vector (target body frame):
+//! 1. project every Gaussian into the camera; those that survive culling are the
+//!    *visible list* (Phi and Psi run only on it, in index order);
+//! 2. colour: SH (a) or Phi([f_i, gamma(sun), gamma(view_i)]) (b-d);
+//! 3. shadow (c-d): `V` from the light pass ([`super::light`]), `V' = Psi([V_i, gamma(sun),
+//!    gamma(mu_i normalised), l_i])`;
+//! 4. one rasterizer call with channels `[R, G, B]` or `[R, G, B, V']` (background
+//!    `[bg, 1]`); the image is `RGB * S` with `S` the fourth channel.
+//!
+//! Backward takes `dL/d image` and returns gradients for every Gaussian group and for both
+//! networks' weights: through `S` into Psi, the latents and (through the rasterizer) the
+//! main pass geometry; through `RGB` into Phi, the features and the means (view vector).
+//! `V` is data: no gradient flows through it.
+//!
+//! Invariants: the visible list, the channel layout and every network batch are fixed by
+//! the inputs, so results are deterministic; nothing non-finite is returned as a gradient
+//! (the caller checks before stepping).
+
+use std::time::Instant;
+
+use glam::Vec3;
+
+use crate::camera::Camera;
+use crate::init::SplitMix64;
+use crate::model::{GaussianModel, Param, ParamSet};
+use crate::nn::{AppearanceNet, MlpForward, PositionalEncoding, SceneBox, ShadowNet, TapeMode};
+use crate::raster::blend::AlphaMode;
+use crate::raster::{
+    camera_frame, project_splats, render, render_backward, GaussianGrads, GaussianView, PixelGrads,
+    RasterSettings, RenderOutput,
+};
+use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
+
+use super::config::SunAwareConfig;
+use super::error::SunAwareError;
+use super::light::sun_visibility;
+
+/// Gaussians, networks, scene box and settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SunAwareModel {
+    pub gaussians: GaussianModel,
+    /// Phi (configurations b-d).
+    pub appearance: Option<AppearanceNet>,
+    /// Psi (configurations c-d).
+    pub shadow: Option<ShadowNet>,
+    pub scene_box: SceneBox,
+    pub config: SunAwareConfig,
+}
+
+/// Gradients of one step: every Gaussian group and both networks' flat weights.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SunAwareGrads {
+    pub params: ParamSet,
+    /// Phi's weights (empty without Phi).
+    pub appearance: Vec<f32>,
+    /// Psi's weights (empty without Psi).
+    pub shadow: Vec<f32>,
+    /// Per Gaussian `|dL/d mean2d|` in NDC units, for densification.
+    pub mean2d_grad_ndc: Vec<f32>,
+    /// Gaussians whose rasterizer gradient was non-finite and replaced by zeros.
+    pub raster_dropped: usize,
+}
+
+impl SunAwareGrads {
+    /// First non-finite value, named by group.
+    pub fn first_non_finite(&self) -> Option<&'static str> {
+        if let Some((p, _)) = crate::optim::Adam::first_non_finite(&self.params) {
+            return Some(p.name());
+        }
+        if !self.appearance.iter().all(|v| v.is_finite()) {
+            return Some("appearance MLP");
+        }
+        if !self.shadow.iter().all(|v| v.is_finite()) {
+            return Some("shadow MLP");
+        }
+        None
+    }
+}
+
+/// Network batch kept from forward for backward.
+#[derive(Clone, Debug)]
+struct NetPass {
+    input: Vec<f32>,
+    forward: MlpForward,
+}
+
+/// Wall-clock split of one forward, milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ForwardTimings {
+    pub cull_ms: f64,
+    pub shadow_pass_ms: f64,
+    pub mlp_forward_ms: f64,
+    pub raster_ms: f64,
+}
+
+/// Everything one forward produced (images and what backward needs).
+#[derive(Clone, Debug)]
+pub struct FramePass {
+    pub camera: Camera,
+    pub sun_dir: Vec3,
+    /// Gaussians that survived culling, ascending.
+    pub visible_list: Vec<u32>,
+    /// `H * W * 3`, `RGB * S`.
+    pub image: Vec<f32>,
+    /// `H * W * 3` colour before the shadow product.
+    pub rgb: Vec<f32>,
+    /// `H * W` shadow image S (c-d), else empty.
+    pub shadow_image: Vec<f32>,
+    /// `H * W` accumulated opacity.
+    pub alpha: Vec<f32>,
+    /// `V_i` per Gaussian (c-d), else empty.
+    pub visibility: Vec<f32>,
+    /// `V'_i` per Gaussian (c-d; 0 where not visible), else empty.
+    pub refined_visibility: Vec<f32>,
+    pub sh_degree: u32,
+    pub timings: ForwardTimings,
+    channels: Vec<f32>,
+    n_channels: usize,
+    phi: Option<NetPass>,
+    psi: Option<NetPass>,
+    render: RenderOutput,
+    settings: RasterSettings,
+}
+
+impl FramePass {
+    /// Per Gaussian: touched the image.
+    pub fn visible(&self) -> &[bool] {
+        &self.render.visible
+    }
+
+    pub fn radii_px(&self) -> &[f32] {
+        &self.render.radii_px
+    }
+}
+
+fn gather_geometry(params: &ParamSet, g: &GaussianGrads) -> ParamSet {
+    let mut out = params.zeros_like();
+    out.get_mut(Param::Mean).copy_from_slice(&g.d_means);
+    out.get_mut(Param::LogScale)
+        .copy_from_slice(&g.d_log_scales);
+    out.get_mut(Param::Rotation).copy_from_slice(&g.d_rotations);
+    out.get_mut(Param::OpacityLogit)
+        .copy_from_slice(&g.d_opacity_logits);
+    out
+}
+
+impl SunAwareModel {
+    /// A model from initial Gaussians (whose layout must be `config.layout()`), the scene
+    /// box that normalises means for Psi (and sizes the light camera), and the settings.
+    /// Appearance features start as small seeded normals, shadow latents as ones.
+    pub fn new(
+        gaussians: GaussianModel,
+        scene_box: SceneBox,
+        config: SunAwareConfig,
+    ) -> Result<Self, SunAwareError> {
+        config.validate()?;
+        if gaussians.layout() != config.layout() {
+            return Err(SunAwareError::Config(format!(
+                "initial Gaussians have layout {:?}, configuration {} needs {:?}",
+                gaussians.layout(),
+                config.variant,
+                config.layout()
+            )));
+        }
+        if let Some((p, i)) = crate::optim::Adam::first_non_finite(&gaussians.params) {
+            return Err(SunAwareError::Config(format!(
+                "initial Gaussians hold a non-finite {} at value {i}",
+                p.name()
+            )));
+        }
+        let mut gaussians = gaussians;
+        let encoding = PositionalEncoding::new(config.encoding_frequencies)?;
+        let v = config.variant;
+        let appearance = if v.uses_appearance_mlp() {
+            let mut rng = SplitMix64::new(config.seed ^ 0xFEA7_0000);
+            for f in gaussians.params.get_mut(Param::Feature) {
+                *f = rng.normal() * config.feature_init_std;
+            }
+            Some(AppearanceNet::new(
+                config.feature_dim,
+                encoding,
+                config.seed.wrapping_add(1),
+            )?)
+        } else {
+            None
+        };
+        let shadow = if v.uses_shadow() {
+            gaussians.params.get_mut(Param::ShadowLatent).fill(1.0);
+            Some(ShadowNet::new(
+                config.shadow_latent_dim,
+                encoding,
+                config.seed.wrapping_add(2),
+            )?)
+        } else {
+            None
+        };
+        Ok(Self {
+            gaussians,
+            appearance,
+            shadow,
+            scene_box,
+            config,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.gaussians.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.gaussians.is_empty()
+    }
+
+    /// Rasterizer settings for this model (test code may switch on the smooth cutoff).
+    pub fn raster_settings(&self, smooth_cutoff: bool) -> RasterSettings {
+        let mut background = self.config.background.to_vec();
+        if self.config.variant.uses_shadow() {
+            background.push(1.0);
+        }
+        RasterSettings {
+            near_m: self.config.near_m,
+            background,
+            smooth_cutoff,
+        }
+    }
+
+    /// `V_i` of every Gaussian for a camera and a Sun vector.
+    pub fn sun_visibility(
+        &self,
+        camera: &Camera,
+        sun_dir: Vec3,
+    ) -> Result<Vec<f32>, SunAwareError> {
+        sun_visibility(
+            &self.gaussians,
+            sun_dir,
+            camera.position(),
+            &self.scene_box,
+            &self.config.light,
+            self.config.near_m,
+        )
+    }
+
+    /// Forward of one image. `visibility` overrides the shadow pass (tests hold `V` fixed
+    /// while they perturb the geometry, since no gradient flows through it).
+    pub fn forward(
+        &self,
+        camera: &Camera,
+        sun_dir: Vec3,
+        sh_degree: u32,
+        settings: &RasterSettings,
+        visibility: Option<&[f32]>,
+    ) -> Result<FramePass, SunAwareError> {
+        if !(sun_dir.is_finite() && sun_dir.length_squared() > 1e-12) {
+            return Err(SunAwareError::BadObservation(format!(
+                "Sun vector {sun_dir:?} is not a finite non-zero vector"
+            )));
+        }
+        let sun_dir = sun_dir.normalize();
+        let n = self.len();
+        let p = &self.gaussians.params;
+        let cam_pos = camera.position();
+        let mut timings = ForwardTimings::default();
+
+        let t0 = Instant::now();
+        let frame = camera_frame(camera, settings.near_m)?;
+        let bare = GaussianView::from_model(&self.gaussians, &[], 0);
+        let mode = AlphaMode {
+            smooth: settings.smooth_cutoff,
+        };
+        let k = &camera.intrinsics;
+        let projected = project_splats(&frame, &bare, mode, k.width, k.height);
+        let visible_list: Vec<u32> = projected
+            .splats
+            .iter()
+            .enumerate()
+            .filter_map(|(i, s)| s.map(|_| i as u32))
+            .collect();
+        timings.cull_ms = t0.elapsed().as_secs_f64() * 1e3;
+
+        let shadowed = self.config.variant.uses_shadow();
+        let nc = if shadowed { 4 } else { 3 };
+        let mut channels = vec![0.0f32; n * nc];
+
+        // Visibility first: it is part of the shadow pass, timed apart from the networks.
+        let t1 = Instant::now();
+        let vis = if shadowed {
+            match visibility {
+                Some(v) if v.len() == n => v.to_vec(),
+                Some(v) => {
+                    return Err(SunAwareError::BadObservation(format!(
+                        "visibility override has {} values for {n} Gaussians",
+                        v.len()
+                    )))
+                }
+                None => self.sun_visibility(camera, sun_dir)?,
+            }
+        } else {
+            Vec::new()
+        };
+        timings.shadow_pass_ms = t1.elapsed().as_secs_f64() * 1e3;
+
+        let t2 = Instant::now();
+        let sun = sun_dir.to_array();
+        let phi = match &self.appearance {
+            None => {
+                let rgb = sh_to_rgb(p, sh_degree, cam_pos)?;
+                for i in 0..n {
+                    channels[i * nc..i * nc + 3].copy_from_slice(&rgb[i * 3..i * 3 + 3]);
+                }
+                None
+            }
+            Some(net) => {
+                let mut input = Vec::new();
+                net.assemble_input(
+                    &visible_list,
+                    p.get(Param::Feature),
+                    p.get(Param::Mean),
+                    sun,
+                    cam_pos.to_array(),
+                    &mut input,
+                )?;
+                let forward = net
+                    .mlp
+                    .forward_train(&input, visible_list.len(), TapeMode::Cache)?;
+                for (r, &g) in visible_list.iter().enumerate() {
+                    let g = g as usize;
+                    channels[g * nc..g * nc + 3].copy_from_slice(&forward.output[r * 3..r * 3 + 3]);
+                }
+                Some(NetPass { input, forward })
+            }
+        };
+        let mut refined = Vec::new();
+        let psi = match &self.shadow {
+            Some(net) if shadowed => {
+                let mut input = Vec::new();
+                net.assemble_input(
+                    &visible_list,
+                    &vis,
+                    p.get(Param::ShadowLatent),
+                    p.get(Param::Mean),
+                    sun,
+                    &self.scene_box,
+                    &mut input,
+                )?;
+                let forward = net
+                    .mlp
+                    .forward_train(&input, visible_list.len(), TapeMode::Cache)?;
+                refined = vec![0.0f32; n];
+                for (r, &g) in visible_list.iter().enumerate() {
+                    channels[g as usize * nc + 3] = forward.output[r];
+                    refined[g as usize] = forward.output[r];
+                }
+                Some(NetPass { input, forward })
+            }
+            _ => None,
+        };
+        timings.mlp_forward_ms = t2.elapsed().as_secs_f64() * 1e3;
+
+        let t3 = Instant::now();
+        let view = GaussianView::from_model(&self.gaussians, &channels, nc);
+        let render_out = render(camera, &view, settings)?;
+        let pixels = k.pixel_count();
+        let mut rgb = vec![0.0f32; pixels * 3];
+        let mut shadow_image = Vec::new();
+        let mut image = vec![0.0f32; pixels * 3];
+        if shadowed {
+            shadow_image = vec![0.0f32; pixels];
+        }
+        for px in 0..pixels {
+            let c = &render_out.color[px * nc..px * nc + nc];
+            let s = if shadowed { c[3] } else { 1.0 };
+            for ch in 0..3 {
+                rgb[px * 3 + ch] = c[ch];
+                image[px * 3 + ch] = c[ch] * s;
+            }
+            if shadowed {
+                shadow_image[px] = s;
+            }
+        }
+        timings.raster_ms = t3.elapsed().as_secs_f64() * 1e3;
+        Ok(FramePass {
+            camera: *camera,
+            sun_dir,
+            visible_list,
+            image,
+            rgb,
+            shadow_image,
+            alpha: render_out.alpha.clone(),
+            visibility: vis,
+            refined_visibility: refined,
+            sh_degree,
+            timings,
+            channels,
+            n_channels: nc,
+            phi,
+            psi,
+            render: render_out,
+            settings: settings.clone(),
+        })
+    }
+
+    /// Backward of [`SunAwareModel::forward`] for `d_image = dL/d(RGB * S)` (`H * W * 3`).
+    /// The model must not have changed since the forward.
+    pub fn backward(
+        &self,
+        pass: &FramePass,
+        d_image: &[f32],
+    ) -> Result<SunAwareGrads, SunAwareError> {
+        let n = self.len();
+        let nc = pass.n_channels;
+        let pixels = pass.camera.intrinsics.pixel_count();
+        if d_image.len() != pixels * 3 {
+            return Err(SunAwareError::BadObservation(format!(
+                "image gradient has {} values, expected {}",
+                d_image.len(),
+                pixels * 3
+            )));
+        }
+        let shadowed = nc == 4;
+        let mut d_color = vec![0.0f32; pixels * nc];
+        for px in 0..pixels {
+            let c = &pass.render.color[px * nc..px * nc + nc];
+            let s = if shadowed { c[3] } else { 1.0 };
+            let mut d_s = 0.0f32;
+            for ch in 0..3 {
+                let d = d_image[px * 3 + ch];
+                d_color[px * nc + ch] = d * s;
+                d_s += d * c[ch];
+            }
+            if shadowed {
+                d_color[px * nc + 3] = d_s;
+            }
+        }
+        let view = GaussianView::from_model(&self.gaussians, &pass.channels, nc);
+        let g = render_backward(
+            &pass.camera,
+            &view,
+            &pass.settings,
+            &pass.render,
+            &PixelGrads {
+                d_color: &d_color,
+                d_alpha: None,
+                d_depth: None,
+            },
+        )?;
+        let p = &self.gaussians.params;
+        let mut params = gather_geometry(p, &g);
+        let cam_pos = pass.camera.position();
+        let rows = pass.visible_list.len();
+        let mut d_appearance = Vec::new();
+        match (&self.appearance, &pass.phi) {
+            (None, _) => {
+                let mut d_rgb = vec![0.0f32; n * 3];
+                for i in 0..n {
+                    d_rgb[i * 3..i * 3 + 3].copy_from_slice(&g.d_channels[i * nc..i * nc + 3]);
+                }
+                sh_to_rgb_backward(p, pass.sh_degree, cam_pos, &d_rgb, &mut params)?;
+            }
+            (Some(net), Some(phi)) => {
+                let mut d_out = vec![0.0f32; rows * 3];
+                for (r, &gi) in pass.visible_list.iter().enumerate() {
+                    let gi = gi as usize;
+                    d_out[r * 3..r * 3 + 3].copy_from_slice(&g.d_channels[gi * nc..gi * nc + 3]);
+                }
+                d_appearance = vec![0.0f32; net.mlp.num_params()];
+                let mut d_input = vec![0.0f32; phi.input.len()];
+                net.mlp.backward(
+                    &phi.input,
+                    &phi.forward,
+                    &d_out,
+                    &mut d_appearance,
+                    Some(&mut d_input),
+                )?;
+                let mut d_features = vec![0.0f32; p.get(Param::Feature).len()];
+                let mut d_means = vec![0.0f32; n * 3];
+                net.scatter_input_grad(
+                    &pass.visible_list,
+                    p.get(Param::Mean),
+                    cam_pos.to_array(),
+                    &d_input,
+                    &mut d_features,
+                    &mut d_means,
+                )?;
+                params.get_mut(Param::Feature).copy_from_slice(&d_features);
+                for (a, b) in params.get_mut(Param::Mean).iter_mut().zip(&d_means) {
+                    *a += b;
+                }
+            }
+            (Some(_), None) => {
+                return Err(SunAwareError::BadObservation(
+                    "forward pass has no appearance batch for this model".into(),
+                ))
+            }
+        }
+        let mut d_shadow = Vec::new();
+        if let (Some(net), Some(psi)) = (&self.shadow, &pass.psi) {
+            let d_out: Vec<f32> = pass
+                .visible_list
+                .iter()
+                .map(|&gi| g.d_channels[gi as usize * nc + 3])
+                .collect();
+            d_shadow = vec![0.0f32; net.mlp.num_params()];
+            let mut d_input = vec![0.0f32; psi.input.len()];
+            net.mlp.backward(
+                &psi.input,
+                &psi.forward,
+                &d_out,
+                &mut d_shadow,
+                Some(&mut d_input),
+            )?;
+            let mut d_latents = vec![0.0f32; p.get(Param::ShadowLatent).len()];
+            let mut d_means = vec![0.0f32; n * 3];
+            net.scatter_input_grad(
+                &pass.visible_list,
+                p.get(Param::Mean),
+                &self.scene_box,
+                &d_input,
+                &mut d_latents,
+                &mut d_means,
+            )?;
+            params
+                .get_mut(Param::ShadowLatent)
+                .copy_from_slice(&d_latents);
+            for (a, b) in params.get_mut(Param::Mean).iter_mut().zip(&d_means) {
+                *a += b;
+            }
+        }
+        Ok(SunAwareGrads {
+            params,
+            appearance: d_appearance,
+            shadow: d_shadow,
+            mean2d_grad_ndc: g.mean2d_grad_ndc,
+            raster_dropped: g.dropped_nonfinite,
+        })
+    }
+}
