@@ -5,7 +5,8 @@
 //! cost of everything around the GEMMs (bias, activation, tape, gradient reduction) shows.
 //!
 //! Run: `cargo run --release -p gs-core --example mlp_bench -- [--json] [--quick] [--reps N]
-//! [--mlp-only]` (`--mlp-only` skips the GEMM table but still measures the floors quietly).
+//! [--mlp-only] [--net phi|psi]` (`--mlp-only` skips the GEMM table but still measures the
+//! floors quietly; `--net` keeps one network).
 //! Times are the minimum over repetitions (the machine is shared; the minimum is the least
 //! disturbed). `--json` prints one JSON object per line instead of the tables.
 
@@ -136,8 +137,13 @@ fn main() {
     } else {
         &[10_000, 50_000, 100_000]
     };
+    let net_filter = args
+        .iter()
+        .position(|a| a == "--net")
+        .and_then(|i| args.get(i + 1))
+        .cloned();
     let encoding = PositionalEncoding::default();
-    let nets = [
+    let all_nets = [
         Net {
             name: "phi(256)",
             mlp: AppearanceNet::new(72, encoding, 1).unwrap().mlp,
@@ -147,6 +153,14 @@ fn main() {
             mlp: ShadowNet::new(6, encoding, 2).unwrap().mlp,
         },
     ];
+    let nets: Vec<Net> = all_nets
+        .into_iter()
+        .filter(|n| {
+            net_filter
+                .as_ref()
+                .is_none_or(|f| n.name.starts_with(f.as_str()))
+        })
+        .collect();
 
     if !json && !mlp_only {
         println!("GEMM (row-blocked, {BLOCK_ROWS} rows per block), GFLOP/s");
