@@ -459,9 +459,11 @@ impl Mlp {
         }
     }
 
-    /// Backward of [`Mlp::forward_train`]. `input` must be the same batch. Adds the parameter
-    /// gradient into `d_params` (length `num_params()`); overwrites `d_input` (row-major
-    /// `rows x in`) when given. Nothing is written when an error is returned.
+    /// Backward of [`Mlp::forward_train`]. `input` must be the same batch and the parameters
+    /// must not have changed since that forward (take the optimiser step after backward).
+    /// Adds the parameter gradient into `d_params` (length `num_params()`); overwrites
+    /// `d_input` (row-major `rows x in`) when given. Nothing is written when an error is
+    /// returned.
     pub fn backward(
         &self,
         input: &[f32],
