@@ -229,10 +229,11 @@ fn run() -> Result<(), String> {
 
     let mut csv = String::from("iteration,loss,l1,ssim,gaussians\n");
     let t = Instant::now();
-    let (mut fwd_ms, mut bwd_ms, mut step_ms) = (0.0, 0.0, 0.0);
+    let (mut fwd_ms, mut loss_ms, mut bwd_ms, mut step_ms) = (0.0, 0.0, 0.0, 0.0);
     let report_every = (args.iterations / 10).max(1);
     let result = train(start, &train_views, &config, |s| {
         fwd_ms += s.forward_ms;
+        loss_ms += s.loss_ms;
         bwd_ms += s.backward_ms;
         step_ms += s.step_ms;
         let _ = writeln!(
@@ -290,8 +291,8 @@ fn run() -> Result<(), String> {
 
     let n = args.iterations as f64;
     let mut summary = String::new();
-    let _ = writeln!(summary, "trained {} iterations in {elapsed:.1} s ({:.2} ms/iter: forward+loss {:.2}, backward {:.2}, step+densify {:.2})",
-        args.iterations, 1e3 * elapsed / n, fwd_ms / n, bwd_ms / n, step_ms / n);
+    let _ = writeln!(summary, "trained {} iterations in {elapsed:.1} s ({:.2} ms/iter: render {:.2}, loss {:.2}, backward {:.2}, step+densify {:.2})",
+        args.iterations, 1e3 * elapsed / n, fwd_ms / n, loss_ms / n, bwd_ms / n, step_ms / n);
     let _ = writeln!(
         summary,
         "Gaussians: {} ground truth, {} trained; {} densify steps; {} skipped steps",

@@ -158,18 +158,28 @@ fn blur<T: Real>(
     tmp: &mut [T],
     out: &mut [T],
 ) {
-    // Horizontal pass.
+    // Horizontal pass, one tap at a time over whole rows so the inner loop vectorises:
+    // dst[x] += k_t * row[x + t - HALF] wherever that index is inside the row.
     for y in 0..h {
         let row = &src[y * w..(y + 1) * w];
         let dst = &mut tmp[y * w..(y + 1) * w];
-        for (x, d) in dst.iter_mut().enumerate() {
-            let lo = x.saturating_sub(HALF);
-            let hi = (x + HALF + 1).min(w);
-            let mut acc = T::ZERO;
-            for (xi, &v) in row[lo..hi].iter().enumerate() {
-                acc += taps[lo + xi + HALF - x] * v;
+        dst.iter_mut().for_each(|v| *v = T::ZERO);
+        for (t, &k) in taps.iter().enumerate() {
+            if t >= HALF {
+                let shift = t - HALF;
+                if shift < w {
+                    for (d, &v) in dst[..w - shift].iter_mut().zip(&row[shift..]) {
+                        *d += k * v;
+                    }
+                }
+            } else {
+                let shift = HALF - t;
+                if shift < w {
+                    for (d, &v) in dst[shift..].iter_mut().zip(&row[..w - shift]) {
+                        *d += k * v;
+                    }
+                }
             }
-            *d = acc;
         }
     }
     // Vertical pass, accumulating whole rows for cache-friendly access.

@@ -141,8 +141,11 @@ pub struct IterationStats {
     pub skipped: bool,
     pub densified: Option<DensifyReport>,
     pub opacity_reset: bool,
-    /// Wall-clock split, milliseconds (informative only; not part of determinism).
+    /// Wall-clock split, milliseconds (informative only; not part of determinism):
+    /// SH colour + render, loss and its gradient, rasterizer + SH backward, Adam step +
+    /// densification.
     pub forward_ms: f64,
+    pub loss_ms: f64,
     pub backward_ms: f64,
     pub step_ms: f64,
 }
@@ -467,6 +470,7 @@ pub fn train(
         let gview = GaussianView::from_model(&model, &colours, 3);
         let forward = render(camera, &gview, &settings)?;
         let shape = image_shape(camera);
+        let t_loss = Instant::now();
         // A non-finite render (values overflowing f32) cannot be scored: count and skip.
         let loss = if forward.color.iter().all(|v| v.is_finite()) {
             photometric_loss(
@@ -539,9 +543,12 @@ pub fn train(
                     reports.push((iteration, report));
                     densified = Some(report);
                 }
-                if config.opacity_reset_interval > 0
-                    && iteration % config.opacity_reset_interval == 0
-                {
+                // 3DGS also resets once at `densify_from_iter` on a white background.
+                let white_reset =
+                    config.background == [1.0; 3] && iteration == config.densify_from_iter;
+                let periodic_reset = config.opacity_reset_interval > 0
+                    && iteration % config.opacity_reset_interval == 0;
+                if periodic_reset || white_reset {
                     reset_opacity(&mut model, &mut adam, config.opacity_reset_value);
                     opacity_reset = true;
                 }
@@ -563,7 +570,8 @@ pub fn train(
             skipped,
             densified,
             opacity_reset,
-            forward_ms: (t1 - t0).as_secs_f64() * 1e3,
+            forward_ms: (t_loss - t0).as_secs_f64() * 1e3,
+            loss_ms: (t1 - t_loss).as_secs_f64() * 1e3,
             backward_ms: (t2 - t1).as_secs_f64() * 1e3,
             step_ms: (t3 - t2).as_secs_f64() * 1e3,
         });
