@@ -23,7 +23,7 @@
 # VCAN_RUN_TIMEOUT_S (default 900). Console output (the command's stdout and stderr) is streamed.
 #
 # Needs: qemu-system-x86_64, a Debian kernel with its modules (linux-image-amd64), a static
-# busybox (busybox-static) and cpio. Missing ones are installed with apt-get (root, Debian), as CI
+# busybox (busybox-static), cpio and xz. Missing ones are installed with apt-get (root, Debian), as CI
 # does on a fresh machine. Build artefacts go to tests/vcan/build/ (git-ignored).
 #
 # Speed (TCG emulates every instruction): the kernel is booted as its uncompressed ELF vmlinux
@@ -81,6 +81,8 @@ command -v qemu-system-x86_64 >/dev/null 2>&1 || missing_packages+=(qemu-system-
 newest_kernel_with_vcan >/dev/null || missing_packages+=(linux-image-amd64)
 busybox_is_static || missing_packages+=(busybox-static)
 command -v cpio >/dev/null 2>&1 || missing_packages+=(cpio)
+# xz unpacks the kernel for the fast PVH boot (and .ko.xz modules); without it: bzImage boot.
+command -v xz >/dev/null 2>&1 || missing_packages+=(xz-utils)
 if [ "${#missing_packages[@]}" -gt 0 ]; then
     command -v apt-get >/dev/null 2>&1 ||
         die "missing ${missing_packages[*]} and no apt-get to install them"
