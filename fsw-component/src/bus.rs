@@ -1,0 +1,188 @@
+//! Outbound framing: catalogue messages to CCSDS datagrams (UDP) and Cyphal/CAN frames.
+//!
+//! Each framer keeps the per-port counters the protocols require: a 14-bit CCSDS sequence
+//! count per APID and a Cyphal transfer-ID per subject. Messages are validated by
+//! `interfaces::messages::encode` before anything is sent, so nothing invalid (NaN, non-unit
+//! rotations) leaves the component.
+
+use crate::transport::RawCanFrame;
+use interfaces::ccsds::{message_packets, MAX_DATAGRAM_BYTES};
+use interfaces::cyphal::{transfer_frames, Mtu, Priority, TransferHeader};
+use interfaces::messages::{encode, encoded_len, CodecError, Message};
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::fmt;
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum OutboundError {
+    Codec {
+        message: &'static str,
+        error: CodecError,
+    },
+    Framing {
+        message: &'static str,
+        detail: String,
+    },
+}
+
+impl fmt::Display for OutboundError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Codec { message, error } => write!(f, "cannot encode {message}: {error}"),
+            Self::Framing { message, detail } => write!(f, "cannot frame {message}: {detail}"),
+        }
+    }
+}
+
+impl std::error::Error for OutboundError {}
+
+fn encode_owned<M: Message + Serialize>(msg: &M) -> Result<Vec<u8>, OutboundError> {
+    let codec = |error| OutboundError::Codec {
+        message: M::NAME,
+        error,
+    };
+    let len = encoded_len(msg).map_err(codec)?;
+    let mut buffer = vec![0u8; len];
+    let used = encode(msg, &mut buffer).map_err(codec)?.len();
+    buffer.truncate(used);
+    Ok(buffer)
+}
+
+/// CCSDS Space Packet framing with one sequence counter per APID.
+#[derive(Debug, Default)]
+pub struct UdpFramer {
+    next_sequence_count: BTreeMap<u16, u16>,
+}
+
+impl UdpFramer {
+    /// The datagrams (each <= 1472 bytes) carrying `msg`.
+    pub fn datagrams<M: Message + Serialize>(
+        &mut self,
+        msg: &M,
+    ) -> Result<Vec<Vec<u8>>, OutboundError> {
+        let payload = encode_owned(msg)?;
+        let first = self
+            .next_sequence_count
+            .get(&M::PORT_ID)
+            .copied()
+            .unwrap_or(0);
+        let packets = message_packets(
+            M::CCSDS_PACKET_TYPE,
+            M::PORT_ID,
+            &payload,
+            first,
+            MAX_DATAGRAM_BYTES,
+        )
+        .map_err(|e| OutboundError::Framing {
+            message: M::NAME,
+            detail: e.to_string(),
+        })?;
+        self.next_sequence_count
+            .insert(M::PORT_ID, packets.next_message_sequence_count());
+        Ok(packets.map(|p| p.to_vec()).collect())
+    }
+}
+
+/// Cyphal/CAN message transfers from one node, one transfer-ID counter per subject.
+#[derive(Debug)]
+pub struct CanFramer {
+    node_id: u8,
+    mtu: Mtu,
+    next_transfer_id: BTreeMap<u16, u64>,
+}
+
+impl CanFramer {
+    pub fn new(node_id: u8, fd: bool) -> Self {
+        Self {
+            node_id,
+            mtu: if fd { Mtu::Fd } else { Mtu::Classic },
+            next_transfer_id: BTreeMap::new(),
+        }
+    }
+
+    /// The frames carrying `msg`.
+    pub fn frames<M: Message + Serialize>(
+        &mut self,
+        msg: &M,
+    ) -> Result<Vec<RawCanFrame>, OutboundError> {
+        let payload = encode_owned(msg)?;
+        let transfer_id = self.next_transfer_id.entry(M::PORT_ID).or_insert(0);
+        let header = TransferHeader {
+            priority: Priority::Nominal,
+            subject_id: M::PORT_ID,
+            source_node_id: self.node_id,
+            transfer_id: *transfer_id,
+        };
+        *transfer_id += 1;
+        let framing = |detail: String| OutboundError::Framing {
+            message: M::NAME,
+            detail,
+        };
+        let frames =
+            transfer_frames(&header, &payload, self.mtu).map_err(|e| framing(e.to_string()))?;
+        frames
+            .map(|f| {
+                let built = if f.is_fd {
+                    RawCanFrame::fd(f.id, &f.data)
+                } else {
+                    RawCanFrame::classic(f.id, &f.data)
+                };
+                built.map_err(|e| framing(e.to_string()))
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use interfaces::ccsds::CcsdsReassembler;
+    use interfaces::cyphal::CanReassembler;
+    use interfaces::messages::{decode, SunVector};
+
+    #[test]
+    fn framed_messages_reassemble_and_counters_advance() {
+        let sun = SunVector {
+            time_us: 5,
+            sun_body: [0.0, 0.6, 0.8],
+            valid: true,
+        };
+        let mut udp = UdpFramer::default();
+        let mut rx: CcsdsReassembler<Vec<u8>, 2> = CcsdsReassembler::new(vec![0; 2 * 256]);
+        for i in 0..2u64 {
+            let datagrams = udp.datagrams(&sun).unwrap();
+            assert_eq!(datagrams.len(), 1);
+            let got = rx.push(&datagrams[0], i).unwrap().unwrap();
+            assert_eq!(got.first_sequence_count, i as u16);
+            assert_eq!(decode::<SunVector>(got.payload).unwrap(), sun);
+        }
+        let mut can = CanFramer::new(42, false);
+        let mut crx: CanReassembler<Vec<u8>, 2> = CanReassembler::new(vec![0; 2 * 256]);
+        let frames = can.frames(&sun).unwrap();
+        assert!(
+            frames.len() > 1,
+            "23-byte message needs a multi-frame classic transfer"
+        );
+        let mut done = None;
+        for f in &frames {
+            if let Some(t) = crx.push(f.id(), f.data(), 0).unwrap() {
+                assert_eq!(t.source_node_id, Some(42));
+                done = Some(decode::<SunVector>(t.payload).unwrap());
+            }
+        }
+        assert_eq!(done, Some(sun));
+    }
+
+    #[test]
+    fn invalid_messages_are_not_sent() {
+        let bad = SunVector {
+            time_us: 5,
+            sun_body: [f32::NAN, 0.0, 1.0],
+            valid: true,
+        };
+        assert!(matches!(
+            UdpFramer::default().datagrams(&bad),
+            Err(OutboundError::Codec { .. })
+        ));
+    }
+}

@@ -1,0 +1,132 @@
+//! `fsw-component`: runs the flight component live (UDP, and CAN when configured) or replays logs.
+//!
+//! ```text
+//! fsw-component [--config PATH] [--record DIR]
+//! fsw-component [--config PATH] --replay LOG [--replay LOG ...] [--replay-speed X|max]
+//! ```
+//! Live mode prints one `listening frames=ADDR telemetry=ADDR` line on stdout once the sockets
+//! are bound (useful with port 0), then runs until SIGINT or SIGTERM. Replay mode exits when
+//! the logs are processed, printing a summary line. Exit status 2 for usage errors, 1 for
+//! configuration, transport or replay errors, each with a message on stderr.
+
+use fsw_component::config::ComponentConfig;
+use fsw_component::runtime::{self, ReplaySpeed};
+use std::io::Write;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+const USAGE: &str = "usage: fsw-component [--config PATH] [--record DIR] \
+[--replay LOG]... [--replay-speed X|max]";
+
+#[derive(Debug)]
+struct Options {
+    config: PathBuf,
+    record: Option<PathBuf>,
+    replay: Vec<PathBuf>,
+    speed: ReplaySpeed,
+}
+
+fn parse(args: &[String]) -> Result<Options, String> {
+    let mut options = Options {
+        config: PathBuf::from("config/component.toml"),
+        record: None,
+        replay: Vec::new(),
+        speed: ReplaySpeed::Scaled(1.0),
+    };
+    let mut it = args.iter();
+    while let Some(flag) = it.next() {
+        let mut value = || {
+            it.next()
+                .cloned()
+                .ok_or_else(|| format!("{flag} needs a value"))
+        };
+        match flag.as_str() {
+            "--config" => options.config = value()?.into(),
+            "--record" => options.record = Some(value()?.into()),
+            "--replay" => options.replay.push(value()?.into()),
+            "--replay-speed" => {
+                let v = value()?;
+                options.speed = match v.as_str() {
+                    "max" | "0" => ReplaySpeed::AsFastAsPossible,
+                    _ => match v.parse::<f64>() {
+                        Ok(x) if x.is_finite() && x > 0.0 => ReplaySpeed::Scaled(x),
+                        _ => return Err(format!("--replay-speed {v:?}: want a number > 0 or max")),
+                    },
+                };
+            }
+            "--help" | "-h" => return Err(String::new()),
+            other => return Err(format!("unknown argument {other:?}")),
+        }
+    }
+    if options.record.is_some() && !options.replay.is_empty() {
+        return Err("--record and --replay exclude each other".into());
+    }
+    Ok(options)
+}
+
+async fn run(options: Options) -> Result<(), String> {
+    let config = ComponentConfig::load(&options.config).map_err(|e| e.to_string())?;
+    let learner = runtime::build_learner(&config).map_err(|e| e.to_string())?;
+    if !options.replay.is_empty() {
+        let summary = runtime::run_replay(&config, learner, &options.replay, options.speed)
+            .await
+            .map_err(|e| e.to_string())?;
+        println!(
+            "replayed datagrams={} can_frames={} frames_received={} frames_used={} rounds={} predictions={}",
+            summary.load.datagrams,
+            summary.load.can_frames,
+            summary.counters.bus.frames_received,
+            summary.frames_used,
+            summary.rounds,
+            summary.predictions_sent
+        );
+        return Ok(());
+    }
+    let handle = runtime::start(&config, learner, options.record)
+        .await
+        .map_err(|e| e.to_string())?;
+    println!(
+        "listening frames={} telemetry={}",
+        handle.frames_addr, handle.telemetry_addr
+    );
+    let _ = std::io::stdout().flush();
+    let mut terminate = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(|e| format!("install SIGTERM handler: {e}"))?;
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = terminate.recv() => {}
+    }
+    handle.shutdown().await;
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let options = match parse(&args) {
+        Ok(o) => o,
+        Err(why) => {
+            if !why.is_empty() {
+                eprintln!("fsw-component: {why}");
+            }
+            eprintln!("{USAGE}");
+            return ExitCode::from(2);
+        }
+    };
+    let runtime = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("fsw-component: cannot start the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(options)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(why) => {
+            eprintln!("fsw-component: {why}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,646 @@
+//! The trainer thread and the bounded queues between it and the bus side.
+//!
+//! The bus side only ever takes the queue locks for a push or a snapshot (never held while
+//! the model works), so a training round cannot stall receiving, commands or health.
+//! Queues and their drop policies:
+//! - frames in (synchronised frames): bounded, the oldest is dropped and counted when full;
+//! - commands in (model commands: reset, save, load, render): bounded, a full queue refuses
+//!   the command (the bus side acknowledges BUSY);
+//! - predictions out: bounded, the oldest is dropped and counted when full;
+//! - acknowledgements and events out: one per command or model event, so bounded by the
+//!   command queue and the frame rate.
+//!
+//! Order: a pending command runs before the next frame. For each frame the worker first
+//! renders the prediction at the frame's pose and Sun (before training on it), then offers
+//! the frame and runs a round if one is due; the rounds a sequence of frames triggers are
+//! therefore a function of that sequence alone (replay equals live).
+
+use crate::checkpoint;
+use crate::imagemetrics;
+use crate::learner::{
+    Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, RoundSummary, ViewRequest,
+};
+use interfaces::messages::{
+    AckStatus, CommandAck, ErrorCode, EventKind, FrameHeader, PixelFormat, PredictionSource,
+};
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+/// What to do with a synchronised frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameUse {
+    /// Render the prediction, then train on the frame.
+    PredictAndTrain,
+    /// Render the prediction only.
+    PredictOnly,
+}
+
+#[derive(Clone, Debug)]
+pub struct FrameJob {
+    pub frame: ObservedFrame,
+    pub usage: FrameUse,
+}
+
+/// Commands that need the model.
+#[derive(Clone, Debug)]
+pub enum ModelCommand {
+    ResetModel,
+    SaveCheckpoint,
+    LoadCheckpoint,
+    Render(ViewRequest),
+}
+
+#[derive(Clone, Debug)]
+pub struct CommandJob {
+    pub sequence: u32,
+    pub opcode: u32,
+    pub command: ModelCommand,
+}
+
+/// A rendered prediction ready to publish (owned form of `RenderedPrediction`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Prediction {
+    pub header: FrameHeader,
+    pub source: PredictionSource,
+    pub q_camera_from_target: [f32; 4],
+    pub t_camera_from_target_m: [f32; 3],
+    pub sun_target: [f32; 3],
+    pub psnr_db: Option<f32>,
+    pub ssim: Option<f32>,
+    pub pixels: Vec<u8>,
+}
+
+/// Acknowledgements and events from the worker.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Notice {
+    Ack(CommandAck),
+    Event(EventKind),
+}
+
+/// Figures the worker publishes for health reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct WorkerSnapshot {
+    pub learner: LearnerStats,
+    pub frames_used: u64,
+    pub frames_processed: u64,
+    pub predictions_rendered: u64,
+    pub predictions_unavailable: u64,
+    pub last_round: Option<RoundSummary>,
+    pub last_prediction_psnr_db: Option<f32>,
+    pub checkpoints_saved: u64,
+    /// True while the worker runs a job (a frame or a command).
+    pub busy: bool,
+}
+
+#[derive(Default)]
+struct Queues {
+    frames: VecDeque<FrameJob>,
+    commands: VecDeque<CommandJob>,
+    predictions: VecDeque<Prediction>,
+    notices: VecDeque<Notice>,
+    frames_dropped: u64,
+    predictions_dropped: u64,
+    shutdown: bool,
+}
+
+/// Queue capacities.
+#[derive(Clone, Copy, Debug)]
+pub struct QueueLimits {
+    pub frames: usize,
+    pub commands: usize,
+    pub predictions: usize,
+}
+
+/// State shared between the bus side and the worker thread.
+pub struct WorkerShared {
+    limits: QueueLimits,
+    queues: Mutex<Queues>,
+    work_ready: Condvar,
+    snapshot: Mutex<WorkerSnapshot>,
+    /// Wakes the bus side when predictions or notices are waiting.
+    pub output_ready: tokio::sync::Notify,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A panic elsewhere must not take the bus side down with it: keep using the data.
+    mutex
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// Queue depths and drop counts, for health.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct QueueDepths {
+    pub frames: usize,
+    pub commands: usize,
+    pub predictions: usize,
+    pub frames_dropped: u64,
+    pub predictions_dropped: u64,
+}
+
+impl WorkerShared {
+    /// Queues a frame; returns true when the oldest queued frame was dropped to make room.
+    pub fn push_frame(&self, job: FrameJob) -> bool {
+        let mut q = lock(&self.queues);
+        let dropped = q.frames.len() >= self.limits.frames;
+        if dropped {
+            q.frames.pop_front();
+            q.frames_dropped += 1;
+        }
+        q.frames.push_back(job);
+        drop(q);
+        self.work_ready.notify_one();
+        dropped
+    }
+
+    /// Queues a model command; `Err(job)` when the queue is full (acknowledge BUSY).
+    pub fn push_command(&self, job: CommandJob) -> Result<(), CommandJob> {
+        let mut q = lock(&self.queues);
+        if q.commands.len() >= self.limits.commands {
+            return Err(job);
+        }
+        q.commands.push_back(job);
+        drop(q);
+        self.work_ready.notify_one();
+        Ok(())
+    }
+
+    pub fn has_room(&self) -> bool {
+        let q = lock(&self.queues);
+        q.frames.len() < self.limits.frames && q.commands.len() < self.limits.commands
+    }
+
+    /// True when nothing is queued and the worker is not running a job.
+    pub fn is_idle(&self) -> bool {
+        let q = lock(&self.queues);
+        q.frames.is_empty() && q.commands.is_empty() && !lock(&self.snapshot).busy
+    }
+
+    pub fn take_predictions(&self) -> Vec<Prediction> {
+        lock(&self.queues).predictions.drain(..).collect()
+    }
+
+    pub fn take_notices(&self) -> Vec<Notice> {
+        lock(&self.queues).notices.drain(..).collect()
+    }
+
+    pub fn depths(&self) -> QueueDepths {
+        let q = lock(&self.queues);
+        QueueDepths {
+            frames: q.frames.len(),
+            commands: q.commands.len(),
+            predictions: q.predictions.len(),
+            frames_dropped: q.frames_dropped,
+            predictions_dropped: q.predictions_dropped,
+        }
+    }
+
+    pub fn snapshot(&self) -> WorkerSnapshot {
+        *lock(&self.snapshot)
+    }
+
+    /// RESET_COUNTERS: zero the worker-side counters (model figures stay).
+    pub fn reset_counters(&self) {
+        let mut q = lock(&self.queues);
+        q.frames_dropped = 0;
+        q.predictions_dropped = 0;
+        drop(q);
+        let mut s = lock(&self.snapshot);
+        s.frames_used = 0;
+        s.frames_processed = 0;
+        s.predictions_rendered = 0;
+        s.predictions_unavailable = 0;
+        s.checkpoints_saved = 0;
+    }
+
+    fn publish_prediction(&self, prediction: Prediction) {
+        let mut q = lock(&self.queues);
+        if q.predictions.len() >= self.limits.predictions {
+            q.predictions.pop_front();
+            q.predictions_dropped += 1;
+        }
+        q.predictions.push_back(prediction);
+        drop(q);
+        self.output_ready.notify_one();
+    }
+
+    fn notice(&self, notice: Notice) {
+        lock(&self.queues).notices.push_back(notice);
+        self.output_ready.notify_one();
+    }
+}
+
+/// Checkpoint settings of the worker.
+#[derive(Clone, Debug)]
+pub struct CheckpointSettings {
+    pub path: PathBuf,
+    /// None: no periodic checkpoints.
+    pub period: Option<Duration>,
+}
+
+/// The running trainer thread.
+pub struct Worker {
+    pub shared: Arc<WorkerShared>,
+    thread: Option<JoinHandle<()>>,
+}
+
+enum Job {
+    Command(CommandJob),
+    Frame(FrameJob),
+}
+
+impl Worker {
+    /// Starts the thread that owns `learner`.
+    pub fn start(
+        learner: Box<dyn Learner>,
+        limits: QueueLimits,
+        checkpoints: CheckpointSettings,
+    ) -> std::io::Result<Self> {
+        let shared = Arc::new(WorkerShared {
+            limits,
+            queues: Mutex::new(Queues::default()),
+            work_ready: Condvar::new(),
+            snapshot: Mutex::new(WorkerSnapshot {
+                learner: learner.stats(),
+                ..WorkerSnapshot::default()
+            }),
+            output_ready: tokio::sync::Notify::new(),
+        });
+        let thread_shared = Arc::clone(&shared);
+        let thread = std::thread::Builder::new()
+            .name("trainer".into())
+            .spawn(move || run(learner, &thread_shared, &checkpoints))?;
+        Ok(Self {
+            shared,
+            thread: Some(thread),
+        })
+    }
+
+    /// Lets the worker finish every queued job, then stops it.
+    pub fn finish(mut self) {
+        self.stop();
+    }
+
+    fn stop(&mut self) {
+        lock(&self.shared.queues).shutdown = true;
+        self.shared.work_ready.notify_all();
+        if let Some(thread) = self.thread.take() {
+            // A panicked worker already lost its model; nothing more to clean up.
+            let _ = thread.join();
+        }
+    }
+}
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+fn next_job(shared: &WorkerShared, wait: Duration) -> Option<Option<Job>> {
+    let mut q = lock(&shared.queues);
+    if q.commands.is_empty() && q.frames.is_empty() {
+        if q.shutdown {
+            return None;
+        }
+        q = shared
+            .work_ready
+            .wait_timeout(q, wait)
+            .map(|(guard, _)| guard)
+            .unwrap_or_else(|poisoned| poisoned.into_inner().0);
+    }
+    let job = if let Some(c) = q.commands.pop_front() {
+        Some(Job::Command(c))
+    } else {
+        q.frames.pop_front().map(Job::Frame)
+    };
+    if job.is_some() {
+        // Set while the queue lock is held, so `is_idle` never sees an empty queue and an
+        // idle worker while a job is in flight.
+        lock(&shared.snapshot).busy = true;
+    }
+    Some(job)
+}
+
+fn run(mut learner: Box<dyn Learner>, shared: &WorkerShared, checkpoints: &CheckpointSettings) {
+    let mut last_save = Instant::now();
+    while let Some(job) = next_job(shared, Duration::from_millis(200)) {
+        match job {
+            Some(Job::Command(c)) => run_command(learner.as_mut(), shared, checkpoints, c),
+            Some(Job::Frame(f)) => run_frame(learner.as_mut(), shared, f),
+            None => {}
+        }
+        if let Some(period) = checkpoints.period {
+            if last_save.elapsed() >= period {
+                last_save = Instant::now();
+                save(learner.as_ref(), shared, checkpoints);
+            }
+        }
+        let stats = learner.stats();
+        let mut s = lock(&shared.snapshot);
+        s.learner = stats;
+        s.busy = false;
+    }
+}
+
+fn save(learner: &dyn Learner, shared: &WorkerShared, checkpoints: &CheckpointSettings) -> bool {
+    let rounds = learner.stats().rounds;
+    match checkpoint::write_atomic(&checkpoints.path, &learner.save()) {
+        Ok(()) => {
+            lock(&shared.snapshot).checkpoints_saved += 1;
+            shared.notice(Notice::Event(EventKind::CheckpointSaved { rounds }));
+            true
+        }
+        Err(error) => {
+            eprintln!("fsw-component: checkpoint save failed: {error}");
+            shared.notice(Notice::Event(EventKind::Error {
+                code: ErrorCode::CheckpointSaveFailed,
+                detail: 0,
+            }));
+            false
+        }
+    }
+}
+
+/// Loads the checkpoint at `path` into `learner`; errors are described for the log.
+pub fn load_checkpoint(learner: &mut dyn Learner, path: &std::path::Path) -> Result<bool, String> {
+    match checkpoint::read(path) {
+        Ok(None) => Ok(false),
+        Ok(Some(bytes)) => learner
+            .load(&bytes)
+            .map(|()| true)
+            .map_err(|e| format!("{}: {e}", path.display())),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+fn run_command(
+    learner: &mut dyn Learner,
+    shared: &WorkerShared,
+    checkpoints: &CheckpointSettings,
+    job: CommandJob,
+) {
+    let ack = |status| {
+        Notice::Ack(CommandAck {
+            sequence: Some(job.sequence),
+            opcode: Some(job.opcode),
+            status,
+            detail: 0,
+        })
+    };
+    let status = match &job.command {
+        ModelCommand::ResetModel => {
+            learner.reset();
+            let mut s = lock(&shared.snapshot);
+            s.last_round = None;
+            s.last_prediction_psnr_db = None;
+            drop(s);
+            shared.notice(Notice::Event(EventKind::ModelReset));
+            AckStatus::Ok
+        }
+        ModelCommand::SaveCheckpoint => {
+            if save(learner, shared, checkpoints) {
+                AckStatus::Ok
+            } else {
+                AckStatus::ExecutionError
+            }
+        }
+        ModelCommand::LoadCheckpoint => match load_checkpoint(learner, &checkpoints.path) {
+            Ok(true) => {
+                let rounds = learner.stats().rounds;
+                shared.notice(Notice::Event(EventKind::CheckpointLoaded { rounds }));
+                AckStatus::Ok
+            }
+            Ok(false) | Err(_) => {
+                shared.notice(Notice::Event(EventKind::Error {
+                    code: ErrorCode::CheckpointLoadFailed,
+                    detail: 0,
+                }));
+                AckStatus::ExecutionError
+            }
+        },
+        ModelCommand::Render(view) => match learner.predict(view) {
+            Ok(image) => {
+                shared.publish_prediction(prediction(
+                    view,
+                    PredictionSource::Command {
+                        sequence: job.sequence,
+                    },
+                    0,
+                    image,
+                    None,
+                ));
+                lock(&shared.snapshot).predictions_rendered += 1;
+                AckStatus::Ok
+            }
+            Err(error) => {
+                render_failed(shared, &error);
+                AckStatus::ExecutionError
+            }
+        },
+    };
+    shared.notice(ack(status));
+}
+
+fn render_failed(shared: &WorkerShared, error: &LearnerError) {
+    let detail = match error {
+        LearnerError::NothingToRender => 0,
+        LearnerError::BadRequest(_) => 1,
+        LearnerError::BadCheckpoint(_) => 2,
+    };
+    shared.notice(Notice::Event(EventKind::Error {
+        code: ErrorCode::RenderFailed,
+        detail,
+    }));
+}
+
+fn to_f32<const N: usize>(values: [f64; N]) -> [f32; N] {
+    values.map(|v| v as f32)
+}
+
+fn prediction(
+    view: &ViewRequest,
+    source: PredictionSource,
+    time_us: u64,
+    image: crate::learner::PredictedImage,
+    metrics: Option<(f32, f32)>,
+) -> Prediction {
+    let q = view.camera_from_target.normalize();
+    Prediction {
+        header: FrameHeader {
+            frame_id: match source {
+                PredictionSource::ObservedFrame { frame_id } => frame_id,
+                PredictionSource::Command { sequence } => sequence,
+            },
+            time_us,
+            width: image.width,
+            height: image.height,
+            format: image.format,
+        },
+        source,
+        q_camera_from_target: to_f32([q.w, q.x, q.y, q.z]),
+        t_camera_from_target_m: to_f32(view.target_in_camera_m.to_array()),
+        sun_target: to_f32(view.sun_in_target.normalize().to_array()),
+        psnr_db: metrics.map(|m| m.0),
+        ssim: metrics.map(|m| m.1),
+        pixels: image.pixels,
+    }
+}
+
+fn channels(format: PixelFormat) -> usize {
+    format.bytes_per_pixel()
+}
+
+fn run_frame(learner: &mut dyn Learner, shared: &WorkerShared, job: FrameJob) {
+    let frame = &job.frame;
+    let t = &frame.telemetry;
+    let view = ViewRequest {
+        camera_from_target: t.camera_from_target,
+        target_in_camera_m: t.target_in_camera_m,
+        sun_in_target: t.sun_in_target,
+        width: frame.width,
+        height: frame.height,
+        format: frame.format,
+    };
+    match learner.predict(&view) {
+        Ok(image) => {
+            let (w, h, c) = (
+                usize::from(frame.width),
+                usize::from(frame.height),
+                channels(frame.format),
+            );
+            let metrics = imagemetrics::psnr_db(&image.pixels, &frame.pixels, w, h, c)
+                .and_then(|p| {
+                    Ok((
+                        p,
+                        imagemetrics::ssim(&image.pixels, &frame.pixels, w, h, c)?,
+                    ))
+                })
+                .ok();
+            let source = PredictionSource::ObservedFrame {
+                frame_id: frame.frame_id,
+            };
+            shared.publish_prediction(prediction(&view, source, frame.time_us, image, metrics));
+            let mut s = lock(&shared.snapshot);
+            s.predictions_rendered += 1;
+            if let Some((psnr, _)) = metrics {
+                s.last_prediction_psnr_db = Some(psnr);
+            }
+        }
+        Err(LearnerError::NothingToRender) => {
+            lock(&shared.snapshot).predictions_unavailable += 1;
+        }
+        Err(error) => render_failed(shared, &error),
+    }
+    let mut used = false;
+    let mut round = None;
+    if job.usage == FrameUse::PredictAndTrain {
+        used = learner.offer(frame) == OfferResult::Added;
+        let started = Instant::now();
+        // The worker times the round itself: the figure health reports is wall time.
+        round = learner.run_round_if_due().map(|r| RoundSummary {
+            duration_ms: u32::try_from(started.elapsed().as_millis()).unwrap_or(u32::MAX),
+            ..r
+        });
+    }
+    let mut s = lock(&shared.snapshot);
+    s.frames_processed += 1;
+    s.frames_used += u64::from(used);
+    if round.is_some() {
+        s.last_round = round;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::keyframe::WindowConfig;
+    use crate::nearest_learner::NearestKeyframeLearner;
+
+    fn limits() -> QueueLimits {
+        QueueLimits {
+            frames: 2,
+            commands: 1,
+            predictions: 2,
+        }
+    }
+
+    #[test]
+    fn full_queues_drop_oldest_frames_and_refuse_commands() {
+        let shared = WorkerShared {
+            limits: limits(),
+            queues: Mutex::new(Queues::default()),
+            work_ready: Condvar::new(),
+            snapshot: Mutex::new(WorkerSnapshot::default()),
+            output_ready: tokio::sync::Notify::new(),
+        };
+        let job = |id| CommandJob {
+            sequence: id,
+            opcode: 2,
+            command: ModelCommand::ResetModel,
+        };
+        assert!(shared.push_command(job(1)).is_ok());
+        assert_eq!(shared.push_command(job(2)).unwrap_err().sequence, 2);
+        for i in 0..3 {
+            shared.publish_prediction(Prediction {
+                header: FrameHeader {
+                    frame_id: i,
+                    time_us: 0,
+                    width: 1,
+                    height: 1,
+                    format: PixelFormat::Gray8,
+                },
+                source: PredictionSource::Command { sequence: i },
+                q_camera_from_target: [1.0, 0.0, 0.0, 0.0],
+                t_camera_from_target_m: [0.0; 3],
+                sun_target: [0.0, 0.0, 1.0],
+                psnr_db: None,
+                ssim: None,
+                pixels: vec![0],
+            });
+        }
+        let ids: Vec<u32> = shared
+            .take_predictions()
+            .iter()
+            .map(|p| p.header.frame_id)
+            .collect();
+        assert_eq!(ids, vec![1, 2], "the oldest prediction is the one dropped");
+        assert_eq!(shared.depths().predictions_dropped, 1);
+    }
+
+    #[test]
+    fn finish_drains_queued_commands() {
+        let learner = NearestKeyframeLearner::new(WindowConfig::default());
+        let dir = std::env::temp_dir().join(format!("fsw-worker-{}", std::process::id()));
+        let worker = Worker::start(
+            Box::new(learner),
+            limits(),
+            CheckpointSettings {
+                path: dir.join("ckpt.bin"),
+                period: None,
+            },
+        )
+        .unwrap();
+        let shared = Arc::clone(&worker.shared);
+        shared
+            .push_command(CommandJob {
+                sequence: 7,
+                opcode: 3,
+                command: ModelCommand::SaveCheckpoint,
+            })
+            .unwrap();
+        worker.finish();
+        let notices = shared.take_notices();
+        assert!(notices.contains(&Notice::Ack(CommandAck {
+            sequence: Some(7),
+            opcode: Some(3),
+            status: AckStatus::Ok,
+            detail: 0
+        })));
+        assert!(dir.join("ckpt.bin").exists());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,317 @@
+//! Test peer for the component integration tests: the rest of the spacecraft on loopback UDP.
+//!
+//! Sends telemetry, frames and commands as CCSDS Space Packets, listens for health, events,
+//! acknowledgements and predictions on its own ephemeral ports, and scripts a small orbit
+//! scenario: the camera circles the target at 10 m, 20 degrees per second, telemetry at 1 Hz,
+//! a 16x16 RGB frame at every half second mark after the telemetry that brackets it.
+#![allow(dead_code)]
+
+use fsw_component::bus::UdpFramer;
+use fsw_component::config::ComponentConfig;
+use fsw_component::runtime::ComponentHandle;
+use glam::{DQuat, DVec3};
+use interfaces::ccsds::{message_packets, CcsdsReassembler, PacketType};
+use interfaces::messages::{
+    decode, port, CameraFrame, Command, CommandAck, CommandKind, Event, FrameHeader, HealthStatus,
+    Message, PixelFormat, PredictionSource, RenderedPrediction, SunVector, TargetPose,
+};
+use serde::Serialize;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio::net::UdpSocket;
+
+pub const FRAME_SIZE: u16 = 16;
+pub const SUN_BODY: [f32; 3] = [0.0, 0.6, 0.8];
+pub const DEG_PER_S: f64 = 20.0;
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Prediction {
+    pub header: FrameHeader,
+    pub source: PredictionSource,
+    pub q: [f32; 4],
+    pub t: [f32; 3],
+    pub sun: [f32; 3],
+    pub psnr_db: Option<f32>,
+    pub ssim: Option<f32>,
+    pub pixels: Vec<u8>,
+}
+
+#[derive(Default, Debug)]
+pub struct Received {
+    pub health: Vec<(Instant, HealthStatus)>,
+    pub acks: Vec<CommandAck>,
+    pub events: Vec<Event>,
+    pub predictions: Vec<Prediction>,
+    pub undecodable: u64,
+}
+
+impl Received {
+    pub fn ack(&self, sequence: u32) -> Option<CommandAck> {
+        self.acks
+            .iter()
+            .find(|a| a.sequence == Some(sequence))
+            .copied()
+    }
+    pub fn last_health(&self) -> Option<HealthStatus> {
+        self.health.last().map(|h| h.1)
+    }
+}
+
+pub struct Peer {
+    socket: UdpSocket,
+    framer: UdpFramer,
+    pub health_addr: SocketAddr,
+    pub predictions_addr: SocketAddr,
+    pub received: Arc<Mutex<Received>>,
+    tasks: Vec<tokio::task::JoinHandle<()>>,
+    telecommand_count: u16,
+}
+
+async fn listen(socket: UdpSocket, received: Arc<Mutex<Received>>) {
+    let mut rx: CcsdsReassembler<Vec<u8>, 4> = CcsdsReassembler::new(vec![0; 4 << 20]);
+    let mut buffer = vec![0u8; 2048];
+    let started = Instant::now();
+    loop {
+        let Ok((len, _)) = socket.recv_from(&mut buffer).await else {
+            return;
+        };
+        let now = started.elapsed().as_micros() as u64;
+        let Ok(Some(message)) = rx.push(&buffer[..len], now) else {
+            continue;
+        };
+        let mut r = received.lock().unwrap();
+        let payload = message.payload;
+        let ok = match message.apid {
+            port::HEALTH_STATUS => decode::<HealthStatus>(payload)
+                .map(|h| r.health.push((Instant::now(), h)))
+                .is_ok(),
+            port::COMMAND_ACK => decode::<CommandAck>(payload)
+                .map(|a| r.acks.push(a))
+                .is_ok(),
+            port::EVENT => decode::<Event>(payload).map(|e| r.events.push(e)).is_ok(),
+            port::RENDERED_PREDICTION => decode::<RenderedPrediction>(payload)
+                .map(|p| {
+                    r.predictions.push(Prediction {
+                        header: p.header,
+                        source: p.source,
+                        q: p.q_camera_from_target,
+                        t: p.t_camera_from_target_m,
+                        sun: p.sun_target,
+                        psnr_db: p.psnr_db,
+                        ssim: p.ssim,
+                        pixels: p.pixels.to_vec(),
+                    })
+                })
+                .is_ok(),
+            _ => false,
+        };
+        if !ok {
+            r.undecodable += 1;
+        }
+    }
+}
+
+impl Peer {
+    pub async fn new() -> Self {
+        let socket = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let health = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let predictions = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let received = Arc::new(Mutex::new(Received::default()));
+        let health_addr = health.local_addr().unwrap();
+        let predictions_addr = predictions.local_addr().unwrap();
+        let tasks = vec![
+            tokio::spawn(listen(health, Arc::clone(&received))),
+            tokio::spawn(listen(predictions, Arc::clone(&received))),
+        ];
+        Self {
+            socket,
+            framer: UdpFramer::default(),
+            health_addr,
+            predictions_addr,
+            received,
+            tasks,
+            telecommand_count: 0,
+        }
+    }
+
+    /// A UDP-only configuration on ephemeral ports that reports to this peer.
+    pub fn config(&self, checkpoint: PathBuf) -> ComponentConfig {
+        let mut config = ComponentConfig::default();
+        config.can.enabled = false;
+        config.udp.frames_port = 0;
+        config.udp.telemetry_port = 0;
+        config.udp.health_to = self.health_addr;
+        config.udp.predictions_to = self.predictions_addr;
+        config.training.window_size = 4;
+        config.checkpoint.path = checkpoint;
+        config.checkpoint.period_s = 0;
+        config
+    }
+
+    pub async fn send<M: Message + Serialize>(&mut self, msg: &M, to: SocketAddr) {
+        for d in self.framer.datagrams(msg).unwrap() {
+            self.send_raw(&d, to).await;
+        }
+    }
+
+    pub async fn send_raw(&self, datagram: &[u8], to: SocketAddr) {
+        self.socket.send_to(datagram, to).await.unwrap();
+    }
+
+    /// Raw command bytes as one telecommand packet (for malformed commands).
+    pub async fn send_command_bytes(&mut self, bytes: &[u8], to: SocketAddr) {
+        let packets: Vec<_> = message_packets(
+            PacketType::Telecommand,
+            port::COMMAND,
+            bytes,
+            self.telecommand_count.wrapping_add(1000),
+            1472,
+        )
+        .unwrap()
+        .collect();
+        self.telecommand_count = self.telecommand_count.wrapping_add(packets.len() as u16);
+        for p in packets {
+            self.send_raw(&p, to).await;
+        }
+    }
+
+    pub async fn command(&mut self, sequence: u32, kind: CommandKind, to: SocketAddr) {
+        self.send(&Command { sequence, kind }, to).await;
+    }
+
+    pub fn snapshot<T>(&self, f: impl FnOnce(&Received) -> T) -> T {
+        f(&self.received.lock().unwrap())
+    }
+
+    /// Polls `condition` every 10 ms until it holds or `timeout` passes.
+    pub async fn wait_for(&self, timeout: Duration, condition: impl Fn(&Received) -> bool) -> bool {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if condition(&self.received.lock().unwrap()) {
+                return true;
+            }
+            if Instant::now() > deadline {
+                return false;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+
+    pub async fn wait_ack(&self, sequence: u32) -> CommandAck {
+        assert!(
+            self.wait_for(Duration::from_secs(5), |r| r.ack(sequence).is_some())
+                .await,
+            "no acknowledgement for command {sequence}"
+        );
+        self.snapshot(|r| r.ack(sequence).unwrap())
+    }
+}
+
+impl Drop for Peer {
+    fn drop(&mut self) {
+        for t in &self.tasks {
+            t.abort();
+        }
+    }
+}
+
+pub fn camera_from_target_at(time_us: u64) -> DQuat {
+    let angle = (time_us as f64 / 1e6 * DEG_PER_S).to_radians();
+    DQuat::from_rotation_y(angle)
+}
+
+pub fn pose_at(time_us: u64) -> TargetPose {
+    let q = camera_from_target_at(time_us);
+    TargetPose {
+        time_us,
+        q_camera_from_target: [q.w as f32, q.x as f32, q.y as f32, q.z as f32],
+        t_camera_from_target_m: [0.0, 0.0, 10.0],
+        position_sigma_m: 0.01,
+        attitude_sigma_rad: 0.001,
+        valid: true,
+    }
+}
+
+pub fn sun_at(time_us: u64) -> SunVector {
+    SunVector {
+        time_us,
+        sun_body: SUN_BODY,
+        valid: true,
+    }
+}
+
+pub fn frame_pixels(frame_id: u32) -> Vec<u8> {
+    let n = usize::from(FRAME_SIZE);
+    (0..n * n * 3)
+        .map(|i| {
+            ((frame_id as usize * 37 + (i / 3 % n) * 5 + (i / 3 / n) * 3 + i % 3 * 50) % 256) as u8
+        })
+        .collect()
+}
+
+pub fn frame_header(frame_id: u32, time_us: u64) -> FrameHeader {
+    FrameHeader {
+        frame_id,
+        time_us,
+        width: FRAME_SIZE,
+        height: FRAME_SIZE,
+        format: PixelFormat::Rgb8,
+    }
+}
+
+/// Scenario time of frame `k`: half way between telemetry samples k and k+1 (seconds).
+pub fn frame_time_us(k: u32) -> u64 {
+    u64::from(k) * 1_000_000 + 500_000
+}
+
+/// Sends step `k` of the scenario: telemetry at k+1 s (and at 0 s for k = 0), then, once
+/// `handle` has stored that telemetry (frames and telemetry use different sockets, whose
+/// order of arrival is not defined), frame k.
+pub async fn send_step(peer: &mut Peer, k: u32, handle: &ComponentHandle) {
+    let (frames, telemetry) = (handle.frames_addr, handle.telemetry_addr);
+    let stored = |h: &ComponentHandle| {
+        let c = h.counters().sync;
+        c.pose.stored_valid + c.pose.stored_invalid + c.sun.stored_valid + c.sun.stored_invalid
+    };
+    let before = stored(handle);
+    let mut sent = 0;
+    if k == 0 {
+        peer.send(&pose_at(0), telemetry).await;
+        peer.send(&sun_at(0), telemetry).await;
+        sent += 2;
+    }
+    let next = u64::from(k + 1) * 1_000_000;
+    peer.send(&pose_at(next), telemetry).await;
+    peer.send(&sun_at(next), telemetry).await;
+    sent += 2;
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while stored(handle) < before + sent {
+        assert!(
+            Instant::now() < deadline,
+            "telemetry of step {k} not stored"
+        );
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    let pixels = frame_pixels(k);
+    let frame = CameraFrame {
+        header: frame_header(k, frame_time_us(k)),
+        mask: None,
+        pixels: &pixels,
+    };
+    peer.send(&frame, frames).await;
+}
+
+/// Unit direction from the target to the camera, target frame, at `time_us`.
+pub fn view_at(time_us: u64) -> DVec3 {
+    let q = camera_from_target_at(time_us);
+    -(q.inverse() * DVec3::new(0.0, 0.0, 10.0)).normalize()
+}
+
+pub fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("fsw-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
