@@ -3,6 +3,7 @@
 pub mod config;
 pub mod keyframe;
 pub mod logfmt;
+pub mod online;
 pub mod sync;
 pub mod transport;
 pub mod checkpoint;

@@ -1,0 +1,255 @@
+//! The online trainer on a short synthetic sequence: a known Gaussian scene (a plate with a
+//! ball casting a shadow) rendered from a circling camera under a moving Sun. Checks that it
+//! trains without NaN and improves held-out PSNR, that rounds run only when the window
+//! changed, that eclipse and unlit frames are skipped and counted (and are not when the
+//! skips are switched off), and that bad frames are errors.
+
+use fsw_component::keyframe::WindowConfig;
+use fsw_component::online::{
+    Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason,
+};
+use glam::Vec3;
+use gs_core::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
+use gs_core::sunaware::{LightConfig, SunAwareConfig, Variant};
+
+const W: u32 = 48;
+const H: u32 = 36;
+/// Camera steps per orbit: 15 degrees apart, more than the 10 degree keyframe threshold.
+const PER_ORBIT: usize = 24;
+
+fn frame(scene: &SyntheticScene, id: u64, eclipse: bool) -> Frame {
+    let camera = orbit_camera(id as usize % PER_ORBIT, PER_ORBIT, 2.4, 0.6, W, H);
+    let sun = sun_direction(0.35 * id as f32, 0.9);
+    let (mut image, mask) = scene.render(&camera, sun).unwrap();
+    if eclipse {
+        image.fill(0.0);
+    }
+    Frame {
+        id,
+        time_s: 5.0 * id as f64,
+        camera,
+        sun_dir_target: sun,
+        image,
+        mask: Some(mask),
+        eclipse,
+    }
+}
+
+fn config(capacity: usize) -> OnlineConfig {
+    OnlineConfig {
+        window: WindowConfig {
+            capacity,
+            ..WindowConfig::default()
+        },
+        model: SunAwareConfig {
+            light: LightConfig {
+                resolution_px: 96,
+                ..LightConfig::default()
+            },
+            ..SunAwareConfig::for_variant(Variant::D)
+        },
+        densify_every_rounds: 5,
+        ..OnlineConfig::default()
+    }
+}
+
+fn surface_init(scene: &SyntheticScene) -> Initialisation {
+    let (points, normals, colours) = scene.surface_samples(0.02, 11);
+    Initialisation::SurfaceSamples {
+        points,
+        normals: Some(normals),
+        colours: Some(colours),
+    }
+}
+
+fn held_out_psnr(t: &OnlineTrainer, scene: &SyntheticScene) -> f32 {
+    let ids = [1000u64, 1007, 1013];
+    ids.iter()
+        .map(|&id| {
+            let f = frame(scene, id, false);
+            let obs = gs_core::sunaware::Observation {
+                camera: f.camera,
+                sun_dir: f.sun_dir_target,
+                image: &f.image,
+                mask: f.mask.as_deref(),
+            };
+            t.trainer().evaluate(&obs, true).unwrap().psnr_db
+        })
+        .sum::<f32>()
+        / ids.len() as f32
+}
+
+#[test]
+fn short_sequence_trains_without_nan_and_improves_held_out_psnr() {
+    let scene = SyntheticScene::plate_and_ball(12, 60).unwrap();
+    let mut t = OnlineTrainer::new(config(6), &surface_init(&scene), scene.scene_box).unwrap();
+    let before = held_out_psnr(&t, &scene);
+    let mut reports = Vec::new();
+    for id in 0..30 {
+        t.offer(frame(&scene, id, false)).unwrap();
+        if let Some(r) = t.run_round_if_due().unwrap() {
+            assert!(
+                r.mean_loss.is_finite(),
+                "round {}: loss {}",
+                r.rounds,
+                r.mean_loss
+            );
+            assert_eq!(r.trained_ids.len(), 6, "one round = W steps");
+            let mut ids = r.trained_ids.clone();
+            ids.sort_unstable();
+            ids.dedup();
+            assert_eq!(ids.len(), 6, "each keyframe once per round");
+            reports.push(r);
+        }
+    }
+    // The window fills after 6 frames; every later frame changes it: 25 rounds.
+    assert_eq!(reports.len(), 25);
+    assert_eq!(t.rounds(), 25);
+    assert!(reports.iter().filter(|r| r.densified.is_some()).count() == 5);
+    assert_eq!(t.trainer().skipped_nonfinite, 0);
+    let after = held_out_psnr(&t, &scene);
+    eprintln!(
+        "held-out PSNR {before:.2} -> {after:.2} dB, loss {:.4} -> {:.4}, {} Gaussians",
+        reports[0].mean_loss,
+        reports.last().unwrap().mean_loss,
+        t.trainer().model.len()
+    );
+    assert!(
+        after > before + 3.0,
+        "held-out PSNR {before:.2} -> {after:.2} dB"
+    );
+    let p = t
+        .predict(&orbit_camera(3, 24, 2.4, 0.6, W, H), Vec3::Z)
+        .unwrap();
+    assert!(p.image.iter().all(|v| v.is_finite()));
+}
+
+#[test]
+fn rounds_run_only_when_the_window_changed() {
+    let scene = SyntheticScene::plate_and_ball(6, 20).unwrap();
+    let mut t = OnlineTrainer::new(config(3), &surface_init(&scene), scene.scene_box).unwrap();
+    for id in 0..2 {
+        assert!(matches!(
+            t.offer(frame(&scene, id, false)).unwrap(),
+            OfferReport::Added { evicted: None }
+        ));
+        assert!(
+            t.run_round_if_due().unwrap().is_none(),
+            "window not full yet"
+        );
+    }
+    t.offer(frame(&scene, 2, false)).unwrap();
+    assert!(t.run_round_if_due().unwrap().is_some());
+    assert!(t.run_round_if_due().unwrap().is_none(), "unchanged window");
+    // Same view as the newest keyframe (id 2 and 2 + PER_ORBIT share a camera): not added.
+    let close = frame(&scene, 2 + PER_ORBIT as u64, false);
+    assert!(matches!(
+        t.offer(close).unwrap(),
+        OfferReport::Skipped(SkipReason::ViewTooClose { .. })
+    ));
+    assert!(t.run_round_if_due().unwrap().is_none());
+    assert_eq!(t.counters().skipped_view, 1);
+    // A new view evicts one keyframe and makes a round due again.
+    let report = t.offer(frame(&scene, 3, false)).unwrap();
+    assert!(
+        matches!(report, OfferReport::Added { evicted: Some(_) }),
+        "{report:?}"
+    );
+    assert!(t.run_round_if_due().unwrap().is_some());
+    assert_eq!(t.rounds(), 2);
+
+    // With the change requirement switched off, a full window trains every call.
+    let mut always = OnlineTrainer::new(
+        OnlineConfig {
+            require_window_change: false,
+            ..config(3)
+        },
+        &surface_init(&scene),
+        scene.scene_box,
+    )
+    .unwrap();
+    for id in 0..3 {
+        always.offer(frame(&scene, id, false)).unwrap();
+    }
+    assert!(always.run_round_if_due().unwrap().is_some());
+    assert!(always.run_round_if_due().unwrap().is_some());
+}
+
+#[test]
+fn eclipse_and_unlit_frames_are_skipped_and_counted() {
+    let scene = SyntheticScene::plate_and_ball(6, 20).unwrap();
+    let mut t = OnlineTrainer::new(config(3), &surface_init(&scene), scene.scene_box).unwrap();
+    assert_eq!(
+        t.offer(frame(&scene, 0, true)).unwrap(),
+        OfferReport::Skipped(SkipReason::Eclipse)
+    );
+    // Not flagged as eclipse but black: unlit.
+    let mut dark = frame(&scene, 1, false);
+    dark.image.fill(0.001);
+    assert!(matches!(
+        t.offer(dark).unwrap(),
+        OfferReport::Skipped(SkipReason::Unlit { .. })
+    ));
+    t.offer(frame(&scene, 2, false)).unwrap();
+    let c = t.counters();
+    assert_eq!(
+        (c.offered, c.added, c.skipped_eclipse, c.skipped_unlit),
+        (3, 1, 1, 1)
+    );
+    assert_eq!(t.window().ids(), vec![2]);
+
+    // Skips switched off: the same frames enter the window.
+    let mut keep = OnlineTrainer::new(
+        OnlineConfig {
+            skip_eclipse: false,
+            skip_unlit: false,
+            ..config(3)
+        },
+        &surface_init(&scene),
+        scene.scene_box,
+    )
+    .unwrap();
+    assert!(matches!(
+        keep.offer(frame(&scene, 0, true)).unwrap(),
+        OfferReport::Added { .. }
+    ));
+    assert_eq!(keep.counters().skipped_eclipse, 0);
+}
+
+#[test]
+fn bad_frames_are_errors_and_random_init_works() {
+    let scene = SyntheticScene::plate_and_ball(6, 20).unwrap();
+    let init = Initialisation::RandomSphere {
+        count: 300,
+        centre: Vec3::ZERO,
+        radius_m: 0.8,
+        seed: 4,
+    };
+    let mut t = OnlineTrainer::new(config(3), &init, scene.scene_box).unwrap();
+    assert_eq!(t.trainer().model.len(), 300);
+    let mut f = frame(&scene, 0, false);
+    f.image.pop();
+    let msg = t.offer(f).unwrap_err().to_string();
+    assert!(msg.contains("image has"), "{msg}");
+    let mut f = frame(&scene, 1, false);
+    f.sun_dir_target = Vec3::new(f32::NAN, 0.0, 1.0);
+    assert!(t.offer(f).is_err());
+    assert_eq!(
+        t.counters().offered,
+        0,
+        "rejected frames are not counted as offered"
+    );
+    for id in 0..3 {
+        t.offer(frame(&scene, id, false)).unwrap();
+    }
+    let r = t.run_round_if_due().unwrap().unwrap();
+    assert!(r.mean_loss.is_finite());
+    // Mismatched normals are a configuration error.
+    let (points, normals, _) = scene.surface_samples(0.0, 1);
+    let bad = Initialisation::SurfaceSamples {
+        points,
+        normals: Some(normals[..3].to_vec()),
+        colours: None,
+    };
+    assert!(OnlineTrainer::new(config(3), &bad, scene.scene_box).is_err());
+}
