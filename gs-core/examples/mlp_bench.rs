@@ -1,14 +1,17 @@
 //! Throughput of the small networks: GEMM GFLOP/s per layer shape, and MLP forward/backward
 //! time for the appearance (width 256) and shadow (width 32) networks at 10K/50K/100K rows,
 //! on 1 and 2 threads. Each MLP row shows its "GEMM floor" (the summed time of its layer
-//! products at the measured GEMM rate) and the ratio of the MLP time to that floor, so the
-//! cost of everything around the GEMMs (bias, activation, tape, gradient reduction) shows.
+//! products, blocked exactly as the MLP runs them) and the ratio of the MLP time to that
+//! floor, so the cost of everything around the GEMMs (bias, activation, tape allocation,
+//! gradient reduction, finiteness checks) shows.
 //!
 //! Run: `cargo run --release -p gs-core --example mlp_bench -- [--json] [--quick] [--reps N]
-//! [--mlp-only] [--net phi|psi]` (`--mlp-only` skips the GEMM table but still measures the
-//! floors quietly; `--net` keeps one network).
-//! Times are the minimum over repetitions (the machine is shared; the minimum is the least
-//! disturbed). `--json` prints one JSON object per line instead of the tables.
+//! [--mlp-only] [--net phi|psi]`. `--mlp-only` skips the GEMM table; `--net` keeps one
+//! network; `--json` prints one JSON object per line instead of the tables.
+//!
+//! Times are minima over repetitions (the machine is shared; the minimum is the least
+//! disturbed run). Floor and MLP are measured alternately within each repetition, so a
+//! change of machine load between them does not distort the ratio.
 
 use std::time::Instant;
 
@@ -29,29 +32,25 @@ fn values(len: usize, seed: u64) -> Vec<f32> {
         .collect()
 }
 
-/// Minimum wall time of `f` over `reps` runs after one warm-up, seconds.
-fn min_time(reps: usize, mut f: impl FnMut()) -> f64 {
+fn seconds(f: impl FnOnce()) -> f64 {
+    let t0 = Instant::now();
     f();
-    (0..reps)
-        .map(|_| {
-            let t0 = Instant::now();
-            f();
-            t0.elapsed().as_secs_f64()
-        })
-        .fold(f64::INFINITY, f64::min)
+    t0.elapsed().as_secs_f64()
 }
 
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, PartialEq)]
 enum Product {
     /// `Y = X W`, the forward product.
     Forward,
-    /// `dW = X^T dZ`, blocked like the MLP: per-block partials, summed in block order.
+    /// `dW = X^T dZ`, as the MLP runs it: per-block partials summed in block order.
     WeightGrad,
     /// `dX = dZ W^T`.
     InputGrad,
 }
 
 impl Product {
+    const ALL: [Product; 3] = [Product::Forward, Product::WeightGrad, Product::InputGrad];
+
     fn name(self) -> &'static str {
         match self {
             Product::Forward => "X*W",
@@ -61,59 +60,84 @@ impl Product {
     }
 }
 
-/// Time of one product over `rows` rows with `k -> n` widths, blocked over `BLOCK_ROWS`
-/// rows in parallel as the MLP runs it.
-fn gemm_time(product: Product, rows: usize, k: usize, n: usize, reps: usize) -> f64 {
-    let x = values(rows * k, 1);
-    let w = values(k * n, 2);
-    let dz = values(rows * n, 3);
-    let mut y = vec![0.0f32; rows * n];
-    let mut dx = vec![0.0f32; rows * k];
-    let mut dw = vec![0.0f32; k * n];
-    min_time(reps, || match product {
-        Product::Forward => y
-            .par_chunks_mut(BLOCK_ROWS * n)
-            .enumerate()
-            .for_each(|(b, out)| {
-                let r = out.len() / n;
-                let start = b * BLOCK_ROWS;
-                matmul(&x[start * k..(start + r) * k], &w, out, r, k, n, false);
-            }),
-        Product::InputGrad => dx
-            .par_chunks_mut(BLOCK_ROWS * k)
-            .enumerate()
-            .for_each(|(b, out)| {
-                let r = out.len() / k;
-                let start = b * BLOCK_ROWS;
-                matmul_a_bt(&dz[start * n..(start + r) * n], &w, out, r, n, k, false);
-            }),
-        Product::WeightGrad => {
-            let partials: Vec<Vec<f32>> = (0..rows.div_ceil(BLOCK_ROWS))
-                .into_par_iter()
-                .map(|b| {
-                    let start = b * BLOCK_ROWS;
-                    let r = BLOCK_ROWS.min(rows - start);
-                    let mut p = vec![0.0f32; k * n];
-                    matmul_at_b(
-                        &x[start * k..(start + r) * k],
-                        &dz[start * n..(start + r) * n],
-                        &mut p,
-                        r,
-                        k,
-                        n,
-                        false,
-                    );
-                    p
-                })
-                .collect();
-            dw.fill(0.0);
-            for p in &partials {
-                for (a, b) in dw.iter_mut().zip(p) {
-                    *a += b;
+/// Operands of one layer's three products over `rows` rows, `k -> n` widths.
+struct LayerOperands {
+    rows: usize,
+    k: usize,
+    n: usize,
+    x: Vec<f32>,
+    w: Vec<f32>,
+    dz: Vec<f32>,
+    y: Vec<f32>,
+    dx: Vec<f32>,
+    dw: Vec<f32>,
+}
+
+impl LayerOperands {
+    fn new(rows: usize, k: usize, n: usize) -> Self {
+        Self {
+            rows,
+            k,
+            n,
+            x: values(rows * k, 1),
+            w: values(k * n, 2),
+            dz: values(rows * n, 3),
+            y: vec![0.0; rows * n],
+            dx: vec![0.0; rows * k],
+            dw: vec![0.0; k * n],
+        }
+    }
+
+    fn flops(&self) -> f64 {
+        2.0 * (self.rows * self.k * self.n) as f64
+    }
+
+    /// Runs one product, blocked over `BLOCK_ROWS` rows in parallel as the MLP does.
+    fn run(&mut self, product: Product) {
+        let (rows, k, n) = (self.rows, self.k, self.n);
+        let (x, w, dz) = (&self.x, &self.w, &self.dz);
+        match product {
+            Product::Forward => {
+                self.y
+                    .par_chunks_mut(BLOCK_ROWS * n)
+                    .enumerate()
+                    .for_each(|(b, out)| {
+                        let r = out.len() / n;
+                        let s = b * BLOCK_ROWS;
+                        matmul(&x[s * k..(s + r) * k], w, out, r, k, n, false);
+                    })
+            }
+            Product::InputGrad => {
+                self.dx
+                    .par_chunks_mut(BLOCK_ROWS * k)
+                    .enumerate()
+                    .for_each(|(b, out)| {
+                        let r = out.len() / k;
+                        let s = b * BLOCK_ROWS;
+                        matmul_a_bt(&dz[s * n..(s + r) * n], w, out, r, n, k, false);
+                    })
+            }
+            Product::WeightGrad => {
+                let partials: Vec<Vec<f32>> = (0..rows.div_ceil(BLOCK_ROWS))
+                    .into_par_iter()
+                    .map(|b| {
+                        let s = b * BLOCK_ROWS;
+                        let r = BLOCK_ROWS.min(rows - s);
+                        let mut p = vec![0.0f32; k * n];
+                        let (xs, dzs) = (&x[s * k..(s + r) * k], &dz[s * n..(s + r) * n]);
+                        matmul_at_b(xs, dzs, &mut p, r, k, n, false);
+                        p
+                    })
+                    .collect();
+                self.dw.fill(0.0);
+                for p in &partials {
+                    for (a, b) in self.dw.iter_mut().zip(p) {
+                        *a += b;
+                    }
                 }
             }
         }
-    })
+    }
 }
 
 struct Net {
@@ -121,29 +145,28 @@ struct Net {
     mlp: Mlp,
 }
 
+fn arg_value<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
+    let i = args.iter().position(|a| a == name)?;
+    args.get(i + 1).map(String::as_str)
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let json = args.iter().any(|a| a == "--json");
     let quick = args.iter().any(|a| a == "--quick");
-    let reps = args
-        .iter()
-        .position(|a| a == "--reps")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse::<usize>().ok())
-        .unwrap_or(if quick { 1 } else { 3 });
     let mlp_only = args.iter().any(|a| a == "--mlp-only");
+    let reps = arg_value(&args, "--reps")
+        .and_then(|v| v.parse::<usize>().ok())
+        .unwrap_or(if quick { 1 } else { 3 })
+        .max(1);
+    let net_filter = arg_value(&args, "--net");
     let row_counts: &[usize] = if quick {
         &[10_000]
     } else {
         &[10_000, 50_000, 100_000]
     };
-    let net_filter = args
-        .iter()
-        .position(|a| a == "--net")
-        .and_then(|i| args.get(i + 1))
-        .cloned();
     let encoding = PositionalEncoding::default();
-    let all_nets = [
+    let nets: Vec<Net> = [
         Net {
             name: "phi(256)",
             mlp: AppearanceNet::new(72, encoding, 1).unwrap().mlp,
@@ -152,143 +175,160 @@ fn main() {
             name: "psi(32)",
             mlp: ShadowNet::new(6, encoding, 2).unwrap().mlp,
         },
-    ];
-    let nets: Vec<Net> = all_nets
-        .into_iter()
-        .filter(|n| {
-            net_filter
-                .as_ref()
-                .is_none_or(|f| n.name.starts_with(f.as_str()))
-        })
-        .collect();
-
-    if !json && !mlp_only {
-        println!("GEMM (row-blocked, {BLOCK_ROWS} rows per block), GFLOP/s");
-        println!(
-            "{:>8} {:>8} {:>7} {:>12} {:>12}",
-            "product", "rows", "k->n", "1 thread", "2 threads"
-        );
-    }
+    ]
+    .into_iter()
+    .filter(|n| net_filter.is_none_or(|f| n.name.starts_with(f)))
+    .collect();
     let pools: Vec<(usize, rayon::ThreadPool)> = [1usize, 2]
         .iter()
         .map(|&t| {
-            (
-                t,
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(t)
-                    .build()
-                    .expect("thread pool"),
-            )
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build();
+            (t, pool.expect("thread pool"))
         })
         .collect();
 
-    // Per-layer GEMM times, reused as the floor of each MLP measurement.
-    let mut floor_fwd = vec![vec![vec![0.0f64; pools.len()]; row_counts.len()]; nets.len()];
-    let mut floor_bwd = floor_fwd.clone();
-    let mut seen_shapes: Vec<(usize, usize, usize)> = Vec::new();
-    for (ni, net) in nets.iter().enumerate() {
-        for (ri, &rows) in row_counts.iter().enumerate() {
-            for pair in net.mlp.widths().windows(2) {
-                let (k, n) = (pair[0], pair[1]);
-                let flops = 2.0 * (rows * k * n) as f64;
-                let mut rates = Vec::new();
-                for product in [Product::Forward, Product::WeightGrad, Product::InputGrad] {
-                    let mut per_thread = Vec::new();
-                    for (pi, (threads, pool)) in pools.iter().enumerate() {
-                        let t = pool.install(|| gemm_time(product, rows, k, n, reps));
-                        match product {
-                            Product::Forward => floor_fwd[ni][ri][pi] += t,
-                            _ => floor_bwd[ni][ri][pi] += t,
-                        }
-                        per_thread.push(flops / t / 1e9);
-                        if json && !mlp_only {
-                            println!(
-                                "{{\"kind\":\"gemm\",\"product\":\"{}\",\"rows\":{rows},\"k\":{k},\"n\":{n},\"threads\":{threads},\"seconds\":{t:.6},\"gflops\":{:.2}}}",
-                                product.name(),
-                                flops / t / 1e9
-                            );
-                        }
+    if !mlp_only {
+        if !json {
+            println!("GEMM (row-blocked, {BLOCK_ROWS} rows per block), GFLOP/s");
+            println!(
+                "{:>8} {:>8} {:>8} {:>10} {:>10}",
+                "product", "rows", "k->n", "1 thread", "2 threads"
+            );
+        }
+        let mut shapes: Vec<(usize, usize, usize)> = Vec::new();
+        for net in &nets {
+            for &rows in row_counts {
+                for pair in net.mlp.widths().windows(2) {
+                    if !shapes.contains(&(rows, pair[0], pair[1])) {
+                        shapes.push((rows, pair[0], pair[1]));
                     }
-                    rates.push((product, per_thread));
                 }
-                if !json && !mlp_only && !seen_shapes.contains(&(rows, k, n)) {
-                    for (product, per_thread) in rates {
+            }
+        }
+        for &(rows, k, n) in &shapes {
+            let mut ops = LayerOperands::new(rows, k, n);
+            for product in Product::ALL {
+                let mut rates = Vec::new();
+                for (threads, pool) in &pools {
+                    ops.run(product);
+                    let t = (0..reps)
+                        .map(|_| pool.install(|| seconds(|| ops.run(product))))
+                        .fold(f64::INFINITY, f64::min);
+                    let gflops = ops.flops() / t / 1e9;
+                    rates.push(gflops);
+                    if json {
                         println!(
-                            "{:>8} {:>8} {:>7} {:>12.1} {:>12.1}",
-                            product.name(),
-                            rows,
-                            format!("{k}->{n}"),
-                            per_thread[0],
-                            per_thread[1]
+                            "{{\"kind\":\"gemm\",\"product\":\"{}\",\"rows\":{rows},\"k\":{k},\"n\":{n},\"threads\":{threads},\"seconds\":{t:.6},\"gflops\":{gflops:.2}}}",
+                            product.name()
                         );
                     }
                 }
-                seen_shapes.push((rows, k, n));
+                if !json {
+                    println!(
+                        "{:>8} {:>8} {:>8} {:>10.1} {:>10.1}",
+                        product.name(),
+                        rows,
+                        format!("{k}->{n}"),
+                        rates[0],
+                        rates[1]
+                    );
+                }
             }
+        }
+        if !json {
+            println!();
         }
     }
 
     if !json {
-        println!();
-        println!("MLP (forward = Cache-mode forward_train; backward with d_input), milliseconds");
         println!(
-            "{:>9} {:>7} {:>3} {:>9} {:>9} {:>7} {:>9} {:>9} {:>7} {:>9} {:>9}",
+            "MLP, milliseconds (fwd: forward_train Cache; infer: forward without tape; \
+             bwd: backward with d_input)"
+        );
+        println!(
+            "{:>9} {:>7} {:>3} {:>8} {:>8} {:>8} {:>6} {:>8} {:>8} {:>6} {:>8} {:>8}",
             "net",
             "rows",
             "thr",
-            "fwd ms",
-            "floor ms",
+            "fwd",
+            "infer",
+            "floor",
             "ratio",
-            "bwd ms",
-            "floor ms",
+            "bwd",
+            "floor",
             "ratio",
             "fwd GF/s",
             "bwd GF/s"
         );
     }
-    for (ni, net) in nets.iter().enumerate() {
+    for net in &nets {
         let mlp = &net.mlp;
-        for (ri, &rows) in row_counts.iter().enumerate() {
+        for &rows in row_counts {
             let input = values(rows * mlp.input_width(), 7);
             let d_out = values(rows * mlp.output_width(), 8);
+            let mut layers: Vec<LayerOperands> = mlp
+                .widths()
+                .windows(2)
+                .map(|p| LayerOperands::new(rows, p[0], p[1]))
+                .collect();
             let flops_fwd = (rows * mlp.flops_per_row_forward()) as f64;
-            for (pi, (threads, pool)) in pools.iter().enumerate() {
-                let (t_fwd, t_bwd) = pool.install(|| {
-                    let t_fwd = min_time(reps, || {
-                        let fwd = mlp.forward_train(&input, rows, TapeMode::Cache).unwrap();
-                        std::hint::black_box(&fwd.output);
-                    });
+            for (threads, pool) in &pools {
+                let mut best = [f64::INFINITY; 5];
+                let mut d_params = vec![0.0f32; mlp.num_params()];
+                let mut d_input = vec![0.0f32; input.len()];
+                pool.install(|| {
                     let fwd = mlp.forward_train(&input, rows, TapeMode::Cache).unwrap();
-                    let mut d_params = vec![0.0f32; mlp.num_params()];
-                    let mut d_input = vec![0.0f32; input.len()];
-                    let t_bwd = min_time(reps, || {
-                        mlp.backward(&input, &fwd, &d_out, &mut d_params, Some(&mut d_input))
-                            .unwrap();
-                    });
-                    (t_fwd, t_bwd)
+                    for _ in 0..reps {
+                        let floor_fwd: f64 = layers
+                            .iter_mut()
+                            .map(|l| seconds(|| l.run(Product::Forward)))
+                            .sum();
+                        let t_fwd = seconds(|| {
+                            let f = mlp.forward_train(&input, rows, TapeMode::Cache).unwrap();
+                            std::hint::black_box(&f.output);
+                        });
+                        let t_infer = seconds(|| {
+                            std::hint::black_box(mlp.forward(&input, rows).unwrap());
+                        });
+                        let floor_bwd: f64 = layers
+                            .iter_mut()
+                            .map(|l| {
+                                seconds(|| l.run(Product::WeightGrad))
+                                    + seconds(|| l.run(Product::InputGrad))
+                            })
+                            .sum();
+                        let t_bwd = seconds(|| {
+                            mlp.backward(&input, &fwd, &d_out, &mut d_params, Some(&mut d_input))
+                                .unwrap();
+                        });
+                        let now = [t_fwd, t_infer, floor_fwd, t_bwd, floor_bwd];
+                        for (b, t) in best.iter_mut().zip(now) {
+                            *b = b.min(t);
+                        }
+                    }
                 });
-                let (ff, fb) = (floor_fwd[ni][ri][pi], floor_bwd[ni][ri][pi]);
+                let [t_fwd, t_infer, ff, t_bwd, fb] = best;
+                let (gf_fwd, gf_bwd) = (flops_fwd / t_fwd / 1e9, 2.0 * flops_fwd / t_bwd / 1e9);
                 if json {
                     println!(
-                        "{{\"kind\":\"mlp\",\"net\":\"{}\",\"rows\":{rows},\"threads\":{threads},\"forward_s\":{t_fwd:.6},\"forward_floor_s\":{ff:.6},\"backward_s\":{t_bwd:.6},\"backward_floor_s\":{fb:.6},\"forward_gflops\":{:.2},\"backward_gflops\":{:.2}}}",
-                        net.name,
-                        flops_fwd / t_fwd / 1e9,
-                        2.0 * flops_fwd / t_bwd / 1e9
+                        "{{\"kind\":\"mlp\",\"net\":\"{}\",\"rows\":{rows},\"threads\":{threads},\"forward_s\":{t_fwd:.6},\"inference_s\":{t_infer:.6},\"forward_floor_s\":{ff:.6},\"backward_s\":{t_bwd:.6},\"backward_floor_s\":{fb:.6},\"forward_gflops\":{gf_fwd:.2},\"backward_gflops\":{gf_bwd:.2}}}",
+                        net.name
                     );
                 } else {
                     println!(
-                        "{:>9} {:>7} {:>3} {:>9.2} {:>9.2} {:>7.2} {:>9.2} {:>9.2} {:>7.2} {:>9.1} {:>9.1}",
+                        "{:>9} {:>7} {:>3} {:>8.2} {:>8.2} {:>8.2} {:>6.2} {:>8.2} {:>8.2} {:>6.2} {:>8.1} {:>8.1}",
                         net.name,
                         rows,
                         threads,
                         t_fwd * 1e3,
+                        t_infer * 1e3,
                         ff * 1e3,
                         t_fwd / ff,
                         t_bwd * 1e3,
                         fb * 1e3,
                         t_bwd / fb,
-                        flops_fwd / t_fwd / 1e9,
-                        2.0 * flops_fwd / t_bwd / 1e9
+                        gf_fwd,
+                        gf_bwd
                     );
                 }
             }
