@@ -82,7 +82,8 @@ pub fn fast_exp(x: f32) -> f32 {
     const LOG2E: f32 = std::f32::consts::LOG2_E;
     const LN2_HI: f32 = 0.693_359_4;
     const LN2_LO: f32 = -2.121_944_4e-4;
-    // f32::max returns the non-NaN operand, so NaN maps to the lower bound.
+    // Not `clamp`: f32::max returns the non-NaN operand, so NaN maps to the lower bound.
+    #[allow(clippy::manual_clamp)]
     let x = x.max(-87.0).min(88.0);
     // Round to nearest with the 1.5 * 2^23 trick (SSE2 has no round instruction).
     const MAGIC: f32 = 12_582_912.0;
@@ -92,7 +93,7 @@ pub fn fast_exp(x: f32) -> f32 {
     let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
         + 1.666_666_5e-1)
         * r
-        + 5.000_000_1e-1;
+        + 0.5;
     let e = p * r * r + r + 1.0;
     // The low mantissa bits of `shifted` hold n as an integer (|n| <= 127 < 2^22): build
     // 2^n from them without a float-to-int conversion (saturating `as` is slow).
@@ -274,7 +275,7 @@ pub fn blend_tile_forward(
         };
         return;
     }
-    forward_body(
+    forward_dispatch(
         tile,
         list,
         splats,
@@ -299,7 +300,7 @@ unsafe fn forward_avx2(
     mode: AlphaMode,
     out: TileForwardOut,
 ) {
-    forward_body(
+    forward_dispatch(
         tile,
         list,
         splats,
@@ -311,9 +312,10 @@ unsafe fn forward_avx2(
     );
 }
 
+/// Picks a build with the channel count fixed at compile time for the common counts.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn forward_body(
+fn forward_dispatch(
     tile: &PixelRect,
     list: &[u32],
     splats: &[Splat],
@@ -323,7 +325,42 @@ fn forward_body(
     mode: AlphaMode,
     out: TileForwardOut,
 ) {
-    let nc = n_channels;
+    macro_rules! go {
+        ($n:literal) => {
+            forward_body::<$n>(
+                tile,
+                list,
+                splats,
+                splat_channels,
+                n_channels,
+                background,
+                mode,
+                out,
+            )
+        };
+    }
+    match n_channels {
+        1 => go!(1),
+        3 => go!(3),
+        4 => go!(4),
+        _ => go!(0),
+    }
+}
+
+/// `FIXED > 0`: the channel count is `FIXED` (loops unroll); 0: `n_channels`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn forward_body<const FIXED: usize>(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    splat_channels: &[f32],
+    n_channels: usize,
+    background: &[f32],
+    mode: AlphaMode,
+    out: TileForwardOut,
+) {
+    let nc = if FIXED > 0 { FIXED } else { n_channels };
     out.color.fill(0.0);
     out.depth.fill(0.0);
     out.transmittance.fill(1.0);
@@ -447,7 +484,7 @@ pub fn blend_tile_backward(
         };
         return;
     }
-    backward_body(
+    backward_dispatch(
         tile,
         list,
         splats,
@@ -476,7 +513,7 @@ unsafe fn backward_avx2(
     grads: &PixelGradsView,
     records: &mut [f32],
 ) {
-    backward_body(
+    backward_dispatch(
         tile,
         list,
         splats,
@@ -490,9 +527,49 @@ unsafe fn backward_avx2(
     );
 }
 
+/// Picks a build with the channel count fixed at compile time for the common counts.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn backward_body(
+fn backward_dispatch(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    splat_channels: &[f32],
+    n_channels: usize,
+    background: &[f32],
+    mode: AlphaMode,
+    state: TileForwardState,
+    grads: &PixelGradsView,
+    records: &mut [f32],
+) {
+    macro_rules! go {
+        ($n:literal) => {
+            backward_body::<$n>(
+                tile,
+                list,
+                splats,
+                splat_channels,
+                n_channels,
+                background,
+                mode,
+                state,
+                grads,
+                records,
+            )
+        };
+    }
+    match n_channels {
+        1 => go!(1),
+        3 => go!(3),
+        4 => go!(4),
+        _ => go!(0),
+    }
+}
+
+/// `FIXED > 0`: the channel count is `FIXED` (loops unroll); 0: `n_channels`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn backward_body<const FIXED: usize>(
     tile: &PixelRect,
     list: &[u32],
     splats: &[Splat],
@@ -505,7 +582,7 @@ fn backward_body(
     records: &mut [f32],
 ) {
     const T: usize = TILE_PX as usize;
-    let nc = n_channels;
+    let nc = if FIXED > 0 { FIXED } else { n_channels };
     let stride = REC_CHANNELS + nc;
     // Behind-colour S per pixel: channels then depth.
     let s_stride = nc + 1;
