@@ -271,6 +271,7 @@ pub struct ComponentHandle {
     pub frames_addr: SocketAddr,
     pub telemetry_addr: SocketAddr,
     core: Arc<Mutex<BusCore>>,
+    worker: Arc<crate::worker::WorkerShared>,
     stop: watch::Sender<bool>,
     task: tokio::task::JoinHandle<()>,
 }
@@ -282,6 +283,16 @@ impl ComponentHandle {
 
     pub fn mode(&self) -> Mode {
         lock(&self.core).mode()
+    }
+
+    /// The trainer thread's figures (frames processed and used, predictions, rounds).
+    pub fn worker_snapshot(&self) -> crate::worker::WorkerSnapshot {
+        self.worker.snapshot()
+    }
+
+    /// Queue depths and drop counters.
+    pub fn queue_depths(&self) -> crate::worker::QueueDepths {
+        self.worker.depths()
     }
 
     /// Stops receiving, lets the trainer finish its queue, and returns when all is closed.
@@ -350,6 +361,7 @@ pub async fn start(
     let frames_addr = frames.as_ref().map_or(unbound, UdpTransport::local_addr);
     let telemetry_addr = telemetry.as_ref().map_or(unbound, UdpTransport::local_addr);
     let core = Arc::clone(&engine.core);
+    let worker = Arc::clone(&engine.worker.shared);
     let (stop, mut stopped) = watch::channel(false);
     let task = tokio::spawn(async move {
         let mut health = tokio::time::interval(Duration::from_secs(1));
@@ -413,16 +425,15 @@ pub async fn start(
             }
             engine.flush_outputs().await;
         }
-        let worker_shared = Arc::clone(&engine.worker.shared);
         // Finish queued work on a blocking thread: the trainer may be mid-round.
         let Engine { worker, .. } = engine;
         let _ = tokio::task::spawn_blocking(move || worker.finish()).await;
-        drop(worker_shared);
     });
     Ok(ComponentHandle {
         frames_addr,
         telemetry_addr,
         core,
+        worker,
         stop,
         task,
     })

@@ -10,7 +10,9 @@
 //! - acknowledgements and events out: one per command or model event, so bounded by the
 //!   command queue and the frame rate.
 //!
-//! Order: a pending command runs before the next frame. For each frame the worker first
+//! Order: frames and model commands run in arrival order (one FIFO; the capacities are
+//! counted per kind), so a SAVE_CHECKPOINT after a frame saves a model that has seen that
+//! frame, live and on replay alike. For each frame the worker first
 //! renders the prediction at the frame's pose and Sun (before training on it), then offers
 //! the frame and runs a round if one is due; the rounds a sequence of frames triggers are
 //! therefore a function of that sequence alone (replay equals live).
@@ -97,8 +99,10 @@ pub struct WorkerSnapshot {
 
 #[derive(Default)]
 struct Queues {
-    frames: VecDeque<FrameJob>,
-    commands: VecDeque<CommandJob>,
+    /// Frames and commands in arrival order.
+    jobs: VecDeque<Job>,
+    frames: usize,
+    commands: usize,
     predictions: VecDeque<Prediction>,
     notices: VecDeque<Notice>,
     frames_dropped: u64,
@@ -145,12 +149,16 @@ impl WorkerShared {
     /// Queues a frame; returns true when the oldest queued frame was dropped to make room.
     pub fn push_frame(&self, job: FrameJob) -> bool {
         let mut q = lock(&self.queues);
-        let dropped = q.frames.len() >= self.limits.frames;
+        let dropped = q.frames >= self.limits.frames;
         if dropped {
-            q.frames.pop_front();
+            if let Some(oldest) = q.jobs.iter().position(|j| matches!(j, Job::Frame(_))) {
+                q.jobs.remove(oldest);
+                q.frames -= 1;
+            }
             q.frames_dropped += 1;
         }
-        q.frames.push_back(job);
+        q.jobs.push_back(Job::Frame(job));
+        q.frames += 1;
         drop(q);
         self.work_ready.notify_one();
         dropped
@@ -159,10 +167,11 @@ impl WorkerShared {
     /// Queues a model command; `Err(job)` when the queue is full (acknowledge BUSY).
     pub fn push_command(&self, job: CommandJob) -> Result<(), CommandJob> {
         let mut q = lock(&self.queues);
-        if q.commands.len() >= self.limits.commands {
+        if q.commands >= self.limits.commands {
             return Err(job);
         }
-        q.commands.push_back(job);
+        q.jobs.push_back(Job::Command(job));
+        q.commands += 1;
         drop(q);
         self.work_ready.notify_one();
         Ok(())
@@ -170,13 +179,13 @@ impl WorkerShared {
 
     pub fn has_room(&self) -> bool {
         let q = lock(&self.queues);
-        q.frames.len() < self.limits.frames && q.commands.len() < self.limits.commands
+        q.frames < self.limits.frames && q.commands < self.limits.commands
     }
 
     /// True when nothing is queued and the worker is not running a job.
     pub fn is_idle(&self) -> bool {
         let q = lock(&self.queues);
-        q.frames.is_empty() && q.commands.is_empty() && !lock(&self.snapshot).busy
+        q.jobs.is_empty() && !lock(&self.snapshot).busy
     }
 
     pub fn take_predictions(&self) -> Vec<Prediction> {
@@ -190,8 +199,8 @@ impl WorkerShared {
     pub fn depths(&self) -> QueueDepths {
         let q = lock(&self.queues);
         QueueDepths {
-            frames: q.frames.len(),
-            commands: q.commands.len(),
+            frames: q.frames,
+            commands: q.commands,
             predictions: q.predictions.len(),
             frames_dropped: q.frames_dropped,
             predictions_dropped: q.predictions_dropped,
@@ -302,7 +311,7 @@ impl Drop for Worker {
 
 fn next_job(shared: &WorkerShared, wait: Duration) -> Option<Option<Job>> {
     let mut q = lock(&shared.queues);
-    if q.commands.is_empty() && q.frames.is_empty() {
+    if q.jobs.is_empty() {
         if q.shutdown {
             return None;
         }
@@ -312,11 +321,12 @@ fn next_job(shared: &WorkerShared, wait: Duration) -> Option<Option<Job>> {
             .map(|(guard, _)| guard)
             .unwrap_or_else(|poisoned| poisoned.into_inner().0);
     }
-    let job = if let Some(c) = q.commands.pop_front() {
-        Some(Job::Command(c))
-    } else {
-        q.frames.pop_front().map(Job::Frame)
-    };
+    let job = q.jobs.pop_front();
+    match &job {
+        Some(Job::Frame(_)) => q.frames -= 1,
+        Some(Job::Command(_)) => q.commands -= 1,
+        None => {}
+    }
     if job.is_some() {
         // Set while the queue lock is held, so `is_idle` never sees an empty queue and an
         // idle worker while a job is in flight.

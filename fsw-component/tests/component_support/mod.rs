@@ -67,6 +67,7 @@ pub struct Peer {
     pub received: Arc<Mutex<Received>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
     telecommand_count: u16,
+    raw_counts: std::collections::BTreeMap<u16, u16>,
 }
 
 async fn listen(socket: UdpSocket, received: Arc<Mutex<Received>>) {
@@ -133,6 +134,7 @@ impl Peer {
             received,
             tasks,
             telecommand_count: 0,
+            raw_counts: std::collections::BTreeMap::new(),
         }
     }
 
@@ -179,6 +181,16 @@ impl Peer {
 
     pub async fn command(&mut self, sequence: u32, kind: CommandKind, to: SocketAddr) {
         self.send(&Command { sequence, kind }, to).await;
+    }
+
+    /// Telemetry packets for `payload` on `apid` with this peer's raw sequence counter
+    /// (starting far from the framer's, so no count repeats back to back).
+    pub fn raw_packets(&mut self, apid: u16, payload: &[u8]) -> Vec<Vec<u8>> {
+        let first = *self.raw_counts.get(&apid).unwrap_or(&5000);
+        let out = packets(apid, payload, first);
+        self.raw_counts
+            .insert(apid, (first + out.len() as u16) % 16384);
+        out
     }
 
     pub fn snapshot<T>(&self, f: impl FnOnce(&Received) -> T) -> T {
@@ -314,4 +326,46 @@ pub fn temp_dir(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
+}
+
+/// postcard varint (LEB128).
+pub fn varint(mut value: u64) -> Vec<u8> {
+    let mut out = Vec::new();
+    loop {
+        let byte = (value & 0x7f) as u8;
+        value >>= 7;
+        if value == 0 {
+            out.push(byte);
+            return out;
+        }
+        out.push(byte | 0x80);
+    }
+}
+
+/// TargetPose bytes written by hand, so that invalid values can be sent at all.
+pub fn raw_pose(time_us: u64, q: [f32; 4], t: [f32; 3], valid: bool) -> Vec<u8> {
+    let mut out = varint(time_us);
+    for v in q.iter().chain(&t).chain(&[0.01, 0.001]) {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.push(u8::from(valid));
+    out
+}
+
+/// SunVector bytes written by hand.
+pub fn raw_sun(time_us: u64, sun: [f32; 3], valid: bool) -> Vec<u8> {
+    let mut out = varint(time_us);
+    for v in &sun {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.push(u8::from(valid));
+    out
+}
+
+/// The datagrams of `payload` on `apid` (telemetry packets), first sequence count `first`.
+pub fn packets(apid: u16, payload: &[u8], first: u16) -> Vec<Vec<u8>> {
+    message_packets(PacketType::Telemetry, apid, payload, first, 1472)
+        .unwrap()
+        .map(|p| p.to_vec())
+        .collect()
 }
