@@ -10,6 +10,10 @@
 //! densification statistics, densifies and prunes every `densify_interval` iterations
 //! after `densify_from_iter`, and resets opacities every `opacity_reset_interval`.
 //!
+//! [`Trainer`] is the same loop one step at a time (for an online scheduler that picks
+//! views itself and runs its own learning-rate sawtooth); [`train`] drives it over a
+//! fixed view set.
+//!
 //! Invariants:
 //! - deterministic: same model, views, config and thread count give bit-identical
 //!   results (the only randomness is a [`SplitMix64`] seeded from `config.seed`);
@@ -401,74 +405,131 @@ fn gather_grads(params: &ParamSet, g: &crate::raster::GaussianGrads) -> ParamSet
     out
 }
 
-/// Trains `model` on `views`; `progress` sees every iteration.
-pub fn train(
+/// Stepwise trainer: the model, its optimiser and densification state, and the 3DGS
+/// schedules keyed on its own iteration counter. [`train`] drives it over a fixed view
+/// set; an online scheduler can call [`Trainer::step`] with whatever view it picks and
+/// override the position learning rate (e.g. a per-round sawtooth).
+#[derive(Clone, Debug)]
+pub struct Trainer {
     model: GaussianModel,
-    views: &[TrainView],
-    config: &TrainConfig,
-    mut progress: impl FnMut(&IterationStats),
-) -> Result<TrainResult, TrainError> {
-    if views.is_empty() {
-        return Err(TrainError::NoViews);
-    }
-    for (i, v) in views.iter().enumerate() {
-        check_view(i, v)?;
-    }
-    check_config(config)?;
-    if let Some((param, index)) = Adam::first_non_finite(&model.params) {
-        return Err(TrainError::NonFiniteModel { param, index });
-    }
-    let scene_extent = match config.scene_extent {
-        Some(e) => e,
-        None => camera_extent(&views.iter().map(|v| v.camera).collect::<Vec<_>>()),
-    };
-    if !(scene_extent.is_finite() && scene_extent > 0.0) {
-        return Err(TrainError::Config(format!(
-            "scene extent {scene_extent} is not positive (one camera position?): set scene_extent"
-        )));
-    }
+    adam: Adam,
+    stats: DensifyStats,
+    rng: SplitMix64,
+    config: TrainConfig,
+    schedule: ExponentialSchedule,
+    settings: RasterSettings,
+    scene_extent: f32,
+    iteration: usize,
+    skipped_steps: usize,
+    raster_dropped: usize,
+    densify_reports: Vec<(usize, DensifyReport)>,
+}
 
-    let mut model = model;
-    let model_degree = model.layout().sh_degree;
-    let mut adam = Adam::new(&model.params);
-    let mut stats = DensifyStats::new(model.len());
-    let mut rng = SplitMix64::new(config.seed);
-    let schedule = ExponentialSchedule {
-        lr_init: config.lr.position_init * scene_extent,
-        lr_final: config.lr.position_final * scene_extent,
-        delay_steps: 0,
-        delay_mult: 0.01,
-        max_steps: config
-            .lr
-            .position_max_steps
-            .unwrap_or(config.iterations as u64),
-    };
-    let settings = RasterSettings {
-        near_m: config.near_m,
-        background: config.background.to_vec(),
-        smooth_cutoff: false,
-    };
+/// Seed offset so the densification samples do not reuse the view-shuffle stream.
+const DENSIFY_STREAM: u64 = 0xD1B5_4A32_D192_ED03;
 
-    let mut order: Vec<usize> = Vec::new();
-    let mut losses = Vec::with_capacity(config.iterations);
-    let mut skipped_steps = 0;
-    let mut raster_dropped = 0;
-    let mut reports = Vec::new();
-    for iteration in 1..=config.iterations {
-        if order.is_empty() {
-            order = (0..views.len()).collect();
-            rng.shuffle(&mut order);
+impl Trainer {
+    /// Checks the configuration and the model; `scene_extent` (metres) scales the
+    /// position learning rate and the densification size limits.
+    pub fn new(
+        model: GaussianModel,
+        config: &TrainConfig,
+        scene_extent: f32,
+    ) -> Result<Self, TrainError> {
+        check_config(config)?;
+        if let Some((param, index)) = Adam::first_non_finite(&model.params) {
+            return Err(TrainError::NonFiniteModel { param, index });
         }
-        let view_index = order.pop().expect("refilled above");
-        let view = &views[view_index];
+        if !(scene_extent.is_finite() && scene_extent > 0.0) {
+            return Err(TrainError::Config(format!(
+                "scene extent {scene_extent} is not positive (one camera position?): \
+                 set scene_extent"
+            )));
+        }
+        let schedule = ExponentialSchedule {
+            lr_init: config.lr.position_init * scene_extent,
+            lr_final: config.lr.position_final * scene_extent,
+            delay_steps: 0,
+            delay_mult: 0.01,
+            max_steps: config
+                .lr
+                .position_max_steps
+                .unwrap_or(config.iterations as u64),
+        };
+        Ok(Self {
+            adam: Adam::new(&model.params),
+            stats: DensifyStats::new(model.len()),
+            rng: SplitMix64::new(config.seed ^ DENSIFY_STREAM),
+            schedule,
+            settings: RasterSettings {
+                near_m: config.near_m,
+                background: config.background.to_vec(),
+                smooth_cutoff: false,
+            },
+            config: config.clone(),
+            scene_extent,
+            iteration: 0,
+            skipped_steps: 0,
+            raster_dropped: 0,
+            densify_reports: Vec::new(),
+            model,
+        })
+    }
+
+    pub fn model(&self) -> &GaussianModel {
+        &self.model
+    }
+
+    pub fn optimiser(&self) -> &Adam {
+        &self.adam
+    }
+
+    /// Iterations taken so far.
+    pub fn iteration(&self) -> usize {
+        self.iteration
+    }
+
+    pub fn scene_extent(&self) -> f32 {
+        self.scene_extent
+    }
+
+    /// One iteration on `view` with the scheduled position learning rate.
+    pub fn step(
+        &mut self,
+        view: &TrainView,
+        view_index: usize,
+    ) -> Result<IterationStats, TrainError> {
+        let lr = self.schedule.at(self.iteration as u64 + 1);
+        self.step_with_position_lr(view, view_index, lr)
+    }
+
+    /// One iteration on `view` with an explicit position learning rate (metres per unit
+    /// step; the caller applies the scene extent). The view is validated first.
+    pub fn step_with_position_lr(
+        &mut self,
+        view: &TrainView,
+        view_index: usize,
+        position_lr: f32,
+    ) -> Result<IterationStats, TrainError> {
+        check_view(view_index, view)?;
+        if !(position_lr.is_finite() && position_lr >= 0.0) {
+            return Err(TrainError::Config(format!(
+                "position learning rate {position_lr} is not finite and non-negative"
+            )));
+        }
+        let config = &self.config;
+        let iteration = self.iteration + 1;
         let camera = &view.camera;
-        let position_lr = schedule.at(iteration as u64);
-        let degree = active_sh_degree(iteration, config.sh_degree_interval, model_degree);
+        let degree = active_sh_degree(
+            iteration,
+            config.sh_degree_interval,
+            self.model.layout().sh_degree,
+        );
 
         let t0 = Instant::now();
-        let colours = sh_to_rgb(&model.params, degree, camera.position())?;
-        let gview = GaussianView::from_model(&model, &colours, 3);
-        let forward = render(camera, &gview, &settings)?;
+        let colours = sh_to_rgb(&self.model.params, degree, camera.position())?;
+        let gview = GaussianView::from_model(&self.model, &colours, 3);
+        let forward = render(camera, &gview, &self.settings)?;
         let shape = image_shape(camera);
         let t_loss = Instant::now();
         // A non-finite render (values overflowing f32) cannot be scored: count and skip.
@@ -498,11 +559,11 @@ pub fn train(
                 d_alpha: None,
                 d_depth: None,
             };
-            let g = render_backward(camera, &gview, &settings, &forward, &pixel_grads)?;
-            raster_dropped += g.dropped_nonfinite;
-            let mut grads = gather_grads(&model.params, &g);
+            let g = render_backward(camera, &gview, &self.settings, &forward, &pixel_grads)?;
+            self.raster_dropped += g.dropped_nonfinite;
+            let mut grads = gather_grads(&self.model.params, &g);
             sh_to_rgb_backward(
-                &model.params,
+                &self.model.params,
                 degree,
                 camera.position(),
                 &g.d_channels,
@@ -520,27 +581,28 @@ pub fn train(
         let mut densified = None;
         let mut opacity_reset = false;
         if let Some((g, grads)) = backward {
-            adam.step(
-                &mut model.params,
+            self.adam.step(
+                &mut self.model.params,
                 &grads,
                 &group_rates(&config.lr, position_lr),
             )?;
             if iteration < config.densify_until_iter {
-                stats.accumulate(&g.mean2d_grad_ndc, &forward.visible, &forward.radii_px)?;
+                self.stats
+                    .accumulate(&g.mean2d_grad_ndc, &forward.visible, &forward.radii_px)?;
                 if iteration > config.densify_from_iter && iteration % config.densify_interval == 0
                 {
                     let screen_limit = iteration > config.opacity_reset_interval
                         && config.opacity_reset_interval > 0;
                     let report = densify_and_prune(
-                        &mut model,
-                        &mut adam,
-                        &mut stats,
+                        &mut self.model,
+                        &mut self.adam,
+                        &mut self.stats,
                         &config.densify,
-                        scene_extent,
+                        self.scene_extent,
                         screen_limit,
-                        &mut rng,
+                        &mut self.rng,
                     )?;
-                    reports.push((iteration, report));
+                    self.densify_reports.push((iteration, report));
                     densified = Some(report);
                 }
                 // 3DGS also resets once at `densify_from_iter` on a white background.
@@ -549,22 +611,22 @@ pub fn train(
                 let periodic_reset = config.opacity_reset_interval > 0
                     && iteration % config.opacity_reset_interval == 0;
                 if periodic_reset || white_reset {
-                    reset_opacity(&mut model, &mut adam, config.opacity_reset_value);
+                    reset_opacity(&mut self.model, &mut self.adam, config.opacity_reset_value);
                     opacity_reset = true;
                 }
             }
         } else {
-            skipped_steps += 1;
+            self.skipped_steps += 1;
         }
+        self.iteration = iteration;
         let t3 = Instant::now();
-        losses.push(loss.loss);
-        progress(&IterationStats {
+        Ok(IterationStats {
             iteration,
             view_index,
             loss: loss.loss,
             l1: loss.l1,
             ssim: loss.ssim,
-            gaussians: model.len(),
+            gaussians: self.model.len(),
             active_sh_degree: degree,
             position_lr,
             skipped,
@@ -574,14 +636,52 @@ pub fn train(
             loss_ms: (t1 - t_loss).as_secs_f64() * 1e3,
             backward_ms: (t2 - t1).as_secs_f64() * 1e3,
             step_ms: (t3 - t2).as_secs_f64() * 1e3,
-        });
+        })
     }
-    Ok(TrainResult {
-        model,
-        losses,
-        skipped_non_finite_steps: skipped_steps,
-        raster_dropped_gradients: raster_dropped,
-        densify_reports: reports,
-        scene_extent,
-    })
+
+    /// The trained model and the run's counters; `losses` is the caller's loss history.
+    pub fn finish(self, losses: Vec<f32>) -> TrainResult {
+        TrainResult {
+            model: self.model,
+            losses,
+            skipped_non_finite_steps: self.skipped_steps,
+            raster_dropped_gradients: self.raster_dropped,
+            densify_reports: self.densify_reports,
+            scene_extent: self.scene_extent,
+        }
+    }
+}
+
+/// Trains `model` on `views` for `config.iterations`; `progress` sees every iteration.
+pub fn train(
+    model: GaussianModel,
+    views: &[TrainView],
+    config: &TrainConfig,
+    mut progress: impl FnMut(&IterationStats),
+) -> Result<TrainResult, TrainError> {
+    if views.is_empty() {
+        return Err(TrainError::NoViews);
+    }
+    for (i, v) in views.iter().enumerate() {
+        check_view(i, v)?;
+    }
+    let scene_extent = match config.scene_extent {
+        Some(e) => e,
+        None => camera_extent(&views.iter().map(|v| v.camera).collect::<Vec<_>>()),
+    };
+    let mut trainer = Trainer::new(model, config, scene_extent)?;
+    let mut shuffle = SplitMix64::new(config.seed);
+    let mut order: Vec<usize> = Vec::new();
+    let mut losses = Vec::with_capacity(config.iterations);
+    for _ in 0..config.iterations {
+        if order.is_empty() {
+            order = (0..views.len()).collect();
+            shuffle.shuffle(&mut order);
+        }
+        let view_index = order.pop().expect("refilled above");
+        let stats = trainer.step(&views[view_index], view_index)?;
+        losses.push(stats.loss);
+        progress(&stats);
+    }
+    Ok(trainer.finish(losses))
 }

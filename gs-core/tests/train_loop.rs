@@ -5,7 +5,7 @@ use glam::{Quat, Vec3};
 use gs_core::init::{inverse_sigmoid, random_in_sphere, SplitMix64};
 use gs_core::sh::rgb_to_sh_dc;
 use gs_core::train::{
-    camera_extent, render_rgb, train, TrainConfig, TrainError, TrainResult, TrainView,
+    camera_extent, render_rgb, train, TrainConfig, TrainError, TrainResult, TrainView, Trainer,
 };
 use gs_core::{Camera, GaussianModel, Intrinsics, ModelLayout, Param};
 
@@ -248,5 +248,47 @@ fn bad_input_is_a_clear_error() {
             param: Param::LogScale,
             index: 7
         })
+    ));
+}
+
+/// Replaying `train`'s view order through `Trainer::step` gives the same bits; an explicit
+/// position rate of zero freezes the means while everything else still learns.
+#[test]
+fn stepwise_trainer_matches_train_and_takes_a_position_rate() {
+    let gt = ground_truth(40, 6);
+    let views = ring_views(&gt, 5, 32);
+    let config = busy_config(100);
+    let mut order = Vec::new();
+    let a = train(start_model(), &views, &config, |s| order.push(s.view_index)).unwrap();
+    let extent = camera_extent(&views.iter().map(|v| v.camera).collect::<Vec<_>>());
+    let mut trainer = Trainer::new(start_model(), &config, extent).unwrap();
+    let mut losses = Vec::new();
+    for &i in &order {
+        losses.push(trainer.step(&views[i], i).unwrap().loss);
+    }
+    assert_eq!(trainer.iteration(), 100);
+    let b = trainer.finish(losses);
+    assert!(same_bits(&a, &b));
+
+    let frozen_config = TrainConfig {
+        densify_until_iter: 0,
+        ..config
+    };
+    let start = start_model();
+    let mut trainer = Trainer::new(start.clone(), &frozen_config, extent).unwrap();
+    for (k, v) in views.iter().enumerate() {
+        let s = trainer.step_with_position_lr(v, k, 0.0).unwrap();
+        assert_eq!(s.position_lr, 0.0);
+    }
+    let m = trainer.model();
+    assert_eq!(m.params.get(Param::Mean), start.params.get(Param::Mean));
+    assert_ne!(m.params.get(Param::ShDc), start.params.get(Param::ShDc));
+    assert!(matches!(
+        trainer.step_with_position_lr(&views[0], 0, f32::NAN),
+        Err(TrainError::Config(_))
+    ));
+    assert!(matches!(
+        Trainer::new(start_model(), &frozen_config, 0.0),
+        Err(TrainError::Config(_))
     ));
 }
