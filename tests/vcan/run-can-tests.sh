@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # run-can-tests.sh: the SocketCAN tests, on a real vcan0 inside the micro-VM of run-in-vm.sh.
 #
-# Usage: bash tests/vcan/run-can-tests.sh   (from anywhere; CARGO_TARGET_DIR is honoured)
+# Usage: bash tests/vcan/run-can-tests.sh [--workspace]   (CARGO_TARGET_DIR is honoured)
+#   --workspace: build as `cargo test --workspace` does (same feature unification), so that
+#   after a workspace test run nothing is rebuilt; the default builds fsw-component alone.
 #
-# On the host: builds fsw-component's unit-test and transport_socketcan test binaries and the can_echo_peer
-# example (default target CPU: the emulated CPU has no AVX-512), and the Python venv
+# On the host: builds fsw-component's unit-test and transport_socketcan test binaries and the
+# can_echo_peer example (default target CPU: the emulated CPU has no AVX-512), and the venv
 # (tests/setup_venv.sh). In the VM: runs those prebuilt binaries (no cargo) and the python-can
 # pytest in tests/bus/ against vcan0 (see in-vm-tests.sh). Exits non-zero if anything fails.
 set -euo pipefail
@@ -17,28 +19,36 @@ case "${RUSTFLAGS:-}${CARGO_ENCODED_RUSTFLAGS:-}" in
     ;;
 esac
 
-# The executable of target "$1" that cargo builds for the rest of the arguments (it reports
-# every artifact as JSON on stdout; a test build may also build the crate's binaries).
-cargo_executable() {
-    local target_name=$1
-    shift
-    cargo "$@" --message-format=json |
-        python3 -c '
-import json, sys
-name = sys.argv[1]
-paths = [m["executable"] for m in map(json.loads, sys.stdin)
-         if m.get("reason") == "compiler-artifact" and m.get("executable")
-         and m["target"]["name"] == name]
-if len(paths) != 1:
-    sys.exit(f"expected one executable for {name}, cargo reported {paths}")
-print(paths[0])' "$target_name"
-}
+case "${1:-}" in
+"") cargo_scope=(-p fsw-component) ;;
+--workspace) cargo_scope=(--workspace) ;;
+*)
+    echo "usage: $0 [--workspace]" >&2
+    exit 2
+    ;;
+esac
 
-echo "[vcan] building the SocketCAN test binary and the Rust CAN peer" >&2
-unit_test_binary=$(cargo_executable fsw_component test -p fsw-component --lib --no-run)
-test_binary=$(cargo_executable transport_socketcan \
-    test -p fsw-component --test transport_socketcan --no-run)
-peer_binary=$(cargo_executable can_echo_peer build -p fsw-component --example can_echo_peer)
+echo "[vcan] building the SocketCAN test binaries and the Rust CAN peer (${cargo_scope[*]})" >&2
+# One `cargo test --no-run` builds the test binaries and the examples; its JSON messages
+# name each artifact. The executables needed are picked by target name and kind.
+artifacts=$(cargo test "${cargo_scope[@]}" --no-run --message-format=json) || {
+    echo "[vcan] ERROR: cargo test --no-run failed" >&2
+    exit 1
+}
+executable_of() {
+    python3 -c '
+import json, sys
+name, kind = sys.argv[1], sys.argv[2]
+paths = sorted({m["executable"] for m in map(json.loads, sys.stdin)
+                if m.get("reason") == "compiler-artifact" and m.get("executable")
+                and m["target"]["name"] == name and kind in m["target"]["kind"]})
+if len(paths) != 1:
+    sys.exit(f"expected one {kind} executable named {name}, cargo reported {paths}")
+print(paths[0])' "$1" "$2" <<<"$artifacts"
+}
+unit_test_binary=$(executable_of fsw_component lib)
+test_binary=$(executable_of transport_socketcan test)
+peer_binary=$(executable_of can_echo_peer example)
 python=$(bash tests/setup_venv.sh)
 
 bash tests/vcan/run-in-vm.sh bash tests/vcan/in-vm-tests.sh \
