@@ -363,10 +363,12 @@ mod tests {
             m.params.retain(&[true, true]),
             Err(ModelError::Length { .. })
         ));
-        let short = [0.0f32; 2];
-        let err = m
-            .params
-            .push_row(|p| if p == Param::Mean { &short } else { &short });
+        // Every group gets a row of the right width except the means, which get 2 values.
+        let rows: Vec<Vec<f32>> = Param::ALL
+            .iter()
+            .map(|&p| vec![0.0; if p == Param::Mean { 2 } else { m.params.dim(p) }])
+            .collect();
+        let err = m.params.push_row(|p| &rows[p.index()]);
         assert!(matches!(
             err,
             Err(ModelError::RowWidth {
