@@ -1017,3 +1017,50 @@ fn zero_rows_is_a_valid_empty_batch() {
         assert!(d_params.iter().all(|v| *v == 0.5));
     }
 }
+
+#[test]
+fn forward_train_into_reuses_memory_with_identical_results() {
+    let widths = [10, 24, 24, 2];
+    let mlp = Mlp::new(
+        &widths,
+        HiddenActivation::LeakyRelu,
+        Init::TorchLinearDefault,
+        6,
+    )
+    .unwrap();
+    let mut reused = gs_core::nn::MlpForward::default();
+    // A large batch, then a smaller one, then Recompute: stale blocks must not leak through.
+    for (rows, mode) in [
+        (2 * gs_core::nn::mlp::BLOCK_ROWS + 3, TapeMode::Cache),
+        (700, TapeMode::Cache),
+        (900, TapeMode::Recompute),
+    ] {
+        let input = values(rows * widths[0], rows as u64);
+        let d_out = values(rows * 2, 1 + rows as u64);
+        mlp.forward_train_into(&input, rows, mode, &mut reused)
+            .unwrap();
+        let fresh = mlp.forward_train(&input, rows, mode).unwrap();
+        assert_eq!(reused.rows(), rows);
+        assert_eq!(reused.output, fresh.output);
+        assert_eq!(reused.tape_len(), fresh.tape_len());
+        let grads = |fwd: &gs_core::nn::MlpForward| {
+            let mut d_params = vec![0.0f32; mlp.num_params()];
+            let mut d_input = vec![0.0f32; input.len()];
+            mlp.backward(&input, fwd, &d_out, &mut d_params, Some(&mut d_input))
+                .unwrap();
+            (d_params, d_input)
+        };
+        assert_eq!(grads(&reused), grads(&fresh));
+    }
+    // A failed forward leaves an empty result that backward rejects.
+    let bad = vec![f32::NAN; 10];
+    assert!(mlp
+        .forward_train_into(&bad, 1, TapeMode::Cache, &mut reused)
+        .is_err());
+    assert_eq!(reused.rows(), 0);
+    assert!(reused.output.is_empty());
+    let mut d_params = vec![0.0f32; mlp.num_params()];
+    assert!(mlp
+        .backward(&[0.0; 10], &reused, &[0.0; 2], &mut d_params, None)
+        .is_err());
+}

@@ -112,7 +112,7 @@ pub enum TapeMode {
 }
 
 /// Result of [`Mlp::forward_train`]: the output and what backward needs.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct MlpForward {
     rows: usize,
     /// Sigmoid outputs, row-major `rows x out`.
@@ -347,44 +347,54 @@ impl Mlp {
             .map(move |b| b * BLOCK_ROWS..((b + 1) * BLOCK_ROWS).min(rows))
     }
 
-    fn forward_impl(
+    /// Forward into `dest`, reusing its buffers (their capacity survives from call to call,
+    /// which spares the page faults of fresh tape memory every training step).
+    fn forward_into(
         &self,
         input: &[f32],
         rows: usize,
         keep_hidden: bool,
-    ) -> Result<MlpForward, NnError> {
+        dest: &mut MlpForward,
+    ) -> Result<(), NnError> {
+        // Invalid until the forward succeeds: a failed call leaves an empty result.
+        dest.rows = 0;
+        dest.output.clear();
+        let mut blocks = dest.hidden_by_block.take().unwrap_or_default();
         self.check_input(input, rows)?;
         let (n_in, n_out) = (self.input_width(), self.output_width());
         let hidden_per_row = self.hidden_floats_per_row();
-        let mut output = vec![0.0f32; rows * n_out];
-        let tapes: Vec<Option<Vec<f32>>> = output
-            .par_chunks_mut(BLOCK_ROWS * n_out)
-            .enumerate()
-            .map(|(b, out_block)| {
-                let block_rows = out_block.len() / n_out;
-                let start = b * BLOCK_ROWS;
-                let x = &input[start * n_in..(start + block_rows) * n_in];
-                let mut hidden = vec![0.0f32; block_rows * hidden_per_row];
-                self.forward_block(x, block_rows, &mut hidden, out_block);
-                keep_hidden.then_some(hidden)
-            })
-            .collect();
-        check_finite("MLP output", &output)?;
-        let hidden = if keep_hidden {
-            Some(tapes.into_iter().map(Option::unwrap_or_default).collect())
-        } else {
-            None
+        dest.output.resize(rows * n_out, 0.0);
+        let run_block = |b: usize, out_block: &mut [f32], hidden: &mut Vec<f32>| {
+            let block_rows = out_block.len() / n_out;
+            let start = b * BLOCK_ROWS;
+            let x = &input[start * n_in..(start + block_rows) * n_in];
+            hidden.clear();
+            hidden.resize(block_rows * hidden_per_row, 0.0);
+            self.forward_block(x, block_rows, hidden, out_block);
         };
-        Ok(MlpForward {
-            rows,
-            output,
-            hidden_by_block: hidden,
-        })
+        let out_blocks = dest.output.par_chunks_mut(BLOCK_ROWS * n_out).enumerate();
+        if keep_hidden {
+            blocks.resize_with(rows.div_ceil(BLOCK_ROWS), Vec::new);
+            out_blocks
+                .zip(blocks.par_iter_mut())
+                .for_each(|((b, out_block), hidden)| run_block(b, out_block, hidden));
+        } else {
+            out_blocks.for_each(|(b, out_block)| run_block(b, out_block, &mut Vec::new()));
+        }
+        if let Err(e) = check_finite("MLP output", &dest.output) {
+            dest.output.clear();
+            return Err(e);
+        }
+        dest.rows = rows;
+        dest.hidden_by_block = keep_hidden.then_some(blocks);
+        Ok(())
     }
 
     /// Inference: sigmoid outputs, row-major `rows x out`. Keeps nothing for backward.
     pub fn forward(&self, input: &[f32], rows: usize) -> Result<Vec<f32>, NnError> {
-        Ok(self.forward_impl(input, rows, false)?.output)
+        let mut dest = MlpForward::default();
+        self.forward_into(input, rows, false, &mut dest)?;
+        Ok(dest.output)
     }
 
     /// Forward for training; `mode` decides what is kept for [`Mlp::backward`].
@@ -394,7 +404,22 @@ impl Mlp {
         rows: usize,
         mode: TapeMode,
     ) -> Result<MlpForward, NnError> {
-        self.forward_impl(input, rows, mode == TapeMode::Cache)
+        let mut dest = MlpForward::default();
+        self.forward_into(input, rows, mode == TapeMode::Cache, &mut dest)?;
+        Ok(dest)
+    }
+
+    /// [`Mlp::forward_train`] into a previous result, reusing its memory (the training loop
+    /// keeps one `MlpForward` per network). Bit-identical to `forward_train`. On error
+    /// `dest` is left empty (zero rows).
+    pub fn forward_train_into(
+        &self,
+        input: &[f32],
+        rows: usize,
+        mode: TapeMode,
+        dest: &mut MlpForward,
+    ) -> Result<(), NnError> {
+        self.forward_into(input, rows, mode == TapeMode::Cache, dest)
     }
 
     /// Backward of one block: adds the weight gradients into `d_params` (zeroed by the
@@ -462,8 +487,8 @@ impl Mlp {
     /// Backward of [`Mlp::forward_train`]. `input` must be the same batch and the parameters
     /// must not have changed since that forward (take the optimiser step after backward).
     /// Adds the parameter gradient into `d_params` (length `num_params()`); overwrites
-    /// `d_input` (row-major `rows x in`) when given. Nothing is written when an error is
-    /// returned.
+    /// `d_input` (row-major `rows x in`) when given. On error `d_params` is untouched and
+    /// `d_input` is either untouched (bad shapes or inputs) or zeroed (non-finite result).
     pub fn backward(
         &self,
         input: &[f32],
@@ -495,9 +520,8 @@ impl Mlp {
             check_finite("MLP input", input)?;
         }
 
-        // Written into a local buffer first so an error leaves the caller's `d_input` alone.
-        let mut d_input_local: Option<Vec<f32>> = d_input.as_ref().map(|d| vec![0.0f32; d.len()]);
-        let mut d_input_rest: Option<&mut [f32]> = d_input_local.as_deref_mut();
+        let mut d_input = d_input;
+        let mut d_input_rest: Option<&mut [f32]> = d_input.as_deref_mut();
         let mut total = vec![0.0f32; self.num_params()];
         let ranges: Vec<Range<usize>> = Self::block_ranges(rows).collect();
         for (wave_index, wave) in ranges.chunks(BLOCKS_PER_WAVE).enumerate() {
@@ -547,10 +571,17 @@ impl Mlp {
                 }
             }
         }
-        check_finite("MLP parameter gradient", &total)?;
-        if let (Some(d_input), Some(local)) = (d_input, &d_input_local) {
-            check_finite("MLP input gradient", local)?;
-            d_input.copy_from_slice(local);
+        let finite = check_finite("MLP parameter gradient", &total).and_then(|()| {
+            d_input
+                .as_deref()
+                .map_or(Ok(()), |d| check_finite("MLP input gradient", d))
+        });
+        if let Err(e) = finite {
+            // Never hand back a partial or non-finite input gradient.
+            if let Some(d) = d_input {
+                d.fill(0.0);
+            }
+            return Err(e);
         }
         for (d, t) in d_params.iter_mut().zip(&total) {
             *d += t;
