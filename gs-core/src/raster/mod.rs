@@ -94,6 +94,7 @@ impl<'a> GaussianView<'a> {
         self.opacity_logits.is_empty()
     }
 
+    #[inline]
     fn params(&self, i: usize) -> GaussianParams {
         let m = &self.means[3 * i..3 * i + 3];
         let s = &self.log_scales[3 * i..3 * i + 3];
