@@ -17,3 +17,4 @@ pub mod health;
 pub mod recorder;
 pub mod replay;
 pub mod runtime;
+pub mod sunaware_learner;

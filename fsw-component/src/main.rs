@@ -1,22 +1,24 @@
 //! `fsw-component`: runs the flight component live (UDP, and CAN when configured) or replays logs.
 //!
 //! ```text
-//! fsw-component [--config PATH] [--record DIR]
-//! fsw-component [--config PATH] --replay LOG [--replay LOG ...] [--replay-speed X|max]
+//! fsw-component [--config PATH] [--learner sunaware|nearest] [--record DIR]
+//! fsw-component [--config PATH] [--learner ...] --replay LOG [--replay LOG ...] [--replay-speed X|max]
 //! ```
+//! `--learner` picks the model: the Sun-aware online trainer (default) or the
+//! nearest-keyframe baseline (cheap and exact, used by the bus tests).
 //! Live mode prints one `listening frames=ADDR telemetry=ADDR` line on stdout once the sockets
 //! are bound (useful with port 0), then runs until SIGINT or SIGTERM. Replay mode exits when
 //! the logs are processed, printing a summary line. Exit status 2 for usage errors, 1 for
 //! configuration, transport or replay errors, each with a message on stderr.
 
 use fsw_component::config::ComponentConfig;
-use fsw_component::runtime::{self, ReplaySpeed};
+use fsw_component::runtime::{self, LearnerKind, ReplaySpeed};
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-const USAGE: &str = "usage: fsw-component [--config PATH] [--record DIR] \
-[--replay LOG]... [--replay-speed X|max]";
+const USAGE: &str = "usage: fsw-component [--config PATH] [--learner sunaware|nearest] \
+[--record DIR] [--replay LOG]... [--replay-speed X|max]";
 
 #[derive(Debug)]
 struct Options {
@@ -24,6 +26,7 @@ struct Options {
     record: Option<PathBuf>,
     replay: Vec<PathBuf>,
     speed: ReplaySpeed,
+    learner: LearnerKind,
 }
 
 fn parse(args: &[String]) -> Result<Options, String> {
@@ -32,6 +35,7 @@ fn parse(args: &[String]) -> Result<Options, String> {
         record: None,
         replay: Vec::new(),
         speed: ReplaySpeed::Scaled(1.0),
+        learner: LearnerKind::SunAware,
     };
     let mut it = args.iter();
     while let Some(flag) = it.next() {
@@ -54,6 +58,7 @@ fn parse(args: &[String]) -> Result<Options, String> {
                     },
                 };
             }
+            "--learner" => options.learner = value()?.parse()?,
             "--help" | "-h" => return Err(String::new()),
             other => return Err(format!("unknown argument {other:?}")),
         }
@@ -66,7 +71,7 @@ fn parse(args: &[String]) -> Result<Options, String> {
 
 async fn run(options: Options) -> Result<(), String> {
     let config = ComponentConfig::load(&options.config).map_err(|e| e.to_string())?;
-    let learner = runtime::build_learner(&config).map_err(|e| e.to_string())?;
+    let learner = runtime::build_learner(&config, options.learner).map_err(|e| e.to_string())?;
     if !options.replay.is_empty() {
         let summary = runtime::run_replay(&config, learner, &options.replay, options.speed)
             .await

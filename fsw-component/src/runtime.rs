@@ -16,6 +16,7 @@ use crate::learner::Learner;
 use crate::nearest_learner::NearestKeyframeLearner;
 use crate::recorder::Recorder;
 use crate::replay::{self, ReplayInput};
+use crate::sunaware_learner::{SunAwareLearner, SunAwareSettings};
 use crate::transport::{CanTransport, CanTransportConfig, TransportError, UdpTransport};
 use crate::worker::{load_checkpoint, CheckpointSettings, Notice, QueueLimits, Worker};
 use interfaces::messages::{
@@ -59,15 +60,41 @@ impl fmt::Display for RuntimeError {
 
 impl std::error::Error for RuntimeError {}
 
+/// Which model the trainer thread runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LearnerKind {
+    /// The Sun-aware online trainer (gs-core): what flies.
+    SunAware,
+    /// The nearest-keyframe baseline: cheap and exact, for bus tests.
+    NearestKeyframe,
+}
+
+impl std::str::FromStr for LearnerKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "sunaware" => Ok(Self::SunAware),
+            "nearest" => Ok(Self::NearestKeyframe),
+            other => Err(format!("learner {other:?}: want sunaware or nearest")),
+        }
+    }
+}
+
 /// Builds the model for `config`.
-///
-/// The Sun-aware online trainer (gs-core) plugs in here once `online.rs` exists; until then
-/// the nearest-keyframe baseline stands in.
-pub fn build_learner(config: &ComponentConfig) -> Result<Box<dyn Learner>, RuntimeError> {
+pub fn build_learner(
+    config: &ComponentConfig,
+    kind: LearnerKind,
+) -> Result<Box<dyn Learner>, RuntimeError> {
     let window = config
         .window_config()
         .map_err(|e| RuntimeError::Config(e.to_string()))?;
-    Ok(Box::new(NearestKeyframeLearner::new(window)))
+    Ok(match kind {
+        LearnerKind::NearestKeyframe => Box::new(NearestKeyframeLearner::new(window)),
+        LearnerKind::SunAware => Box::new(
+            SunAwareLearner::new(SunAwareSettings::with_window(window))
+                .map_err(RuntimeError::Config)?,
+        ),
+    })
 }
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {

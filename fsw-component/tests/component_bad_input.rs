@@ -4,7 +4,7 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::runtime::{build_learner, start, ComponentHandle};
+use fsw_component::runtime::{build_learner, start, ComponentHandle, LearnerKind};
 use interfaces::messages::{port, AckStatus, CameraFrame, CommandKind, PredictionSource};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
@@ -94,9 +94,13 @@ async fn bad_input_is_counted_and_neither_the_model_nor_valid_messages_are_lost(
     let checkpoint = dir.join("checkpoint.bin");
     let mut peer = Peer::new().await;
     let config = peer.config(checkpoint.clone());
-    let handle = start(&config, build_learner(&config).unwrap(), None)
-        .await
-        .unwrap();
+    let handle = start(
+        &config,
+        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
+        None,
+    )
+    .await
+    .unwrap();
     let (frames, telemetry) = (handle.frames_addr, handle.telemetry_addr);
     for k in 0..6 {
         send_step(&mut peer, k, &handle).await;
@@ -294,9 +298,13 @@ async fn a_flood_at_ten_times_the_scenario_rate_loses_no_valid_message() {
     let dir = temp_dir("flood");
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let handle = start(&config, build_learner(&config).unwrap(), None)
-        .await
-        .unwrap();
+    let handle = start(
+        &config,
+        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
+        None,
+    )
+    .await
+    .unwrap();
     for k in 0..5 {
         send_step(&mut peer, k, &handle).await;
     }

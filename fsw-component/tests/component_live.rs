@@ -8,7 +8,7 @@ use fsw_component::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
     ViewRequest,
 };
-use fsw_component::runtime::{build_learner, start};
+use fsw_component::runtime::{build_learner, start, LearnerKind};
 use interfaces::messages::{
     AckStatus, CommandKind, EventKind, Mode, PredictionSource, RenderRequest,
 };
@@ -38,9 +38,13 @@ async fn live_scenario_predictions_health_and_commands() {
     let dir = temp_dir("live");
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let handle = start(&config, build_learner(&config).unwrap(), None)
-        .await
-        .unwrap();
+    let handle = start(
+        &config,
+        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
+        None,
+    )
+    .await
+    .unwrap();
     let telemetry = handle.telemetry_addr;
 
     for k in 0..8 {
@@ -281,7 +285,7 @@ async fn health_keeps_1_hz_and_commands_are_acknowledged_during_a_long_round() {
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
     let learner = SlowRounds {
-        inner: build_learner(&config).unwrap(),
+        inner: build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
         round_time: Duration::from_millis(3500),
     };
     let handle = start(&config, Box::new(learner), None).await.unwrap();

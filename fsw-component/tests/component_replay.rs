@@ -8,7 +8,7 @@ use component_support::*;
 use fsw_component::bus::{CanFramer, UdpFramer};
 use fsw_component::logfmt::candump::{CanId, CanLogFrame, CanLogRecord, CanLogWriter, FrameData};
 use fsw_component::logfmt::udprec::{UdpRecord, UdpRecordingWriter};
-use fsw_component::runtime::{build_learner, run_replay, start, ReplaySpeed};
+use fsw_component::runtime::{build_learner, run_replay, start, LearnerKind, ReplaySpeed};
 use interfaces::messages::{AckStatus, CameraFrame, Command, CommandKind};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -22,9 +22,14 @@ async fn replay_checkpoint(
     speed: ReplaySpeed,
 ) -> (Vec<u8>, fsw_component::runtime::ReplaySummary) {
     let config = peer.config(checkpoint.to_path_buf());
-    let summary = run_replay(&config, build_learner(&config).unwrap(), logs, speed)
-        .await
-        .unwrap();
+    let summary = run_replay(
+        &config,
+        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
+        logs,
+        speed,
+    )
+    .await
+    .unwrap();
     (std::fs::read(checkpoint).unwrap(), summary)
 }
 
@@ -101,7 +106,7 @@ async fn live_and_replayed_scenarios_give_the_same_model() {
     let record = dir.join("record");
     let handle = start(
         &config,
-        build_learner(&config).unwrap(),
+        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
         Some(record.clone()),
     )
     .await

@@ -337,7 +337,7 @@ period_s = 0
 class Component:
     def __init__(self, config, *extra):
         self.process = subprocess.Popen(
-            [str(component_binary()), "--config", str(config), *extra],
+            [str(component_binary()), "--config", str(config), "--learner", "nearest", *extra],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )
         line = self.process.stdout.readline()
@@ -581,7 +581,8 @@ def test_live_run_and_replay_of_python_can_logs_give_the_same_model(tmp_path, li
     config = replay_dir / "component.toml"
     write_config(config, listener, replay_dir / "checkpoint.bin")
     for logs in ([log, rec], [live_dir / "rec" / "udp.rec", live_dir / "rec" / "can.log"]):
-        args = [str(component_binary()), "--config", str(config), "--replay-speed", "max"]
+        args = [str(component_binary()), "--config", str(config), "--learner", "nearest",
+                "--replay-speed", "max"]
         for path in logs:
             args += ["--replay", str(path)]
         done = subprocess.run(args, capture_output=True, text=True, timeout=60)
@@ -595,7 +596,7 @@ def test_can_enabled_without_the_interface_is_a_clear_error(tmp_path, listener):
     config = tmp_path / "component.toml"
     write_config(config, listener, tmp_path / "checkpoint.bin", can_enabled=True,
                  interface="nosuchcan0")
-    done = subprocess.run([str(component_binary()), "--config", str(config)],
+    done = subprocess.run([str(component_binary()), "--config", str(config), "--learner", "nearest"],
                           capture_output=True, text=True, timeout=30)
     assert done.returncode == 1
     assert "nosuchcan0" in done.stderr and "enabled = false" in done.stderr, done.stderr
