@@ -1,0 +1,254 @@
+//! Experiment presets (`config/presets/NAME.toml`): how much of each scenario to render and how
+//! big a model to train, so the same table runs in under an hour on a 2-core machine (`cpu`)
+//! or at the paper's size on a bigger one (`paper`).
+//!
+//! Invariants: unknown fields are errors; `validate` checks every value's range and names the
+//! bad field; `apply` changes only the scenario fields the preset names (resolution, cadence,
+//! duration, evaluation views, ray-tracing samples) and re-validates the scenario.
+
+use crate::scenario::{Scenario, ScenarioError};
+use serde::Deserialize;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// Why a preset could not be used.
+#[derive(Debug)]
+pub enum PresetError {
+    Io {
+        path: PathBuf,
+        message: String,
+    },
+    Parse {
+        source_name: String,
+        message: String,
+    },
+    Invalid(String),
+    Scenario(ScenarioError),
+}
+
+impl fmt::Display for PresetError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            PresetError::Io { path, message } => {
+                write!(f, "cannot read preset {}: {message}", path.display())
+            }
+            PresetError::Parse {
+                source_name,
+                message,
+            } => write!(f, "preset {source_name}: {message}"),
+            PresetError::Invalid(m) => write!(f, "preset: {m}"),
+            PresetError::Scenario(e) => write!(f, "preset applied to scenario: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for PresetError {}
+
+/// How the Gaussians start.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum InitKind {
+    /// Points sampled uniformly by area on the target's surface (the paper).
+    Surface,
+    /// Random points in the target's bounding sphere.
+    Random,
+}
+
+/// One preset.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Preset {
+    pub name: String,
+    /// Divides the SPEED camera (1920x1200); the paper uses 2.
+    pub downsample: u32,
+    /// Seconds between frames.
+    pub cadence_s: f64,
+    /// Sequence length in chief orbits (ignored when `frames` is set).
+    pub orbits: f64,
+    pub frames: Option<u32>,
+    pub eval_views: u32,
+    /// Evaluation views shown in figure.png.
+    pub figure_views: u32,
+    pub samples_per_pixel: u32,
+    /// Keyframe window W.
+    pub window: usize,
+    /// Minimum view change for a new keyframe, degrees.
+    pub min_view_angle_deg: f64,
+    /// Densify and prune every this many rounds (paper: 10).
+    pub densify_every_rounds: u32,
+    pub init: InitKind,
+    /// Initial Gaussians (paper: 10,000).
+    pub init_points: u32,
+    /// Densification stops adding Gaussians at this count.
+    pub max_gaussians: usize,
+    /// Side of the shadow pass's light image, pixels.
+    pub light_resolution_px: u32,
+    /// Configurations to run, in order.
+    pub configs: Vec<String>,
+    pub seed: u64,
+}
+
+impl Default for Preset {
+    fn default() -> Self {
+        Preset {
+            name: "default".into(),
+            downsample: 2,
+            cadence_s: 5.0,
+            orbits: 5.0,
+            frames: None,
+            eval_views: 100,
+            figure_views: 3,
+            samples_per_pixel: 4,
+            window: 10,
+            min_view_angle_deg: 10.0,
+            densify_every_rounds: 10,
+            init: InitKind::Surface,
+            init_points: 10_000,
+            max_gaussians: 200_000,
+            light_resolution_px: 256,
+            configs: ["a", "b", "c", "d"].map(String::from).to_vec(),
+            seed: 0,
+        }
+    }
+}
+
+impl Preset {
+    /// Parses and validates preset text.
+    pub fn from_toml_str(text: &str, source_name: &str) -> Result<Preset, PresetError> {
+        let preset: Preset = toml::from_str(text).map_err(|e| PresetError::Parse {
+            source_name: source_name.to_string(),
+            message: e.to_string(),
+        })?;
+        preset.validate()?;
+        Ok(preset)
+    }
+
+    /// Reads `NAME_OR_PATH`: an existing file, else `config/presets/NAME.toml` under the
+    /// current folder or the workspace root this binary was built from.
+    pub fn load(name_or_path: &str) -> Result<Preset, PresetError> {
+        let direct = PathBuf::from(name_or_path);
+        let candidates = [
+            direct.clone(),
+            PathBuf::from("config/presets").join(format!("{name_or_path}.toml")),
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../config/presets")
+                .join(format!("{name_or_path}.toml")),
+        ];
+        let path = candidates
+            .iter()
+            .find(|p| p.is_file())
+            .cloned()
+            .ok_or_else(|| PresetError::Io {
+                path: candidates[1].clone(),
+                message: format!(
+                    "no preset file {name_or_path:?} (looked for it as a path and in config/presets/)"
+                ),
+            })?;
+        let text = std::fs::read_to_string(&path).map_err(|e| PresetError::Io {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        Preset::from_toml_str(&text, &path.display().to_string())
+    }
+
+    /// Checks every value; the error names the field.
+    pub fn validate(&self) -> Result<(), PresetError> {
+        let bad = |m: String| Err(PresetError::Invalid(m));
+        if self.downsample == 0 || self.downsample > 64 {
+            return bad(format!("downsample {} is outside 1..=64", self.downsample));
+        }
+        if !(self.cadence_s.is_finite() && self.cadence_s > 0.0) {
+            return bad(format!("cadence_s {} must be positive", self.cadence_s));
+        }
+        if self.frames.is_none() && !(self.orbits.is_finite() && self.orbits > 0.0) {
+            return bad(format!("orbits {} must be positive", self.orbits));
+        }
+        if self.frames == Some(0) {
+            return bad("frames must be positive".into());
+        }
+        if self.eval_views == 0 {
+            return bad("eval_views must be positive".into());
+        }
+        if self.window < 2 {
+            return bad(format!("window {} must be at least 2", self.window));
+        }
+        if !(self.min_view_angle_deg.is_finite()
+            && (0.0..=180.0).contains(&self.min_view_angle_deg))
+        {
+            return bad(format!(
+                "min_view_angle_deg {} is outside [0, 180]",
+                self.min_view_angle_deg
+            ));
+        }
+        if self.densify_every_rounds == 0 {
+            return bad("densify_every_rounds must be positive".into());
+        }
+        if self.init_points < 2 {
+            return bad("init_points must be at least 2".into());
+        }
+        if self.max_gaussians == 0 {
+            return bad("max_gaussians must be positive".into());
+        }
+        if self.configs.is_empty() {
+            return bad("configs is empty".into());
+        }
+        for c in &self.configs {
+            if !["a", "b", "c", "d"].contains(&c.as_str()) {
+                return bad(format!(
+                    "configs: unknown configuration {c:?} (a, b, c or d)"
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The scenario with this preset's resolution, cadence, duration, views and samples.
+    pub fn apply(&self, scenario: &Scenario) -> Result<Scenario, PresetError> {
+        let mut s = scenario.clone();
+        s.camera.downsample = self.downsample;
+        s.sequence.cadence_s = self.cadence_s;
+        s.sequence.orbits = self.orbits;
+        s.sequence.frames = self.frames;
+        s.sequence.eval_views = self.eval_views;
+        s.render.samples_per_pixel = self.samples_per_pixel;
+        s.validate().map_err(PresetError::Scenario)?;
+        Ok(s)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_presets_parse_and_apply() {
+        for name in ["cpu", "paper"] {
+            let p = Preset::load(name).unwrap();
+            assert_eq!(p.name, name);
+            let s = p.apply(&Scenario::default()).unwrap();
+            assert_eq!(s.camera.downsample, p.downsample);
+            assert_eq!(s.sequence.eval_views, p.eval_views);
+        }
+        let paper = Preset::load("paper").unwrap();
+        let s = paper.apply(&Scenario::default()).unwrap();
+        let k = s.camera_intrinsics();
+        assert_eq!((k.width, k.height, paper.window), (960, 600, 10));
+        assert_eq!(s.frame_count(), 5764);
+    }
+
+    #[test]
+    fn bad_presets_name_the_field() {
+        let e = Preset::from_toml_str("window = 1", "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("window"), "{e}");
+        let e = Preset::from_toml_str("configs = [\"e\"]", "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("configs"), "{e}");
+        let e = Preset::from_toml_str("colour = 1", "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("colour"), "{e}");
+    }
+}

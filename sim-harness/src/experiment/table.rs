@@ -1,0 +1,168 @@
+//! The results table: one row per (target, configuration), written as CSV and as Markdown laid
+//! out like the paper's Table I (configurations down, targets across, SSIM / PSNR / number of
+//! Gaussians per target, best value per target in bold), followed by a training-time table.
+//!
+//! Invariants: the CSV header is exactly `target,config,ssim,psnr,gaussians,train_s,step_ms`
+//! and rows keep the order they were given in; targets and configurations appear in the
+//! Markdown in order of first appearance; a missing (target, configuration) cell prints `-`.
+
+use std::fmt::Write as _;
+
+/// The CSV header, exactly.
+pub const CSV_HEADER: &str = "target,config,ssim,psnr,gaussians,train_s,step_ms";
+
+/// One trained and evaluated configuration on one target.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ResultRow {
+    pub target: String,
+    /// `a`..`d`.
+    pub config: String,
+    /// Mean SSIM over the evaluation views (full frame).
+    pub ssim: f64,
+    /// Mean PSNR over the evaluation views (full frame), dB.
+    pub psnr: f64,
+    pub gaussians: usize,
+    /// Wall time spent in training rounds (densification included), seconds.
+    pub train_s: f64,
+    /// Mean wall time of one training step (forward, backward, Adam), milliseconds.
+    pub step_ms: f64,
+}
+
+/// The paper's row label of a configuration letter.
+pub fn config_label(config: &str) -> String {
+    match config {
+        "a" => "(a) 3DGS".into(),
+        "b" => "(b) + Illum.".into(),
+        "c" => "(c) + Shadow Splatting".into(),
+        "d" => "(d) + Isotropic Loss".into(),
+        other => format!("({other})"),
+    }
+}
+
+/// Title-case display name of a target (`cassini` -> `Cassini`).
+pub fn target_label(target: &str) -> String {
+    let mut chars = target.chars();
+    match chars.next() {
+        Some(first) => first.to_uppercase().chain(chars).collect(),
+        None => String::new(),
+    }
+}
+
+fn csv_field(text: &str) -> String {
+    if text.contains([',', '"', '\n']) {
+        format!("\"{}\"", text.replace('"', "\"\""))
+    } else {
+        text.to_string()
+    }
+}
+
+/// CSV text: the header and one line per row.
+pub fn to_csv(rows: &[ResultRow]) -> String {
+    let mut out = String::from(CSV_HEADER);
+    out.push('\n');
+    for r in rows {
+        let _ = writeln!(
+            out,
+            "{},{},{:.4},{:.2},{},{:.1},{:.1}",
+            csv_field(&r.target),
+            csv_field(&r.config),
+            r.ssim,
+            r.psnr,
+            r.gaussians,
+            r.train_s,
+            r.step_ms
+        );
+    }
+    out
+}
+
+fn first_appearance<'a>(items: impl Iterator<Item = &'a str>) -> Vec<&'a str> {
+    let mut seen: Vec<&str> = Vec::new();
+    for item in items {
+        if !seen.contains(&item) {
+            seen.push(item);
+        }
+    }
+    seen
+}
+
+/// Gaussians as the paper prints them (42.7K).
+pub fn gaussians_label(n: usize) -> String {
+    if n >= 1000 {
+        format!("{:.1}K", n as f64 / 1000.0)
+    } else {
+        n.to_string()
+    }
+}
+
+/// Markdown: Table I layout, then training wall time and step time per target.
+pub fn to_markdown(rows: &[ResultRow]) -> String {
+    let targets = first_appearance(rows.iter().map(|r| r.target.as_str()));
+    let configs = first_appearance(rows.iter().map(|r| r.config.as_str()));
+    let cell = |t: &str, c: &str| rows.iter().find(|r| r.target == t && r.config == c);
+    let best = |t: &str, value: fn(&ResultRow) -> f64| {
+        rows.iter()
+            .filter(|r| r.target == t)
+            .map(value)
+            .fold(f64::NEG_INFINITY, f64::max)
+    };
+    let mut out = String::new();
+    out.push_str("| Config. |");
+    for t in &targets {
+        let name = target_label(t);
+        let _ = write!(out, " {name} SSIM↑ | {name} PSNR↑ | {name} \\|G\\| |");
+    }
+    out.push_str("\n|---|");
+    for _ in &targets {
+        out.push_str("---:|---:|---:|");
+    }
+    out.push('\n');
+    for c in &configs {
+        let _ = write!(out, "| {} |", config_label(c));
+        for t in &targets {
+            match cell(t, c) {
+                Some(r) => {
+                    let bold = |v: f64, b: f64, text: String| {
+                        if v == b {
+                            format!("**{text}**")
+                        } else {
+                            text
+                        }
+                    };
+                    let _ = write!(
+                        out,
+                        " {} | {} | {} |",
+                        bold(r.ssim, best(t, |r| r.ssim), format!("{:.4}", r.ssim)),
+                        bold(r.psnr, best(t, |r| r.psnr), format!("{:.2}", r.psnr)),
+                        gaussians_label(r.gaussians)
+                    );
+                }
+                None => out.push_str(" - | - | - |"),
+            }
+        }
+        out.push('\n');
+    }
+    out.push_str("\nTraining wall time (s) / mean step time (ms):\n\n| Config. |");
+    for t in &targets {
+        let name = target_label(t);
+        let _ = write!(out, " {name} train s | {name} step ms |");
+    }
+    out.push_str("\n|---|");
+    for _ in &targets {
+        out.push_str("---:|---:|");
+    }
+    out.push('\n');
+    for c in &configs {
+        let _ = write!(out, "| {} |", config_label(c));
+        for t in &targets {
+            match cell(t, c) {
+                Some(r) => {
+                    let _ = write!(out, " {:.1} | {:.1} |", r.train_s, r.step_ms);
+                }
+                None => out.push_str(" - | - |"),
+            }
+        }
+        out.push('\n');
+    }
+    out
+}

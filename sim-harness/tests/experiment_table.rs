@@ -1,0 +1,187 @@
+//! The results table's writers (CSV header and row format, Markdown layout) and a tiny
+//! end-to-end `table` job and demo: every file written, metrics finite, rows as expected.
+
+use sim_harness::experiment::demo::run_demo_with;
+use sim_harness::experiment::preset::Preset;
+use sim_harness::experiment::table::{to_csv, to_markdown, ResultRow, CSV_HEADER};
+use sim_harness::experiment::table_job::{run_table, TableJob};
+use sim_harness::scenario::Scenario;
+use std::path::{Path, PathBuf};
+
+fn row(target: &str, config: &str, psnr: f64, ssim: f64) -> ResultRow {
+    ResultRow {
+        target: target.into(),
+        config: config.into(),
+        ssim,
+        psnr,
+        gaussians: 42_700,
+        train_s: 12.34,
+        step_ms: 5.67,
+    }
+}
+
+#[test]
+fn csv_has_the_exact_header_and_one_line_per_row() {
+    let rows = [
+        row("cassini", "a", 26.514, 0.98712),
+        row("rosetta", "d", 35.27, 0.9905),
+    ];
+    let csv = to_csv(&rows);
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(
+        lines[0],
+        "target,config,ssim,psnr,gaussians,train_s,step_ms"
+    );
+    assert_eq!(lines[0], CSV_HEADER);
+    assert_eq!(lines[1], "cassini,a,0.9871,26.51,42700,12.3,5.7");
+    assert_eq!(lines[2], "rosetta,d,0.9905,35.27,42700,12.3,5.7");
+    assert_eq!(lines.len(), 3);
+    // A name with a comma is quoted, so the column count stays 7.
+    let odd = to_csv(&[row("my,target", "b", 1.0, 0.5)]);
+    assert!(odd.lines().nth(1).unwrap().starts_with("\"my,target\",b,"));
+}
+
+#[test]
+fn markdown_is_laid_out_like_table_one() {
+    let rows = [
+        row("cassini", "a", 26.51, 0.9871),
+        row("cassini", "b", 30.63, 0.9894),
+        row("starlink", "a", 25.05, 0.9539),
+        row("starlink", "b", 24.00, 0.9600),
+    ];
+    let md = to_markdown(&rows);
+    let lines: Vec<&str> = md.lines().collect();
+    assert_eq!(
+        lines[0],
+        "| Config. | Cassini SSIM↑ | Cassini PSNR↑ | Cassini \\|G\\| | Starlink SSIM↑ | Starlink PSNR↑ | Starlink \\|G\\| |"
+    );
+    assert_eq!(lines[1], "|---|---:|---:|---:|---:|---:|---:|");
+    // Best per target in bold, per metric.
+    assert_eq!(
+        lines[2],
+        "| (a) 3DGS | 0.9871 | 26.51 | 42.7K | 0.9539 | **25.05** | 42.7K |"
+    );
+    assert_eq!(
+        lines[3],
+        "| (b) + Illum. | **0.9894** | **30.63** | 42.7K | **0.9600** | 24.00 | 42.7K |"
+    );
+    assert!(md.contains(
+        "| Config. | Cassini train s | Cassini step ms | Starlink train s | Starlink step ms |"
+    ));
+    assert!(md.contains("| (a) 3DGS | 12.3 | 5.7 | 12.3 | 5.7 |"));
+    // A missing cell prints dashes instead of shifting the columns.
+    let md = to_markdown(&rows[..3]);
+    assert!(
+        md.contains("| (b) + Illum. | **0.9894** | **30.63** | 42.7K | - | - | - |"),
+        "{md}"
+    );
+}
+
+fn quick_scenario() -> Scenario {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/scenarios/quick.toml");
+    Scenario::load(&path).unwrap()
+}
+
+fn tiny_preset(configs: &[&str]) -> Preset {
+    Preset {
+        name: "tiny".into(),
+        downsample: 40,
+        cadence_s: 10.0,
+        frames: Some(7),
+        eval_views: 2,
+        figure_views: 2,
+        samples_per_pixel: 1,
+        window: 3,
+        init_points: 300,
+        max_gaussians: 600,
+        light_resolution_px: 32,
+        densify_every_rounds: 2,
+        configs: configs.iter().map(|c| c.to_string()).collect(),
+        ..Preset::default()
+    }
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sim-harness-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+#[test]
+fn tiny_table_job_writes_every_file_with_finite_metrics() {
+    let out = scratch("table");
+    let job = TableJob {
+        preset: tiny_preset(&["a", "d"]),
+        scenarios: vec![quick_scenario()],
+        out_dir: out.clone(),
+        keep_data: false,
+    };
+    let result = run_table(&job, &mut |_| {}).unwrap();
+    assert_eq!(result.rows.len(), 2);
+    for (r, config) in result.rows.iter().zip(["a", "d"]) {
+        assert_eq!((r.target.as_str(), r.config.as_str()), ("quick", config));
+        assert!(r.psnr.is_finite() && r.psnr > 5.0, "{r:?}");
+        assert!(r.ssim.is_finite() && r.ssim > 0.0 && r.ssim <= 1.0, "{r:?}");
+        assert!(
+            r.gaussians > 0 && r.train_s > 0.0 && r.step_ms > 0.0,
+            "{r:?}"
+        );
+    }
+    for run in &result.runs {
+        // 7 frames with the tumble turning the view 20 deg each: all keyframes, W = 3, so
+        // a round after each frame from the third on.
+        assert_eq!(run.rounds, 5, "{}", run.config);
+        assert_eq!(run.steps + run.skipped_nonfinite_steps, 15);
+        assert_eq!(run.eval.views, 2);
+    }
+    let csv = std::fs::read_to_string(out.join("table.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 3);
+    assert!(csv.starts_with("target,config,ssim,psnr,gaussians,train_s,step_ms\n"));
+    let md = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(md.contains("(a) 3DGS") && md.contains("(d) + Isotropic Loss"));
+    let figure = image::open(out.join("figure.png")).unwrap();
+    // Two rows (evaluation views) of three columns (truth, a, d), each cell at least 200 px.
+    assert!(figure.width() >= 3 * 200 && figure.height() >= 2 * 100);
+    let runs: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("runs.json")).unwrap()).unwrap();
+    assert_eq!(runs.as_array().unwrap().len(), 2);
+
+    // A second run in the same folder reads the rendered scene from the cache and gives
+    // bit-identical numbers.
+    let again = run_table(&job, &mut |_| {}).unwrap();
+    assert_eq!(again.render_s, 0.0);
+    for (a, b) in result.rows.iter().zip(&again.rows) {
+        assert_eq!((a.psnr, a.ssim, a.gaussians), (b.psnr, b.ssim, b.gaussians));
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn tiny_demo_writes_every_file() {
+    let out = scratch("demo");
+    let preset = tiny_preset(&["d"]);
+    let scenario = preset.apply(&quick_scenario()).unwrap();
+    let summary = run_demo_with(&scenario, &preset, &out, &mut |_| {}).unwrap();
+    assert!(summary.run.eval.psnr_db.is_finite());
+    for file in [
+        "renders.png",
+        "loss_curve.csv",
+        "loss_curve.png",
+        "metrics.json",
+        "model.ply",
+        "checkpoint.bin",
+    ] {
+        let meta = std::fs::metadata(out.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"));
+        assert!(meta.len() > 0, "{file} is empty");
+    }
+    let curve = std::fs::read_to_string(out.join("loss_curve.csv")).unwrap();
+    assert_eq!(curve.lines().count(), 1 + summary.run.rounds as usize);
+    for line in curve.lines().skip(1) {
+        let loss: f64 = line.split(',').nth(2).unwrap().parse().unwrap();
+        assert!(loss.is_finite() && loss > 0.0, "{line}");
+    }
+    // The checkpoint restores the trained model exactly.
+    let restored = gs_core::sunaware::checkpoint::load_file(out.join("checkpoint.bin")).unwrap();
+    assert_eq!(restored.model.len(), summary.run.gaussians);
+    let _ = std::fs::remove_dir_all(&out);
+}
