@@ -335,9 +335,9 @@ period_s = 0
 
 
 class Component:
-    def __init__(self, config, *extra):
+    def __init__(self, config, *extra, learner="nearest"):
         self.process = subprocess.Popen(
-            [str(component_binary()), "--config", str(config), "--learner", "nearest", *extra],
+            [str(component_binary()), "--config", str(config), "--learner", learner, *extra],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )
         line = self.process.stdout.readline()
@@ -361,7 +361,7 @@ class Component:
     def command(self, sequence, opcode, args=b""):
         self.send(PORT_COMMAND, command(sequence, opcode, args), telecommand=True)
 
-    def step(self, k):
+    def step(self, k, size=SIZE):
         """Telemetry at k+1 s (and 0 s first), then frame k at k+0.5 s."""
         if k == 0:
             self.send(PORT_POSE, target_pose(0))
@@ -371,7 +371,8 @@ class Component:
         self.send(PORT_SUN, sun_vector(t))
         # Frames and telemetry use different sockets: give the telemetry a head start.
         time.sleep(0.05)
-        self.send(PORT_FRAME, camera_frame(k, k * 1_000_000 + 500_000), to=self.frames)
+        pixels = frame_pixels(k) if size == SIZE else bytes((k * 41 + i) % 256 for i in range(size * size * 3))
+        self.send(PORT_FRAME, camera_frame(k, k * 1_000_000 + 500_000, pixels, size), to=self.frames)
 
     def stop(self):
         self.process.terminate()
@@ -389,10 +390,10 @@ def listener():
     listener.close()
 
 
-def start(tmp_path, listener, *extra):
+def start(tmp_path, listener, *extra, learner="nearest"):
     config = tmp_path / "component.toml"
     write_config(config, listener, tmp_path / "checkpoint.bin")
-    return Component(config, *extra)
+    return Component(config, *extra, learner=learner)
 
 
 def play_scenario(component, listener, steps=8):
@@ -511,6 +512,33 @@ def test_bad_input_is_counted_and_the_component_keeps_going(tmp_path, listener):
         component.command(3, 3)
         assert listener.ack(3)["status"] == ACK_OK
         assert (tmp_path / "checkpoint.bin").read_bytes() == model, "bad input changed the model"
+    finally:
+        assert component.stop() == 0
+
+
+def test_health_keeps_1_hz_while_the_sun_aware_trainer_trains(tmp_path, listener):
+    """The real trainer: 128x128 frames make each round (W = 4 steps) last over a second."""
+    size = 128
+    component = start(tmp_path, listener, learner="sunaware")
+    try:
+        first_health = len(listener.health)
+        for k in range(6):
+            component.step(k, size=size)
+            time.sleep(0.2)
+        h = listener.wait(
+            lambda s: s.health[-1][1] if s.health and s.health[-1][1]["rounds"] == 3 else None,
+            timeout=60, what="three training rounds",
+        )
+        listener.fresh_health()
+        durations = {h["last_round_duration_ms"] for _, h in listener.health if h["rounds"]}
+        assert max(durations) >= 1000, f"rounds too short to test health during them: {durations}"
+        times = [t for t, _ in listener.health[first_health:]]
+        gaps = [b - a for a, b in zip(times, times[1:])]
+        assert all(0.75 < g < 1.25 for g in gaps), f"health intervals {gaps}"
+        assert h["frames_used"] == 6 and h["gaussians"] > 0 and h["last_loss"] is not None
+        for k in range(6):  # the initial Gaussians render from the first frame on
+            p = next(p for p in listener.predictions if p["source"] == ("frame", k))
+            assert len(p["pixels"]) == size * size * 3 and math.isfinite(p["psnr_db"])
     finally:
         assert component.stop() == 0
 
