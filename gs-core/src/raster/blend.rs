@@ -136,10 +136,10 @@ fn row_gauss(
             let power = -0.5 * a * dx * dx - bdy * dx + base;
             *o = fast_exp(power);
         }
-        // Bit i is the inverted sign of `o g - cutoff` (+0 when equal: kept, like `>=`).
+        // A plain comparison per lane: compiles to one compare and a move-mask.
         let mut m = 0u32;
         for (i, &g) in group.iter().enumerate() {
-            m |= (!(s.opacity * g - cutoff).to_bits() >> 31) << i;
+            m |= u32::from(s.opacity * g >= cutoff) << i;
         }
         let m = m as u16;
         mask |= m << (gi * LANE_GROUP);
