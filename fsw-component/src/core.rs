@@ -69,6 +69,8 @@ pub struct BusCounters {
     pub send_errors: u64,
     /// Datagrams above 1472 bytes, dropped by the UDP transport.
     pub oversized_datagrams: u64,
+    /// Socket receive errors (UDP or CAN).
+    pub receive_errors: u64,
 }
 
 /// Everything the core counts, for tests and health.
@@ -172,6 +174,13 @@ impl BusCore {
 
     pub fn count_send_error(&mut self) {
         self.counters.send_errors += 1;
+    }
+
+    /// A socket receive error; true for the first one (worth a log line).
+    pub fn count_receive_error(&mut self) -> bool {
+        self.counters.receive_errors += 1;
+        self.error_event(ErrorCode::Internal);
+        self.counters.receive_errors == 1
     }
 
     /// Datagrams the transport dropped as oversized (reported as decode errors).

@@ -408,29 +408,38 @@ pub async fn start(
                 // samples sent before it.
                 received = recv(telemetry.as_ref(), &mut telemetry_buf) => {
                     let now = engine.clock.now_us();
-                    if let Ok((len, from)) = received {
-                        if let Some(r) = recorder.as_mut() {
-                            r.udp(now, from.port(), telemetry_addr.port(), &telemetry_buf[..len]);
+                    match received {
+                        Ok((len, from)) => {
+                            if let Some(r) = recorder.as_mut() {
+                                r.udp(now, from.port(), telemetry_addr.port(), &telemetry_buf[..len]);
+                            }
+                            lock(&engine.core).handle_datagram(&telemetry_buf[..len], now);
                         }
-                        lock(&engine.core).handle_datagram(&telemetry_buf[..len], now);
+                        Err(error) => receive_failed(&engine, &error).await,
                     }
                 }
                 received = recv(frames.as_ref(), &mut frame_buf) => {
                     let now = engine.clock.now_us();
-                    if let Ok((len, from)) = received {
-                        if let Some(r) = recorder.as_mut() {
-                            r.udp(now, from.port(), frames_addr.port(), &frame_buf[..len]);
+                    match received {
+                        Ok((len, from)) => {
+                            if let Some(r) = recorder.as_mut() {
+                                r.udp(now, from.port(), frames_addr.port(), &frame_buf[..len]);
+                            }
+                            lock(&engine.core).handle_datagram(&frame_buf[..len], now);
                         }
-                        lock(&engine.core).handle_datagram(&frame_buf[..len], now);
+                        Err(error) => receive_failed(&engine, &error).await,
                     }
                 }
                 received = recv_can(engine.can.as_ref()) => {
                     let now = engine.clock.now_us();
-                    if let Ok(frame) = received {
-                        if let Some(r) = recorder.as_mut() {
-                            r.can(now, frame.id(), frame.data(), frame.is_fd());
+                    match received {
+                        Ok(frame) => {
+                            if let Some(r) = recorder.as_mut() {
+                                r.can(now, frame.id(), frame.data(), frame.is_fd());
+                            }
+                            lock(&engine.core).handle_can_frame(true, frame.id(), frame.data(), now);
                         }
-                        lock(&engine.core).handle_can_frame(true, frame.id(), frame.data(), now);
+                        Err(error) => receive_failed(&engine, &error).await,
                     }
                 }
                 _ = housekeeping.tick() => {
@@ -464,6 +473,16 @@ pub async fn start(
         stop,
         task,
     })
+}
+
+/// A socket error (e.g. the CAN interface went down): counted, reported as an event, and
+/// a short pause so that a persistent error does not spin the bus task.
+async fn receive_failed(engine: &Engine, error: &TransportError) {
+    let first = lock(&engine.core).count_receive_error();
+    if first {
+        eprintln!("fsw-component: receive failed: {error}");
+    }
+    tokio::time::sleep(Duration::from_millis(10)).await;
 }
 
 async fn recv(
