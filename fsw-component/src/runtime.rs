@@ -165,6 +165,7 @@ impl Engine {
                 period: (config.checkpoint.period_s > 0)
                     .then(|| Duration::from_secs(config.checkpoint.period_s)),
             },
+            config.training.threads,
         )
         .map_err(|source| RuntimeError::Io {
             what: "start the trainer thread".into(),

@@ -15,7 +15,9 @@
 //! frame, live and on replay alike. For each frame the worker first
 //! renders the prediction at the frame's pose and Sun (before training on it), then offers
 //! the frame and runs a round if one is due; the rounds a sequence of frames triggers are
-//! therefore a function of that sequence alone (replay equals live).
+//! therefore a function of that sequence alone (replay equals live). The model's parallel
+//! work runs on the worker's own rayon pool of `training.threads` threads, never on the
+//! bus side's threads, and a fixed count keeps results bit-identical.
 
 use crate::checkpoint;
 use crate::imagemetrics;
@@ -262,12 +264,19 @@ enum Job {
 }
 
 impl Worker {
-    /// Starts the thread that owns `learner`.
+    /// Starts the thread that owns `learner`; the model's parallel work runs on its own pool
+    /// of `threads` threads (results are bit-identical for a given thread count).
     pub fn start(
         learner: Box<dyn Learner>,
         limits: QueueLimits,
         checkpoints: CheckpointSettings,
+        threads: usize,
     ) -> std::io::Result<Self> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .thread_name(|i| format!("trainer-{i}"))
+            .build()
+            .map_err(std::io::Error::other)?;
         let shared = Arc::new(WorkerShared {
             limits,
             queues: Mutex::new(Queues::default()),
@@ -281,7 +290,7 @@ impl Worker {
         let thread_shared = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
             .name("trainer".into())
-            .spawn(move || run(learner, &thread_shared, &checkpoints))?;
+            .spawn(move || pool.install(|| run(learner, &thread_shared, &checkpoints)))?;
         Ok(Self {
             shared,
             thread: Some(thread),
@@ -632,6 +641,7 @@ mod tests {
                 path: dir.join("ckpt.bin"),
                 period: None,
             },
+            1,
         )
         .unwrap();
         let shared = Arc::clone(&worker.shared);
