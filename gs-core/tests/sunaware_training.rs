@@ -55,6 +55,9 @@ fn trainer(scene: &SyntheticScene, variant: Variant) -> SunAwareTrainer {
             resolution_px: 96,
             ..Default::default()
         },
+        // Densify from the start so the short runs exercise cloning and splitting (and
+        // their random draws) in the determinism and resume checks.
+        densify_from_step: 0,
         ..SunAwareConfig::for_variant(variant)
     };
     let (points, _normals, colours) = scene.surface_samples(0.02, 3);

@@ -17,6 +17,7 @@
 //!    sh dc, sh rest, opacity, scale, rotation, feature, shadow latent, appearance MLP, shadow
 //!    MLP), densify 6 f32 (grad threshold, percent dense, min opacity, max screen radius,
 //!    max world scale fraction, split divisor), size_prune u8, max_gaussians u64,
+//!    densify_from_step u64,
 //!    background 3 f32, near_m f32, seed u64, feature_init_std f32;
 //! 2. scene box: min 3 f32, max 3 f32;
 //! 3. Gaussians: count u64, then each group of `Param::ALL` in order (count x width f32,
@@ -201,6 +202,7 @@ fn write_config(w: &mut Writer, c: &SunAwareConfig) {
     ]);
     w.u8(c.size_prune as u8);
     w.u64(c.max_gaussians as u64);
+    w.u64(c.densify_from_step);
     w.f32s(&c.background);
     w.f32(c.near_m);
     w.u64(c.seed);
@@ -260,6 +262,7 @@ fn read_config(r: &mut Reader) -> Result<SunAwareConfig, SunAwareError> {
     };
     let size_prune = r.u8("size_prune")? != 0;
     let max_gaussians = r.usize("max_gaussians")?;
+    let densify_from_step = r.u64("densify_from_step")?;
     let bg = r.f32s(3, "background")?;
     let config = SunAwareConfig {
         variant,
@@ -276,6 +279,7 @@ fn read_config(r: &mut Reader) -> Result<SunAwareConfig, SunAwareError> {
         densify,
         size_prune,
         max_gaussians,
+        densify_from_step,
         background: [bg[0], bg[1], bg[2]],
         near_m: r.f32("near_m")?,
         seed: r.u64("seed")?,

@@ -193,6 +193,10 @@ pub struct SunAwareConfig {
     pub size_prune: bool,
     /// Densification stops adding Gaussians at this count (pruning continues).
     pub max_gaussians: usize,
+    /// Before this many applied steps densification only prunes (3DGS `densify_from_iter`
+    /// = 500): early gradients come from a colour model still far from converged and would
+    /// clone nearly every Gaussian.
+    pub densify_from_step: u64,
     /// RGB behind the Gaussians (the shadow channel's background is 1: background unshadowed).
     pub background: [f32; 3],
     pub near_m: f32,
@@ -219,6 +223,7 @@ impl Default for SunAwareConfig {
             densify: DensifyConfig::default(),
             size_prune: false,
             max_gaussians: 200_000,
+            densify_from_step: 500,
             background: [0.0; 3],
             near_m: 0.01,
             seed: 0,

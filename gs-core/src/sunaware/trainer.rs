@@ -445,12 +445,14 @@ impl SunAwareTrainer {
         Ok(stats)
     }
 
-    /// One 3DGS densify-and-prune on the statistics gathered since the last call. At
-    /// `max_gaussians` nothing is added (pruning still runs).
+    /// One 3DGS densify-and-prune on the statistics gathered since the last call. Before
+    /// `densify_from_step` steps and at `max_gaussians` nothing is added (pruning still runs).
     pub fn densify_and_prune(&mut self) -> Result<DensifyReport, SunAwareError> {
         let config = &self.model.config;
         let densify = DensifyConfig {
-            grad_threshold: if self.model.len() >= config.max_gaussians {
+            grad_threshold: if self.model.len() >= config.max_gaussians
+                || self.steps < config.densify_from_step
+            {
                 f32::INFINITY
             } else {
                 config.densify.grad_threshold
