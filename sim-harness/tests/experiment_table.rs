@@ -185,3 +185,72 @@ fn tiny_demo_writes_every_file() {
     assert_eq!(restored.model.len(), summary.run.gaussians);
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// The simulator's images, poses and Sun vectors agree with gs-core's conventions: with
+/// repeated rounds on two fixed frames, configuration (a) fits them far beyond an all-black
+/// image, and the fit is to the images as they are (a vertically flipped copy scores low).
+#[test]
+fn online_trainer_fits_simulator_frames() {
+    use fsw_component::online::OnlineTrainer;
+    use gs_core::loss::{psnr, ImageShape};
+    use gs_core::sunaware::Variant;
+    use sim_harness::experiment::data::render_scene;
+    use sim_harness::experiment::evaluate::{camera_of, sun_of};
+    use sim_harness::experiment::runner::{
+        initialisation, online_config, scene_box, training_frame,
+    };
+
+    let preset = Preset {
+        downsample: 24,
+        frames: Some(2),
+        eval_views: 1,
+        samples_per_pixel: 1,
+        window: 2,
+        init_points: 1500,
+        ..tiny_preset(&["a"])
+    };
+    let scenario = preset.apply(&quick_scenario()).unwrap();
+    let scene = render_scene(&scenario, 1500, &mut |_| {}).unwrap();
+    let k = scene.intrinsics;
+    let (w, h) = (k.width as usize, k.height as usize);
+    let shape = ImageShape::new(w, h, 3);
+    let mut config = online_config(&preset, Variant::A);
+    config.require_window_change = false;
+    let mut trainer = OnlineTrainer::new(
+        config,
+        &initialisation(&scene, &preset),
+        scene_box(&scene).unwrap(),
+    )
+    .unwrap();
+    for i in 0..2 {
+        trainer.offer(training_frame(&scene, i)).unwrap();
+    }
+    for _ in 0..60 {
+        assert!(trainer.run_round_if_due().unwrap().is_some());
+    }
+    for view in &scene.frames {
+        let truth = view.rgb_f32();
+        let render = trainer
+            .predict(&camera_of(&k, view), sun_of(view))
+            .unwrap()
+            .image;
+        let mut flipped = truth.clone();
+        for y in 0..h {
+            let src = &truth[3 * (h - 1 - y) * w..3 * (h - y) * w];
+            flipped[3 * y * w..3 * (y + 1) * w].copy_from_slice(src);
+        }
+        let fit = psnr(&render, &truth, shape).unwrap();
+        let black = psnr(&vec![0.0; truth.len()], &truth, shape).unwrap();
+        let to_flipped = psnr(&render, &flipped, shape).unwrap();
+        assert!(
+            fit > black + 8.0,
+            "frame {}: {fit} dB vs black {black} dB",
+            view.index
+        );
+        assert!(
+            fit > to_flipped + 8.0,
+            "frame {}: {fit} dB vs flipped {to_flipped} dB",
+            view.index
+        );
+    }
+}

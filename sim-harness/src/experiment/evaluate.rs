@@ -126,14 +126,24 @@ pub fn evaluate_model(
     scene: &SceneData,
     keep: usize,
 ) -> Result<(EvalSummary, Vec<Vec<u8>>), SunAwareError> {
-    let k = &scene.intrinsics;
-    let mut per_view = Vec::with_capacity(scene.eval.len());
+    let views: Vec<&ViewData> = scene.eval.iter().collect();
+    evaluate_views(model, &scene.intrinsics, &views, keep)
+}
+
+/// Renders and scores `views`, keeping the renders of the first `keep`.
+pub fn evaluate_views(
+    model: &SunAwareModel,
+    k: &SceneIntrinsics,
+    views: &[&ViewData],
+    keep: usize,
+) -> Result<(EvalSummary, Vec<Vec<u8>>), SunAwareError> {
+    let mut per_view = Vec::with_capacity(views.len());
     let mut kept = Vec::new();
-    for (i, view) in scene.eval.iter().enumerate() {
+    for (i, view) in views.iter().enumerate() {
         let image = model.render(&camera_of(k, view), sun_of(view))?.image;
         if !image.iter().all(|v| v.is_finite()) {
             return Err(SunAwareError::BadObservation(format!(
-                "render of evaluation view {} is not finite",
+                "render of view {} is not finite",
                 view.index
             )));
         }
@@ -143,6 +153,29 @@ pub fn evaluate_model(
         }
     }
     Ok((summarise(per_view), kept))
+}
+
+/// Scores of an all-black render on `views`: the floor any useful model must beat (the
+/// background is black, so this measures how much of the frame the target covers).
+pub fn black_baseline(
+    k: &SceneIntrinsics,
+    views: &[ViewData],
+) -> Result<EvalSummary, SunAwareError> {
+    let black = vec![0.0f32; 3 * k.width as usize * k.height as usize];
+    let per_view = views
+        .iter()
+        .map(|v| score_view(k, v, &black))
+        .collect::<Result<_, _>>()?;
+    Ok(summarise(per_view))
+}
+
+/// Up to `max` lit sequence frames, evenly spaced in time: views the model trained on.
+pub fn seen_views(scene: &SceneData, max: usize) -> Vec<&ViewData> {
+    let lit: Vec<&ViewData> = scene.frames.iter().filter(|v| !v.eclipse).collect();
+    if lit.len() <= max {
+        return lit;
+    }
+    (0..max).map(|i| lit[i * lit.len() / max]).collect()
 }
 
 /// Means of per-view metrics (fixed order). Infinite PSNRs (exact renders) are capped at

@@ -11,7 +11,9 @@
 //! the steps applied.
 
 use super::data::SceneData;
-use super::evaluate::{camera_of, evaluate_model, sun_of, EvalSummary};
+use super::evaluate::{
+    black_baseline, camera_of, evaluate_model, evaluate_views, seen_views, sun_of, EvalSummary,
+};
 use super::preset::{InitKind, Preset};
 use crate::raytrace::linear_to_srgb8;
 use fsw_component::keyframe::WindowConfig;
@@ -40,6 +42,11 @@ pub struct RunOutcome {
     pub target: String,
     pub config: String,
     pub eval: EvalSummary,
+    /// The same metrics on up to 20 lit training frames (views the model trained on): the
+    /// gap to `eval` measures generalisation to new poses and Sun directions.
+    pub seen: EvalSummary,
+    /// An all-black render on the evaluation views (the floor to beat).
+    pub black_eval: EvalSummary,
     pub gaussians: usize,
     pub rounds: u64,
     pub steps: u64,
@@ -187,6 +194,13 @@ pub fn run_config(
     }
     let eval_started = Instant::now();
     let (eval, renders) = evaluate_model(&trainer.trainer().model, scene, keep_renders)?;
+    let (seen, _) = evaluate_views(
+        &trainer.trainer().model,
+        &scene.intrinsics,
+        &seen_views(scene, 20),
+        0,
+    )?;
+    let black_eval = black_baseline(&scene.intrinsics, &scene.eval)?;
     let eval_s = eval_started.elapsed().as_secs_f64();
     let t = trainer.trainer();
     let counters = trainer.counters();
@@ -212,13 +226,17 @@ pub fn run_config(
         curve,
         renders,
         eval,
+        seen,
+        black_eval,
     };
     progress(&format!(
-        "{label}: PSNR {:.2} dB, SSIM {:.4} (masked {:.2} dB / {:.4}), {} Gaussians, {} rounds, {} steps, train {:.0} s ({:.1} ms/step), eval {:.0} s",
+        "{label}: PSNR {:.2} dB, SSIM {:.4} (masked {:.2} dB / {:.4}; seen views {:.2} dB; all-black {:.2} dB), {} Gaussians, {} rounds, {} steps, train {:.0} s ({:.1} ms/step), eval {:.0} s",
         outcome.eval.psnr_db,
         outcome.eval.ssim,
         outcome.eval.masked_psnr_db,
         outcome.eval.masked_ssim,
+        outcome.seen.psnr_db,
+        outcome.black_eval.psnr_db,
         outcome.gaussians,
         outcome.rounds,
         outcome.steps,

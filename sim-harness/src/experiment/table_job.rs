@@ -90,6 +90,40 @@ fn row_of(run: &RunOutcome) -> ResultRow {
     }
 }
 
+/// Details behind the table: target-pixel (masked) metrics, the same metrics on views the
+/// model trained on, an all-black render's score, and the training counters.
+pub fn diagnostics_markdown(runs: &[RunOutcome]) -> String {
+    use std::fmt::Write as _;
+    let mut out = String::from(
+        "Details (PSNR dB / SSIM; masked = target pixels only; seen = up to 20 lit training \
+         frames; black = an all-black render on the evaluation views):\n\n\
+         | Target | Config. | eval masked | seen full | seen masked | black full | black masked | rounds | steps | eclipse frames skipped |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for r in runs {
+        let _ = writeln!(
+            out,
+            "| {} | {} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {} | {} | {} |",
+            target_label(&r.target),
+            r.config,
+            r.eval.masked_psnr_db,
+            r.eval.masked_ssim,
+            r.seen.psnr_db,
+            r.seen.ssim,
+            r.seen.masked_psnr_db,
+            r.seen.masked_ssim,
+            r.black_eval.psnr_db,
+            r.black_eval.ssim,
+            r.black_eval.masked_psnr_db,
+            r.black_eval.masked_ssim,
+            r.rounds,
+            r.steps,
+            r.skipped_eclipse
+        );
+    }
+    out
+}
+
 /// Ground truth beside each configuration for the first `views` evaluation views of each
 /// scene; captions give each image's full-frame PSNR.
 pub fn comparison_figure(
@@ -195,7 +229,8 @@ pub fn run_table(
             rows.push(row_of(&run));
             runs.push(run);
             write_text(&out.join("table.csv"), &to_csv(&rows))?;
-            write_text(&out.join("table.md"), &to_markdown(&rows))?;
+            let markdown = format!("{}\n{}", to_markdown(&rows), diagnostics_markdown(&runs));
+            write_text(&out.join("table.md"), &markdown)?;
             write_text(
                 &out.join("runs.json"),
                 &serde_json::to_string_pretty(&runs).map_err(|e| io_error(out, e))?,
