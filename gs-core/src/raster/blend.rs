@@ -581,16 +581,105 @@ fn backward_body<const FIXED: usize>(
     grads: &PixelGradsView,
     records: &mut [f32],
 ) {
+    if mode.smooth {
+        backward_lanes::<FIXED, true>(
+            tile,
+            list,
+            splats,
+            splat_channels,
+            n_channels,
+            background,
+            state,
+            grads,
+            records,
+        )
+    } else {
+        backward_lanes::<FIXED, false>(
+            tile,
+            list,
+            splats,
+            splat_channels,
+            n_channels,
+            background,
+            state,
+            grads,
+            records,
+        )
+    }
+}
+
+/// [`alpha_of`] for a lane already known to pass the cutoff: the same operations, no
+/// branch on the lane, so eight lanes evaluate together.
+#[inline(always)]
+fn alpha_lane<const SMOOTH: bool>(o: f32, gauss: f32) -> (f32, f32) {
+    let raw = o * gauss;
+    let clamped = raw > ALPHA_MAX;
+    let alpha_c = if clamped { ALPHA_MAX } else { raw };
+    let (alpha, d_alpha) = if SMOOTH && alpha_c < SMOOTH_HI {
+        let u = (alpha_c - SMOOTH_LO) / (SMOOTH_HI - SMOOTH_LO);
+        let ramp = u * u * (3.0 - 2.0 * u);
+        let d_ramp = 6.0 * u * (1.0 - u) / (SMOOTH_HI - SMOOTH_LO);
+        (alpha_c * ramp, ramp + alpha_c * d_ramp)
+    } else {
+        (alpha_c, 1.0)
+    };
+    (alpha, if clamped { 0.0 } else { d_alpha })
+}
+
+type Lanes = [f32; LANE_GROUP];
+
+/// The 8 lanes of a tile-local plane starting at pixel `p0`.
+#[inline(always)]
+fn lanes(plane: &[f32], p0: usize) -> &Lanes {
+    plane[p0..p0 + LANE_GROUP]
+        .try_into()
+        .expect("a lane group lies inside its tile")
+}
+
+#[inline(always)]
+fn lanes_mut(plane: &mut [f32], p0: usize) -> &mut Lanes {
+    (&mut plane[p0..p0 + LANE_GROUP])
+        .try_into()
+        .expect("a lane group lies inside its tile")
+}
+
+/// Fixed-order sum of the lanes (both the SSE and the AVX2 build add in this order).
+#[inline(always)]
+fn lane_sum(v: &Lanes) -> f32 {
+    ((v[0] + v[1]) + (v[2] + v[3])) + ((v[4] + v[5]) + (v[6] + v[7]))
+}
+
+/// Backward over 8-lane groups: every lane of a group that holds a kept pixel is computed
+/// together, with selects so that the other lanes change nothing. Per-pixel quantities are
+/// the same operations as the scalar formulas; per-splat sums are kept per lane and added
+/// in a fixed order at the end of each list entry.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn backward_lanes<const FIXED: usize, const SMOOTH: bool>(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    splat_channels: &[f32],
+    n_channels: usize,
+    background: &[f32],
+    state: TileForwardState,
+    grads: &PixelGradsView,
+    records: &mut [f32],
+) {
     const T: usize = TILE_PX as usize;
+    const TP: usize = TILE_PIXELS;
+    let mode = AlphaMode { smooth: SMOOTH };
     let nc = if FIXED > 0 { FIXED } else { n_channels };
     let stride = REC_CHANNELS + nc;
-    // Behind-colour S per pixel: channels then depth.
-    let s_stride = nc + 1;
-    let mut behind = vec![0.0f32; TILE_PIXELS * s_stride];
-    let mut trans = [0.0f32; TILE_PIXELS];
-    let mut d_color = vec![0.0f32; TILE_PIXELS * nc];
-    let mut d_alpha_px = [0.0f32; TILE_PIXELS];
-    let mut d_depth_px = [0.0f32; TILE_PIXELS];
+    // Planes of TILE_PIXELS values: behind-colour S per channel then depth; d_color per
+    // channel.
+    let mut behind = vec![0.0f32; TP * (nc + 1)];
+    let mut trans = [0.0f32; TP];
+    let mut d_color = vec![0.0f32; TP * nc];
+    // d_alpha of a pixel times its final transmittance.
+    let mut d_alpha_final = [0.0f32; TP];
+    let mut d_depth_px = [0.0f32; TP];
+    let mut last = [0u32; TP];
     let mut row_max_last = [0u32; T];
     for y in tile.y0..tile.y1 {
         let ly = (y - tile.y0) as usize;
@@ -600,21 +689,22 @@ fn backward_body<const FIXED: usize>(
             let t_final = state.transmittance[p];
             trans[p] = t_final;
             for k in 0..nc {
-                behind[p * s_stride + k] = t_final * background[k];
+                behind[k * TP + p] = t_final * background[k];
+                d_color[k * TP + p] = grads.d_color[pix * nc + k];
             }
-            d_color[p * nc..p * nc + nc].copy_from_slice(&grads.d_color[pix * nc..pix * nc + nc]);
             if let Some(da) = grads.d_alpha {
-                d_alpha_px[p] = da[pix];
+                d_alpha_final[p] = da[pix] * t_final;
             }
             if let Some(dd) = grads.d_depth {
                 d_depth_px[p] = dd[pix];
             }
+            last[p] = state.last[p];
             row_max_last[ly] = row_max_last[ly].max(state.last[p]);
         }
     }
     let max_last = row_max_last.iter().copied().max().unwrap_or(0) as usize;
     records[max_last * stride..].fill(0.0);
-    let mut acc_ch = vec![0.0f32; nc];
+    let mut acc_ch = vec![[0.0f32; LANE_GROUP]; nc];
     let mut gauss = [0.0f32; T];
     let cutoff = mode.cutoff();
     for j in (0..max_last).rev() {
@@ -631,68 +721,100 @@ fn backward_body<const FIXED: usize>(
             continue;
         }
         let cols = column_mask(&r, tile);
-        acc_ch.fill(0.0);
-        let (mut d_mx, mut d_my, mut d_a, mut d_b, mut d_c, mut d_o, mut d_z) =
-            (0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32);
+        // Per-lane sums: mean x, mean y, conic a, b, c, opacity, depth; then channels.
+        let mut acc = [[0.0f32; LANE_GROUP]; REC_CHANNELS];
+        acc_ch.fill([0.0; LANE_GROUP]);
         let [ca, cb, cc] = s.conic;
+        let o = s.opacity;
         let dx0 = s.mean_px[0] - (tile.x0 as f32 + 0.5);
+        let j_u32 = j as u32;
         for y in r.y0..r.y1 {
             let ly = (y - tile.y0) as usize;
-            if j as u32 >= row_max_last[ly] {
+            if j_u32 >= row_max_last[ly] {
                 continue;
             }
             let py = y as f32 + 0.5;
-            let mut bits = cols & row_gauss(s, py, tile.x0, cutoff, cols, &mut gauss);
+            let bits = cols & row_gauss(s, py, tile.x0, cutoff, cols, &mut gauss);
             let dy = s.mean_px[1] - py;
-            while bits != 0 {
-                let lx = bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                let p = ly * T + lx;
-                if j as u32 >= state.last[p] {
+            for gi in 0..T / LANE_GROUP {
+                let group_bits = (bits >> (gi * LANE_GROUP)) & 0xff;
+                if group_bits == 0 {
                     continue;
                 }
-                let Some((alpha, d_alpha_d_raw)) = alpha_of(s.opacity, gauss[lx], mode) else {
-                    continue;
-                };
-                let inv_one_minus = 1.0 / (1.0 - alpha);
-                let t = trans[p] * inv_one_minus;
-                trans[p] = t;
-                let w = alpha * t;
-                let mut d_alpha = 0.0;
-                let bh = &mut behind[p * s_stride..p * s_stride + s_stride];
-                let dc = &d_color[p * nc..p * nc + nc];
+                let p0 = ly * T + gi * LANE_GROUP;
+                let g: &Lanes = gauss[gi * LANE_GROUP..(gi + 1) * LANE_GROUP]
+                    .try_into()
+                    .expect("two groups per row");
+                let last_l = &last[p0..p0 + LANE_GROUP];
+                let mut on = [false; LANE_GROUP];
+                for i in 0..LANE_GROUP {
+                    on[i] = (group_bits >> i) & 1 != 0 && j_u32 < last_l[i];
+                }
+                let mut alpha = [0.0f32; LANE_GROUP];
+                let mut d_alpha_d_raw = [0.0f32; LANE_GROUP];
+                for i in 0..LANE_GROUP {
+                    (alpha[i], d_alpha_d_raw[i]) = alpha_lane::<SMOOTH>(o, g[i]);
+                }
+                let mut inv = [0.0f32; LANE_GROUP];
+                let mut t = [0.0f32; LANE_GROUP];
+                let mut w = [0.0f32; LANE_GROUP];
+                {
+                    let tr = lanes_mut(&mut trans, p0);
+                    for i in 0..LANE_GROUP {
+                        inv[i] = 1.0 / (1.0 - alpha[i]);
+                        t[i] = tr[i] * inv[i];
+                        tr[i] = if on[i] { t[i] } else { tr[i] };
+                        w[i] = alpha[i] * t[i];
+                    }
+                }
+                let mut d_alpha = [0.0f32; LANE_GROUP];
                 for k in 0..nc {
-                    let g = dc[k];
-                    acc_ch[k] += w * g;
-                    d_alpha += g * (t * ch[k] - bh[k] * inv_one_minus);
-                    bh[k] += w * ch[k];
+                    let c = ch[k];
+                    let dc = lanes(&d_color, k * TP + p0);
+                    let a = &mut acc_ch[k];
+                    let bh = lanes_mut(&mut behind, k * TP + p0);
+                    for i in 0..LANE_GROUP {
+                        a[i] += if on[i] { w[i] * dc[i] } else { 0.0 };
+                        d_alpha[i] += dc[i] * (t[i] * c - bh[i] * inv[i]);
+                        bh[i] = if on[i] { bh[i] + w[i] * c } else { bh[i] };
+                    }
                 }
-                let gd = d_depth_px[p];
-                d_z += w * gd;
-                d_alpha += gd * (t * s.depth - bh[nc] * inv_one_minus);
-                bh[nc] += w * s.depth;
-                d_alpha += d_alpha_px[p] * state.transmittance[p] * inv_one_minus;
-
-                let d_raw = d_alpha * d_alpha_d_raw;
-                let g = gauss[lx];
-                d_o += d_raw * g;
-                let d_power = d_raw * s.opacity * g;
-                let dx = dx0 - lx as f32;
-                d_mx -= d_power * (ca * dx + cb * dy);
-                d_my -= d_power * (cb * dx + cc * dy);
-                d_a -= d_power * 0.5 * dx * dx;
-                d_b -= d_power * dx * dy;
-                d_c -= d_power * 0.5 * dy * dy;
+                {
+                    let gd = lanes(&d_depth_px, p0);
+                    let bh = lanes_mut(&mut behind, nc * TP + p0);
+                    let z = s.depth;
+                    for i in 0..LANE_GROUP {
+                        acc[REC_DEPTH][i] += if on[i] { w[i] * gd[i] } else { 0.0 };
+                        d_alpha[i] += gd[i] * (t[i] * z - bh[i] * inv[i]);
+                        bh[i] = if on[i] { bh[i] + w[i] * z } else { bh[i] };
+                    }
+                }
+                let da_final = lanes(&d_alpha_final, p0);
+                for i in 0..LANE_GROUP {
+                    let d_a = d_alpha[i] + da_final[i] * inv[i];
+                    let d_raw = if on[i] { d_a * d_alpha_d_raw[i] } else { 0.0 };
+                    let d_power = d_raw * o * g[i];
+                    let dx = dx0 - (gi * LANE_GROUP + i) as f32;
+                    acc[REC_OPACITY][i] += d_raw * g[i];
+                    acc[REC_MEAN_X][i] += d_power * (ca * dx + cb * dy);
+                    acc[REC_MEAN_Y][i] += d_power * (cb * dx + cc * dy);
+                    acc[REC_CONIC][i] += d_power * 0.5 * dx * dx;
+                    acc[REC_CONIC + 1][i] += d_power * dx * dy;
+                    acc[REC_CONIC + 2][i] += d_power * 0.5 * dy * dy;
+                }
             }
         }
-        rec[REC_MEAN_X] = d_mx;
-        rec[REC_MEAN_Y] = d_my;
-        rec[REC_CONIC] = d_a;
-        rec[REC_CONIC + 1] = d_b;
-        rec[REC_CONIC + 2] = d_c;
-        rec[REC_OPACITY] = d_o;
-        rec[REC_DEPTH] = d_z;
-        rec[REC_CHANNELS..].copy_from_slice(&acc_ch);
+        // The power derivatives enter the mean and conic gradients with a minus sign.
+        rec[REC_MEAN_X] = -lane_sum(&acc[REC_MEAN_X]);
+        rec[REC_MEAN_Y] = -lane_sum(&acc[REC_MEAN_Y]);
+        for k in 0..3 {
+            rec[REC_CONIC + k] = -lane_sum(&acc[REC_CONIC + k]);
+        }
+        rec[REC_OPACITY] = lane_sum(&acc[REC_OPACITY]);
+        rec[REC_DEPTH] = lane_sum(&acc[REC_DEPTH]);
+        for (dst, a) in rec[REC_CHANNELS..].iter_mut().zip(&acc_ch) {
+            *dst = lane_sum(a);
+        }
     }
 }
 
