@@ -117,6 +117,8 @@ pub struct BusCore {
     last_error_event_us: [Option<u64>; 11],
     suppressed_errors: [u32; 11],
     now_us: u64,
+    /// Width, height and format for RENDER: the last valid camera frame's.
+    render_size: (u16, u16, interfaces::messages::PixelFormat),
 }
 
 /// Health figures the core cannot know itself.
@@ -156,6 +158,11 @@ impl BusCore {
             last_error_event_us: [None; 11],
             suppressed_errors: [0; 11],
             now_us: 0,
+            render_size: (
+                RENDER_WIDTH,
+                RENDER_HEIGHT,
+                interfaces::messages::PixelFormat::Rgb8,
+            ),
         })
     }
 
@@ -307,6 +314,7 @@ impl BusCore {
             }
         };
         self.counters.frames_received += 1;
+        self.render_size = (frame.header.width, frame.header.height, frame.header.format);
         if self.mode == Mode::Idle {
             self.counters.frames_ignored_idle += 1;
             return;
@@ -459,9 +467,9 @@ impl BusCore {
                     camera_from_target: DQuat::from_xyzw(x, y, z, w).normalize(),
                     target_in_camera_m: DVec3::from_array(r.t_camera_from_target_m.map(f64::from)),
                     sun_in_target: DVec3::from_array(r.sun_target.map(f64::from)).normalize(),
-                    width: RENDER_WIDTH,
-                    height: RENDER_HEIGHT,
-                    format: interfaces::messages::PixelFormat::Rgb8,
+                    width: self.render_size.0,
+                    height: self.render_size.1,
+                    format: self.render_size.2,
                 }))
             }
         };
@@ -549,7 +557,9 @@ impl BusCore {
     }
 }
 
-/// Image size of predictions rendered on the RENDER command (the command carries no size).
+/// Image size of predictions rendered on the RENDER command before any camera frame arrived
+/// (the command carries no size; afterwards the last valid frame's size and format are used,
+/// so that predictions compare with what the camera delivers).
 pub const RENDER_WIDTH: u16 = 64;
 pub const RENDER_HEIGHT: u16 = 64;
 
