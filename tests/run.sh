@@ -1,17 +1,29 @@
 #!/usr/bin/env bash
-# The project's whole test command (README, .ci/run). Installs what it needs itself.
+# The project's whole test command (README, .ci/run). Installs what it needs itself:
+# the Python venv (python-can, pycyphal, pytest) and, for the SocketCAN tests, QEMU and a
+# Debian kernel for the vcan micro-VM (tests/vcan/README.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+started=$SECONDS
+step() { echo; echo "== $* (t+$((SECONDS - started)) s)"; }
 
-echo "== cargo fmt --check"
+step "cargo fmt --check"
 cargo fmt --all -- --check
-echo "== cargo clippy"
+step "cargo clippy"
 cargo clippy --workspace --all-targets -- -D warnings
-echo "== cargo test"
+step "cargo test (unit, integration, gradient checks, fits, live UDP component)"
 cargo test --workspace
 
-echo "== python test environment"
+step "python test environment"
 python=$(bash tests/setup_venv.sh)
 
-echo "== Cyphal interoperability (pycyphal)"
-"$python" -m pytest tests/interop -q
+step "Cyphal interoperability with pycyphal"
+"$python" -m pytest -q -p no:cacheprovider tests/interop
+
+step "bus tests over loopback UDP: python-can and sockets against the component binary"
+"$python" -m pytest -q -p no:cacheprovider tests/bus/test_component_udp.py
+
+step "SocketCAN tests on a real vcan0 inside the micro-VM"
+bash tests/vcan/run-can-tests.sh --workspace
+
+step "all tests passed"
