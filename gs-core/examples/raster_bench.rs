@@ -17,7 +17,10 @@
 use std::time::Instant;
 
 use glam::{Quat, Vec3};
-use gs_core::raster::{render, render_backward, GaussianView, PixelGrads, RasterSettings};
+use gs_core::raster::{
+    render, render_backward_with, render_with, GaussianView, PixelGrads, RasterSettings,
+    RasterWorkspace,
+};
 use gs_core::{Camera, Intrinsics};
 
 struct SplitMix64(u64);
@@ -254,13 +257,16 @@ fn bench(n: usize, width: u32, height: u32, distance_m: f32, runs: usize) -> Row
         (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let mut visible = 0;
     let mut cov = 0.0;
+    // Scratch memory reused across iterations, as a training loop does.
+    let mut workspace = RasterWorkspace::default();
     for run in 0..=runs {
         let cpu0 = process_cpu_ms();
         let t0 = Instant::now();
-        let out = render(&cam, &scene.view(), &settings).expect("render");
+        let out = render_with(&mut workspace, &cam, &scene.view(), &settings).expect("render");
         let forward_ms = t0.elapsed().as_secs_f64() * 1e3;
         let t1 = Instant::now();
-        let grads = render_backward(
+        let grads = render_backward_with(
+            &mut workspace,
             &cam,
             &scene.view(),
             &settings,

@@ -430,8 +430,40 @@ fn resolve_background(settings: &RasterSettings, nc: usize) -> Result<Vec<f32>, 
     Ok(settings.background.clone())
 }
 
+/// Scratch memory that [`render_with`] and [`render_backward_with`] reuse from call to
+/// call (tile-major forward buffers, backward gradient records and sums). Every reused
+/// value is overwritten before it is read, so results are bit-identical to [`render`] and
+/// [`render_backward`]; reuse only saves the allocation and the page faults of fresh
+/// memory (about 20 MB per call at 960x600). Buffers only grow.
+#[derive(Clone, Debug, Default)]
+pub struct RasterWorkspace {
+    tile_color: Vec<f32>,
+    tile_depth: Vec<f32>,
+    records: Vec<f32>,
+    sums: Vec<f32>,
+}
+
+/// The first `len` values of `buf`, growing it (with zeros) when shorter. Values already
+/// there are left as they are: callers overwrite or clear what they read.
+fn scratch(buf: &mut Vec<f32>, len: usize) -> &mut [f32] {
+    if buf.len() < len {
+        buf.resize(len, 0.0);
+    }
+    &mut buf[..len]
+}
+
 /// Renders `gaussians` from `camera`.
 pub fn render(
+    camera: &Camera,
+    gaussians: &GaussianView,
+    settings: &RasterSettings,
+) -> Result<RenderOutput, RasterError> {
+    render_with(&mut RasterWorkspace::default(), camera, gaussians, settings)
+}
+
+/// [`render`] with scratch memory kept in `workspace` between calls.
+pub fn render_with(
+    workspace: &mut RasterWorkspace,
     camera: &Camera,
     gaussians: &GaussianView,
     settings: &RasterSettings,
@@ -474,8 +506,9 @@ pub fn render(
     // Tile-major buffers; a colour chunk of at least one float per pixel keeps the chunk
     // size non-zero when there are no channels.
     let color_chunk = TILE_PIXELS * nc.max(1);
-    let mut tile_color = vec![0.0f32; n_tiles * color_chunk];
-    let mut tile_depth = vec![0.0f32; n_tiles * TILE_PIXELS];
+    // Every tile's blend clears its own part of these first.
+    let tile_color = scratch(&mut workspace.tile_color, n_tiles * color_chunk);
+    let tile_depth = scratch(&mut workspace.tile_depth, n_tiles * TILE_PIXELS);
     let mut tile_transmittance = vec![0.0f32; n_tiles * TILE_PIXELS];
     let mut tile_last = vec![0u32; n_tiles * TILE_PIXELS];
     tile_color
@@ -541,8 +574,6 @@ pub fn render(
                 }
             });
     }
-    drop(tile_color);
-    drop(tile_depth);
     let blend_ms = ms_since(t2);
 
     let mut radii_px = projected.radii_px;
@@ -610,6 +641,25 @@ pub fn render_backward(
     forward: &RenderOutput,
     grads: &PixelGrads,
 ) -> Result<GaussianGrads, RasterError> {
+    render_backward_with(
+        &mut RasterWorkspace::default(),
+        camera,
+        gaussians,
+        settings,
+        forward,
+        grads,
+    )
+}
+
+/// [`render_backward`] with scratch memory kept in `workspace` between calls.
+pub fn render_backward_with(
+    workspace: &mut RasterWorkspace,
+    camera: &Camera,
+    gaussians: &GaussianView,
+    settings: &RasterSettings,
+    forward: &RenderOutput,
+    grads: &PixelGrads,
+) -> Result<GaussianGrads, RasterError> {
     let st = &forward.state;
     let frame = camera_frame(camera, settings.near_m)?;
     let n = gaussians.check()?;
@@ -642,9 +692,10 @@ pub fn render_backward(
 
     let t0 = Instant::now();
     let n_entries = bins.tile_ranks.len();
-    let mut records = vec![0.0f32; n_entries * stride];
+    // Each tile writes every value of its records (see `blend_tile_backward`).
+    let records = scratch(&mut workspace.records, n_entries * stride);
     let mut per_tile: Vec<&mut [f32]> = Vec::with_capacity(grid.n_tiles());
-    let mut rest: &mut [f32] = &mut records;
+    let mut rest: &mut [f32] = &mut *records;
     for t in 0..grid.n_tiles() {
         let len = (bins.tile_offsets[t + 1] - bins.tile_offsets[t]) * stride;
         let (head, tail) = rest.split_at_mut(len);
@@ -686,7 +737,8 @@ pub fn render_backward(
     let half_h = 0.5 * forward.height as f32;
     // Per-rank sums of the records stay in `sums` (the channel part is the channel
     // gradient); everything else is folded into the projection backward.
-    let mut sums = vec![0.0f32; st.splats.len() * stride];
+    let sums = scratch(&mut workspace.sums, st.splats.len() * stride);
+    sums.fill(0.0);
     type RankGrad = Result<(project::ParamGrad, f32), ()>;
     let per_rank: Vec<RankGrad> = sums
         .par_chunks_mut(stride)
