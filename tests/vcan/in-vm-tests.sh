@@ -4,9 +4,9 @@
 # Usage: in-vm-tests.sh <fsw-component lib test binary> <transport_socketcan test binary>
 #                       <can_echo_peer binary> <venv python>
 # Runs the transport unit tests (their CAN error paths then meet a kernel with CAN), the Rust
-# SocketCAN tests, then the pytests that need CAN (python-can <-> Rust peer, and the component
-# binary named by FSW_COMPONENT_BIN on vcan), all against $VCAN_IFACE; runs all even if one
-# fails, and fails if any does.
+# SocketCAN tests, then the pytests that need CAN (by convention tests/bus/test_*can*.py: the
+# python-can <-> Rust peer, and the component binary named by FSW_COMPONENT_BIN on vcan), all
+# against $VCAN_IFACE; runs all even if one fails, and fails if any does.
 set -uo pipefail
 if [ "$#" -ne 4 ] || [ -z "${VCAN_IFACE:-}" ]; then
     echo "usage (inside run-in-vm.sh): $0 <lib-test-binary> <test-binary> <peer-binary> <python>" >&2
@@ -30,6 +30,6 @@ started_ms=$(now_ms)
 echo "== python-can <-> Rust peer and component on $VCAN_IFACE"
 PYTHONDONTWRITEBYTECODE=1 CAN_PEER_BIN=$peer_binary \
     "$python" -m pytest -q -p no:cacheprovider --color=no \
-    tests/bus/test_can_peer_vcan.py tests/bus/test_component_can.py || status=1
+    tests/bus/test_*can*.py || status=1
 echo "[vcan] pytest took $(($(now_ms) - started_ms)) ms"
 exit "$status"
