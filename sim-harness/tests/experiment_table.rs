@@ -254,3 +254,23 @@ fn online_trainer_fits_simulator_frames() {
         );
     }
 }
+
+#[test]
+fn rounds_per_window_change_multiplies_the_rounds() {
+    let out = scratch("rounds");
+    let preset = Preset {
+        rounds_per_window_change: 3,
+        ..tiny_preset(&["a"])
+    };
+    let job = TableJob {
+        preset,
+        scenarios: vec![quick_scenario()],
+        out_dir: out.clone(),
+        keep_data: false,
+    };
+    let result = run_table(&job, &mut |_| {}).unwrap();
+    // Five window changes with a full window (as in the tiny table), three rounds each.
+    assert_eq!(result.runs[0].rounds, 15);
+    assert_eq!(result.runs[0].curve.len(), 15);
+    let _ = std::fs::remove_dir_all(&out);
+}

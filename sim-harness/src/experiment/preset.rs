@@ -76,6 +76,8 @@ pub struct Preset {
     pub min_view_angle_deg: f64,
     /// Densify and prune every this many rounds (paper: 10).
     pub densify_every_rounds: u32,
+    /// Rounds run each time the keyframe window changes (paper: 1).
+    pub rounds_per_window_change: u32,
     pub init: InitKind,
     /// Initial Gaussians (paper: 10,000).
     pub init_points: u32,
@@ -102,6 +104,7 @@ impl Default for Preset {
             window: 10,
             min_view_angle_deg: 10.0,
             densify_every_rounds: 10,
+            rounds_per_window_change: 1,
             init: InitKind::Surface,
             init_points: 10_000,
             max_gaussians: 200_000,
@@ -182,6 +185,12 @@ impl Preset {
         }
         if self.densify_every_rounds == 0 {
             return bad("densify_every_rounds must be positive".into());
+        }
+        if !(1..=1000).contains(&self.rounds_per_window_change) {
+            return bad(format!(
+                "rounds_per_window_change {} is outside 1..=1000",
+                self.rounds_per_window_change
+            ));
         }
         if self.init_points < 2 {
             return bad("init_points must be at least 2".into());

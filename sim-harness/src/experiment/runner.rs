@@ -97,6 +97,9 @@ pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
         // frames are flagged by the simulator and skipped above.
         skip_unlit: false,
         shuffle_seed: preset.seed,
+        // Extra rounds on an unchanged window only when the preset asks for them (the
+        // runner counts them per change; the trainer alone would refuse a repeat).
+        require_window_change: preset.rounds_per_window_change <= 1,
         ..OnlineConfig::default()
     }
 }
@@ -167,9 +170,22 @@ pub fn run_config(
     let mut curve = Vec::new();
     let mut train_s = 0.0;
     let report_every = (scene.frames.len() / 10).max(1);
+    let rounds_per_change = preset.rounds_per_window_change.max(1);
     for i in 0..scene.frames.len() {
+        let generation_before = trainer.window().generation();
         trainer.offer(training_frame(scene, i))?;
-        if let Some(report) = trainer.run_round_if_due()? {
+        // The paper: one round per window change (a round is only ever due right after a
+        // change). `rounds_per_window_change` > 1 trains the changed window that many times
+        // (more iterations per frame on a sparse frame subset).
+        let rounds_due = if trainer.window().generation() != generation_before {
+            rounds_per_change
+        } else {
+            0
+        };
+        for _ in 0..rounds_due {
+            let Some(report) = trainer.run_round_if_due()? else {
+                break;
+            };
             train_s += report.duration_s;
             curve.push(RoundPoint {
                 round: report.rounds,
