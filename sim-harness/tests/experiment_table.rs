@@ -260,6 +260,7 @@ fn rounds_per_window_change_multiplies_the_rounds() {
     let out = scratch("rounds");
     let preset = Preset {
         rounds_per_window_change: 3,
+        eval_every_rounds: 5,
         ..tiny_preset(&["a"])
     };
     let job = TableJob {
@@ -272,5 +273,12 @@ fn rounds_per_window_change_multiplies_the_rounds() {
     // Five window changes with a full window (as in the tiny table), three rounds each.
     assert_eq!(result.runs[0].rounds, 15);
     assert_eq!(result.runs[0].curve.len(), 15);
+    // Evaluated during training at rounds 5, 10 and 15; the last equals the final evaluation.
+    let evals = &result.runs[0].eval_curve;
+    assert_eq!(
+        evals.iter().map(|e| e.round).collect::<Vec<_>>(),
+        [5, 10, 15]
+    );
+    assert_eq!(evals[2].psnr_db, result.runs[0].eval.psnr_db);
     let _ = std::fs::remove_dir_all(&out);
 }

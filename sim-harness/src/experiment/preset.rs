@@ -78,6 +78,9 @@ pub struct Preset {
     pub densify_every_rounds: u32,
     /// Rounds run each time the keyframe window changes (paper: 1).
     pub rounds_per_window_change: u32,
+    /// Evaluate on the evaluation views every this many rounds (0: only at the end), for
+    /// the evaluation curve in runs.json.
+    pub eval_every_rounds: u64,
     pub init: InitKind,
     /// Initial Gaussians (paper: 10,000).
     pub init_points: u32,
@@ -105,6 +108,7 @@ impl Default for Preset {
             min_view_angle_deg: 10.0,
             densify_every_rounds: 10,
             rounds_per_window_change: 1,
+            eval_every_rounds: 0,
             init: InitKind::Surface,
             init_points: 10_000,
             max_gaussians: 200_000,

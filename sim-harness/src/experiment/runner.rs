@@ -36,6 +36,16 @@ pub struct RoundPoint {
     pub train_s: f64,
 }
 
+/// Evaluation during training.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct EvalPoint {
+    pub round: u64,
+    pub psnr_db: f64,
+    pub ssim: f64,
+    pub masked_psnr_db: f64,
+    pub gaussians: usize,
+}
+
 /// Everything a run produced.
 #[derive(Clone, Debug, Serialize)]
 pub struct RunOutcome {
@@ -59,6 +69,8 @@ pub struct RunOutcome {
     pub step_ms: f64,
     pub eval_s: f64,
     pub curve: Vec<RoundPoint>,
+    /// Evaluation every `eval_every_rounds` rounds (empty when 0).
+    pub eval_curve: Vec<EvalPoint>,
     /// sRGB renders of the first evaluation views (for figures).
     #[serde(skip)]
     pub renders: Vec<Vec<u8>>,
@@ -168,6 +180,7 @@ pub fn run_config(
     ));
     let started = Instant::now();
     let mut curve = Vec::new();
+    let mut eval_curve = Vec::new();
     let mut train_s = 0.0;
     let report_every = (scene.frames.len() / 10).max(1);
     let rounds_per_change = preset.rounds_per_window_change.max(1);
@@ -194,6 +207,21 @@ pub fn run_config(
                 gaussians: report.gaussians,
                 train_s,
             });
+            let every = preset.eval_every_rounds;
+            if every > 0 && report.rounds % every == 0 {
+                let (e, _) = evaluate_model(&trainer.trainer().model, scene, 0)?;
+                progress(&format!(
+                    "{label}: round {}: evaluation PSNR {:.2} dB, SSIM {:.4}",
+                    report.rounds, e.psnr_db, e.ssim
+                ));
+                eval_curve.push(EvalPoint {
+                    round: report.rounds,
+                    psnr_db: e.psnr_db,
+                    ssim: e.ssim,
+                    masked_psnr_db: e.masked_psnr_db,
+                    gaussians: report.gaussians,
+                });
+            }
         }
         if (i + 1) % report_every == 0 || i + 1 == scene.frames.len() {
             let last = curve.last();
@@ -240,6 +268,7 @@ pub fn run_config(
         },
         eval_s,
         curve,
+        eval_curve,
         renders,
         eval,
         seen,
