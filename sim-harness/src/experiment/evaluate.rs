@@ -157,13 +157,13 @@ pub fn evaluate_views(
 
 /// Scores of an all-black render on `views`: the floor any useful model must beat (the
 /// background is black, so this measures how much of the frame the target covers).
-pub fn black_baseline(
+pub fn black_baseline<'a>(
     k: &SceneIntrinsics,
-    views: &[ViewData],
+    views: impl IntoIterator<Item = &'a ViewData>,
 ) -> Result<EvalSummary, SunAwareError> {
     let black = vec![0.0f32; 3 * k.width as usize * k.height as usize];
     let per_view = views
-        .iter()
+        .into_iter()
         .map(|v| score_view(k, v, &black))
         .collect::<Result<_, _>>()?;
     Ok(summarise(per_view))

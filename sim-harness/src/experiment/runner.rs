@@ -57,6 +57,8 @@ pub struct RunOutcome {
     pub seen: EvalSummary,
     /// An all-black render on the evaluation views (the floor to beat).
     pub black_eval: EvalSummary,
+    /// An all-black render on the same training frames as `seen`.
+    pub black_seen: EvalSummary,
     pub gaussians: usize,
     pub rounds: u64,
     pub steps: u64,
@@ -238,13 +240,10 @@ pub fn run_config(
     }
     let eval_started = Instant::now();
     let (eval, renders) = evaluate_model(&trainer.trainer().model, scene, keep_renders)?;
-    let (seen, _) = evaluate_views(
-        &trainer.trainer().model,
-        &scene.intrinsics,
-        &seen_views(scene, 20),
-        0,
-    )?;
+    let seen_frames = seen_views(scene, 20);
+    let (seen, _) = evaluate_views(&trainer.trainer().model, &scene.intrinsics, &seen_frames, 0)?;
     let black_eval = black_baseline(&scene.intrinsics, &scene.eval)?;
+    let black_seen = black_baseline(&scene.intrinsics, seen_frames.iter().copied())?;
     let eval_s = eval_started.elapsed().as_secs_f64();
     let t = trainer.trainer();
     let counters = trainer.counters();
@@ -273,14 +272,16 @@ pub fn run_config(
         eval,
         seen,
         black_eval,
+        black_seen,
     };
     progress(&format!(
-        "{label}: PSNR {:.2} dB, SSIM {:.4} (masked {:.2} dB / {:.4}; seen views {:.2} dB; all-black {:.2} dB), {} Gaussians, {} rounds, {} steps, train {:.0} s ({:.1} ms/step), eval {:.0} s",
+        "{label}: PSNR {:.2} dB, SSIM {:.4} (masked {:.2} dB / {:.4}; seen views {:.2} dB, all-black there {:.2} dB; all-black {:.2} dB), {} Gaussians, {} rounds, {} steps, train {:.0} s ({:.1} ms/step), eval {:.0} s",
         outcome.eval.psnr_db,
         outcome.eval.ssim,
         outcome.eval.masked_psnr_db,
         outcome.eval.masked_ssim,
         outcome.seen.psnr_db,
+        outcome.black_seen.psnr_db,
         outcome.black_eval.psnr_db,
         outcome.gaussians,
         outcome.rounds,

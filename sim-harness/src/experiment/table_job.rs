@@ -96,14 +96,15 @@ pub fn diagnostics_markdown(runs: &[RunOutcome]) -> String {
     use std::fmt::Write as _;
     let mut out = String::from(
         "Details (PSNR dB / SSIM; masked = target pixels only; seen = up to 20 lit training \
-         frames; black = an all-black render on the evaluation views):\n\n\
-         | Target | Config. | eval masked | seen full | seen masked | black full | black masked | rounds | steps | eclipse frames skipped |\n\
-         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+         frames; black = an all-black render on the evaluation views, black seen = on the seen \
+         frames):\n\n\
+         | Target | Config. | eval masked | seen full | seen masked | black full | black masked | black seen full | rounds | steps | eclipse frames skipped |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in runs {
         let _ = writeln!(
             out,
-            "| {} | {} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {} | {} | {} |",
+            "| {} | {} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {:.2} / {:.4} | {} | {} | {} |",
             target_label(&r.target),
             r.config,
             r.eval.masked_psnr_db,
@@ -116,6 +117,8 @@ pub fn diagnostics_markdown(runs: &[RunOutcome]) -> String {
             r.black_eval.ssim,
             r.black_eval.masked_psnr_db,
             r.black_eval.masked_ssim,
+            r.black_seen.psnr_db,
+            r.black_seen.ssim,
             r.rounds,
             r.steps,
             r.skipped_eclipse
