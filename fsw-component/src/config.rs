@@ -135,7 +135,8 @@ impl Default for NodeConfig {
 impl Default for CanConfig {
     fn default() -> Self {
         Self {
-            enabled: true,
+            // UDP alone works everywhere; CAN needs an interface that exists.
+            enabled: false,
             interface: "vcan0".to_string(),
             fd: true,
         }
