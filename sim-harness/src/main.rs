@@ -9,15 +9,24 @@
 //! paper's configurations a-d online on each target and writes the results table and figure
 //! (see `sim_harness::experiment::table_job`). `sim-harness demo [--out DIR]` runs the
 //! README's demo (see `sim_harness::experiment::demo`).
+//!
+//! `sim-harness buslogs --dataset DIR [--out DIR/bus] [--config FILE]` writes the dataset as
+//! the component's bus logs (`can.log`, `udp.rec`) for `fsw-component --replay`;
+//! `sim-harness play --dataset DIR --udp HOST:PORT [--telemetry-udp HOST:PORT] [--can IFACE]
+//! [--speed X|max]` plays it onto the live bus (see `sim_harness::busfeed`).
 
 use clap::{Parser, Subcommand};
+use sim_harness::busfeed::{
+    play, write_bus_logs, BusFeedOptions, PlaySpeed, PlayTargets, AOCS_NODE_ID, NAVIGATION_NODE_ID,
+};
 use sim_harness::dataset::{generate, GenerateOptions};
 use sim_harness::experiment::demo::run_demo;
 use sim_harness::experiment::preset::Preset;
 use sim_harness::experiment::table::to_markdown;
 use sim_harness::experiment::table_job::{builtin_scenarios, run_table, TableJob};
 use sim_harness::scenario::Scenario;
-use std::path::PathBuf;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
 
 #[derive(Parser)]
 #[command(
@@ -51,6 +60,40 @@ enum Command {
         /// Write into a non-empty folder, replacing files of the same name.
         #[arg(long)]
         overwrite: bool,
+        /// Also write the bus logs to OUT/bus (as `buslogs` with config/component.toml).
+        #[arg(long)]
+        bus_logs: bool,
+    },
+    /// Write a dataset as the component's bus logs: can.log (telemetry) and udp.rec (frames).
+    Buslogs {
+        /// Dataset folder written by `generate`.
+        #[arg(long)]
+        dataset: PathBuf,
+        /// Output folder (default DATASET/bus).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        #[command(flatten)]
+        bus: BusArgs,
+    },
+    /// Play a dataset onto the live bus: frames over UDP, telemetry over UDP or SocketCAN.
+    Play {
+        /// Dataset folder written by `generate`.
+        #[arg(long)]
+        dataset: PathBuf,
+        /// The component's frame port.
+        #[arg(long)]
+        udp: SocketAddr,
+        /// The component's telemetry port (default: --udp unless --can is given).
+        #[arg(long)]
+        telemetry_udp: Option<SocketAddr>,
+        /// Send the telemetry as Cyphal/CAN on this SocketCAN interface.
+        #[arg(long)]
+        can: Option<String>,
+        /// Scenario time divided by X (1 = real time), or "max".
+        #[arg(long, default_value = "max")]
+        speed: PlaySpeed,
+        #[command(flatten)]
+        bus: BusArgs,
     },
     /// Train configurations a-d online on each target and write the results table.
     Table {
@@ -75,6 +118,70 @@ enum Command {
     },
 }
 
+/// How the simulated spacecraft's nodes talk to the component.
+#[derive(clap::Args)]
+struct BusArgs {
+    /// Component configuration (CAN FD flag, interface name, frame port, node-ID).
+    #[arg(long, default_value = "config/component.toml")]
+    config: PathBuf,
+    /// Node-ID of the AOCS (Sun vector source).
+    #[arg(long, default_value_t = AOCS_NODE_ID)]
+    aocs_node: u8,
+    /// Node-ID of relative navigation (pose source).
+    #[arg(long, default_value_t = NAVIGATION_NODE_ID)]
+    navigation_node: u8,
+    /// 1-sigma position uncertainty sent with each pose, metres.
+    #[arg(long, default_value_t = 0.0)]
+    position_sigma_m: f32,
+    /// 1-sigma attitude uncertainty sent with each pose, degrees.
+    #[arg(long, default_value_t = 0.0)]
+    attitude_sigma_deg: f32,
+    /// Leave the target masks out of the camera frames.
+    #[arg(long)]
+    no_mask: bool,
+}
+
+impl BusArgs {
+    fn options(&self) -> Result<(BusFeedOptions, u8), Box<dyn std::error::Error>> {
+        bus_options(&self.config, |o| {
+            o.aocs_node_id = self.aocs_node;
+            o.navigation_node_id = self.navigation_node;
+            o.position_sigma_m = self.position_sigma_m;
+            o.attitude_sigma_rad = self.attitude_sigma_deg.to_radians();
+            o.include_mask = !self.no_mask;
+        })
+    }
+}
+
+fn bus_options(
+    config: &Path,
+    adjust: impl FnOnce(&mut BusFeedOptions),
+) -> Result<(BusFeedOptions, u8), Box<dyn std::error::Error>> {
+    let config = fsw_component::config::ComponentConfig::load(config)?;
+    let mut options = BusFeedOptions::from_config(&config);
+    adjust(&mut options);
+    Ok((options, config.node.node_id))
+}
+
+fn buslogs(
+    dataset: &Path,
+    out: &Path,
+    options: &BusFeedOptions,
+    node_id: u8,
+) -> Result<(), Box<dyn std::error::Error>> {
+    let summary = write_bus_logs(dataset, out, options, node_id)?;
+    eprintln!(
+        "wrote {} frames: {} CAN frames to {}, {} datagrams to {}",
+        summary.frames,
+        summary.can_frames,
+        out.join(fsw_component::recorder::CAN_FILE).display(),
+        summary.frame_datagrams,
+        out.join(fsw_component::recorder::UDP_FILE).display()
+    );
+    println!("{}", serde_json::to_string(&summary)?);
+    Ok(())
+}
+
 fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
     match cli.command {
         Command::Generate {
@@ -84,6 +191,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             downsample,
             eval_views,
             overwrite,
+            bus_logs,
         } => {
             let scenario =
                 Scenario::load(&scenario)?.with_overrides(frames, downsample, eval_views)?;
@@ -93,6 +201,43 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 GenerateOptions { overwrite },
                 &mut |line| eprintln!("{line}"),
             )?;
+            println!("{}", serde_json::to_string(&summary)?);
+            if bus_logs {
+                let (options, node_id) = bus_options(Path::new("config/component.toml"), |_| {})?;
+                buslogs(&out, &out.join("bus"), &options, node_id)?;
+            }
+            Ok(())
+        }
+        Command::Buslogs { dataset, out, bus } => {
+            let (options, node_id) = bus.options()?;
+            let out = out.unwrap_or_else(|| dataset.join("bus"));
+            buslogs(&dataset, &out, &options, node_id)
+        }
+        Command::Play {
+            dataset,
+            udp,
+            telemetry_udp,
+            can,
+            speed,
+            bus,
+        } => {
+            let (options, node_id) = bus.options()?;
+            let targets = PlayTargets {
+                frames_udp: udp,
+                telemetry_udp,
+                can_interface: can,
+            };
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()?;
+            let summary = runtime.block_on(play(&dataset, &options, node_id, &targets, speed))?;
+            eprintln!(
+                "played {} frames: {} datagrams to {udp}, {} telemetry datagrams, {} CAN frames",
+                summary.frames,
+                summary.frame_datagrams,
+                summary.telemetry_datagrams,
+                summary.can_frames
+            );
             println!("{}", serde_json::to_string(&summary)?);
             Ok(())
         }
