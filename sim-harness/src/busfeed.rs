@@ -218,7 +218,7 @@ fn parse_line(text: &str, line: usize, dataset: &Path) -> Result<FeedLine, BusFe
     let time_s = json
         .time_s
         .ok_or_else(|| bad("time_s is null (an evaluation view, not a sequence frame)".into()))?;
-    if !(time_s.is_finite() && time_s >= 0.0 && time_s < 1e12) {
+    if !(0.0..1e12).contains(&time_s) {
         return Err(bad(format!("time_s {time_s} is not a time >= 0")));
     }
     let t = json.t_camera_from_target_m;
