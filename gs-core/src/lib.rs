@@ -13,6 +13,7 @@ pub mod optim;
 pub mod ply;
 pub mod raster;
 pub mod regularizer;
+pub mod rng;
 pub mod sh;
 pub mod sunaware;
 pub mod train;

@@ -29,7 +29,7 @@ use rayon::prelude::*;
 
 use super::error::{check_finite, check_len, NnError};
 use super::matmul::{matmul, matmul_a_bt, matmul_at_b};
-use super::rng::SplitMix64;
+use crate::rng::SplitMix64;
 
 /// Negative-side slope of LeakyReLU (PyTorch's default; the paper does not give one).
 pub const LEAKY_SLOPE: f32 = 0.01;

@@ -36,7 +36,6 @@ pub mod error;
 mod gather;
 pub mod matmul;
 pub mod mlp;
-mod rng;
 pub mod shadow;
 
 pub use appearance::AppearanceNet;
