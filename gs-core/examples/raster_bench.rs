@@ -21,23 +21,8 @@ use gs_core::raster::{
     render, render_backward_with, render_with, GaussianView, PixelGrads, RasterSettings,
     RasterWorkspace,
 };
+use gs_core::rng::SplitMix64;
 use gs_core::{Camera, Intrinsics};
-
-struct SplitMix64(u64);
-
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
-        let u = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
-        lo + (hi - lo) * u
-    }
-}
 
 /// A flat rectangle: centre, two half-edge vectors, and a base colour.
 struct Face {
@@ -112,7 +97,7 @@ impl Scene {
 fn satellite_scene(n: usize, seed: u64) -> Scene {
     let faces = satellite_faces();
     let total_area: f32 = faces.iter().map(Face::area).sum();
-    let mut rng = SplitMix64(seed);
+    let mut rng = SplitMix64::new(seed);
     // Tangent sigma so that neighbours overlap (mean spacing sqrt(area / n)).
     let spacing = (total_area / n as f32).sqrt();
     let mut s = Scene {

@@ -33,6 +33,11 @@ impl SplitMix64 {
         (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
     }
 
+    /// Uniform in `[lo, hi)` (random test and benchmark scenes).
+    pub fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.next_f32()
+    }
+
     /// Uniform in `[-bound, bound)` (MLP weight initialisation).
     pub fn uniform_symmetric(&mut self, bound: f32) -> f32 {
         (2.0 * self.next_f32() - 1.0) * bound

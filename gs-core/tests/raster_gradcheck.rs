@@ -9,23 +9,8 @@
 
 use glam::Vec3;
 use gs_core::raster::{render, render_backward, GaussianView, PixelGrads, RasterSettings};
+use gs_core::rng::SplitMix64;
 use gs_core::{Camera, Intrinsics};
-
-struct SplitMix64(u64);
-
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
-        let u = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
-        lo + (hi - lo) * u
-    }
-}
 
 #[derive(Clone)]
 struct Scene {
@@ -69,7 +54,7 @@ impl Scene {
 
 /// 64x48 image, fov_x 1 rad (tan(fov/2) = 0.546, Jacobian clamp at 0.71).
 fn random_scene(seed: u64) -> Scene {
-    let mut rng = SplitMix64(seed);
+    let mut rng = SplitMix64::new(seed);
     let k = Intrinsics::from_fov_x(1.0, 64, 48);
     let camera = Camera::look_at(
         k,
@@ -142,7 +127,7 @@ struct LossWeights {
 }
 
 fn loss_weights(scene: &Scene, seed: u64) -> LossWeights {
-    let mut rng = SplitMix64(seed);
+    let mut rng = SplitMix64::new(seed);
     let px = scene.camera.intrinsics.pixel_count();
     let mut draw = |n: usize, scale: f32| (0..n).map(|_| rng.uniform(-scale, scale)).collect();
     LossWeights {

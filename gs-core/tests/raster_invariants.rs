@@ -13,23 +13,8 @@ use gs_core::raster::{
     render, render_backward, GaussianGrads, GaussianView, PixelGrads, RasterError, RasterSettings,
     RenderOutput,
 };
+use gs_core::rng::SplitMix64;
 use gs_core::{Camera, Intrinsics};
-
-struct SplitMix64(u64);
-
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
-        let u = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
-        lo + (hi - lo) * u
-    }
-}
 
 #[derive(Clone, Default)]
 struct Gaussians {
@@ -121,7 +106,7 @@ fn camera(width: u32, height: u32) -> Camera {
 }
 
 fn pixel_grads_for(out: &RenderOutput, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-    let mut rng = SplitMix64(seed);
+    let mut rng = SplitMix64::new(seed);
     let px = out.width as usize * out.height as usize;
     let c = (0..px * out.n_channels)
         .map(|_| rng.uniform(-1.0, 1.0))
@@ -194,7 +179,7 @@ fn empty_model_renders_the_background() {
 #[test]
 fn culled_gaussians_change_nothing() {
     let cam = camera(70, 50);
-    let mut rng = SplitMix64(3);
+    let mut rng = SplitMix64::new(3);
     let base = Gaussians::random_cloud(&mut rng, 60, 3, Vec3::ZERO, 0.8);
     let settings = RasterSettings {
         background: vec![0.2, 0.3, 0.4],
@@ -280,7 +265,7 @@ fn culled_gaussians_change_nothing() {
 #[test]
 fn results_are_bit_identical_across_runs_and_thread_counts() {
     let cam = camera(150, 100);
-    let mut rng = SplitMix64(11);
+    let mut rng = SplitMix64::new(11);
     let g = Gaussians::random_cloud(&mut rng, 3000, 4, Vec3::ZERO, 1.0);
     let settings = RasterSettings::default();
     let run = |threads: usize| {
@@ -409,7 +394,7 @@ fn single_gaussians_match_the_closed_form_footprint() {
 #[test]
 fn bad_inputs_are_errors_not_panics() {
     let cam = camera(32, 32);
-    let mut rng = SplitMix64(1);
+    let mut rng = SplitMix64::new(1);
     let g = Gaussians::random_cloud(&mut rng, 10, 3, Vec3::ZERO, 0.5);
     let s = RasterSettings::default();
     let mut short = g.clone();
@@ -524,7 +509,7 @@ fn bad_inputs_are_errors_not_panics() {
 /// the camera inside the cloud: everything stays finite and nothing panics.
 #[test]
 fn extreme_inputs_stay_finite() {
-    let mut rng = SplitMix64(77);
+    let mut rng = SplitMix64::new(77);
     let k = Intrinsics::from_fov_x(1.2, 160, 100);
     let eye = Vec3::new(0.1, 0.2, -0.1);
     let cam = Camera::look_at(k, eye, Vec3::new(1.0, 0.5, 0.3), Vec3::Z);

@@ -12,23 +12,8 @@ use gs_core::raster::{
     render, render_backward, render_backward_with, render_with, GaussianGrads, GaussianView,
     PixelGrads, RasterSettings, RasterWorkspace, RenderOutput,
 };
+use gs_core::rng::SplitMix64;
 use gs_core::{Camera, Intrinsics};
-
-struct SplitMix64(u64);
-
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn uniform(&mut self, lo: f32, hi: f32) -> f32 {
-        let u = (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
-        lo + (hi - lo) * u
-    }
-}
 
 struct Scene {
     means: Vec<f32>,
@@ -41,7 +26,7 @@ struct Scene {
 
 impl Scene {
     fn random(seed: u64, n: usize, n_channels: usize) -> Self {
-        let mut rng = SplitMix64(seed);
+        let mut rng = SplitMix64::new(seed);
         let mut u = |lo, hi, count: usize| (0..count).map(|_| rng.uniform(lo, hi)).collect();
         Self {
             means: u(-1.0, 1.0, 3 * n),
@@ -114,7 +99,7 @@ fn assert_same(label: &str, a: &(RenderOutput, GaussianGrads), b: &(RenderOutput
 }
 
 fn pixel_grads(out: &RenderOutput, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-    let mut rng = SplitMix64(seed);
+    let mut rng = SplitMix64::new(seed);
     let px = out.width as usize * out.height as usize;
     let mut u = |count: usize| (0..count).map(|_| rng.uniform(-1.0, 1.0)).collect();
     (u(px * out.n_channels), u(px), u(px))
