@@ -9,6 +9,7 @@
 use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use crate::sync::SyncConfig;
 use glam::DQuat;
+use gs_core::sunaware::{SunAwareError, Variant};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
@@ -18,6 +19,8 @@ use std::path::{Path, PathBuf};
 pub const MAX_NODE_ID: u8 = 127;
 /// Linux interface names are at most IFNAMSIZ - 1 = 15 bytes.
 pub const MAX_INTERFACE_NAME_BYTES: usize = 15;
+/// Upper bound of `training.passes_per_round`: a round must still end within minutes.
+pub const MAX_PASSES_PER_ROUND: u32 = 100;
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -92,8 +95,12 @@ pub struct SyncSettings {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrainingConfig {
-    /// Training preset name (a preset under config/, e.g. "cpu" or "paper").
-    pub preset: String,
+    /// Model configuration of the paper's Table I: "a" (3DGS), "b" (+ appearance MLP),
+    /// "c" (+ shadow splatting) or "d" (+ isotropic loss).
+    pub variant: String,
+    /// Passes over the keyframe window per training round (the paper: 1). More passes
+    /// train each keyframe more often at the same frame rate, and make a round longer.
+    pub passes_per_round: u32,
     /// Keyframe window size W.
     pub window_size: usize,
     /// A frame becomes a keyframe when its view moved more than this, degrees.
@@ -183,7 +190,8 @@ impl Default for TrainingConfig {
     fn default() -> Self {
         let window = WindowConfig::default();
         Self {
-            preset: "cpu".to_string(),
+            variant: "d".to_string(),
+            passes_per_round: 1,
             window_size: window.capacity,
             min_view_angle_deg: window.min_view_angle_deg,
             threads: 2,
@@ -325,15 +333,11 @@ impl ComponentConfig {
         }
         self.sync_config()?;
         self.window_config()?;
-        let preset = &self.training.preset;
-        if preset.is_empty()
-            || !preset
-                .bytes()
-                .all(|b| b.is_ascii_alphanumeric() || b"_-".contains(&b))
-        {
+        self.variant()?;
+        if !(1..=MAX_PASSES_PER_ROUND).contains(&self.training.passes_per_round) {
             return Err(invalid(
-                "training.preset",
-                format!("{preset:?} is not a preset name ([A-Za-z0-9_-]+)"),
+                "training.passes_per_round",
+                format!("must be within 1..={MAX_PASSES_PER_ROUND}"),
             ));
         }
         if self.training.threads == 0 {
@@ -409,6 +413,14 @@ impl ComponentConfig {
     }
 
     /// The keyframe window settings this configuration describes.
+    /// The model configuration named by `training.variant`.
+    pub fn variant(&self) -> Result<Variant, ConfigError> {
+        self.training
+            .variant
+            .parse()
+            .map_err(|e: SunAwareError| invalid("training.variant", e.to_string()))
+    }
+
     pub fn window_config(&self) -> Result<WindowConfig, ConfigError> {
         let window = WindowConfig {
             capacity: self.training.window_size,
@@ -529,10 +541,14 @@ mod tests {
             "training.min_view_angle_deg"
         );
         assert_eq!(
-            invalid_key("[training]\npreset = \"../etc\"\n"),
-            "training.preset"
+            invalid_key("[training]\nvariant = \"e\"\n"),
+            "training.variant"
         );
         assert_eq!(invalid_key("[training]\nthreads = 0\n"), "training.threads");
+        assert_eq!(
+            invalid_key("[training]\npasses_per_round = 0\n"),
+            "training.passes_per_round"
+        );
         assert_eq!(
             invalid_key("[checkpoint]\npath = \"\"\n"),
             "checkpoint.path"

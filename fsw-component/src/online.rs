@@ -109,6 +109,8 @@ pub struct OnlineConfig {
     pub window: WindowConfig,
     /// The model, its variant (a-d) and its optimiser settings.
     pub model: SunAwareConfig,
+    /// Passes over the window per round (paper: 1), each in its own shuffled order.
+    pub passes_per_round: u32,
     /// Densify and prune every this many rounds (paper: 10).
     pub densify_every_rounds: u64,
     /// Skip frames flagged as in eclipse.
@@ -130,6 +132,7 @@ impl Default for OnlineConfig {
         Self {
             window: WindowConfig::default(),
             model: SunAwareConfig::default(),
+            passes_per_round: 1,
             densify_every_rounds: 10,
             skip_eclipse: true,
             skip_unlit: true,
@@ -450,23 +453,27 @@ impl OnlineTrainer {
         }
         let start = Instant::now();
         let n = self.window.len();
+        let passes = self.config.passes_per_round.max(1) as usize;
         let mut order: Vec<usize> = (0..n).collect();
         let mut rng = SplitMix64::new(
             self.config.shuffle_seed ^ self.rounds.wrapping_mul(0x9E37_79B9_7F4A_7C15),
         );
-        rng.shuffle(&mut order);
         let skipped_before = self.trainer.skipped_nonfinite;
         let (mut loss_sum, mut applied) = (0.0f64, 0u64);
-        let mut trained_ids = Vec::with_capacity(n);
-        for (k, &i) in order.iter().enumerate() {
-            let frame = &self.window.keyframes()[i].payload;
-            trained_ids.push(frame.id);
-            let stats = self
-                .trainer
-                .step(&frame.observation(), k as f32 / n as f32)?;
-            if !stats.skipped {
-                loss_sum += stats.loss as f64;
-                applied += 1;
+        let mut trained_ids = Vec::with_capacity(n * passes);
+        for pass in 0..passes {
+            // Reshuffling the previous order keeps pass 0 identical to a one-pass round.
+            rng.shuffle(&mut order);
+            for (k, &i) in order.iter().enumerate() {
+                let frame = &self.window.keyframes()[i].payload;
+                trained_ids.push(frame.id);
+                // The learning rates decay over the whole round (sawtooth per round).
+                let progress = (pass * n + k) as f32 / (passes * n) as f32;
+                let stats = self.trainer.step(&frame.observation(), progress)?;
+                if !stats.skipped {
+                    loss_sum += stats.loss as f64;
+                    applied += 1;
+                }
             }
         }
         self.rounds += 1;

@@ -90,10 +90,14 @@ pub fn build_learner(
         .map_err(|e| RuntimeError::Config(e.to_string()))?;
     Ok(match kind {
         LearnerKind::NearestKeyframe => Box::new(NearestKeyframeLearner::new(window)),
-        LearnerKind::SunAware => Box::new(
-            SunAwareLearner::new(SunAwareSettings::with_window(window))
-                .map_err(RuntimeError::Config)?,
-        ),
+        LearnerKind::SunAware => {
+            let mut settings = SunAwareSettings::with_window(window);
+            settings.online.passes_per_round = config.training.passes_per_round;
+            settings.online.model.variant = config
+                .variant()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?;
+            Box::new(SunAwareLearner::new(settings).map_err(RuntimeError::Config)?)
+        }
     })
 }
 

@@ -125,6 +125,49 @@ fn short_sequence_trains_without_nan_and_improves_held_out_psnr() {
 }
 
 #[test]
+fn passes_per_round_train_each_keyframe_that_often_and_keep_the_first_pass() {
+    let scene = SyntheticScene::plate_and_ball(6, 20).unwrap();
+    let run = |passes: u32| {
+        let mut t = OnlineTrainer::new(
+            OnlineConfig {
+                passes_per_round: passes,
+                ..config(3)
+            },
+            &surface_init(&scene),
+            scene.scene_box,
+        )
+        .unwrap();
+        let mut report = None;
+        for id in 0..3 {
+            t.offer(frame(&scene, id, false)).unwrap();
+            report = report.or(t.run_round_if_due().unwrap());
+        }
+        report.expect("the window filled at the third frame")
+    };
+    let one = run(1);
+    let three = run(3);
+    assert_eq!(three.rounds, 1, "three passes are still one round");
+    assert_eq!(three.trained_ids.len(), 9);
+    for id in &one.trained_ids {
+        let count = three.trained_ids.iter().filter(|&x| x == id).count();
+        assert_eq!(
+            count, 3,
+            "keyframe {id} trained {count} times in three passes"
+        );
+    }
+    assert_eq!(
+        three.trained_ids[..3],
+        one.trained_ids[..],
+        "the first pass keeps the one-pass order"
+    );
+    assert_ne!(
+        three.trained_ids[3..6],
+        three.trained_ids[..3],
+        "each pass reshuffles"
+    );
+}
+
+#[test]
 fn rounds_run_only_when_the_window_changed() {
     let scene = SyntheticScene::plate_and_ball(6, 20).unwrap();
     let mut t = OnlineTrainer::new(config(3), &surface_init(&scene), scene.scene_box).unwrap();
