@@ -66,6 +66,9 @@ pub struct UdpConfig {
     pub predictions_to: SocketAddr,
     /// Health status, events and command acknowledgements are sent to this address.
     pub health_to: SocketAddr,
+    /// Kernel receive buffer asked for on both receiving sockets, bytes; 0 keeps the
+    /// system default (about 200 KiB, less than one 640x480 RGB frame in flight).
+    pub receive_buffer_bytes: usize,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -160,6 +163,7 @@ impl Default for UdpConfig {
             telemetry_port: 15_002,
             predictions_to: SocketAddr::new(localhost, 15_003),
             health_to: SocketAddr::new(localhost, 15_004),
+            receive_buffer_bytes: 4 << 20,
         }
     }
 }

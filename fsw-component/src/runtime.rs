@@ -101,6 +101,31 @@ pub fn build_learner(
     })
 }
 
+/// Asks for `bytes` of kernel receive buffer. Linux grants at most net.core.rmem_max
+/// without CAP_NET_ADMIN: a smaller grant is reported, not an error, because the component
+/// still works (bursts beyond the buffer are counted as kernel drops in health).
+fn grow_receive_buffer(socket: &UdpTransport, bytes: usize) -> Result<(), RuntimeError> {
+    if bytes == 0 {
+        return Ok(());
+    }
+    socket
+        .set_receive_buffer_bytes(bytes)
+        .map_err(RuntimeError::Transport)?;
+    // Linux reports twice the usable size it granted (the other half is bookkeeping).
+    let granted = socket
+        .receive_buffer_bytes()
+        .map_err(RuntimeError::Transport)?
+        / 2;
+    if granted < bytes {
+        eprintln!(
+            "fsw-component: UDP {} receive buffer {granted} bytes, {bytes} asked \
+             (raise net.core.rmem_max for larger camera bursts)",
+            socket.local_addr()
+        );
+    }
+    Ok(())
+}
+
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(|p| p.into_inner())
 }
@@ -376,6 +401,9 @@ pub async fn start(
     } else {
         (None, None)
     };
+    for socket in frames.iter().chain(telemetry.iter()) {
+        grow_receive_buffer(socket, config.udp.receive_buffer_bytes)?;
+    }
     let mut recorder = match &record {
         Some(dir) => Some(
             Recorder::create(dir, &config.can.interface).map_err(|source| RuntimeError::Io {
@@ -594,4 +622,37 @@ pub async fn run_replay(
         frames_used: snapshot.frames_used,
         predictions_sent,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn receive_buffer_grows_to_the_configured_size_or_the_system_cap() {
+        let socket = UdpTransport::bind("127.0.0.1:0".parse().unwrap())
+            .await
+            .unwrap();
+        let default_bytes = socket.receive_buffer_bytes().unwrap() / 2;
+        let asked = 4 * default_bytes.max(64 << 10);
+        grow_receive_buffer(&socket, asked).unwrap();
+        let granted = socket.receive_buffer_bytes().unwrap() / 2;
+        // Root (SO_RCVBUFFORCE) gets the size asked; others at most net.core.rmem_max.
+        let cap = std::fs::read_to_string("/proc/sys/net/core/rmem_max")
+            .ok()
+            .and_then(|s| s.trim().parse::<usize>().ok());
+        let expected = if granted >= asked {
+            asked
+        } else {
+            cap.expect("granted less than asked, so a cap must exist")
+                .max(default_bytes)
+        };
+        assert_eq!(granted, expected);
+        grow_receive_buffer(&socket, 0).unwrap();
+        assert_eq!(
+            socket.receive_buffer_bytes().unwrap() / 2,
+            granted,
+            "0 leaves the buffer alone"
+        );
+    }
 }

@@ -531,9 +531,8 @@ def test_health_keeps_1_hz_while_the_sun_aware_trainer_trains(tmp_path, listener
 
     Rounds of W = 10 steps (the paper's window) took 0.85-0.92 s on the CI machine, 1.2 s on
     the development one, so a round makes 4 passes over the window (`passes_per_round`).
-    Frames stay 128x128 (66 datagrams): a larger frame can exceed the default socket
-    receive buffer when the machine is loaded. Each frame waits for its prediction, so no
-    frame is in flight while the next is sent."""
+    Frames are 128x128 (66 datagrams), and each waits for its prediction, so no frame is
+    in flight while the next is sent."""
     size = 128
     frames = 12  # the window fills at frame 10: rounds after frames 10, 11 and 12
     component = start(tmp_path, listener, learner="sunaware", window_size=10, passes=4)
