@@ -5,6 +5,7 @@
 
 pub mod camera;
 pub mod densify;
+pub mod hull;
 pub mod init;
 pub mod loss;
 pub mod model;

@@ -1,0 +1,539 @@
+//! Visual hull by voxel carving: initial points for the Gaussians from foreground masks and
+//! known camera poses, with no ground-truth model of the target.
+//!
+//! A box (the scene box) is cut into cubic voxels. Each view votes on each voxel: the voxel's
+//! projected footprint (the pixel rectangle covering its 8 projected corners, grown by
+//! `margin_px`) must contain at least one foreground pixel, else the view carves it. A view
+//! votes only when the voxel lies wholly in front of the camera and its whole grown footprint
+//! lies inside the image; otherwise it abstains (a view that does not see a voxel cannot
+//! carve it). A voxel survives when no voting view carves it and at least `min_views` views
+//! voted. The surface voxels (occupied, with at least one empty 6-neighbour; outside the grid
+//! counts as empty) become the points, at the voxel centres, with outward normals from the
+//! occupancy gradient, subsampled to the requested count by a seeded shuffle.
+//!
+//! Invariants:
+//! - conservative: with `margin_px >= 1` (masks sampled at pixel centres), every voxel that
+//!   meets the true object survives, so the carved hull contains the object (within the grid);
+//! - deterministic: the result depends only on the inputs, never on the thread count (each
+//!   voxel is decided independently; collections keep index order; the shuffle is seeded);
+//! - never panics on bad input: empty views, mask sizes that do not match the camera, a zero
+//!   resolution, a degenerate or non-finite box, too many voxels, or everything carved away
+//!   are [`HullError`]s; every returned point and normal is finite, every normal unit length.
+
+use glam::{Vec3, Vec4};
+use rayon::prelude::*;
+
+use crate::camera::Camera;
+use crate::rng::SplitMix64;
+
+/// A mask pixel is foreground when its value is at least this.
+pub const FOREGROUND_THRESHOLD: u8 = 128;
+/// Upper bound on the voxel count (a 320^3 grid), so a bad resolution is an error rather
+/// than an allocation failure.
+pub const MAX_VOXELS: usize = 1 << 25;
+/// Camera-frame depth below which a voxel corner counts as behind the camera, metres.
+const NEAR_M: f32 = 1e-4;
+
+/// One view for carving: a pinhole camera and its foreground mask.
+#[derive(Clone, Copy, Debug)]
+pub struct HullView<'a> {
+    pub camera: Camera,
+    /// `width * height` values, row-major; foreground where `>= FOREGROUND_THRESHOLD`.
+    pub mask: &'a [u8],
+}
+
+/// The carving volume: an axis-aligned box cut into cubic voxels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HullGrid {
+    pub min_m: Vec3,
+    pub max_m: Vec3,
+    /// Voxels along the box's longest side; the other sides get as many voxels of the same
+    /// size as cover them.
+    pub voxels_along_longest: u32,
+}
+
+impl HullGrid {
+    /// The cube around a bounding sphere.
+    pub fn around_sphere(centre: Vec3, radius_m: f32, voxels_along_longest: u32) -> Self {
+        HullGrid {
+            min_m: centre - Vec3::splat(radius_m),
+            max_m: centre + Vec3::splat(radius_m),
+            voxels_along_longest,
+        }
+    }
+
+    /// Voxel edge length and voxel counts per axis, after validation.
+    pub fn layout(&self) -> Result<(f32, [usize; 3]), HullError> {
+        if self.voxels_along_longest == 0 {
+            return Err(HullError::ZeroResolution);
+        }
+        let extent = self.max_m - self.min_m;
+        if !(self.min_m.is_finite() && self.max_m.is_finite()) || extent.min_element() <= 0.0 {
+            return Err(HullError::InvalidBox {
+                min_m: self.min_m.to_array(),
+                max_m: self.max_m.to_array(),
+            });
+        }
+        let voxel_m = extent.max_element() / self.voxels_along_longest as f32;
+        let mut dims = [0usize; 3];
+        for (axis, d) in dims.iter_mut().enumerate() {
+            // Floating point can put the ratio a hair above an integer: round that away.
+            let ratio = extent[axis] / voxel_m;
+            *d = ((ratio - 1e-4).ceil() as usize).max(1);
+        }
+        let total = dims[0]
+            .checked_mul(dims[1])
+            .and_then(|v| v.checked_mul(dims[2]))
+            .unwrap_or(usize::MAX);
+        if total > MAX_VOXELS {
+            return Err(HullError::TooManyVoxels {
+                voxels: total,
+                max: MAX_VOXELS,
+            });
+        }
+        Ok((voxel_m, dims))
+    }
+}
+
+/// Carving settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HullOptions {
+    /// Points to return (fewer when the hull has fewer surface voxels).
+    pub point_count: usize,
+    /// Pixels added around each footprint before the mask test (1 makes the carving
+    /// conservative for masks sampled at pixel centres).
+    pub margin_px: u32,
+    /// A voxel needs at least this many voting views to survive (1: at least one view
+    /// must have seen it).
+    pub min_views: u32,
+    /// Seed of the subsampling shuffle.
+    pub seed: u64,
+}
+
+impl Default for HullOptions {
+    fn default() -> Self {
+        HullOptions {
+            point_count: 10_000,
+            margin_px: 1,
+            min_views: 1,
+            seed: 0,
+        }
+    }
+}
+
+/// Points on the carved hull's surface.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HullPoints {
+    /// Surface voxel centres, world frame, metres (in voxel index order).
+    pub points: Vec<Vec3>,
+    /// Outward unit normals, one per point.
+    pub normals: Vec<Vec3>,
+    pub voxel_m: f32,
+    pub dims: [usize; 3],
+    /// Voxels that survived carving.
+    pub occupied: usize,
+    /// Surface voxels before subsampling.
+    pub surface: usize,
+}
+
+/// Why carving could not produce points.
+#[derive(Clone, Debug, PartialEq)]
+pub enum HullError {
+    /// No views given.
+    NoViews,
+    /// A view's mask does not have `width * height` values.
+    MaskSize {
+        view: usize,
+        expected: usize,
+        got: usize,
+    },
+    /// A view's camera has a zero-sized image, non-finite pose or non-positive focal length.
+    BadCamera {
+        view: usize,
+    },
+    /// `voxels_along_longest` is zero.
+    ZeroResolution,
+    /// The box is not finite or has a side of zero or negative length.
+    InvalidBox {
+        min_m: [f32; 3],
+        max_m: [f32; 3],
+    },
+    TooManyVoxels {
+        voxels: usize,
+        max: usize,
+    },
+    /// `point_count` is zero.
+    ZeroPointCount,
+    /// Every voxel was carved (or seen by fewer than `min_views` views).
+    NothingLeft {
+        voxels: usize,
+    },
+}
+
+impl std::fmt::Display for HullError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            HullError::NoViews => write!(f, "visual hull: no views to carve with"),
+            HullError::MaskSize {
+                view,
+                expected,
+                got,
+            } => write!(
+                f,
+                "visual hull: view {view}'s mask has {got} values, its camera {expected} pixels"
+            ),
+            HullError::BadCamera { view } => write!(
+                f,
+                "visual hull: view {view}'s camera has an empty image, a non-finite pose or a \
+                 non-positive focal length"
+            ),
+            HullError::ZeroResolution => write!(f, "visual hull: resolution must be positive"),
+            HullError::InvalidBox { min_m, max_m } => write!(
+                f,
+                "visual hull: box {min_m:?}..{max_m:?} must be finite with positive sides"
+            ),
+            HullError::TooManyVoxels { voxels, max } => {
+                write!(f, "visual hull: {voxels} voxels exceed the limit of {max}")
+            }
+            HullError::ZeroPointCount => write!(f, "visual hull: point_count must be positive"),
+            HullError::NothingLeft { voxels } => write!(
+                f,
+                "visual hull: all {voxels} voxels were carved (no view's mask covers the box?)"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for HullError {}
+
+/// A view prepared for O(1) footprint tests: the summed-area table of its foreground.
+struct PreparedView {
+    camera: Camera,
+    width: usize,
+    height: usize,
+    /// `(width + 1) * (height + 1)` prefix counts of foreground pixels.
+    summed: Vec<u32>,
+}
+
+impl PreparedView {
+    fn new(index: usize, view: &HullView) -> Result<Self, HullError> {
+        let k = view.camera.intrinsics;
+        let (width, height) = (k.width as usize, k.height as usize);
+        let pose_ok = view.camera.rotation.is_finite() && view.camera.translation.is_finite();
+        let intrinsics_ok =
+            [k.fx, k.fy, k.cx, k.cy].iter().all(|v| v.is_finite()) && k.fx > 0.0 && k.fy > 0.0;
+        if width == 0 || height == 0 || !pose_ok || !intrinsics_ok {
+            return Err(HullError::BadCamera { view: index });
+        }
+        if view.mask.len() != width * height {
+            return Err(HullError::MaskSize {
+                view: index,
+                expected: width * height,
+                got: view.mask.len(),
+            });
+        }
+        let stride = width + 1;
+        let mut summed = vec![0u32; stride * (height + 1)];
+        for y in 0..height {
+            let mut row = 0u32;
+            for x in 0..width {
+                row += (view.mask[y * width + x] >= FOREGROUND_THRESHOLD) as u32;
+                summed[(y + 1) * stride + x + 1] = summed[y * stride + x + 1] + row;
+            }
+        }
+        Ok(PreparedView {
+            camera: view.camera,
+            width,
+            height,
+            summed,
+        })
+    }
+
+    /// Foreground pixels in columns `x0..x1`, rows `y0..y1` (in bounds, non-empty).
+    fn foreground_in(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> u32 {
+        let s = self.width + 1;
+        self.summed[y1 * s + x1] + self.summed[y0 * s + x0]
+            - self.summed[y0 * s + x1]
+            - self.summed[y1 * s + x0]
+    }
+
+    /// `None` when this view abstains on the box `lo..hi`, else whether its footprint
+    /// touches the foreground.
+    fn vote(&self, lo: Vec3, hi: Vec3, margin_px: f32) -> Option<bool> {
+        let (mut u_min, mut u_max) = (f32::INFINITY, f32::NEG_INFINITY);
+        let (mut v_min, mut v_max) = (f32::INFINITY, f32::NEG_INFINITY);
+        for corner in 0..8 {
+            let p = Vec3::new(
+                if corner & 1 == 0 { lo.x } else { hi.x },
+                if corner & 2 == 0 { lo.y } else { hi.y },
+                if corner & 4 == 0 { lo.z } else { hi.z },
+            );
+            let c = self.camera.world_to_camera(p);
+            if c.z <= NEAR_M {
+                return None;
+            }
+            let (u, v) = self.camera.camera_to_pixel(c);
+            u_min = u_min.min(u);
+            u_max = u_max.max(u);
+            v_min = v_min.min(v);
+            v_max = v_max.max(v);
+        }
+        // Pixel (x, y) covers [x, x+1) x [y, y+1).
+        let x0 = (u_min - margin_px).floor();
+        let x1 = (u_max + margin_px).floor() + 1.0;
+        let y0 = (v_min - margin_px).floor();
+        let y1 = (v_max + margin_px).floor() + 1.0;
+        let inside = x0 >= 0.0
+            && y0 >= 0.0
+            && x1 <= self.width as f32
+            && y1 <= self.height as f32
+            && x0 < x1
+            && y0 < y1;
+        if !inside {
+            return None;
+        }
+        Some(self.foreground_in(x0 as usize, x1 as usize, y0 as usize, y1 as usize) > 0)
+    }
+}
+
+fn voxel_index(dims: [usize; 3], x: usize, y: usize, z: usize) -> usize {
+    x + dims[0] * (y + dims[1] * z)
+}
+
+/// Carves the grid with the views and returns points on the hull's surface.
+pub fn carve(
+    views: &[HullView],
+    grid: HullGrid,
+    options: HullOptions,
+) -> Result<HullPoints, HullError> {
+    if views.is_empty() {
+        return Err(HullError::NoViews);
+    }
+    if options.point_count == 0 {
+        return Err(HullError::ZeroPointCount);
+    }
+    let (voxel_m, dims) = grid.layout()?;
+    let prepared: Vec<PreparedView> = views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| PreparedView::new(i, v))
+        .collect::<Result<_, _>>()?;
+    let total = dims[0] * dims[1] * dims[2];
+    let margin_px = options.margin_px as f32;
+    let min_views = options.min_views;
+    let corner_of = |x: usize, y: usize, z: usize| {
+        grid.min_m + Vec3::new(x as f32, y as f32, z as f32) * voxel_m
+    };
+
+    // Occupancy, one byte per voxel; each z-slab is decided independently.
+    let slab = dims[0] * dims[1];
+    let mut occupancy = vec![0u8; total];
+    occupancy
+        .par_chunks_mut(slab)
+        .enumerate()
+        .for_each(|(z, slab_out)| {
+            for y in 0..dims[1] {
+                for x in 0..dims[0] {
+                    let lo = corner_of(x, y, z);
+                    let hi = lo + Vec3::splat(voxel_m);
+                    let mut voters = 0u32;
+                    let mut carved = false;
+                    for view in &prepared {
+                        match view.vote(lo, hi, margin_px) {
+                            Some(true) => voters += 1,
+                            Some(false) => {
+                                carved = true;
+                                break;
+                            }
+                            None => {}
+                        }
+                    }
+                    slab_out[x + dims[0] * y] = (!carved && voters >= min_views) as u8;
+                }
+            }
+        });
+    let occupied = occupancy.iter().filter(|&&o| o != 0).count();
+    if occupied == 0 {
+        return Err(HullError::NothingLeft { voxels: total });
+    }
+
+    let occ = |x: i64, y: i64, z: i64| -> f32 {
+        if x < 0
+            || y < 0
+            || z < 0
+            || x >= dims[0] as i64
+            || y >= dims[1] as i64
+            || z >= dims[2] as i64
+        {
+            return 0.0;
+        }
+        occupancy[voxel_index(dims, x as usize, y as usize, z as usize)] as f32
+    };
+    let surface: Vec<usize> = (0..total)
+        .into_par_iter()
+        .filter(|&i| {
+            if occupancy[i] == 0 {
+                return false;
+            }
+            let (x, y, z) = unflatten(dims, i);
+            FACE_NEIGHBOURS
+                .iter()
+                .any(|o| occ(x + o[0], y + o[1], z + o[2]) == 0.0)
+        })
+        .collect();
+    let surface_count = surface.len();
+
+    // Deterministic subsample: a seeded partial Fisher-Yates, then back to index order.
+    let mut chosen = surface;
+    if chosen.len() > options.point_count {
+        let mut rng = SplitMix64::new(options.seed);
+        for i in 0..options.point_count {
+            let j = i + rng.below(chosen.len() - i);
+            chosen.swap(i, j);
+        }
+        chosen.truncate(options.point_count);
+        chosen.sort_unstable();
+    }
+
+    let (points, normals): (Vec<Vec3>, Vec<Vec3>) = chosen
+        .par_iter()
+        .map(|&i| {
+            let (x, y, z) = unflatten(dims, i);
+            let centre = corner_of(x as usize, y as usize, z as usize) + Vec3::splat(0.5 * voxel_m);
+            (centre, outward_normal(&occ, x, y, z))
+        })
+        .unzip();
+    Ok(HullPoints {
+        points,
+        normals,
+        voxel_m,
+        dims,
+        occupied,
+        surface: surface_count,
+    })
+}
+
+const FACE_NEIGHBOURS: [[i64; 3]; 6] = [
+    [-1, 0, 0],
+    [1, 0, 0],
+    [0, -1, 0],
+    [0, 1, 0],
+    [0, 0, -1],
+    [0, 0, 1],
+];
+
+fn unflatten(dims: [usize; 3], i: usize) -> (i64, i64, i64) {
+    let x = i % dims[0];
+    let y = (i / dims[0]) % dims[1];
+    let z = i / (dims[0] * dims[1]);
+    (x as i64, y as i64, z as i64)
+}
+
+/// Minus the occupancy gradient over the 3x3x3 neighbourhood (offsets weighted by
+/// 1/|offset|^2, so the 26 neighbours smooth the 6-neighbour difference), unit length.
+/// Where that cancels (a one-voxel-thin sheet), the sum of the directions to empty
+/// 6-neighbours; where that cancels too, the first empty 6-neighbour's direction.
+fn outward_normal(occ: &impl Fn(i64, i64, i64) -> f32, x: i64, y: i64, z: i64) -> Vec3 {
+    let mut gradient = Vec3::ZERO;
+    for dz in -1..=1i64 {
+        for dy in -1..=1i64 {
+            for dx in -1..=1i64 {
+                let d2 = (dx * dx + dy * dy + dz * dz) as f32;
+                if d2 == 0.0 {
+                    continue;
+                }
+                let o = Vec3::new(dx as f32, dy as f32, dz as f32);
+                gradient += o * (occ(x + dx, y + dy, z + dz) / d2);
+            }
+        }
+    }
+    let outward = -gradient;
+    if outward.length_squared() > 1e-6 {
+        return outward.normalize();
+    }
+    let mut open = Vec3::ZERO;
+    let mut first_open = None;
+    for o in FACE_NEIGHBOURS {
+        if occ(x + o[0], y + o[1], z + o[2]) == 0.0 {
+            let d = Vec3::new(o[0] as f32, o[1] as f32, o[2] as f32);
+            open += d;
+            first_open.get_or_insert(d);
+        }
+    }
+    if open.length_squared() > 1e-6 {
+        open.normalize()
+    } else {
+        // Surface voxels always have an empty 6-neighbour; +z only guards the impossible.
+        first_open.unwrap_or(Vec3::Z)
+    }
+}
+
+/// One view for colouring: camera, sRGB-like image in [0, 1] (`width * height * 3`) and mask.
+#[derive(Clone, Copy, Debug)]
+pub struct ColourView<'a> {
+    pub camera: Camera,
+    pub rgb: &'a [f32],
+    pub mask: &'a [u8],
+}
+
+/// Colour of each point from the view that sees it most frontally (largest cosine between
+/// its normal and the direction to the camera) among the views where it projects onto a
+/// foreground pixel; `fallback` where no view qualifies (or a view's buffers do not match
+/// its camera: such views are skipped). Occlusion by other parts of the target is not
+/// tested. Returns the colours and how many points got the fallback.
+pub fn sample_colours(
+    points: &[Vec3],
+    normals: &[Vec3],
+    views: &[ColourView],
+    fallback: [f32; 3],
+) -> (Vec<[f32; 3]>, usize) {
+    let usable: Vec<&ColourView> = views
+        .iter()
+        .filter(|v| {
+            let n = v.camera.intrinsics.pixel_count();
+            n > 0 && v.rgb.len() == 3 * n && v.mask.len() == n
+        })
+        .collect();
+    let colours: Vec<Option<[f32; 3]>> = points
+        .par_iter()
+        .enumerate()
+        .map(|(i, &p)| {
+            let normal = normals.get(i).copied().unwrap_or(Vec3::ZERO);
+            let mut best: Option<(f32, [f32; 3])> = None;
+            for view in &usable {
+                let c = view.camera.world_to_camera(p);
+                if c.z <= NEAR_M {
+                    continue;
+                }
+                let (u, v) = view.camera.camera_to_pixel(c);
+                let k = view.camera.intrinsics;
+                if !(u >= 0.0 && v >= 0.0 && u < k.width as f32 && v < k.height as f32) {
+                    continue;
+                }
+                let pixel = v as usize * k.width as usize + u as usize;
+                if view.mask[pixel] < FOREGROUND_THRESHOLD {
+                    continue;
+                }
+                let to_camera = (view.camera.position() - p).normalize_or_zero();
+                let frontal = normal.dot(to_camera);
+                let rgb = [
+                    view.rgb[3 * pixel],
+                    view.rgb[3 * pixel + 1],
+                    view.rgb[3 * pixel + 2],
+                ];
+                if !Vec4::new(rgb[0], rgb[1], rgb[2], frontal).is_finite() {
+                    continue;
+                }
+                if best.is_none_or(|(b, _)| frontal > b) {
+                    best = Some((frontal, rgb));
+                }
+            }
+            best.map(|(_, rgb)| rgb)
+        })
+        .collect();
+    let missing = colours.iter().filter(|c| c.is_none()).count();
+    (
+        colours.into_iter().map(|c| c.unwrap_or(fallback)).collect(),
+        missing,
+    )
+}
