@@ -18,6 +18,7 @@
 pub mod bvh;
 pub mod rng;
 pub mod shading;
+pub mod sunlight;
 
 use crate::target::TargetMesh;
 use bvh::{Bvh, Ray};
