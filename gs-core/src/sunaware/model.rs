@@ -29,8 +29,9 @@ use crate::model::{GaussianModel, Param, ParamSet};
 use crate::nn::{AppearanceNet, MlpForward, PositionalEncoding, SceneBox, ShadowNet, TapeMode};
 use crate::raster::blend::AlphaMode;
 use crate::raster::{
-    camera_frame, project_splats, render, render_backward, GaussianGrads, GaussianView, PixelGrads,
-    RasterSettings, RenderOutput,
+    camera_frame, project_splats, render, render_backward,
+    BackwardTimings as RasterBackwardTimings, ForwardTimings as RasterForwardTimings,
+    GaussianGrads, GaussianView, PixelGrads, RasterSettings, RenderOutput,
 };
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 
@@ -87,13 +88,39 @@ struct NetPass {
     forward: MlpForward,
 }
 
-/// Wall-clock split of one forward, milliseconds.
+/// Wall-clock split of one forward, milliseconds. The intervals are disjoint and lie
+/// inside the forward call (so their sum never exceeds its duration).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct ForwardTimings {
+    /// Projection of every Gaussian to find the visible list (culling).
     pub cull_ms: f64,
+    /// Light camera, its splats and `V_i` ([`super::light::sun_visibility`]).
     pub shadow_pass_ms: f64,
-    pub mlp_forward_ms: f64,
-    pub raster_ms: f64,
+    /// Phi's input assembly, forward and the scatter of its RGB into the channels (or the
+    /// SH evaluation in configuration a).
+    pub phi_forward_ms: f64,
+    /// Psi's input assembly, forward and scatter.
+    pub psi_forward_ms: f64,
+    /// The rasterizer's own split (projection, depth sort + binning, blend).
+    pub raster: RasterForwardTimings,
+    /// Rest of the rasterizer call (checks, visibility flags) and the `RGB * S` product.
+    pub compose_ms: f64,
+}
+
+/// Wall-clock split of one backward, milliseconds (disjoint intervals inside the call).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BackwardTimings {
+    /// `dL/d(RGB, S)` from `dL/d(RGB * S)`.
+    pub compose_ms: f64,
+    /// The rasterizer's own split (blend backward, per-Gaussian reduction + projection
+    /// backward).
+    pub raster: RasterBackwardTimings,
+    /// Rest of the rasterizer call (checks, gradient scatter) and the geometry gather.
+    pub raster_other_ms: f64,
+    /// Phi's output-gradient gather, backward and input-gradient scatter.
+    pub phi_backward_ms: f64,
+    /// Psi's output-gradient gather, backward and input-gradient scatter.
+    pub psi_backward_ms: f64,
 }
 
 /// Everything one forward produced (images and what backward needs).
@@ -134,6 +161,10 @@ impl FramePass {
     pub fn radii_px(&self) -> &[f32] {
         &self.render.radii_px
     }
+}
+
+fn ms_since(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
 }
 
 fn gather_geometry(params: &ParamSet, g: &GaussianGrads) -> ParamSet {
@@ -332,6 +363,8 @@ impl SunAwareModel {
                 Some(NetPass { input, forward })
             }
         };
+        timings.phi_forward_ms = ms_since(t2);
+        let t_psi = Instant::now();
         let mut refined = Vec::new();
         let psi = match &self.shadow {
             Some(net) if shadowed => {
@@ -357,11 +390,12 @@ impl SunAwareModel {
             }
             _ => None,
         };
-        timings.mlp_forward_ms = t2.elapsed().as_secs_f64() * 1e3;
+        timings.psi_forward_ms = ms_since(t_psi);
 
         let t3 = Instant::now();
         let view = GaussianView::from_model(&self.gaussians, &channels, nc);
         let render_out = render(camera, &view, settings)?;
+        timings.raster = render_out.timings;
         let pixels = k.pixel_count();
         let mut rgb = vec![0.0f32; pixels * 3];
         let mut shadow_image = Vec::new();
@@ -380,7 +414,8 @@ impl SunAwareModel {
                 shadow_image[px] = s;
             }
         }
-        timings.raster_ms = t3.elapsed().as_secs_f64() * 1e3;
+        let r = &timings.raster;
+        timings.compose_ms = (ms_since(t3) - r.project_ms - r.sort_bin_ms - r.blend_ms).max(0.0);
         Ok(FramePass {
             camera: *camera,
             sun_dir,
@@ -409,6 +444,18 @@ impl SunAwareModel {
         pass: &FramePass,
         d_image: &[f32],
     ) -> Result<SunAwareGrads, SunAwareError> {
+        Ok(self.backward_timed(pass, d_image)?.0)
+    }
+
+    /// [`SunAwareModel::backward`] with the wall-clock split of its stages (the timing
+    /// only reads clocks: the gradients are the same bits).
+    pub fn backward_timed(
+        &self,
+        pass: &FramePass,
+        d_image: &[f32],
+    ) -> Result<(SunAwareGrads, BackwardTimings), SunAwareError> {
+        let mut timings = BackwardTimings::default();
+        let t0 = Instant::now();
         let n = self.len();
         let nc = pass.n_channels;
         let pixels = pass.camera.intrinsics.pixel_count();
@@ -434,6 +481,8 @@ impl SunAwareModel {
                 d_color[px * nc + 3] = d_s;
             }
         }
+        timings.compose_ms = ms_since(t0);
+        let t1 = Instant::now();
         let view = GaussianView::from_model(&self.gaussians, &pass.channels, nc);
         let g = render_backward(
             &pass.camera,
@@ -448,6 +497,10 @@ impl SunAwareModel {
         )?;
         let p = &self.gaussians.params;
         let mut params = gather_geometry(p, &g);
+        timings.raster = g.timings;
+        let r = &timings.raster;
+        timings.raster_other_ms = (ms_since(t1) - r.blend_ms - r.reduce_project_ms).max(0.0);
+        let t2 = Instant::now();
         let cam_pos = pass.camera.position();
         let rows = pass.visible_list.len();
         let mut d_appearance = Vec::new();
@@ -495,6 +548,8 @@ impl SunAwareModel {
                 ))
             }
         }
+        timings.phi_backward_ms = ms_since(t2);
+        let t3 = Instant::now();
         let mut d_shadow = Vec::new();
         if let (Some(net), Some(psi)) = (&self.shadow, &pass.psi) {
             let d_out: Vec<f32> = pass
@@ -528,12 +583,14 @@ impl SunAwareModel {
                 *a += b;
             }
         }
-        Ok(SunAwareGrads {
+        timings.psi_backward_ms = ms_since(t3);
+        let grads = SunAwareGrads {
             params,
             appearance: d_appearance,
             shadow: d_shadow,
             mean2d_grad_ndc: g.mean2d_grad_ndc,
             raster_dropped: g.dropped_nonfinite,
-        })
+        };
+        Ok((grads, timings))
     }
 }

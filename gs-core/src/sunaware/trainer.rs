@@ -31,7 +31,7 @@ use crate::regularizer::IsotropicLoss;
 
 use super::error::SunAwareError;
 use super::light::box_sphere;
-use super::model::{FramePass, SunAwareGrads, SunAwareModel};
+use super::model::{BackwardTimings, ForwardTimings, FramePass, SunAwareGrads, SunAwareModel};
 
 /// One training or evaluation image.
 #[derive(Clone, Copy, Debug)]
@@ -93,18 +93,99 @@ impl Observation<'_> {
     }
 }
 
-/// Wall-clock split of one step, milliseconds.
+/// Wall-clock split of one step by stage, milliseconds (`std::time::Instant`, a few tens
+/// of nanoseconds per stage; timing only reads clocks, so the arithmetic of a step is the
+/// same with or without anyone looking at it).
+///
+/// Invariant: the stages are disjoint intervals inside the step, so
+/// [`StepTimings::stage_sum_ms`] never exceeds `total_ms` (up to the rounding of the
+/// conversion to floating-point milliseconds); [`StepTimings::other_ms`] is the rest
+/// (validation, bookkeeping, buffer allocation between stages).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct StepTimings {
-    pub cull_ms: f64,
+    /// Projection of the Gaussians: the culling pass that fixes the networks' batch and
+    /// the rasterizer's own projection.
+    pub project_ms: f64,
+    /// Depth sort and tile binning.
+    pub sort_bin_ms: f64,
+    /// The light camera's pass that gives `V_i` (configurations c-d).
     pub shadow_pass_ms: f64,
-    pub mlp_forward_ms: f64,
-    pub raster_forward_ms: f64,
+    /// Phi forward with its input assembly (SH evaluation in configuration a).
+    pub phi_forward_ms: f64,
+    /// Psi forward with its input assembly.
+    pub psi_forward_ms: f64,
+    /// Tile blending, untiling and the `RGB * S` product.
+    pub blend_forward_ms: f64,
+    /// L1 + SSIM value and image gradient, plus `L_iso` and its gradient.
     pub loss_ms: f64,
-    /// Rasterizer and network backward.
-    pub backward_ms: f64,
-    pub optimiser_ms: f64,
+    /// `d(RGB, S)` from `d(RGB * S)` and the tile blending backward.
+    pub blend_backward_ms: f64,
+    /// Per-Gaussian sum of the blend records, projection backward and gradient gather.
+    pub project_backward_ms: f64,
+    /// Phi backward with its gradient gather and scatter (SH backward in configuration a).
+    pub phi_backward_ms: f64,
+    /// Psi backward with its gradient gather and scatter.
+    pub psi_backward_ms: f64,
+    /// Adam on every group and both networks, densification statistics.
+    pub optimizer_ms: f64,
+    /// The whole step.
     pub total_ms: f64,
+}
+
+impl StepTimings {
+    /// Stage names and times in pipeline order (`total_ms` not included).
+    pub fn stages(&self) -> [(&'static str, f64); 12] {
+        [
+            ("project", self.project_ms),
+            ("sort_bin", self.sort_bin_ms),
+            ("shadow_pass", self.shadow_pass_ms),
+            ("phi_forward", self.phi_forward_ms),
+            ("psi_forward", self.psi_forward_ms),
+            ("blend_forward", self.blend_forward_ms),
+            ("loss", self.loss_ms),
+            ("blend_backward", self.blend_backward_ms),
+            ("project_backward", self.project_backward_ms),
+            ("phi_backward", self.phi_backward_ms),
+            ("psi_backward", self.psi_backward_ms),
+            ("optimizer", self.optimizer_ms),
+        ]
+    }
+
+    /// Sum of the stage times.
+    pub fn stage_sum_ms(&self) -> f64 {
+        self.stages().iter().map(|(_, t)| t).sum()
+    }
+
+    /// Time of the step outside every named stage.
+    pub fn other_ms(&self) -> f64 {
+        self.total_ms - self.stage_sum_ms()
+    }
+
+    /// Both networks' forward.
+    pub fn mlp_forward_ms(&self) -> f64 {
+        self.phi_forward_ms + self.psi_forward_ms
+    }
+
+    /// Both networks' backward.
+    pub fn mlp_backward_ms(&self) -> f64 {
+        self.phi_backward_ms + self.psi_backward_ms
+    }
+
+    fn add_forward(&mut self, f: &ForwardTimings) {
+        self.project_ms += f.cull_ms + f.raster.project_ms;
+        self.sort_bin_ms += f.raster.sort_bin_ms;
+        self.shadow_pass_ms += f.shadow_pass_ms;
+        self.phi_forward_ms += f.phi_forward_ms;
+        self.psi_forward_ms += f.psi_forward_ms;
+        self.blend_forward_ms += f.raster.blend_ms + f.compose_ms;
+    }
+
+    fn add_backward(&mut self, b: &BackwardTimings) {
+        self.blend_backward_ms += b.compose_ms + b.raster.blend_ms;
+        self.project_backward_ms += b.raster.reduce_project_ms + b.raster_other_ms;
+        self.phi_backward_ms += b.phi_backward_ms;
+        self.psi_backward_ms += b.psi_backward_ms;
+    }
 }
 
 /// What one step did.
@@ -191,16 +272,24 @@ pub struct LossParts {
     pub iso: f32,
 }
 
+fn ms_since(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
 /// Forward, loss and backward of one observation, without touching the model: the core of
-/// a step, exposed so gradient checks run the very same code.
+/// a step, exposed so gradient checks run the very same code. The timings cover every
+/// stage but the optimizer (`total_ms` is this call's duration).
 pub fn loss_and_grads(
     model: &SunAwareModel,
     obs: &Observation,
     sh_degree: u32,
     settings: &RasterSettings,
     visibility: Option<&[f32]>,
-) -> Result<(LossParts, FramePass, Option<SunAwareGrads>, f64), SunAwareError> {
+) -> Result<(LossParts, FramePass, Option<SunAwareGrads>, StepTimings), SunAwareError> {
+    let t_call = Instant::now();
+    let mut timings = StepTimings::default();
     let pass = model.forward(&obs.camera, obs.sun_dir, sh_degree, settings, visibility)?;
+    timings.add_forward(&pass.timings);
     let t0 = Instant::now();
     if !pass.image.iter().all(|v| v.is_finite()) {
         let nan = LossParts {
@@ -209,7 +298,9 @@ pub fn loss_and_grads(
             ssim: f32::NAN,
             iso: f32::NAN,
         };
-        return Ok((nan, pass, None, t0.elapsed().as_secs_f64() * 1e3));
+        timings.loss_ms = ms_since(t0);
+        timings.total_ms = ms_since(t_call);
+        return Ok((nan, pass, None, timings));
     }
     let loss = photometric_loss(
         &pass.image,
@@ -218,7 +309,7 @@ pub fn loss_and_grads(
         obs.shape(),
         model.config.lambda_dssim,
     )?;
-    let loss_ms = t0.elapsed().as_secs_f64() * 1e3;
+    timings.loss_ms = ms_since(t0);
     let mut parts = LossParts {
         total: loss.loss,
         l1: loss.l1,
@@ -226,9 +317,12 @@ pub fn loss_and_grads(
         iso: 0.0,
     };
     if !(loss.loss.is_finite() && loss.d_rendered.iter().all(|v| v.is_finite())) {
-        return Ok((parts, pass, None, loss_ms));
+        timings.total_ms = ms_since(t_call);
+        return Ok((parts, pass, None, timings));
     }
-    let mut grads = model.backward(&pass, &loss.d_rendered)?;
+    let (mut grads, backward_timings) = model.backward_timed(&pass, &loss.d_rendered)?;
+    timings.add_backward(&backward_timings);
+    let t_iso = Instant::now();
     if model.config.variant.uses_isotropic_loss() {
         let iso = IsotropicLoss::new(model.config.lambda_iso, model.config.iso_reduction)?;
         parts.iso = iso.value_and_grad(
@@ -237,7 +331,9 @@ pub fn loss_and_grads(
         )?;
         parts.total += parts.iso;
     }
-    Ok((parts, pass, Some(grads), loss_ms))
+    timings.loss_ms += ms_since(t_iso);
+    timings.total_ms = ms_since(t_call);
+    Ok((parts, pass, Some(grads), timings))
 }
 
 /// PSNR over the pixels weighted by `mask` (all pixels when `None`), images clamped to [0, 1].
@@ -383,7 +479,7 @@ impl SunAwareTrainer {
         let t_start = Instant::now();
         let settings = self.model.raster_settings(false);
         let degree = self.active_sh_degree();
-        let (parts, pass, grads, loss_ms) =
+        let (parts, pass, grads, mut timings) =
             loss_and_grads(&self.model, obs, degree, &settings, None)?;
         let position_lr = self.position_lr(lr_progress_in_round);
         let mut stats = StepStats {
@@ -396,28 +492,15 @@ impl SunAwareTrainer {
             gaussians: self.model.len(),
             position_lr,
             skipped: false,
-            timings: StepTimings {
-                cull_ms: pass.timings.cull_ms,
-                shadow_pass_ms: pass.timings.shadow_pass_ms,
-                mlp_forward_ms: pass.timings.mlp_forward_ms,
-                raster_forward_ms: pass.timings.raster_ms,
-                loss_ms,
-                ..StepTimings::default()
-            },
+            timings: StepTimings::default(),
         };
-        let forward_ms = pass.timings.cull_ms
-            + pass.timings.shadow_pass_ms
-            + pass.timings.mlp_forward_ms
-            + pass.timings.raster_ms
-            + loss_ms;
-        let total_before_backward = t_start.elapsed().as_secs_f64() * 1e3;
-        stats.timings.backward_ms = (total_before_backward - forward_ms).max(0.0);
         let grads = match grads {
             Some(g) if parts.total.is_finite() && g.first_non_finite().is_none() => g,
             _ => {
                 self.skipped_nonfinite += 1;
                 stats.skipped = true;
-                stats.timings.total_ms = t_start.elapsed().as_secs_f64() * 1e3;
+                timings.total_ms = ms_since(t_start);
+                stats.timings = timings;
                 return Ok(stats);
             }
         };
@@ -440,8 +523,9 @@ impl SunAwareTrainer {
             .accumulate(&grads.mean2d_grad_ndc, pass.visible(), pass.radii_px())?;
         self.steps += 1;
         stats.step = self.steps;
-        stats.timings.optimiser_ms = t_opt.elapsed().as_secs_f64() * 1e3;
-        stats.timings.total_ms = t_start.elapsed().as_secs_f64() * 1e3;
+        timings.optimizer_ms = ms_since(t_opt);
+        timings.total_ms = ms_since(t_start);
+        stats.timings = timings;
         Ok(stats)
     }
 
@@ -543,7 +627,79 @@ impl SunAwareModel {
 
 #[cfg(test)]
 mod tests {
-    use super::capped_grad_threshold;
+    use super::*;
+    use crate::init::from_points;
+    use crate::sunaware::config::{LightConfig, SunAwareConfig, Variant};
+    use crate::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
+
+    /// A small configuration-d trainer on the synthetic scene and one observation of it.
+    fn small_d_trainer() -> (SunAwareTrainer, Camera, Vec3, Vec<f32>, Vec<f32>) {
+        let scene = SyntheticScene::plate_and_ball(14, 60).unwrap();
+        let config = SunAwareConfig {
+            light: LightConfig {
+                resolution_px: 64,
+                ..LightConfig::default()
+            },
+            ..SunAwareConfig::for_variant(Variant::D)
+        };
+        let (points, _, colours) = scene.surface_samples(0.02, 5);
+        let init = from_points(&points, Some(&colours), config.layout()).unwrap();
+        let model = SunAwareModel::new(init.model, scene.scene_box, config).unwrap();
+        let camera = orbit_camera(1, 8, 2.4, 0.6, 40, 32);
+        let sun = sun_direction(0.4, 0.9);
+        let (image, mask) = scene.render(&camera, sun).unwrap();
+        (SunAwareTrainer::new(model), camera, sun, image, mask)
+    }
+
+    #[test]
+    fn step_timings_are_disjoint_stages_inside_the_step() {
+        let (mut t, camera, sun, image, mask) = small_d_trainer();
+        let obs = Observation {
+            camera,
+            sun_dir: sun,
+            image: &image,
+            mask: Some(&mask),
+        };
+        for s in 0..3 {
+            let stats = t.step(&obs, s as f32 / 3.0).unwrap();
+            assert!(!stats.skipped);
+            let tm = stats.timings;
+            for (name, ms) in tm.stages() {
+                assert!(ms.is_finite() && ms >= 0.0, "{name} = {ms}");
+            }
+            // Every stage of configuration d runs, so each takes some time.
+            for (name, ms) in tm.stages() {
+                assert!(ms > 0.0, "stage {name} was not timed");
+            }
+            // Disjoint intervals inside the step: their sum cannot exceed it (1 ns covers
+            // the rounding of twelve nanosecond counts converted to milliseconds).
+            assert!(
+                tm.stage_sum_ms() <= tm.total_ms + 1e-6,
+                "stages sum to {} ms > total {} ms",
+                tm.stage_sum_ms(),
+                tm.total_ms
+            );
+            assert!(tm.other_ms() >= -1e-6);
+            assert!(tm.mlp_forward_ms() >= tm.phi_forward_ms);
+        }
+    }
+
+    #[test]
+    fn forward_and_loss_timings_fit_inside_loss_and_grads() {
+        let (t, camera, sun, image, _) = small_d_trainer();
+        let obs = Observation {
+            camera,
+            sun_dir: sun,
+            image: &image,
+            mask: None,
+        };
+        let settings = t.model.raster_settings(false);
+        let (_, _, grads, tm) = loss_and_grads(&t.model, &obs, 0, &settings, None).unwrap();
+        assert!(grads.is_some());
+        assert_eq!(tm.optimizer_ms, 0.0);
+        assert!(tm.stage_sum_ms() <= tm.total_ms + 1e-6);
+        assert!(tm.project_ms > 0.0 && tm.blend_backward_ms > 0.0 && tm.loss_ms > 0.0);
+    }
 
     fn passing(grads: &[f32], threshold: f32) -> usize {
         grads.iter().filter(|&&g| g >= threshold).count()

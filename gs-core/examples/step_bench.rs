@@ -1,0 +1,658 @@
+//! Training-step benchmark of configuration (d) (issue 5): per-stage time of
+//! [`SunAwareTrainer::step`], whole-step time, peak memory, and each network stage's distance
+//! from its GEMM floor.
+//!
+//! Scene: `N` Gaussians filling a satellite-sized box (3 x 1.5 x 1.5 m) in front of the
+//! camera (`--scene volume`, the default), or sampled on the box's faces (`--scene
+//! surface`, closer to a trained model, where the front faces hide the back ones); random
+//! but seeded scales, rotations and opacities; a seeded random target image, no mask.
+//! The camera sees the box from a three-quarter view at 6 m (field of view 0.7 rad), the
+//! Sun comes from the side.
+//!
+//! For every size x image: one warm-up step, then `--repeats` steps (default 5); medians of
+//! every stage of [`StepTimings`], of the whole step and of the process CPU time per step
+//! (all threads; the machine may be shared, so `cpu / threads` is what the wall time would
+//! be with the cores to ourselves). Peak RSS is the process high-water mark over the
+//! measured steps (reset through `/proc/self/clear_refs` before them; it includes the
+//! model, its optimiser state and every buffer the step holds at once).
+//!
+//! Network stages: FLOPs from the rows actually evaluated (the step's `visible`) times the
+//! layer shapes (forward `2 k n` per row and layer; backward twice that: weight and input
+//! gradients). The floor is this machine's time for the very same GEMMs, measured in the
+//! same run: each layer's product on matrices of that shape, blocked over
+//! `gs_core::nn::mlp::BLOCK_ROWS` rows in parallel as the MLP runs them (median of the
+//! repeats). `ratio = stage time / floor time`.
+//!
+//! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
+//! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]`
+//!
+//! Prints tables by default, one JSON object per line with `--json`. The issue's targets
+//! are printed beside the numbers with PASS/MISS: every network stage within 1.5x of its
+//! floor, peak memory under 0.5 GB at 100K Gaussians, the step under 0.4 s at 100K
+//! Gaussians and 960x600.
+
+use std::time::Instant;
+
+use glam::{Quat, Vec3};
+use gs_core::model::{GaussianModel, Param};
+use gs_core::nn::matmul::{matmul, matmul_a_bt, matmul_at_b};
+use gs_core::nn::mlp::BLOCK_ROWS;
+use gs_core::nn::{Mlp, SceneBox};
+use gs_core::rng::SplitMix64;
+use gs_core::sunaware::{
+    Observation, StepTimings, SunAwareConfig, SunAwareModel, SunAwareTrainer, Variant,
+};
+use gs_core::{Camera, Intrinsics};
+use rayon::prelude::*;
+
+const BOX_HALF_M: [f32; 3] = [1.5, 0.75, 0.75];
+const TARGET_MLP_RATIO: f64 = 1.5;
+const TARGET_PEAK_MB: f64 = 500.0;
+const TARGET_STEP_MS: f64 = 400.0;
+
+#[derive(Clone, Copy, PartialEq)]
+enum SceneKind {
+    Volume,
+    Surface,
+}
+
+/// A point of the scene and the rotation that orients its Gaussian.
+fn scene_point(kind: SceneKind, rng: &mut SplitMix64) -> (Vec3, Quat) {
+    let h = Vec3::from_array(BOX_HALF_M);
+    let inside = Vec3::new(
+        rng.uniform(-h.x, h.x),
+        rng.uniform(-h.y, h.y),
+        rng.uniform(-h.z, h.z),
+    );
+    match kind {
+        SceneKind::Volume => {
+            let q = Quat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal());
+            (inside, q.normalize())
+        }
+        SceneKind::Surface => {
+            // Pick a face by area, put the point on it, lay the Gaussian flat on it.
+            let areas = [h.y * h.z, h.x * h.z, h.x * h.y];
+            let total: f32 = areas.iter().sum();
+            let mut pick = rng.uniform(0.0, total);
+            let mut axis = 0;
+            while axis < 2 && pick >= areas[axis] {
+                pick -= areas[axis];
+                axis += 1;
+            }
+            let mut p = inside;
+            p[axis] = if rng.next_f32() < 0.5 {
+                -h[axis]
+            } else {
+                h[axis]
+            };
+            let mut normal = Vec3::ZERO;
+            normal[axis] = 1.0;
+            let base = Quat::from_rotation_arc(Vec3::Z, normal);
+            let spin = Quat::from_rotation_z(rng.uniform(0.0, std::f32::consts::TAU));
+            (p, (base * spin).normalize())
+        }
+    }
+}
+
+/// `n` Gaussians of the configuration-(d) layout, seeded.
+fn scene(n: usize, kind: SceneKind, config: &SunAwareConfig, seed: u64) -> GaussianModel {
+    let mut rng = SplitMix64::new(seed);
+    let h = Vec3::from_array(BOX_HALF_M);
+    let spacing = match kind {
+        SceneKind::Volume => (8.0 * h.x * h.y * h.z / n as f32).cbrt(),
+        SceneKind::Surface => {
+            let area = 8.0 * (h.y * h.z + h.x * h.z + h.x * h.y);
+            (area / n as f32).sqrt()
+        }
+    };
+    let mut g = GaussianModel::new(config.layout()).expect("layout");
+    g.params.push_zeros(n);
+    for i in 0..n {
+        let (p, q) = scene_point(kind, &mut rng);
+        let s = spacing * rng.uniform(0.4, 0.9);
+        let log_scale = match kind {
+            SceneKind::Volume => [
+                s.ln(),
+                (s * rng.uniform(0.5, 1.0)).ln(),
+                (s * rng.uniform(0.5, 1.0)).ln(),
+            ],
+            SceneKind::Surface => [s.ln(), (s * rng.uniform(0.5, 1.0)).ln(), (0.1 * s).ln()],
+        };
+        let p_ = &mut g.params;
+        p_.row_mut(Param::Mean, i).copy_from_slice(&p.to_array());
+        p_.row_mut(Param::LogScale, i).copy_from_slice(&log_scale);
+        p_.row_mut(Param::Rotation, i)
+            .copy_from_slice(&[q.w, q.x, q.y, q.z]);
+        p_.row_mut(Param::OpacityLogit, i)[0] = rng.uniform(-1.0, 2.5);
+    }
+    g
+}
+
+fn camera(width: u32, height: u32) -> Camera {
+    let dir = Vec3::new(0.6, -0.7, 0.4).normalize();
+    Camera::look_at(
+        Intrinsics::from_fov_x(0.7, width, height),
+        dir * 6.0,
+        Vec3::ZERO,
+        Vec3::Z,
+    )
+}
+
+/// CPU time of every thread of this process so far, ms (from /proc/self/task/*/schedstat).
+fn process_cpu_ms() -> f64 {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
+        return f64::NAN;
+    };
+    let mut ns = 0u64;
+    for t in tasks.flatten() {
+        if let Ok(s) = std::fs::read_to_string(t.path().join("schedstat")) {
+            ns += s
+                .split_whitespace()
+                .next()
+                .and_then(|v| v.parse::<u64>().ok())
+                .unwrap_or(0);
+        }
+    }
+    ns as f64 / 1e6
+}
+
+/// Process resident-memory high-water mark, MB (NaN where /proc is unavailable).
+fn peak_rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<f64>().ok())
+        })
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// Resets the high-water mark to the current RSS (Linux >= 4.0); false where it cannot.
+fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    if v.is_empty() {
+        f64::NAN
+    } else {
+        v[v.len() / 2]
+    }
+}
+
+fn seconds_ms(f: impl FnOnce()) -> f64 {
+    let t0 = Instant::now();
+    f();
+    t0.elapsed().as_secs_f64() * 1e3
+}
+
+/// Operands of one layer's products over `rows` rows, `k -> n` widths.
+struct LayerOperands {
+    rows: usize,
+    k: usize,
+    n: usize,
+    x: Vec<f32>,
+    w: Vec<f32>,
+    dz: Vec<f32>,
+    y: Vec<f32>,
+    dx: Vec<f32>,
+}
+
+impl LayerOperands {
+    fn new(rows: usize, k: usize, n: usize, rng: &mut SplitMix64) -> Self {
+        let mut fill = |len: usize| (0..len).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        Self {
+            rows,
+            k,
+            n,
+            x: fill(rows * k),
+            w: fill(k * n),
+            dz: fill(rows * n),
+            y: vec![0.0; rows * n],
+            dx: vec![0.0; rows * k],
+        }
+    }
+
+    /// `Y = X W`, blocked over `BLOCK_ROWS` rows in parallel as the MLP runs it.
+    fn forward(&mut self) {
+        let (k, n) = (self.k, self.n);
+        let (x, w) = (&self.x, &self.w);
+        self.y
+            .par_chunks_mut(BLOCK_ROWS * n)
+            .enumerate()
+            .for_each(|(b, out)| {
+                let r = out.len() / n;
+                let s = b * BLOCK_ROWS;
+                matmul(&x[s * k..(s + r) * k], w, out, r, k, n, false);
+            });
+    }
+
+    /// `dW = X^T dZ` (per-block partials summed in block order) and `dX = dZ W^T`.
+    fn backward(&mut self) {
+        let (rows, k, n) = (self.rows, self.k, self.n);
+        let (x, w, dz) = (&self.x, &self.w, &self.dz);
+        let partials: Vec<Vec<f32>> = (0..rows.div_ceil(BLOCK_ROWS))
+            .into_par_iter()
+            .map(|b| {
+                let s = b * BLOCK_ROWS;
+                let r = BLOCK_ROWS.min(rows - s);
+                let mut p = vec![0.0f32; k * n];
+                matmul_at_b(
+                    &x[s * k..(s + r) * k],
+                    &dz[s * n..(s + r) * n],
+                    &mut p,
+                    r,
+                    k,
+                    n,
+                    false,
+                );
+                p
+            })
+            .collect();
+        let mut dw = vec![0.0f32; k * n];
+        for p in &partials {
+            for (a, b) in dw.iter_mut().zip(p) {
+                *a += b;
+            }
+        }
+        std::hint::black_box(&dw);
+        self.dx
+            .par_chunks_mut(BLOCK_ROWS * k)
+            .enumerate()
+            .for_each(|(b, out)| {
+                let r = out.len() / k;
+                let s = b * BLOCK_ROWS;
+                matmul_a_bt(&dz[s * n..(s + r) * n], w, out, r, n, k, false);
+            });
+    }
+}
+
+/// GEMM floor of one network over `rows` rows: (forward ms, backward ms), medians.
+fn gemm_floor_ms(mlp: &Mlp, rows: usize, repeats: usize) -> (f64, f64) {
+    if rows == 0 {
+        return (0.0, 0.0);
+    }
+    let mut rng = SplitMix64::new(99);
+    let mut layers: Vec<LayerOperands> = mlp
+        .widths()
+        .windows(2)
+        .map(|p| LayerOperands::new(rows, p[0], p[1], &mut rng))
+        .collect();
+    // One untimed pass: first-touch page faults are not GEMM time.
+    for l in &mut layers {
+        l.forward();
+        l.backward();
+    }
+    let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
+    for _ in 0..repeats {
+        fwd.push(layers.iter_mut().map(|l| seconds_ms(|| l.forward())).sum());
+        bwd.push(layers.iter_mut().map(|l| seconds_ms(|| l.backward())).sum());
+    }
+    (median(fwd), median(bwd))
+}
+
+struct NetStage {
+    name: &'static str,
+    rows: usize,
+    gflop: f64,
+    stage_ms: f64,
+    floor_ms: f64,
+}
+
+impl NetStage {
+    fn ratio(&self) -> f64 {
+        self.stage_ms / self.floor_ms
+    }
+
+    fn gemm_gflops(&self) -> f64 {
+        self.gflop / (self.floor_ms * 1e-3)
+    }
+}
+
+struct Measured {
+    gaussians: usize,
+    width: u32,
+    height: u32,
+    visible: usize,
+    stages: StepTimings,
+    /// Median of each step's time outside the named stages (not the difference of the
+    /// medians, which can come out negative).
+    other_ms: f64,
+    cpu_ms: f64,
+    peak_rss_mb: f64,
+    nets: Vec<NetStage>,
+}
+
+fn measure(
+    n: usize,
+    (width, height): (u32, u32),
+    kind: SceneKind,
+    repeats: usize,
+    config: &SunAwareConfig,
+) -> Measured {
+    let gaussians = scene(n, kind, config, 7);
+    let h = BOX_HALF_M;
+    let scene_box = SceneBox::new([-h[0], -h[1], -h[2]], h).expect("box");
+    let model = SunAwareModel::new(gaussians, scene_box, config.clone()).expect("model");
+    let mut trainer = SunAwareTrainer::new(model);
+    let cam = camera(width, height);
+    let mut rng = SplitMix64::new(11);
+    let target: Vec<f32> = (0..width as usize * height as usize * 3)
+        .map(|_| rng.next_f32())
+        .collect();
+    let obs = Observation {
+        camera: cam,
+        sun_dir: Vec3::new(0.3, 0.5, 0.8).normalize(),
+        image: &target,
+        mask: None,
+    };
+    let warm = trainer.step(&obs, 0.0).expect("warm-up step");
+    assert!(!warm.skipped, "warm-up step was skipped (non-finite)");
+    reset_peak_rss();
+    let mut all = Vec::new();
+    let mut cpu = Vec::new();
+    let mut visible = Vec::new();
+    for r in 0..repeats {
+        let c0 = process_cpu_ms();
+        let stats = trainer.step(&obs, r as f32 / repeats as f32).expect("step");
+        cpu.push(process_cpu_ms() - c0);
+        assert!(!stats.skipped, "step was skipped (non-finite)");
+        visible.push(stats.visible as f64);
+        all.push(stats.timings);
+    }
+    let peak = peak_rss_mb();
+    let med = |f: fn(&StepTimings) -> f64| median(all.iter().map(f).collect());
+    let stages = StepTimings {
+        project_ms: med(|t| t.project_ms),
+        sort_bin_ms: med(|t| t.sort_bin_ms),
+        shadow_pass_ms: med(|t| t.shadow_pass_ms),
+        phi_forward_ms: med(|t| t.phi_forward_ms),
+        psi_forward_ms: med(|t| t.psi_forward_ms),
+        blend_forward_ms: med(|t| t.blend_forward_ms),
+        loss_ms: med(|t| t.loss_ms),
+        blend_backward_ms: med(|t| t.blend_backward_ms),
+        project_backward_ms: med(|t| t.project_backward_ms),
+        phi_backward_ms: med(|t| t.phi_backward_ms),
+        psi_backward_ms: med(|t| t.psi_backward_ms),
+        optimizer_ms: med(|t| t.optimizer_ms),
+        total_ms: med(|t| t.total_ms),
+    };
+    let rows = median(visible) as usize;
+    let model = &trainer.model;
+    let mut nets = Vec::new();
+    let phi = &model
+        .appearance
+        .as_ref()
+        .expect("configuration d has Phi")
+        .mlp;
+    let psi = &model.shadow.as_ref().expect("configuration d has Psi").mlp;
+    for (mlp, fwd_name, bwd_name, fwd_ms, bwd_ms) in [
+        (
+            phi,
+            "phi_forward",
+            "phi_backward",
+            stages.phi_forward_ms,
+            stages.phi_backward_ms,
+        ),
+        (
+            psi,
+            "psi_forward",
+            "psi_backward",
+            stages.psi_forward_ms,
+            stages.psi_backward_ms,
+        ),
+    ] {
+        let (floor_fwd, floor_bwd) = gemm_floor_ms(mlp, rows, repeats);
+        let gflop_fwd = (rows * mlp.flops_per_row_forward()) as f64 / 1e9;
+        nets.push(NetStage {
+            name: fwd_name,
+            rows,
+            gflop: gflop_fwd,
+            stage_ms: fwd_ms,
+            floor_ms: floor_fwd,
+        });
+        nets.push(NetStage {
+            name: bwd_name,
+            rows,
+            gflop: 2.0 * gflop_fwd,
+            stage_ms: bwd_ms,
+            floor_ms: floor_bwd,
+        });
+    }
+    Measured {
+        gaussians: n,
+        width,
+        height,
+        visible: rows,
+        stages,
+        other_ms: median(all.iter().map(StepTimings::other_ms).collect()),
+        cpu_ms: median(cpu),
+        peak_rss_mb: peak,
+        nets,
+    }
+}
+
+fn arg_value<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
+    let i = args.iter().position(|a| a == name)?;
+    args.get(i + 1).map(String::as_str)
+}
+
+fn parse_list<T>(text: &str, parse: impl Fn(&str) -> Option<T>) -> Result<Vec<T>, String> {
+    text.split(',')
+        .map(|s| parse(s.trim()).ok_or_else(|| format!("cannot parse {s:?}")))
+        .collect()
+}
+
+fn pass_miss(ok: bool) -> &'static str {
+    if ok {
+        "PASS"
+    } else {
+        "MISS"
+    }
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    if let Err(e) = run(&args) {
+        eprintln!("step_bench: {e}");
+        std::process::exit(2);
+    }
+}
+
+fn run(args: &[String]) -> Result<(), String> {
+    let json = args.iter().any(|a| a == "--json");
+    let sizes = match arg_value(args, "--sizes") {
+        Some(v) => parse_list(v, |s| s.parse::<usize>().ok().filter(|&n| n > 0))?,
+        None => vec![10_000, 50_000, 100_000],
+    };
+    let images = match arg_value(args, "--images") {
+        Some(v) => parse_list(v, |s| {
+            let (w, h) = s.split_once('x')?;
+            Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)).filter(|&(w, h)| w > 0 && h > 0)
+        })?,
+        None => vec![(480, 300), (960, 600)],
+    };
+    let repeats = match arg_value(args, "--repeats") {
+        Some(v) => v
+            .parse::<usize>()
+            .ok()
+            .filter(|&r| r > 0)
+            .ok_or("--repeats needs a positive integer")?,
+        None => 5,
+    };
+    let kind = match arg_value(args, "--scene").unwrap_or("volume") {
+        "volume" => SceneKind::Volume,
+        "surface" => SceneKind::Surface,
+        other => return Err(format!("--scene {other:?}: expected volume or surface")),
+    };
+    if let Some(v) = arg_value(args, "--threads") {
+        let t = v
+            .parse::<usize>()
+            .ok()
+            .filter(|&t| t > 0)
+            .ok_or("--threads needs a positive integer")?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(t)
+            .build_global()
+            .map_err(|e| format!("thread pool: {e}"))?;
+    }
+    let threads = rayon::current_num_threads();
+    let config = SunAwareConfig::for_variant(Variant::D);
+    let scene_name = if kind == SceneKind::Volume {
+        "volume"
+    } else {
+        "surface"
+    };
+
+    if !json {
+        println!(
+            "step_bench: configuration d, {scene_name} scene, {threads} threads, median of {repeats} steps after one warm-up (ms)"
+        );
+        println!(
+            "{:>7} {:>8} {:>7} | {:>6} {:>6} {:>6} {:>7} {:>6} {:>7} {:>6} {:>7} {:>7} {:>7} {:>6} {:>6} {:>6} | {:>7} {:>7} {:>7}",
+            "gauss", "image", "rows", "proj", "sort", "shadow", "phi-f", "psi-f", "blend-f", "loss",
+            "blend-b", "proj-b", "phi-b", "psi-b", "optim", "other", "step", "cpu", "rss MB"
+        );
+    }
+    let mut results = Vec::new();
+    for &n in &sizes {
+        for &image in &images {
+            let m = measure(n, image, kind, repeats, &config);
+            let s = &m.stages;
+            if json {
+                let stages: Vec<String> = s
+                    .stages()
+                    .iter()
+                    .map(|(name, ms)| format!("\"{name}_ms\":{ms:.3}"))
+                    .collect();
+                println!(
+                    "{{\"kind\":\"step\",\"scene\":\"{scene_name}\",\"gaussians\":{},\"width\":{},\"height\":{},\"threads\":{threads},\"repeats\":{repeats},\"rows\":{},{},\"other_ms\":{:.3},\"step_ms\":{:.3},\"cpu_ms\":{:.3},\"peak_rss_mb\":{:.1}}}",
+                    m.gaussians, m.width, m.height, m.visible, stages.join(","), m.other_ms,
+                    s.total_ms, m.cpu_ms, m.peak_rss_mb
+                );
+                for net in &m.nets {
+                    println!(
+                        "{{\"kind\":\"mlp_stage\",\"gaussians\":{},\"width\":{},\"height\":{},\"stage\":\"{}\",\"rows\":{},\"gflop\":{:.4},\"stage_ms\":{:.3},\"floor_ms\":{:.3},\"gemm_gflops\":{:.2},\"ratio\":{:.3}}}",
+                        m.gaussians, m.width, m.height, net.name, net.rows, net.gflop,
+                        net.stage_ms, net.floor_ms, net.gemm_gflops(), net.ratio()
+                    );
+                }
+            } else {
+                println!(
+                    "{:>7} {:>8} {:>7} | {:>6.1} {:>6.1} {:>6.1} {:>7.1} {:>6.1} {:>7.1} {:>6.1} {:>7.1} {:>7.1} {:>7.1} {:>6.1} {:>6.1} {:>6.1} | {:>7.1} {:>7.1} {:>7.0}",
+                    m.gaussians,
+                    format!("{}x{}", m.width, m.height),
+                    m.visible,
+                    s.project_ms,
+                    s.sort_bin_ms,
+                    s.shadow_pass_ms,
+                    s.phi_forward_ms,
+                    s.psi_forward_ms,
+                    s.blend_forward_ms,
+                    s.loss_ms,
+                    s.blend_backward_ms,
+                    s.project_backward_ms,
+                    s.phi_backward_ms,
+                    s.psi_backward_ms,
+                    s.optimizer_ms,
+                    m.other_ms,
+                    s.total_ms,
+                    m.cpu_ms,
+                    m.peak_rss_mb
+                );
+            }
+            results.push(m);
+        }
+    }
+
+    if !json {
+        println!();
+        println!("network stages against the GEMM floor (same shapes, same run; target ratio <= {TARGET_MLP_RATIO})");
+        println!(
+            "{:>7} {:>8} {:>13} {:>7} {:>7} {:>8} {:>8} {:>7} {:>6} {:>5}",
+            "gauss",
+            "image",
+            "stage",
+            "rows",
+            "GFLOP",
+            "stage ms",
+            "floor ms",
+            "GFLOP/s",
+            "ratio",
+            ""
+        );
+        for m in &results {
+            for net in &m.nets {
+                println!(
+                    "{:>7} {:>8} {:>13} {:>7} {:>7.2} {:>8.1} {:>8.1} {:>7.1} {:>6.2} {:>5}",
+                    m.gaussians,
+                    format!("{}x{}", m.width, m.height),
+                    net.name,
+                    net.rows,
+                    net.gflop,
+                    net.stage_ms,
+                    net.floor_ms,
+                    net.gemm_gflops(),
+                    net.ratio(),
+                    pass_miss(net.ratio() <= TARGET_MLP_RATIO)
+                );
+            }
+        }
+        println!();
+        println!("targets (issue 5)");
+    }
+    // The issue's targets, for the configurations this run measured.
+    let mut targets: Vec<(String, f64, f64, bool)> = Vec::new();
+    let worst = results
+        .iter()
+        .flat_map(|m| m.nets.iter())
+        .map(NetStage::ratio)
+        .fold(f64::NAN, f64::max);
+    if !worst.is_nan() {
+        targets.push((
+            "worst network stage / GEMM floor".into(),
+            worst,
+            TARGET_MLP_RATIO,
+            worst <= TARGET_MLP_RATIO,
+        ));
+    }
+    for m in results.iter().filter(|m| m.gaussians == 100_000) {
+        targets.push((
+            format!("peak RSS MB, 100K at {}x{}", m.width, m.height),
+            m.peak_rss_mb,
+            TARGET_PEAK_MB,
+            m.peak_rss_mb < TARGET_PEAK_MB,
+        ));
+        if (m.width, m.height) == (960, 600) {
+            targets.push((
+                "step ms, 100K at 960x600".into(),
+                m.stages.total_ms,
+                TARGET_STEP_MS,
+                m.stages.total_ms < TARGET_STEP_MS,
+            ));
+        }
+    }
+    for (what, value, limit, ok) in &targets {
+        if json {
+            println!(
+                "{{\"kind\":\"target\",\"what\":\"{what}\",\"value\":{value:.3},\"limit\":{limit},\"pass\":{ok}}}"
+            );
+        } else {
+            println!(
+                "{:>40} {:>9.2} (target {:>6}) {}",
+                what,
+                value,
+                if what.starts_with("worst") {
+                    format!("<= {limit}")
+                } else {
+                    format!("< {limit}")
+                },
+                pass_miss(*ok)
+            );
+        }
+    }
+    Ok(())
+}
