@@ -24,7 +24,12 @@
 //! repeats). `ratio = stage time / floor time`.
 //!
 //! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
-//! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]`
+//! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]
+//! [--set SWITCH=on|off,...] [--ab SWITCH]`
+//!
+//! `--set` changes speed switches of `SunAwareConfig` (defaults otherwise); `--ab SWITCH`
+//! measures every size and image twice in the same run, the switch off then on, so a
+//! change's before/after sits side by side under the same machine load.
 //!
 //! Prints tables by default, one JSON object per line with `--json`. The targets
 //! are printed beside the numbers with PASS/MISS: every network stage within 1.5x of its
@@ -313,10 +318,13 @@ impl NetStage {
 }
 
 struct Measured {
+    label: String,
     gaussians: usize,
     width: u32,
     height: u32,
+    /// Gaussians that survived culling, and rows the networks evaluated (medians).
     visible: usize,
+    rows: usize,
     stages: StepTimings,
     /// Median of each step's time outside the named stages (not the difference of the
     /// medians, which can come out negative).
@@ -332,6 +340,7 @@ fn measure(
     kind: SceneKind,
     repeats: usize,
     config: &SunAwareConfig,
+    label: &str,
 ) -> Measured {
     let gaussians = scene(n, kind, config, 7);
     let h = BOX_HALF_M;
@@ -355,12 +364,14 @@ fn measure(
     let mut all = Vec::new();
     let mut cpu = Vec::new();
     let mut visible = Vec::new();
+    let mut rows = Vec::new();
     for r in 0..repeats {
         let c0 = process_cpu_ms();
         let stats = trainer.step(&obs, r as f32 / repeats as f32).expect("step");
         cpu.push(process_cpu_ms() - c0);
         assert!(!stats.skipped, "step was skipped (non-finite)");
         visible.push(stats.visible as f64);
+        rows.push(stats.network_rows as f64);
         all.push(stats.timings);
     }
     let peak = peak_rss_mb();
@@ -368,6 +379,7 @@ fn measure(
     let stages = StepTimings {
         project_ms: med(|t| t.project_ms),
         sort_bin_ms: med(|t| t.sort_bin_ms),
+        contribution_ms: med(|t| t.contribution_ms),
         shadow_pass_ms: med(|t| t.shadow_pass_ms),
         phi_forward_ms: med(|t| t.phi_forward_ms),
         psi_forward_ms: med(|t| t.psi_forward_ms),
@@ -380,7 +392,7 @@ fn measure(
         optimizer_ms: med(|t| t.optimizer_ms),
         total_ms: med(|t| t.total_ms),
     };
-    let rows = median(visible) as usize;
+    let rows = median(rows) as usize;
     let model = &trainer.model;
     let mut nets = Vec::new();
     let phi = &model
@@ -423,15 +435,75 @@ fn measure(
         });
     }
     Measured {
+        label: label.to_string(),
         gaussians: n,
         width,
         height,
-        visible: rows,
+        visible: median(visible) as usize,
+        rows,
         stages,
         other_ms: median(all.iter().map(StepTimings::other_ms).collect()),
         cpu_ms: median(cpu),
         peak_rss_mb: peak,
         nets,
+    }
+}
+
+/// The speed switches of [`SunAwareConfig`] this bench can set by name.
+fn set_switch(config: &mut SunAwareConfig, name: &str, on: bool) -> Result<(), String> {
+    match name {
+        "skip_noncontributing_in_mlp" => config.skip_noncontributing_in_mlp = on,
+        _ => return Err(format!("unknown switch {name:?}")),
+    }
+    Ok(())
+}
+
+fn print_step(m: &Measured, json: bool, scene_name: &str, threads: usize, repeats: usize) {
+    let s = &m.stages;
+    if json {
+        let stages: Vec<String> = s
+            .stages()
+            .iter()
+            .map(|(name, ms)| format!("\"{name}_ms\":{ms:.3}"))
+            .collect();
+        println!(
+            "{{\"kind\":\"step\",\"settings\":\"{}\",\"scene\":\"{scene_name}\",\"gaussians\":{},\"width\":{},\"height\":{},\"threads\":{threads},\"repeats\":{repeats},\"visible\":{},\"rows\":{},{},\"other_ms\":{:.3},\"step_ms\":{:.3},\"cpu_ms\":{:.3},\"peak_rss_mb\":{:.1}}}",
+            m.label, m.gaussians, m.width, m.height, m.visible, m.rows, stages.join(","),
+            m.other_ms, s.total_ms, m.cpu_ms, m.peak_rss_mb
+        );
+        for net in &m.nets {
+            println!(
+                "{{\"kind\":\"mlp_stage\",\"settings\":\"{}\",\"gaussians\":{},\"width\":{},\"height\":{},\"stage\":\"{}\",\"rows\":{},\"gflop\":{:.4},\"stage_ms\":{:.3},\"floor_ms\":{:.3},\"gemm_gflops\":{:.2},\"ratio\":{:.3}}}",
+                m.label, m.gaussians, m.width, m.height, net.name, net.rows, net.gflop,
+                net.stage_ms, net.floor_ms, net.gemm_gflops(), net.ratio()
+            );
+        }
+    } else {
+        println!(
+            "{:>7} {:>8} {:>7} {:>7} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} {:>7.1} {:>6.1} {:>7.1} {:>6.1} {:>7.1} {:>7.1} {:>7.1} {:>6.1} {:>6.1} {:>6.1} | {:>7.1} {:>7.1} {:>7.0} | {}",
+            m.gaussians,
+            format!("{}x{}", m.width, m.height),
+            m.visible,
+            m.rows,
+            s.project_ms,
+            s.sort_bin_ms,
+            s.contribution_ms,
+            s.shadow_pass_ms,
+            s.phi_forward_ms,
+            s.psi_forward_ms,
+            s.blend_forward_ms,
+            s.loss_ms,
+            s.blend_backward_ms,
+            s.project_backward_ms,
+            s.phi_backward_ms,
+            s.psi_backward_ms,
+            s.optimizer_ms,
+            m.other_ms,
+            s.total_ms,
+            m.cpu_ms,
+            m.peak_rss_mb,
+            m.label
+        );
     }
 }
 
@@ -500,7 +572,31 @@ fn run(args: &[String]) -> Result<(), String> {
             .map_err(|e| format!("thread pool: {e}"))?;
     }
     let threads = rayon::current_num_threads();
-    let config = SunAwareConfig::for_variant(Variant::D);
+    let mut config = SunAwareConfig::for_variant(Variant::D);
+    if let Some(v) = arg_value(args, "--set") {
+        for item in v.split(',') {
+            let (name, value) = item
+                .split_once('=')
+                .ok_or_else(|| format!("--set {item:?}: expected NAME=on|off"))?;
+            let on = match value {
+                "on" | "true" => true,
+                "off" | "false" => false,
+                _ => return Err(format!("--set {item:?}: expected on or off")),
+            };
+            set_switch(&mut config, name, on)?;
+        }
+    }
+    // Each measured configuration: a label and its settings. With `--ab NAME` every size
+    // and image runs with the switch off, then on (the rest as set), in the same run.
+    let mut variants = vec![("as set".to_string(), config.clone())];
+    if let Some(name) = arg_value(args, "--ab") {
+        let mut off = config.clone();
+        set_switch(&mut off, name, false)?;
+        let mut on = config.clone();
+        set_switch(&mut on, name, true)?;
+        variants = vec![(format!("{name}=off"), off), (format!("{name}=on"), on)];
+    }
+    let main_label = variants[variants.len() - 1].0.clone();
     let scene_name = if kind == SceneKind::Volume {
         "volume"
     } else {
@@ -512,59 +608,20 @@ fn run(args: &[String]) -> Result<(), String> {
             "step_bench: configuration d, {scene_name} scene, {threads} threads, median of {repeats} steps after one warm-up (ms)"
         );
         println!(
-            "{:>7} {:>8} {:>7} | {:>6} {:>6} {:>6} {:>7} {:>6} {:>7} {:>6} {:>7} {:>7} {:>7} {:>6} {:>6} {:>6} | {:>7} {:>7} {:>7}",
-            "gauss", "image", "rows", "proj", "sort", "shadow", "phi-f", "psi-f", "blend-f", "loss",
-            "blend-b", "proj-b", "phi-b", "psi-b", "optim", "other", "step", "cpu", "rss MB"
+            "{:>7} {:>8} {:>7} {:>7} | {:>6} {:>6} {:>6} {:>6} {:>7} {:>6} {:>7} {:>6} {:>7} {:>7} {:>7} {:>6} {:>6} {:>6} | {:>7} {:>7} {:>7} | settings",
+            "gauss", "image", "visible", "rows", "proj", "sort", "contr", "shadow", "phi-f", "psi-f",
+            "blend-f", "loss", "blend-b", "proj-b", "phi-b", "psi-b", "optim", "other", "step",
+            "cpu", "rss MB"
         );
     }
     let mut results = Vec::new();
     for &n in &sizes {
         for &image in &images {
-            let m = measure(n, image, kind, repeats, &config);
-            let s = &m.stages;
-            if json {
-                let stages: Vec<String> = s
-                    .stages()
-                    .iter()
-                    .map(|(name, ms)| format!("\"{name}_ms\":{ms:.3}"))
-                    .collect();
-                println!(
-                    "{{\"kind\":\"step\",\"scene\":\"{scene_name}\",\"gaussians\":{},\"width\":{},\"height\":{},\"threads\":{threads},\"repeats\":{repeats},\"rows\":{},{},\"other_ms\":{:.3},\"step_ms\":{:.3},\"cpu_ms\":{:.3},\"peak_rss_mb\":{:.1}}}",
-                    m.gaussians, m.width, m.height, m.visible, stages.join(","), m.other_ms,
-                    s.total_ms, m.cpu_ms, m.peak_rss_mb
-                );
-                for net in &m.nets {
-                    println!(
-                        "{{\"kind\":\"mlp_stage\",\"gaussians\":{},\"width\":{},\"height\":{},\"stage\":\"{}\",\"rows\":{},\"gflop\":{:.4},\"stage_ms\":{:.3},\"floor_ms\":{:.3},\"gemm_gflops\":{:.2},\"ratio\":{:.3}}}",
-                        m.gaussians, m.width, m.height, net.name, net.rows, net.gflop,
-                        net.stage_ms, net.floor_ms, net.gemm_gflops(), net.ratio()
-                    );
-                }
-            } else {
-                println!(
-                    "{:>7} {:>8} {:>7} | {:>6.1} {:>6.1} {:>6.1} {:>7.1} {:>6.1} {:>7.1} {:>6.1} {:>7.1} {:>7.1} {:>7.1} {:>6.1} {:>6.1} {:>6.1} | {:>7.1} {:>7.1} {:>7.0}",
-                    m.gaussians,
-                    format!("{}x{}", m.width, m.height),
-                    m.visible,
-                    s.project_ms,
-                    s.sort_bin_ms,
-                    s.shadow_pass_ms,
-                    s.phi_forward_ms,
-                    s.psi_forward_ms,
-                    s.blend_forward_ms,
-                    s.loss_ms,
-                    s.blend_backward_ms,
-                    s.project_backward_ms,
-                    s.phi_backward_ms,
-                    s.psi_backward_ms,
-                    s.optimizer_ms,
-                    m.other_ms,
-                    s.total_ms,
-                    m.cpu_ms,
-                    m.peak_rss_mb
-                );
+            for (label, config) in &variants {
+                let m = measure(n, image, kind, repeats, config, label);
+                print_step(&m, json, scene_name, threads, repeats);
+                results.push(m);
             }
-            results.push(m);
         }
     }
 
@@ -572,7 +629,7 @@ fn run(args: &[String]) -> Result<(), String> {
         println!();
         println!("network stages against the GEMM floor (same shapes, same run; target ratio <= {TARGET_MLP_RATIO})");
         println!(
-            "{:>7} {:>8} {:>13} {:>7} {:>7} {:>8} {:>8} {:>7} {:>6} {:>5}",
+            "{:>7} {:>8} {:>13} {:>7} {:>7} {:>8} {:>8} {:>7} {:>6} {:>5} settings",
             "gauss",
             "image",
             "stage",
@@ -587,7 +644,7 @@ fn run(args: &[String]) -> Result<(), String> {
         for m in &results {
             for net in &m.nets {
                 println!(
-                    "{:>7} {:>8} {:>13} {:>7} {:>7.2} {:>8.1} {:>8.1} {:>7.1} {:>6.2} {:>5}",
+                    "{:>7} {:>8} {:>13} {:>7} {:>7.2} {:>8.1} {:>8.1} {:>7.1} {:>6.2} {:>5} {}",
                     m.gaussians,
                     format!("{}x{}", m.width, m.height),
                     net.name,
@@ -597,7 +654,8 @@ fn run(args: &[String]) -> Result<(), String> {
                     net.floor_ms,
                     net.gemm_gflops(),
                     net.ratio(),
-                    pass_miss(net.ratio() <= TARGET_MLP_RATIO)
+                    pass_miss(net.ratio() <= TARGET_MLP_RATIO),
+                    m.label
                 );
             }
         }
@@ -606,7 +664,9 @@ fn run(args: &[String]) -> Result<(), String> {
     }
     // The targets, for the configurations this run measured.
     let mut targets: Vec<(String, f64, f64, bool)> = Vec::new();
-    let worst = results
+    // Targets apply to the last settings measured (the "on" side of `--ab`).
+    let main: Vec<&Measured> = results.iter().filter(|m| m.label == main_label).collect();
+    let worst = main
         .iter()
         .flat_map(|m| m.nets.iter())
         .map(NetStage::ratio)
@@ -619,7 +679,7 @@ fn run(args: &[String]) -> Result<(), String> {
             worst <= TARGET_MLP_RATIO,
         ));
     }
-    for m in results.iter().filter(|m| m.gaussians == 100_000) {
+    for m in main.iter().filter(|m| m.gaussians == 100_000) {
         targets.push((
             format!("peak RSS MB, 100K at {}x{}", m.width, m.height),
             m.peak_rss_mb,

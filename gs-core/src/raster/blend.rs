@@ -436,6 +436,105 @@ fn forward_body<const FIXED: usize>(
     }
 }
 
+/// Which entries of one tile's list the forward blend reads: `flags[j]` is set when
+/// splat `list[j]` is blended into at least one pixel of the tile (its alpha passes the
+/// cutoff there before the pixel's transmittance stops). The walk, the alpha and the
+/// transmittance are those of [`blend_tile_forward`] operation for operation, so the
+/// forward and backward passes never read the channels of an entry left unflagged.
+pub fn tile_contributions(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    mode: AlphaMode,
+    flags: &mut [bool],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { contributions_avx2(tile, list, splats, mode, flags) };
+        return;
+    }
+    contributions_body(tile, list, splats, mode, flags);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn contributions_avx2(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    mode: AlphaMode,
+    flags: &mut [bool],
+) {
+    contributions_body(tile, list, splats, mode, flags);
+}
+
+/// [`forward_body`] without channels or depth: only the transmittance and the flags.
+#[inline(always)]
+fn contributions_body(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    mode: AlphaMode,
+    flags: &mut [bool],
+) {
+    flags.fill(false);
+    let mut transmittance = [1.0f32; TILE_PIXELS];
+    let full = column_mask(
+        &PixelRect {
+            x0: tile.x0,
+            y0: 0,
+            x1: tile.x1,
+            y1: 0,
+        },
+        tile,
+    );
+    let mut row_active = [0u16; TILE_PX as usize];
+    for m in row_active.iter_mut().take((tile.y1 - tile.y0) as usize) {
+        *m = full;
+    }
+    let mut n_active = ((tile.x1 - tile.x0) * (tile.y1 - tile.y0)) as usize;
+    let stop = mode.stop();
+    let cutoff = mode.cutoff();
+    let mut gauss = [0.0f32; TILE_PX as usize];
+    for (j, &rank) in list.iter().enumerate() {
+        if n_active == 0 {
+            break;
+        }
+        prefetch_splat(splats, list, j + PREFETCH_AHEAD);
+        let s = &splats[rank as usize];
+        let r = overlap(&s.rect, tile);
+        if r.is_empty() {
+            continue;
+        }
+        let cols = column_mask(&r, tile);
+        for y in r.y0..r.y1 {
+            let ly = (y - tile.y0) as usize;
+            let live = row_active[ly] & cols;
+            if live == 0 {
+                continue;
+            }
+            let mut bits = live & row_gauss(s, y as f32 + 0.5, tile.x0, cutoff, live, &mut gauss);
+            while bits != 0 {
+                let lx = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let Some((alpha, _)) = alpha_of(s.opacity, gauss[lx], mode) else {
+                    continue;
+                };
+                let p = ly * TILE_PX as usize + lx;
+                let t_next = transmittance[p] * (1.0 - alpha);
+                if t_next < stop {
+                    row_active[ly] &= !(1u16 << lx);
+                    n_active -= 1;
+                    continue;
+                }
+                transmittance[p] = t_next;
+                flags[j] = true;
+            }
+        }
+    }
+}
+
 /// Pixel gradients for one tile, read from image-layout buffers.
 pub struct PixelGradsView<'a> {
     pub width: usize,

@@ -159,6 +159,8 @@ pub enum RasterError {
     NonFiniteGradient(&'static str),
     /// Backward called with inputs that differ from the forward's.
     ForwardMismatch(&'static str),
+    /// A channel of a projected Gaussian is NaN or Inf ([`render_prepared`]).
+    NonFiniteChannel { gaussian: usize },
 }
 
 impl std::fmt::Display for RasterError {
@@ -180,6 +182,9 @@ impl std::fmt::Display for RasterError {
             }
             RasterError::ForwardMismatch(why) => {
                 write!(f, "backward inputs do not match the forward pass: {why}")
+            }
+            RasterError::NonFiniteChannel { gaussian } => {
+                write!(f, "channel of Gaussian {gaussian} is NaN or Inf")
             }
         }
     }
@@ -468,10 +473,47 @@ pub fn render_with(
     gaussians: &GaussianView,
     settings: &RasterSettings,
 ) -> Result<RenderOutput, RasterError> {
+    // Projection with the channels in view culls Gaussians whose channels are not finite,
+    // so the blend below never meets one.
+    let prepared = prepare(camera, gaussians, settings)?;
+    render_prepared(
+        workspace,
+        prepared,
+        gaussians.channels,
+        gaussians.n_channels,
+    )
+}
+
+/// The geometry of one view, before any channel is read: projection, depth order and tile
+/// bins. [`PreparedView::contributing`] finds the Gaussians the blend will read, so a
+/// caller can compute channels (e.g. network outputs) for those alone and hand them to
+/// [`render_prepared`], which blends without projecting again.
+#[derive(Clone, Debug)]
+pub struct PreparedView {
+    camera: Camera,
+    settings: RasterSettings,
+    mode: AlphaMode,
+    n_gaussians: usize,
+    grid: TileGrid,
+    /// Splats in depth order (rank), and the Gaussian of each rank.
+    splats: Vec<Splat>,
+    gaussian_of_rank: Vec<u32>,
+    bins: TileBins,
+    /// Per Gaussian, from the projection (0 when culled).
+    radii_px: Vec<f32>,
+    /// Projection and sort/bin times (`blend_ms` is 0 here).
+    pub timings: ForwardTimings,
+}
+
+/// Projection, depth sort and binning of `gaussians` (channels in the view, if any, are
+/// only checked for finiteness: a Gaussian with a non-finite channel is culled).
+fn prepare(
+    camera: &Camera,
+    gaussians: &GaussianView,
+    settings: &RasterSettings,
+) -> Result<PreparedView, RasterError> {
     let frame = camera_frame(camera, settings.near_m)?;
     let n = gaussians.check()?;
-    let nc = gaussians.n_channels;
-    let background = resolve_background(settings, nc)?;
     let mode = AlphaMode {
         smooth: settings.smooth_cutoff,
     };
@@ -484,15 +526,10 @@ pub fn render_with(
 
     let t1 = Instant::now();
     let gaussian_of_rank = depth_order(&projected.splats);
-    let mut splats = Vec::with_capacity(gaussian_of_rank.len());
-    let mut splat_channels = Vec::with_capacity(gaussian_of_rank.len() * nc);
-    for &g in &gaussian_of_rank {
-        let g = g as usize;
-        if let Some(s) = projected.splats[g] {
-            splats.push(s);
-            splat_channels.extend_from_slice(&gaussians.channels[g * nc..g * nc + nc]);
-        }
-    }
+    let splats: Vec<Splat> = gaussian_of_rank
+        .iter()
+        .filter_map(|&g| projected.splats[g as usize])
+        .collect();
     let rects: Vec<PixelRect> = splats.iter().map(|s| s.rect).collect();
     let total_entries: usize = rects.iter().map(|r| grid.tile_count(r)).sum();
     if total_entries >= u32::MAX as usize {
@@ -500,6 +537,138 @@ pub fn render_with(
     }
     let bins = bin::bin_tiles(&grid, &rects);
     let sort_bin_ms = ms_since(t1);
+    Ok(PreparedView {
+        camera: *camera,
+        settings: settings.clone(),
+        mode,
+        n_gaussians: n,
+        grid,
+        splats,
+        gaussian_of_rank,
+        bins,
+        radii_px: projected.radii_px,
+        timings: ForwardTimings {
+            project_ms,
+            sort_bin_ms,
+            blend_ms: 0.0,
+        },
+    })
+}
+
+/// Projects, depth-sorts and bins the Gaussians of `geometry` for `camera` (its channels
+/// are ignored: they come later, to [`render_prepared`]).
+pub fn prepare_view(
+    camera: &Camera,
+    geometry: &GaussianView,
+    settings: &RasterSettings,
+) -> Result<PreparedView, RasterError> {
+    let bare = GaussianView {
+        channels: &[],
+        n_channels: 0,
+        ..*geometry
+    };
+    prepare(camera, &bare, settings)
+}
+
+impl PreparedView {
+    pub fn n_gaussians(&self) -> usize {
+        self.n_gaussians
+    }
+
+    /// Per Gaussian: survived culling and touches the image (the Gaussians a render
+    /// projects; [`RenderOutput::visible`] is the same set).
+    pub fn survived(&self) -> Vec<bool> {
+        let mut out = vec![false; self.n_gaussians];
+        for &g in &self.gaussian_of_rank {
+            out[g as usize] = true;
+        }
+        out
+    }
+
+    /// Number of (tile, Gaussian) pairs the blend walks.
+    pub fn tile_entry_count(&self) -> usize {
+        self.bins.tile_ranks.len()
+    }
+
+    /// Per Gaussian: blended into at least one pixel, i.e. its alpha passes the cutoff
+    /// there before the pixel's transmittance stops (an alpha-only pass over the tiles,
+    /// rayon). The blend and its backward read the channels of these Gaussians only:
+    /// channels of the others may hold anything finite without changing a single bit of
+    /// the image or of any gradient.
+    pub fn contributing(&self) -> Vec<bool> {
+        let grid = &self.grid;
+        let bins = &self.bins;
+        let mut entry_flags = vec![false; bins.tile_ranks.len()];
+        let mut per_tile: Vec<&mut [bool]> = Vec::with_capacity(grid.n_tiles());
+        let mut rest: &mut [bool] = &mut entry_flags;
+        for t in 0..grid.n_tiles() {
+            let (head, tail) = rest.split_at_mut(bins.tile_offsets[t + 1] - bins.tile_offsets[t]);
+            per_tile.push(head);
+            rest = tail;
+        }
+        per_tile.into_par_iter().enumerate().for_each(|(t, flags)| {
+            let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
+            blend::tile_contributions(&grid.tile_rect(t), list, &self.splats, self.mode, flags);
+        });
+        let mut out = vec![false; self.n_gaussians];
+        for (rank, &g) in self.gaussian_of_rank.iter().enumerate() {
+            let entries = &bins.entry_of_rank[bins.rank_offsets[rank]..bins.rank_offsets[rank + 1]];
+            out[g as usize] = entries.iter().any(|&e| entry_flags[e as usize]);
+        }
+        out
+    }
+}
+
+/// Blends a prepared view with `n_channels` channels per Gaussian (`channels`,
+/// Gaussian-major, for every Gaussian of the view). Same output, bit for bit, as
+/// [`render_with`] on a view with these channels, provided every channel the blend reads
+/// is finite; a non-finite channel of a projected Gaussian is an error here (a full
+/// render would have culled that Gaussian).
+pub fn render_prepared(
+    workspace: &mut RasterWorkspace,
+    prepared: PreparedView,
+    channels: &[f32],
+    n_channels: usize,
+) -> Result<RenderOutput, RasterError> {
+    let PreparedView {
+        camera,
+        settings,
+        mode,
+        n_gaussians: n,
+        grid,
+        splats,
+        gaussian_of_rank,
+        bins,
+        radii_px,
+        timings,
+    } = prepared;
+    let nc = n_channels;
+    let expected = n
+        .checked_mul(nc)
+        .ok_or(RasterError::TooLarge("channel count overflows"))?;
+    if channels.len() != expected {
+        return Err(RasterError::Length {
+            what: "channels (n_channels per Gaussian)",
+            expected,
+            got: channels.len(),
+        });
+    }
+    let background = resolve_background(&settings, nc)?;
+    let (width, height) = (grid.width, grid.height);
+    let mut splat_channels = Vec::with_capacity(gaussian_of_rank.len() * nc);
+    for &g in &gaussian_of_rank {
+        let g = g as usize;
+        let ch = &channels[g * nc..g * nc + nc];
+        if !ch.iter().all(|v| v.is_finite()) {
+            return Err(RasterError::NonFiniteChannel { gaussian: g });
+        }
+        splat_channels.extend_from_slice(ch);
+    }
+    let ForwardTimings {
+        project_ms,
+        sort_bin_ms,
+        ..
+    } = timings;
 
     let t2 = Instant::now();
     let n_tiles = grid.n_tiles();
@@ -576,7 +745,7 @@ pub fn render_with(
     }
     let blend_ms = ms_since(t2);
 
-    let mut radii_px = projected.radii_px;
+    let mut radii_px = radii_px;
     let mut visible = vec![false; n];
     for w in bins.rank_offsets.windows(2).zip(&gaussian_of_rank) {
         let ((start, end), &g) = ((w.0[0], w.0[1]), w.1);
@@ -603,8 +772,8 @@ pub fn render_with(
             blend_ms,
         },
         state: ForwardState {
-            camera: *camera,
-            settings: settings.clone(),
+            camera,
+            settings,
             background,
             n_gaussians: n,
             grid,
@@ -845,4 +1014,194 @@ pub fn render_backward_with(
         reduce_project_ms: ms_since(t1),
     };
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::SplitMix64;
+    use crate::Intrinsics;
+    use glam::Vec3;
+
+    /// Geometry of `n` random Gaussians, dense enough that many are hidden.
+    struct Scene {
+        means: Vec<f32>,
+        log_scales: Vec<f32>,
+        rotations: Vec<f32>,
+        opacity_logits: Vec<f32>,
+    }
+
+    impl Scene {
+        fn random(seed: u64, n: usize) -> Self {
+            let mut rng = SplitMix64::new(seed);
+            let mut u = |lo, hi, count: usize| (0..count).map(|_| rng.uniform(lo, hi)).collect();
+            Self {
+                means: u(-1.0, 1.0, 3 * n),
+                log_scales: u(-3.0, -1.6, 3 * n),
+                rotations: u(-1.0, 1.0, 4 * n),
+                opacity_logits: u(-1.0, 5.0, n),
+            }
+        }
+
+        fn view<'a>(&'a self, channels: &'a [f32], n_channels: usize) -> GaussianView<'a> {
+            GaussianView {
+                means: &self.means,
+                log_scales: &self.log_scales,
+                rotations: &self.rotations,
+                opacity_logits: &self.opacity_logits,
+                channels,
+                n_channels,
+            }
+        }
+    }
+
+    fn camera() -> Camera {
+        Camera::look_at(
+            Intrinsics::from_fov_x(0.9, 72, 56),
+            Vec3::new(0.5, -4.0, 1.0),
+            Vec3::ZERO,
+            Vec3::Z,
+        )
+    }
+
+    fn settings() -> RasterSettings {
+        RasterSettings {
+            background: vec![0.2, 0.1, 0.0, 1.0],
+            ..RasterSettings::default()
+        }
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    fn backward(scene: &Scene, channels: &[f32], out: &RenderOutput) -> GaussianGrads {
+        let d_color: Vec<f32> = (0..out.color.len())
+            .map(|i| ((i * 7919) % 13) as f32 / 13.0 - 0.4)
+            .collect();
+        let d_alpha: Vec<f32> = (0..out.alpha.len()).map(|i| (i % 5) as f32 * 0.1).collect();
+        render_backward(
+            &camera(),
+            &scene.view(channels, 4),
+            &settings(),
+            out,
+            &PixelGrads {
+                d_color: &d_color,
+                d_alpha: Some(&d_alpha),
+                d_depth: None,
+            },
+        )
+        .unwrap()
+    }
+
+    fn assert_same_grads(a: &GaussianGrads, b: &GaussianGrads) {
+        assert_eq!(bits(&a.d_means), bits(&b.d_means));
+        assert_eq!(bits(&a.d_log_scales), bits(&b.d_log_scales));
+        assert_eq!(bits(&a.d_rotations), bits(&b.d_rotations));
+        assert_eq!(bits(&a.d_opacity_logits), bits(&b.d_opacity_logits));
+        assert_eq!(bits(&a.d_channels), bits(&b.d_channels));
+        assert_eq!(bits(&a.mean2d_grad_ndc), bits(&b.mean2d_grad_ndc));
+    }
+
+    #[test]
+    fn prepared_render_is_the_plain_render_bit_for_bit() {
+        let n = 900;
+        let scene = Scene::random(3, n);
+        let mut rng = SplitMix64::new(4);
+        let channels: Vec<f32> = (0..4 * n).map(|_| rng.uniform(0.0, 1.0)).collect();
+        let plain = render(&camera(), &scene.view(&channels, 4), &settings()).unwrap();
+        let prepared = prepare_view(&camera(), &scene.view(&[], 0), &settings()).unwrap();
+        assert_eq!(prepared.survived(), plain.visible);
+        assert_eq!(prepared.tile_entry_count(), plain.tile_entry_count());
+        let mut ws = RasterWorkspace::default();
+        let out = render_prepared(&mut ws, prepared, &channels, 4).unwrap();
+        assert_eq!(bits(&out.color), bits(&plain.color));
+        assert_eq!(bits(&out.alpha), bits(&plain.alpha));
+        assert_eq!(bits(&out.depth), bits(&plain.depth));
+        assert_eq!(bits(&out.radii_px), bits(&plain.radii_px));
+        assert_same_grads(
+            &backward(&scene, &channels, &out),
+            &backward(&scene, &channels, &plain),
+        );
+    }
+
+    #[test]
+    fn channels_of_non_contributing_gaussians_are_never_read() {
+        let n = 1500;
+        let scene = Scene::random(5, n);
+        let mut rng = SplitMix64::new(6);
+        let channels: Vec<f32> = (0..4 * n).map(|_| rng.uniform(0.0, 1.0)).collect();
+        let prepared = prepare_view(&camera(), &scene.view(&[], 0), &settings()).unwrap();
+        let survived = prepared.survived();
+        let contributing = prepared.contributing();
+        let n_survived = survived.iter().filter(|&&v| v).count();
+        let n_contributing = contributing.iter().filter(|&&v| v).count();
+        // The scene must exercise both sides: hidden Gaussians and blended ones.
+        assert!(n_contributing > 100, "{n_contributing} contribute");
+        assert!(
+            n_contributing + 100 < n_survived,
+            "{n_contributing} of {n_survived} contribute: too few hidden to test"
+        );
+        for (c, s) in contributing.iter().zip(&survived) {
+            assert!(!c || *s, "a culled Gaussian contributes");
+        }
+        // Garbage (finite) channels wherever the blend should not look.
+        let mut garbage = channels.clone();
+        for (g, &c) in contributing.iter().enumerate() {
+            if !c {
+                for (k, v) in garbage[4 * g..4 * g + 4].iter_mut().enumerate() {
+                    *v = 1e3 * (k as f32 + 1.0) - g as f32;
+                }
+            }
+        }
+        let clean = render(&camera(), &scene.view(&channels, 4), &settings()).unwrap();
+        let dirty = render(&camera(), &scene.view(&garbage, 4), &settings()).unwrap();
+        assert_eq!(bits(&dirty.color), bits(&clean.color));
+        assert_eq!(bits(&dirty.alpha), bits(&clean.alpha));
+        let g_clean = backward(&scene, &channels, &clean);
+        let g_dirty = backward(&scene, &garbage, &dirty);
+        assert_same_grads(&g_clean, &g_dirty);
+        // ... and they get no channel gradient, while every contributing one is read: a
+        // change of its channels changes the image.
+        for (g, &c) in contributing.iter().enumerate() {
+            if !c {
+                assert!(g_clean.d_channels[4 * g..4 * g + 4]
+                    .iter()
+                    .all(|&v| v == 0.0));
+            }
+        }
+        for g in (0..n).filter(|&g| contributing[g]).step_by(37) {
+            let mut bumped = channels.clone();
+            bumped[4 * g] += 0.5;
+            let out = render(&camera(), &scene.view(&bumped, 4), &settings()).unwrap();
+            assert_ne!(bits(&out.color), bits(&clean.color), "Gaussian {g} unread");
+        }
+    }
+
+    #[test]
+    fn prepared_render_rejects_bad_channels() {
+        let n = 200;
+        let scene = Scene::random(7, n);
+        let prepare = || prepare_view(&camera(), &scene.view(&[], 0), &settings()).unwrap();
+        let mut ws = RasterWorkspace::default();
+        let short = vec![0.5f32; 4 * n - 1];
+        assert!(matches!(
+            render_prepared(&mut ws, prepare(), &short, 4),
+            Err(RasterError::Length { .. })
+        ));
+        let prepared = prepare();
+        let g = prepared.survived().iter().position(|&v| v).unwrap();
+        let mut channels = vec![0.5f32; 4 * n];
+        channels[4 * g + 2] = f32::NAN;
+        assert_eq!(
+            render_prepared(&mut ws, prepared, &channels, 4).unwrap_err(),
+            RasterError::NonFiniteChannel { gaussian: g }
+        );
+        // Background of the wrong length is still an error.
+        let three = vec![0.5f32; 3 * n];
+        assert!(matches!(
+            render_prepared(&mut ws, prepare(), &three, 3),
+            Err(RasterError::Length { .. })
+        ));
+    }
 }

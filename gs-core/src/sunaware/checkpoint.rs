@@ -284,6 +284,7 @@ fn read_config(r: &mut Reader) -> Result<SunAwareConfig, SunAwareError> {
         near_m: r.f32("near_m")?,
         seed: r.u64("seed")?,
         feature_init_std: r.f32("feature_init_std")?,
+        ..SunAwareConfig::default()
     };
     config
         .validate()

@@ -204,6 +204,13 @@ pub struct SunAwareConfig {
     pub seed: u64,
     /// Standard deviation of the random initial appearance features.
     pub feature_init_std: f32,
+    /// Run Phi and Psi only for the Gaussians the blend reads (an alpha-only pass over the
+    /// tiles finds them first), instead of every Gaussian that survived culling. The
+    /// image and the rasterizer's gradients are the same bits either way (a Gaussian the
+    /// blend never reads has no effect and gets zero gradient); the networks' weight
+    /// gradients differ only by float summation order (their batch has fewer rows). A
+    /// speed setting, not part of the model: checkpoints do not store it.
+    pub skip_noncontributing_in_mlp: bool,
 }
 
 impl Default for SunAwareConfig {
@@ -228,6 +235,7 @@ impl Default for SunAwareConfig {
             near_m: 0.01,
             seed: 0,
             feature_init_std: 0.1,
+            skip_noncontributing_in_mlp: true,
         }
     }
 }

@@ -27,11 +27,10 @@ use crate::camera::Camera;
 use crate::init::SplitMix64;
 use crate::model::{GaussianModel, Param, ParamSet};
 use crate::nn::{AppearanceNet, MlpForward, PositionalEncoding, SceneBox, ShadowNet, TapeMode};
-use crate::raster::blend::AlphaMode;
 use crate::raster::{
-    camera_frame, project_splats, render, render_backward,
-    BackwardTimings as RasterBackwardTimings, ForwardTimings as RasterForwardTimings,
-    GaussianGrads, GaussianView, PixelGrads, RasterSettings, RenderOutput,
+    prepare_view, render_backward, render_prepared, BackwardTimings as RasterBackwardTimings,
+    ForwardTimings as RasterForwardTimings, GaussianGrads, GaussianView, PixelGrads,
+    RasterSettings, RasterWorkspace, RenderOutput,
 };
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 
@@ -92,8 +91,12 @@ struct NetPass {
 /// inside the forward call (so their sum never exceeds its duration).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct ForwardTimings {
-    /// Projection of every Gaussian to find the visible list (culling).
+    /// Building the visible list from the projection (the projection itself is in
+    /// `raster`).
     pub cull_ms: f64,
+    /// The alpha-only pass that finds the Gaussians the blend reads (0 when
+    /// `skip_noncontributing_in_mlp` is off).
+    pub contribution_ms: f64,
     /// Light camera, its splats and `V_i` ([`super::light::sun_visibility`]).
     pub shadow_pass_ms: f64,
     /// Phi's input assembly, forward and the scatter of its RGB into the channels (or the
@@ -103,7 +106,7 @@ pub struct ForwardTimings {
     pub psi_forward_ms: f64,
     /// The rasterizer's own split (projection, depth sort + binning, blend).
     pub raster: RasterForwardTimings,
-    /// Rest of the rasterizer call (checks, visibility flags) and the `RGB * S` product.
+    /// Rest of the blend call (checks, visibility flags) and the `RGB * S` product.
     pub compose_ms: f64,
 }
 
@@ -130,6 +133,10 @@ pub struct FramePass {
     pub sun_dir: Vec3,
     /// Gaussians that survived culling, ascending.
     pub visible_list: Vec<u32>,
+    /// The networks' batch, ascending: the Gaussians the blend reads when
+    /// `config.skip_noncontributing_in_mlp` (a subset of `visible_list`), else
+    /// `visible_list` itself.
+    pub network_list: Vec<u32>,
     /// `H * W * 3`, `RGB * S`.
     pub image: Vec<f32>,
     /// `H * W * 3` colour before the shadow product.
@@ -140,7 +147,7 @@ pub struct FramePass {
     pub alpha: Vec<f32>,
     /// `V_i` per Gaussian (c-d), else empty.
     pub visibility: Vec<f32>,
-    /// `V'_i` per Gaussian (c-d; 0 where not visible), else empty.
+    /// `V'_i` per Gaussian (c-d; 0 outside `network_list`), else empty.
     pub refined_visibility: Vec<f32>,
     pub sh_degree: u32,
     pub timings: ForwardTimings,
@@ -161,6 +168,15 @@ impl FramePass {
     pub fn radii_px(&self) -> &[f32] {
         &self.render.radii_px
     }
+}
+
+/// Indices of the set flags, ascending.
+fn indices_of(flags: &[bool]) -> Vec<u32> {
+    flags
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &f)| f.then_some(i as u32))
+        .collect()
 }
 
 fn ms_since(t: Instant) -> f64 {
@@ -296,20 +312,21 @@ impl SunAwareModel {
         let mut timings = ForwardTimings::default();
 
         let t0 = Instant::now();
-        let frame = camera_frame(camera, settings.near_m)?;
-        let bare = GaussianView::from_model(&self.gaussians, &[], 0);
-        let mode = AlphaMode {
-            smooth: settings.smooth_cutoff,
-        };
         let k = &camera.intrinsics;
-        let projected = project_splats(&frame, &bare, mode, k.width, k.height);
-        let visible_list: Vec<u32> = projected
-            .splats
-            .iter()
-            .enumerate()
-            .filter_map(|(i, s)| s.map(|_| i as u32))
-            .collect();
-        timings.cull_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let bare = GaussianView::from_model(&self.gaussians, &[], 0);
+        let prepared = prepare_view(camera, &bare, settings)?;
+        timings.raster = prepared.timings;
+        let survived = prepared.survived();
+        let visible_list = indices_of(&survived);
+        timings.cull_ms =
+            (ms_since(t0) - prepared.timings.project_ms - prepared.timings.sort_bin_ms).max(0.0);
+        let t_contrib = Instant::now();
+        let network_list = if self.config.skip_noncontributing_in_mlp && self.appearance.is_some() {
+            indices_of(&prepared.contributing())
+        } else {
+            visible_list.clone()
+        };
+        timings.contribution_ms = ms_since(t_contrib);
 
         let shadowed = self.config.variant.uses_shadow();
         let nc = if shadowed { 4 } else { 3 };
@@ -346,7 +363,7 @@ impl SunAwareModel {
             Some(net) => {
                 let mut input = Vec::new();
                 net.assemble_input(
-                    &visible_list,
+                    &network_list,
                     p.get(Param::Feature),
                     p.get(Param::Mean),
                     sun,
@@ -355,8 +372,8 @@ impl SunAwareModel {
                 )?;
                 let forward = net
                     .mlp
-                    .forward_train(&input, visible_list.len(), TapeMode::Cache)?;
-                for (r, &g) in visible_list.iter().enumerate() {
+                    .forward_train(&input, network_list.len(), TapeMode::Cache)?;
+                for (r, &g) in network_list.iter().enumerate() {
                     let g = g as usize;
                     channels[g * nc..g * nc + 3].copy_from_slice(&forward.output[r * 3..r * 3 + 3]);
                 }
@@ -370,7 +387,7 @@ impl SunAwareModel {
             Some(net) if shadowed => {
                 let mut input = Vec::new();
                 net.assemble_input(
-                    &visible_list,
+                    &network_list,
                     &vis,
                     p.get(Param::ShadowLatent),
                     p.get(Param::Mean),
@@ -380,9 +397,9 @@ impl SunAwareModel {
                 )?;
                 let forward = net
                     .mlp
-                    .forward_train(&input, visible_list.len(), TapeMode::Cache)?;
+                    .forward_train(&input, network_list.len(), TapeMode::Cache)?;
                 refined = vec![0.0f32; n];
-                for (r, &g) in visible_list.iter().enumerate() {
+                for (r, &g) in network_list.iter().enumerate() {
                     channels[g as usize * nc + 3] = forward.output[r];
                     refined[g as usize] = forward.output[r];
                 }
@@ -393,9 +410,8 @@ impl SunAwareModel {
         timings.psi_forward_ms = ms_since(t_psi);
 
         let t3 = Instant::now();
-        let view = GaussianView::from_model(&self.gaussians, &channels, nc);
-        let render_out = render(camera, &view, settings)?;
-        timings.raster = render_out.timings;
+        let render_out = render_prepared(&mut RasterWorkspace::default(), prepared, &channels, nc)?;
+        timings.raster.blend_ms = render_out.timings.blend_ms;
         let pixels = k.pixel_count();
         let mut rgb = vec![0.0f32; pixels * 3];
         let mut shadow_image = Vec::new();
@@ -414,12 +430,12 @@ impl SunAwareModel {
                 shadow_image[px] = s;
             }
         }
-        let r = &timings.raster;
-        timings.compose_ms = (ms_since(t3) - r.project_ms - r.sort_bin_ms - r.blend_ms).max(0.0);
+        timings.compose_ms = (ms_since(t3) - timings.raster.blend_ms).max(0.0);
         Ok(FramePass {
             camera: *camera,
             sun_dir,
             visible_list,
+            network_list,
             image,
             rgb,
             shadow_image,
@@ -502,7 +518,7 @@ impl SunAwareModel {
         timings.raster_other_ms = (ms_since(t1) - r.blend_ms - r.reduce_project_ms).max(0.0);
         let t2 = Instant::now();
         let cam_pos = pass.camera.position();
-        let rows = pass.visible_list.len();
+        let rows = pass.network_list.len();
         let mut d_appearance = Vec::new();
         match (&self.appearance, &pass.phi) {
             (None, _) => {
@@ -514,7 +530,7 @@ impl SunAwareModel {
             }
             (Some(net), Some(phi)) => {
                 let mut d_out = vec![0.0f32; rows * 3];
-                for (r, &gi) in pass.visible_list.iter().enumerate() {
+                for (r, &gi) in pass.network_list.iter().enumerate() {
                     let gi = gi as usize;
                     d_out[r * 3..r * 3 + 3].copy_from_slice(&g.d_channels[gi * nc..gi * nc + 3]);
                 }
@@ -530,7 +546,7 @@ impl SunAwareModel {
                 let mut d_features = vec![0.0f32; p.get(Param::Feature).len()];
                 let mut d_means = vec![0.0f32; n * 3];
                 net.scatter_input_grad(
-                    &pass.visible_list,
+                    &pass.network_list,
                     p.get(Param::Mean),
                     cam_pos.to_array(),
                     &d_input,
@@ -553,7 +569,7 @@ impl SunAwareModel {
         let mut d_shadow = Vec::new();
         if let (Some(net), Some(psi)) = (&self.shadow, &pass.psi) {
             let d_out: Vec<f32> = pass
-                .visible_list
+                .network_list
                 .iter()
                 .map(|&gi| g.d_channels[gi as usize * nc + 3])
                 .collect();
@@ -569,7 +585,7 @@ impl SunAwareModel {
             let mut d_latents = vec![0.0f32; p.get(Param::ShadowLatent).len()];
             let mut d_means = vec![0.0f32; n * 3];
             net.scatter_input_grad(
-                &pass.visible_list,
+                &pass.network_list,
                 p.get(Param::Mean),
                 &self.scene_box,
                 &d_input,
@@ -592,5 +608,132 @@ impl SunAwareModel {
             raster_dropped: g.dropped_nonfinite,
         };
         Ok((grads, timings))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::init::from_points;
+    use crate::sunaware::config::{LightConfig, Variant};
+    use crate::sunaware::synthetic::sun_direction;
+    use crate::Intrinsics;
+
+    /// A configuration-(d) model of `n` fairly opaque Gaussians filling a box, so the
+    /// front ones hide many behind them.
+    fn dense_model(n: usize, skip: bool) -> SunAwareModel {
+        let config = SunAwareConfig {
+            light: LightConfig {
+                resolution_px: 48,
+                ..LightConfig::default()
+            },
+            skip_noncontributing_in_mlp: skip,
+            ..SunAwareConfig::for_variant(Variant::D)
+        };
+        let mut rng = SplitMix64::new(21);
+        let points: Vec<Vec3> = (0..n)
+            .map(|_| {
+                Vec3::new(
+                    rng.uniform(-0.6, 0.6),
+                    rng.uniform(-0.4, 0.4),
+                    rng.uniform(-0.4, 0.4),
+                )
+            })
+            .collect();
+        let mut init = from_points(&points, None, config.layout()).unwrap().model;
+        init.params.get_mut(Param::OpacityLogit).fill(2.5);
+        let scene_box = SceneBox::new([-0.6, -0.4, -0.4], [0.6, 0.4, 0.4]).unwrap();
+        SunAwareModel::new(init, scene_box, config).unwrap()
+    }
+
+    fn camera() -> Camera {
+        Camera::look_at(
+            Intrinsics::from_fov_x(0.8, 64, 48),
+            Vec3::new(1.2, -2.2, 0.9),
+            Vec3::ZERO,
+            Vec3::Z,
+        )
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// `a` and `b` agree to float summation-order noise: every difference within 1e-5 of
+    /// the largest magnitude of the group (f32 sums of a few thousand terms reassociated).
+    fn assert_close(what: &str, a: &[f32], b: &[f32]) {
+        assert_eq!(a.len(), b.len(), "{what}");
+        let scale = a.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0, "{what} is all zeros: nothing compared");
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!(
+                (x - y).abs() <= 1e-5 * scale,
+                "{what}[{i}]: {x} vs {y} (scale {scale})"
+            );
+        }
+    }
+
+    #[test]
+    fn skipping_non_contributing_gaussians_changes_no_image_and_no_gradient() {
+        let full = dense_model(1200, false);
+        let skip = dense_model(1200, true);
+        assert_eq!(full.gaussians, skip.gaussians);
+        let settings = full.raster_settings(false);
+        let sun = sun_direction(0.7, 0.5);
+        let a = full.forward(&camera(), sun, 0, &settings, None).unwrap();
+        let b = skip.forward(&camera(), sun, 0, &settings, None).unwrap();
+        assert_eq!(a.visible_list, b.visible_list);
+        assert_eq!(a.network_list, a.visible_list);
+        // The skip must actually drop rows here, or this test shows nothing.
+        assert!(
+            b.network_list.len() + 100 < a.network_list.len(),
+            "{} of {} rows kept",
+            b.network_list.len(),
+            a.network_list.len()
+        );
+        assert!(b.network_list.len() > 100);
+        assert_eq!(bits(&a.image), bits(&b.image));
+        assert_eq!(bits(&a.rgb), bits(&b.rgb));
+        assert_eq!(bits(&a.shadow_image), bits(&b.shadow_image));
+        assert_eq!(bits(&a.alpha), bits(&b.alpha));
+        for &g in &b.network_list {
+            let g = g as usize;
+            assert_eq!(
+                a.refined_visibility[g].to_bits(),
+                b.refined_visibility[g].to_bits()
+            );
+        }
+
+        let d_image: Vec<f32> = (0..a.image.len())
+            .map(|i| ((i * 7919) % 17) as f32 / 17.0 - 0.45)
+            .collect();
+        let ga = full.backward(&a, &d_image).unwrap();
+        let gb = skip.backward(&b, &d_image).unwrap();
+        // Rasterizer-only groups: the same bits.
+        for p in [Param::LogScale, Param::Rotation, Param::OpacityLogit] {
+            assert_eq!(
+                bits(ga.params.get(p)),
+                bits(gb.params.get(p)),
+                "{}",
+                p.name()
+            );
+        }
+        assert_eq!(bits(&ga.mean2d_grad_ndc), bits(&gb.mean2d_grad_ndc));
+        // Through the networks: batches of different sizes sum in a different order.
+        for p in [Param::Mean, Param::Feature, Param::ShadowLatent] {
+            assert_close(p.name(), ga.params.get(p), gb.params.get(p));
+        }
+        assert_close("Phi weights", &ga.appearance, &gb.appearance);
+        assert_close("Psi weights", &ga.shadow, &gb.shadow);
+        // Skipped Gaussians get exactly nothing through the networks.
+        let kept: std::collections::HashSet<u32> = b.network_list.iter().copied().collect();
+        for &g in a.visible_list.iter().filter(|g| !kept.contains(g)) {
+            let g = g as usize;
+            let f = &gb.params.get(Param::Feature)[72 * g..72 * g + 72];
+            assert!(f.iter().all(|&v| v == 0.0));
+            assert!(ga.params.get(Param::Feature)[72 * g..72 * g + 72]
+                .iter()
+                .all(|&v| v == 0.0));
+        }
     }
 }

@@ -108,6 +108,9 @@ pub struct StepTimings {
     pub project_ms: f64,
     /// Depth sort and tile binning.
     pub sort_bin_ms: f64,
+    /// The alpha-only pass that finds the Gaussians the blend reads, so the networks run
+    /// on those alone (`SunAwareConfig::skip_noncontributing_in_mlp`; 0 when off).
+    pub contribution_ms: f64,
     /// The light camera's pass that gives `V_i` (configurations c-d).
     pub shadow_pass_ms: f64,
     /// Phi forward with its input assembly (SH evaluation in configuration a).
@@ -134,10 +137,11 @@ pub struct StepTimings {
 
 impl StepTimings {
     /// Stage names and times in pipeline order (`total_ms` not included).
-    pub fn stages(&self) -> [(&'static str, f64); 12] {
+    pub fn stages(&self) -> [(&'static str, f64); 13] {
         [
             ("project", self.project_ms),
             ("sort_bin", self.sort_bin_ms),
+            ("contribution", self.contribution_ms),
             ("shadow_pass", self.shadow_pass_ms),
             ("phi_forward", self.phi_forward_ms),
             ("psi_forward", self.psi_forward_ms),
@@ -174,6 +178,7 @@ impl StepTimings {
     fn add_forward(&mut self, f: &ForwardTimings) {
         self.project_ms += f.cull_ms + f.raster.project_ms;
         self.sort_bin_ms += f.raster.sort_bin_ms;
+        self.contribution_ms += f.contribution_ms;
         self.shadow_pass_ms += f.shadow_pass_ms;
         self.phi_forward_ms += f.phi_forward_ms;
         self.psi_forward_ms += f.psi_forward_ms;
@@ -199,8 +204,11 @@ pub struct StepStats {
     pub ssim: f32,
     /// `lambda_iso * L_iso` (0 unless configuration d).
     pub iso: f32,
-    /// Gaussians that survived culling (the networks' batch).
+    /// Gaussians that survived culling.
     pub visible: usize,
+    /// Rows each network evaluated: the Gaussians the blend reads
+    /// (`skip_noncontributing_in_mlp`), else `visible`.
+    pub network_rows: usize,
     pub gaussians: usize,
     pub position_lr: f32,
     /// The step was refused because something was non-finite.
@@ -489,6 +497,7 @@ impl SunAwareTrainer {
             ssim: parts.ssim,
             iso: parts.iso,
             visible: pass.visible_list.len(),
+            network_rows: pass.network_list.len(),
             gaussians: self.model.len(),
             position_lr,
             skipped: false,
