@@ -8,7 +8,9 @@
 //! `sim-harness table --preset NAME --out DIR [--scenario FILE]... [--keep-data]` trains the
 //! paper's configurations a-d online on each target and writes the results table and figure
 //! (see `sim_harness::experiment::table_job`). `sim-harness demo [--out DIR]` runs the
-//! README's demo (see `sim_harness::experiment::demo`).
+//! README's demo (see `sim_harness::experiment::demo`). `sim-harness ablation-init --out DIR
+//! [--preset NAME] [--inits surface,random,hull]` compares initialisations (see
+//! `sim_harness::experiment::ablation_init`).
 //!
 //! `sim-harness buslogs --dataset DIR [--out DIR/bus] [--config FILE]` writes the dataset as
 //! the component's bus logs (`can.log`, `udp.rec`) for `fsw-component --replay`;
@@ -20,6 +22,7 @@ use sim_harness::busfeed::{
     play, write_bus_logs, BusFeedOptions, PlaySpeed, PlayTargets, AOCS_NODE_ID, NAVIGATION_NODE_ID,
 };
 use sim_harness::dataset::{generate, GenerateOptions};
+use sim_harness::experiment::ablation_init::{self, run_init_ablation, InitAblationJob};
 use sim_harness::experiment::demo::run_demo;
 use sim_harness::experiment::preset::Preset;
 use sim_harness::experiment::table::to_markdown;
@@ -109,6 +112,31 @@ enum Command {
         /// Also write each scenario's dataset to OUT/data/NAME.
         #[arg(long)]
         keep_data: bool,
+    },
+    /// Initialisation ablation: configuration d from surface samples, random points and a
+    /// visual hull carved from the first keyframes' masks (init.csv, init.md, init.png).
+    AblationInit {
+        /// Preset name (config/presets/NAME.toml) or file; its configs are ignored (d only).
+        #[arg(long, default_value = "cpu")]
+        preset: String,
+        /// Output folder (init.csv, init.md, init_curves.csv, init.png, runs.json, cache/).
+        #[arg(long)]
+        out: PathBuf,
+        /// Scenario file to use instead of the three built-in targets (repeatable).
+        #[arg(long)]
+        scenario: Vec<PathBuf>,
+        /// Initialisations to compare, in order: surface, random, hull, hull-grey.
+        #[arg(long, value_delimiter = ',', default_value = "surface,random,hull")]
+        inits: Vec<String>,
+        /// Evaluate every N rounds during training (0: only at the end).
+        #[arg(long, default_value_t = 100)]
+        eval_every: u64,
+        /// Keyframes the hull is carved from (0: the window size W).
+        #[arg(long)]
+        hull_views: Option<usize>,
+        /// Voxels along the side of the hull's cube.
+        #[arg(long)]
+        hull_resolution: Option<u32>,
     },
     /// Train configuration d online on a small embedded Cassini-like scenario.
     Demo {
@@ -272,6 +300,46 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 ["table.csv", "table.md", "figure.png", "runs.json"]
                     .map(|f| out.join(f).display().to_string())
                     .join(", ")
+            );
+            Ok(())
+        }
+        Command::AblationInit {
+            preset,
+            out,
+            scenario,
+            inits,
+            eval_every,
+            hull_views,
+            hull_resolution,
+        } => {
+            let mut preset = Preset::load(&preset)?;
+            preset.eval_every_rounds = eval_every;
+            preset.hull_views = hull_views.unwrap_or(preset.hull_views);
+            preset.hull_resolution = hull_resolution.unwrap_or(preset.hull_resolution);
+            preset.validate()?;
+            let scenarios = if scenario.is_empty() {
+                builtin_scenarios()?
+            } else {
+                scenario
+                    .iter()
+                    .map(|p| Scenario::load(p))
+                    .collect::<Result<_, _>>()?
+            };
+            let job = InitAblationJob {
+                preset,
+                scenarios,
+                inits,
+                out_dir: out.clone(),
+            };
+            let result = run_init_ablation(&job, &mut |line| eprintln!("{line}"))?;
+            eprintln!("\n{}", ablation_init::to_markdown(&result.runs));
+            eprintln!(
+                "{} runs in {:.0} s wall, {:.0} s process CPU (rendering {:.0} s); wrote init.csv, init.md, init_curves.csv, init.png, runs.json to {}",
+                result.runs.len(),
+                result.total_s,
+                result.total_cpu_s,
+                result.render_s,
+                out.display()
             );
             Ok(())
         }

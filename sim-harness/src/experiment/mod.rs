@@ -9,6 +9,7 @@
 //! every number written comes from a run in this process (or a cache of rendered images whose
 //! key matches), never from a constant.
 
+pub mod ablation_init;
 pub mod cache;
 pub mod data;
 pub mod demo;

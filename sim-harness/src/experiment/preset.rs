@@ -52,6 +52,9 @@ pub enum InitKind {
     Surface,
     /// Random points in the target's bounding sphere.
     Random,
+    /// A visual hull carved from the first keyframes' masks and known poses
+    /// (`experiment::ablation_init`): no ground-truth model needed.
+    Hull,
 }
 
 /// One preset.
@@ -91,6 +94,12 @@ pub struct Preset {
     /// Configurations to run, in order.
     pub configs: Vec<String>,
     pub seed: u64,
+    /// `init = "hull"`: keyframes carved from (the first K the window takes; 0: K = W).
+    pub hull_views: usize,
+    /// `init = "hull"`: voxels along the side of the cube around the bounding sphere.
+    pub hull_resolution: u32,
+    /// `init = "hull"`: grey points instead of colours sampled from the keyframes.
+    pub hull_grey_colours: bool,
 }
 
 impl Default for Preset {
@@ -115,6 +124,9 @@ impl Default for Preset {
             light_resolution_px: 256,
             configs: ["a", "b", "c", "d"].map(String::from).to_vec(),
             seed: 0,
+            hull_views: 0,
+            hull_resolution: 96,
+            hull_grey_colours: false,
         }
     }
 }
@@ -201,6 +213,12 @@ impl Preset {
         }
         if self.max_gaussians == 0 {
             return bad("max_gaussians must be positive".into());
+        }
+        if !(8..=320).contains(&self.hull_resolution) {
+            return bad(format!(
+                "hull_resolution {} is outside 8..=320",
+                self.hull_resolution
+            ));
         }
         if self.configs.is_empty() {
             return bad("configs is empty".into());

@@ -142,6 +142,26 @@ pub fn initialisation(scene: &SceneData, preset: &Preset) -> Initialisation {
             radius_m: scene.bounding_radius_m.max(0.1),
             seed: preset.seed ^ 0x5EED,
         },
+        // A hull that cannot be carved gives no points, which `OnlineTrainer::new` refuses;
+        // `try_initialisation` says why.
+        InitKind::Hull => super::ablation_init::hull_initialisation(scene, preset)
+            .map(|(init, _)| init)
+            .unwrap_or(Initialisation::SurfaceSamples {
+                points: Vec::new(),
+                normals: None,
+                colours: None,
+            }),
+    }
+}
+
+/// [`initialisation`], with the reason when a visual hull cannot be carved.
+pub fn try_initialisation(
+    scene: &SceneData,
+    preset: &Preset,
+) -> Result<Initialisation, OnlineError> {
+    match preset.init {
+        InitKind::Hull => Ok(super::ablation_init::hull_initialisation(scene, preset)?.0),
+        _ => Ok(initialisation(scene, preset)),
     }
 }
 
@@ -171,7 +191,7 @@ pub fn run_config(
     let label = format!("{}/{}", scene.name, variant.name());
     let mut trainer = OnlineTrainer::new(
         online_config(preset, variant),
-        &initialisation(scene, preset),
+        &try_initialisation(scene, preset)?,
         scene_box(scene)?,
     )?;
     progress(&format!(

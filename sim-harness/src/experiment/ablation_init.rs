@@ -1,0 +1,741 @@
+//! The initialisation ablation (the paper's Fig. 7, plus a visual hull): configuration d
+//! trained online on each target from (1) points sampled on the true surface (the paper),
+//! (2) random points in the bounding sphere, (3) a visual hull carved from the first
+//! keyframes' masks and known poses (no ground-truth model needed); written to `init.csv`,
+//! `init.md`, `init_curves.csv`, `runs.json` and `init.png` (PSNR bars per target, Gaussian
+//! count over rounds).
+//!
+//! The hull's views are the first K keyframes the online trainer's window would take (the
+//! first K lit frames each at least `min_view_angle_deg` from the previous keyframe): what the
+//! component holds when its window first fills and training starts, so the hull uses no
+//! frame the trainer has not seen by then. K defaults to the window size W. The carving box
+//! is the cube around the target's bounding sphere (a size prior, not the model); colours are
+//! sampled from the keyframe images (the view that sees each point most frontally), or grey.
+//!
+//! Invariants: every number written comes from a run in this process; runs go one after
+//! another, targets in order, initialisations in the order asked; the CSV and Markdown are
+//! rewritten after every run; `cpu_s` is this process's CPU time (all threads) over the run,
+//! the steadier cost measure on a shared machine.
+
+use super::data::{load_or_render_scene, SceneData};
+use super::evaluate::camera_of;
+use super::figure::draw_text;
+use super::preset::{InitKind, Preset};
+use super::runner::{run_config, RunOutcome};
+use super::table::target_label;
+use super::ExperimentError;
+use crate::dataset::files;
+use crate::dataset::plots::{Canvas, Rgb};
+use crate::scenario::Scenario;
+use fsw_component::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
+use fsw_component::online::{Initialisation, OnlineError};
+use glam::Vec3;
+use gs_core::hull::{carve, sample_colours, ColourView, HullGrid, HullOptions, HullView};
+use gs_core::sunaware::Variant;
+use serde::Serialize;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Grey for hull points no keyframe colours (and for `hull_grey_colours`).
+pub const GREY: [f32; 3] = [0.5; 3];
+
+/// What carving produced, for the report.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct HullReport {
+    /// Sequence indices of the keyframes carved from.
+    pub frames: Vec<u32>,
+    pub voxel_m: f32,
+    pub occupied_voxels: usize,
+    pub surface_voxels: usize,
+    pub points: usize,
+    /// Points no keyframe saw on the target (grey).
+    pub uncoloured_points: usize,
+    /// Mean distance from each hull point to the nearest true surface sample, metres (a
+    /// diagnostic only: the hull itself never reads the model).
+    pub mean_distance_to_surface_m: f64,
+    pub carve_s: f64,
+}
+
+/// Sequence indices of the first `count` keyframes the online window would take: lit frames
+/// (not in eclipse) each at least `min_view_angle_deg` from the previous one, in time order.
+/// Fewer when the sequence runs out.
+pub fn first_keyframes(
+    scene: &SceneData,
+    count: usize,
+    min_view_angle_deg: f64,
+) -> Result<Vec<usize>, OnlineError> {
+    let capacity = count.max(2);
+    let mut window = KeyframeWindow::new(WindowConfig {
+        capacity,
+        min_view_angle_deg,
+    })?;
+    for (i, view) in scene.frames.iter().enumerate() {
+        if window.len() >= count {
+            break;
+        }
+        if view.eclipse {
+            continue;
+        }
+        let direction = ViewDirection::new(view.view_dir_target())?;
+        // No eviction before the window is full: the window holds the first keyframes.
+        window.offer(Keyframe {
+            id: i as u64,
+            view: direction,
+            payload: (),
+        });
+    }
+    let mut frames: Vec<usize> = window.ids().into_iter().map(|id| id as usize).collect();
+    frames.sort_unstable();
+    frames.truncate(count);
+    Ok(frames)
+}
+
+/// The hull initialisation of `scene` under `preset` (K = `hull_views`, or W when 0).
+pub fn hull_initialisation(
+    scene: &SceneData,
+    preset: &Preset,
+) -> Result<(Initialisation, HullReport), OnlineError> {
+    let started = Instant::now();
+    let k = if preset.hull_views == 0 {
+        preset.window
+    } else {
+        preset.hull_views
+    };
+    let frames = first_keyframes(scene, k, preset.min_view_angle_deg)?;
+    if frames.is_empty() {
+        return Err(OnlineError::Config(format!(
+            "visual hull of {}: no lit frame to carve from",
+            scene.name
+        )));
+    }
+    let cameras: Vec<_> = frames
+        .iter()
+        .map(|&i| camera_of(&scene.intrinsics, &scene.frames[i]))
+        .collect();
+    let views: Vec<HullView> = frames
+        .iter()
+        .zip(&cameras)
+        .map(|(&i, &camera)| HullView {
+            camera,
+            mask: &scene.frames[i].mask8,
+        })
+        .collect();
+    let radius_m = scene.bounding_radius_m.max(0.1);
+    let grid = HullGrid::around_sphere(Vec3::ZERO, radius_m, preset.hull_resolution);
+    let options = HullOptions {
+        point_count: preset.init_points as usize,
+        margin_px: 1,
+        min_views: 1,
+        seed: preset.seed ^ 0x4855_4C4C,
+    };
+    let hull = carve(&views, grid, options)
+        .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
+    let (colours, uncoloured) = if preset.hull_grey_colours {
+        (vec![GREY; hull.points.len()], 0)
+    } else {
+        let images: Vec<Vec<f32>> = frames.iter().map(|&i| scene.frames[i].rgb_f32()).collect();
+        let colour_views: Vec<ColourView> = frames
+            .iter()
+            .zip(&cameras)
+            .zip(&images)
+            .map(|((&i, &camera), rgb)| ColourView {
+                camera,
+                rgb,
+                mask: &scene.frames[i].mask8,
+            })
+            .collect();
+        sample_colours(&hull.points, &hull.normals, &colour_views, GREY)
+    };
+    let mean_distance_to_surface_m = mean_nearest_distance(&hull.points, scene);
+    let report = HullReport {
+        frames: frames.iter().map(|&i| scene.frames[i].index).collect(),
+        voxel_m: hull.voxel_m,
+        occupied_voxels: hull.occupied,
+        surface_voxels: hull.surface,
+        points: hull.points.len(),
+        uncoloured_points: uncoloured,
+        mean_distance_to_surface_m,
+        carve_s: started.elapsed().as_secs_f64(),
+    };
+    // Normals are left out, as for the surface samples, so the two differ only in where
+    // the points are and what colour they start with.
+    let init = Initialisation::SurfaceSamples {
+        points: hull.points,
+        normals: None,
+        colours: Some(colours),
+    };
+    Ok((init, report))
+}
+
+/// Mean over `points` of the distance to the nearest surface sample (brute force over a
+/// few thousand samples; diagnostic only).
+pub fn mean_nearest_distance(points: &[Vec3], scene: &SceneData) -> f64 {
+    use rayon::prelude::*;
+    if points.is_empty() || scene.surface.is_empty() {
+        return f64::NAN;
+    }
+    let total: f64 = points
+        .par_iter()
+        .map(|p| {
+            scene
+                .surface
+                .iter()
+                .map(|s| (s.position_m - *p).length_squared())
+                .fold(f32::INFINITY, f32::min)
+                .sqrt() as f64
+        })
+        .collect::<Vec<f64>>()
+        .iter()
+        .sum();
+    total / points.len() as f64
+}
+
+/// This process's CPU time (user + system, all threads) from `/proc/self/stat`, seconds;
+/// `None` where that file is missing. Linux reports it in USER_HZ = 100 ticks per second.
+pub fn process_cpu_s() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name (which may hold spaces) start at field 3 (state);
+    // utime and stime are fields 14 and 15.
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    Some((utime + stime) / 100.0)
+}
+
+/// The initialisation's name in files.
+pub fn init_name(kind: InitKind, grey: bool) -> &'static str {
+    match (kind, grey) {
+        (InitKind::Surface, _) => "surface",
+        (InitKind::Random, _) => "random",
+        (InitKind::Hull, false) => "hull",
+        (InitKind::Hull, true) => "hull-grey",
+    }
+}
+
+/// Parses `surface`, `random`, `hull` or `hull-grey`.
+pub fn parse_init(name: &str) -> Result<(InitKind, bool), ExperimentError> {
+    match name {
+        "surface" => Ok((InitKind::Surface, false)),
+        "random" => Ok((InitKind::Random, false)),
+        "hull" => Ok((InitKind::Hull, false)),
+        "hull-grey" => Ok((InitKind::Hull, true)),
+        other => Err(ExperimentError::Invalid(format!(
+            "unknown initialisation {other:?} (surface, random, hull or hull-grey)"
+        ))),
+    }
+}
+
+/// One run of the ablation.
+#[derive(Clone, Debug, Serialize)]
+pub struct InitRun {
+    pub init: String,
+    pub initial_gaussians: usize,
+    /// Process CPU time over the whole run (initialisation, training, evaluation), seconds.
+    pub cpu_s: f64,
+    /// Wall time over the whole run, seconds.
+    pub wall_s: f64,
+    pub hull: Option<HullReport>,
+    pub run: RunOutcome,
+}
+
+/// What the job needs.
+#[derive(Clone, Debug)]
+pub struct InitAblationJob {
+    /// Its `configs` are ignored: the ablation trains configuration d.
+    pub preset: Preset,
+    pub scenarios: Vec<Scenario>,
+    /// Initialisations in order, as `parse_init` names them.
+    pub inits: Vec<String>,
+    pub out_dir: PathBuf,
+}
+
+/// What the job produced.
+#[derive(Clone, Debug)]
+pub struct InitAblationResult {
+    pub runs: Vec<InitRun>,
+    pub render_s: f64,
+    pub total_s: f64,
+    pub total_cpu_s: f64,
+}
+
+fn io_error(path: &Path, e: impl std::fmt::Display) -> ExperimentError {
+    ExperimentError::Io {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+fn write_text(path: &Path, text: &str) -> Result<(), ExperimentError> {
+    std::fs::write(path, text).map_err(|e| io_error(path, e))
+}
+
+/// CSV header of `init.csv`.
+pub const CSV_HEADER: &str = "target,init,psnr,ssim,masked_psnr,masked_ssim,seen_psnr,black_psnr,initial_gaussians,final_gaussians,rounds,steps,train_s,step_ms,run_wall_s,run_cpu_s,hull_frames,hull_points,hull_voxel_m,hull_mean_dist_m,hull_carve_s";
+
+/// One line per run.
+pub fn to_csv(runs: &[InitRun]) -> String {
+    let mut out = format!("{CSV_HEADER}\n");
+    for r in runs {
+        let o = &r.run;
+        let hull = match &r.hull {
+            Some(h) => format!(
+                "{},{},{:.4},{:.4},{:.2}",
+                h.frames.len(),
+                h.points,
+                h.voxel_m,
+                h.mean_distance_to_surface_m,
+                h.carve_s
+            ),
+            None => ",,,,".into(),
+        };
+        let _ = writeln!(
+            out,
+            "{},{},{:.2},{:.4},{:.2},{:.4},{:.2},{:.2},{},{},{},{},{:.1},{:.1},{:.1},{:.1},{}",
+            o.target,
+            r.init,
+            o.eval.psnr_db,
+            o.eval.ssim,
+            o.eval.masked_psnr_db,
+            o.eval.masked_ssim,
+            o.seen.psnr_db,
+            o.black_eval.psnr_db,
+            r.initial_gaussians,
+            o.gaussians,
+            o.rounds,
+            o.steps,
+            o.train_s,
+            o.step_ms,
+            r.wall_s,
+            r.cpu_s,
+            hull
+        );
+    }
+    out
+}
+
+/// The Markdown report: metrics per target and initialisation, the gap to surface samples,
+/// the evaluation curve and the hull's facts.
+pub fn to_markdown(runs: &[InitRun]) -> String {
+    let mut out = String::from(
+        "Configuration (d), evaluation views, full frame (masked = target pixels only).\n\n\
+         | Target | Init. | PSNR↑ | SSIM↑ | masked PSNR | seen PSNR | Δ PSNR vs surface | |G| start → end | train s | run CPU s |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for r in runs {
+        let o = &r.run;
+        let surface = runs
+            .iter()
+            .find(|s| s.init == "surface" && s.run.target == o.target);
+        let delta = match surface {
+            Some(s) if s.init != r.init => {
+                format!("{:+.2} dB", o.eval.psnr_db - s.run.eval.psnr_db)
+            }
+            _ => "-".into(),
+        };
+        let _ = writeln!(
+            out,
+            "| {} | {} | {:.2} | {:.4} | {:.2} | {:.2} | {} | {} → {} | {:.1} | {:.1} |",
+            target_label(&o.target),
+            r.init,
+            o.eval.psnr_db,
+            o.eval.ssim,
+            o.eval.masked_psnr_db,
+            o.seen.psnr_db,
+            delta,
+            r.initial_gaussians,
+            o.gaussians,
+            o.train_s,
+            r.cpu_s
+        );
+    }
+    let with_curve: Vec<&InitRun> = runs
+        .iter()
+        .filter(|r| !r.run.eval_curve.is_empty())
+        .collect();
+    if let Some(first) = with_curve.first() {
+        out.push_str("\nEvaluation PSNR (dB) during training, by round:\n\n| Target | Init. |");
+        for p in &first.run.eval_curve {
+            let _ = write!(out, " {} |", p.round);
+        }
+        out.push_str("\n|---|---|");
+        out.push_str(&"---:|".repeat(first.run.eval_curve.len()));
+        out.push('\n');
+        for r in &with_curve {
+            let _ = write!(out, "| {} | {} |", target_label(&r.run.target), r.init);
+            for p in &r.run.eval_curve {
+                let _ = write!(out, " {:.2} |", p.psnr_db);
+            }
+            out.push('\n');
+        }
+    }
+    let hulls: Vec<&InitRun> = runs.iter().filter(|r| r.hull.is_some()).collect();
+    if !hulls.is_empty() {
+        out.push_str(
+            "\nVisual hulls (carved from the first keyframes' masks and poses):\n\n\
+             | Target | Init. | frames | voxel m | occupied voxels | surface voxels | points | uncoloured | mean dist. to true surface m | carve s |\n\
+             |---|---|---|---:|---:|---:|---:|---:|---:|---:|\n",
+        );
+        for r in hulls {
+            let Some(h) = &r.hull else { continue };
+            let frames: Vec<String> = h.frames.iter().map(|f| f.to_string()).collect();
+            let _ = writeln!(
+                out,
+                "| {} | {} | {} | {:.3} | {} | {} | {} | {} | {:.3} | {:.2} |",
+                target_label(&r.run.target),
+                r.init,
+                frames.join(" "),
+                h.voxel_m,
+                h.occupied_voxels,
+                h.surface_voxels,
+                h.points,
+                h.uncoloured_points,
+                h.mean_distance_to_surface_m,
+                h.carve_s
+            );
+        }
+    }
+    out
+}
+
+/// Per-round curves: Gaussian count, mean loss and training seconds.
+pub fn curves_csv(runs: &[InitRun]) -> String {
+    let mut out = String::from("target,init,round,frame_index,gaussians,mean_loss,train_s\n");
+    for r in runs {
+        for p in &r.run.curve {
+            let _ = writeln!(
+                out,
+                "{},{},{},{},{},{:.6},{:.3}",
+                r.run.target, r.init, p.round, p.frame_index, p.gaussians, p.mean_loss, p.train_s
+            );
+        }
+    }
+    out
+}
+
+const PALETTE: [Rgb; 4] = [[30, 80, 200], [210, 40, 40], [30, 150, 60], [150, 90, 20]];
+const AXIS: Rgb = [60, 60, 60];
+const PANEL_W: f64 = 360.0;
+const PANEL_H: f64 = 260.0;
+
+/// init.png: top, evaluation PSNR per target as grouped bars (one colour per
+/// initialisation, the all-black image's PSNR as a grey tick); below, one panel per target
+/// with the Gaussian count over rounds.
+pub fn plot(runs: &[InitRun], inits: &[String]) -> Canvas {
+    let mut targets: Vec<String> = Vec::new();
+    for r in runs {
+        if !targets.contains(&r.run.target) {
+            targets.push(r.run.target.clone());
+        }
+    }
+    let columns = targets.len().max(1) as f64;
+    let width = (40.0 + columns * (PANEL_W + 30.0)) as u32;
+    let height = (70.0 + 2.0 * (PANEL_H + 60.0)) as u32;
+    let mut canvas = Canvas::new(width, height, [255, 255, 255]);
+    // Legend.
+    let mut x = 20i64;
+    for (i, name) in inits.iter().enumerate() {
+        let colour = PALETTE[i % PALETTE.len()];
+        canvas.fill_rect(x, 14, 16, 10, colour);
+        draw_text(&mut canvas, x + 22, 14, &name.to_uppercase(), 2, AXIS);
+        x += 22 + (name.len() as i64 * 8) + 30;
+    }
+    draw_text(
+        &mut canvas,
+        x + 10,
+        14,
+        "GREY TICK: ALL-BLACK IMAGE",
+        2,
+        [150, 150, 150],
+    );
+    for (t, target) in targets.iter().enumerate() {
+        let left = 50.0 + t as f64 * (PANEL_W + 30.0);
+        let top = 60.0;
+        let of_target: Vec<&InitRun> = runs.iter().filter(|r| &r.run.target == target).collect();
+        bar_panel(&mut canvas, left, top, target, &of_target, inits);
+        gaussian_panel(
+            &mut canvas,
+            left,
+            top + PANEL_H + 60.0,
+            target,
+            &of_target,
+            inits,
+        );
+    }
+    canvas
+}
+
+fn colour_of(init: &str, inits: &[String]) -> Rgb {
+    let i = inits.iter().position(|n| n == init).unwrap_or(0);
+    PALETTE[i % PALETTE.len()]
+}
+
+fn frame(canvas: &mut Canvas, left: f64, top: f64, title: &str) {
+    canvas.line((left, top), (left, top + PANEL_H), 1, AXIS);
+    canvas.line(
+        (left, top + PANEL_H),
+        (left + PANEL_W, top + PANEL_H),
+        1,
+        AXIS,
+    );
+    draw_text(canvas, left as i64, top as i64 - 20, title, 2, AXIS);
+}
+
+fn bar_panel(
+    canvas: &mut Canvas,
+    left: f64,
+    top: f64,
+    target: &str,
+    runs: &[&InitRun],
+    inits: &[String],
+) {
+    frame(
+        canvas,
+        left,
+        top,
+        &format!("{} PSNR DB", target_label(target).to_uppercase()),
+    );
+    let values: Vec<f64> = runs
+        .iter()
+        .map(|r| r.run.eval.psnr_db)
+        .chain(runs.first().map(|r| r.run.black_eval.psnr_db))
+        .filter(|v| v.is_finite())
+        .collect();
+    if values.is_empty() {
+        return;
+    }
+    // Bars start 2 dB below the lowest value so differences of tenths stay visible.
+    let lo = (values.iter().cloned().fold(f64::INFINITY, f64::min) - 2.0).floor();
+    let hi = values.iter().cloned().fold(f64::NEG_INFINITY, f64::max) + 0.5;
+    let y_of = |v: f64| top + PANEL_H * (1.0 - (v - lo) / (hi - lo));
+    draw_text(
+        canvas,
+        left as i64 - 44,
+        top as i64 + PANEL_H as i64 - 10,
+        &format!("{lo:.0}"),
+        2,
+        AXIS,
+    );
+    let slot = PANEL_W / runs.len().max(1) as f64;
+    for (i, r) in runs.iter().enumerate() {
+        let v = r.run.eval.psnr_db;
+        if !v.is_finite() {
+            continue;
+        }
+        let x0 = left + i as f64 * slot + 0.15 * slot;
+        let y0 = y_of(v);
+        canvas.fill_rect(
+            x0 as i64,
+            y0 as i64,
+            (0.7 * slot) as i64,
+            (top + PANEL_H - y0) as i64,
+            colour_of(&r.init, inits),
+        );
+        draw_text(
+            canvas,
+            x0 as i64,
+            y0 as i64 - 14,
+            &format!("{v:.2}"),
+            2,
+            AXIS,
+        );
+    }
+    if let Some(black) = runs.first().map(|r| r.run.black_eval.psnr_db) {
+        if black.is_finite() {
+            let y = y_of(black);
+            canvas.line((left, y), (left + PANEL_W, y), 2, [150, 150, 150]);
+        }
+    }
+}
+
+fn gaussian_panel(
+    canvas: &mut Canvas,
+    left: f64,
+    top: f64,
+    target: &str,
+    runs: &[&InitRun],
+    inits: &[String],
+) {
+    frame(
+        canvas,
+        left,
+        top,
+        &format!(
+            "{} GAUSSIANS PER ROUND",
+            target_label(target).to_uppercase()
+        ),
+    );
+    let max_round = runs
+        .iter()
+        .flat_map(|r| r.run.curve.iter().map(|p| p.round))
+        .max()
+        .unwrap_or(1)
+        .max(1) as f64;
+    let max_g = runs
+        .iter()
+        .flat_map(|r| r.run.curve.iter().map(|p| p.gaussians))
+        .chain(runs.iter().map(|r| r.initial_gaussians))
+        .max()
+        .unwrap_or(1)
+        .max(1) as f64;
+    let x_of = |round: f64| left + PANEL_W * round / max_round;
+    let y_of = |g: f64| top + PANEL_H * (1.0 - g / max_g);
+    draw_text(
+        canvas,
+        left as i64 - 44,
+        top as i64,
+        &format!("{}", max_g as u64),
+        2,
+        AXIS,
+    );
+    draw_text(
+        canvas,
+        left as i64 - 14,
+        (top + PANEL_H) as i64 - 10,
+        "0",
+        2,
+        AXIS,
+    );
+    draw_text(
+        canvas,
+        (left + PANEL_W) as i64 - 30,
+        (top + PANEL_H) as i64 + 8,
+        &format!("{}", max_round as u64),
+        2,
+        AXIS,
+    );
+    draw_text(
+        canvas,
+        left as i64,
+        (top + PANEL_H) as i64 + 8,
+        "ROUND",
+        2,
+        AXIS,
+    );
+    for r in runs {
+        let colour = colour_of(&r.init, inits);
+        let mut previous = (0.0, r.initial_gaussians as f64);
+        for p in &r.run.curve {
+            let next = (p.round as f64, p.gaussians as f64);
+            canvas.line(
+                (x_of(previous.0), y_of(previous.1)),
+                (x_of(next.0), y_of(next.1)),
+                2,
+                colour,
+            );
+            previous = next;
+        }
+    }
+}
+
+/// Runs the job, reporting progress lines.
+pub fn run_init_ablation(
+    job: &InitAblationJob,
+    progress: &mut dyn FnMut(&str),
+) -> Result<InitAblationResult, ExperimentError> {
+    let started = Instant::now();
+    let cpu_started = process_cpu_s();
+    let out = &job.out_dir;
+    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    let inits: Vec<(InitKind, bool)> = job
+        .inits
+        .iter()
+        .map(|n| parse_init(n))
+        .collect::<Result<_, _>>()?;
+    if inits.is_empty() {
+        return Err(ExperimentError::Invalid(
+            "no initialisation to compare".into(),
+        ));
+    }
+    let names: Vec<String> = inits
+        .iter()
+        .map(|&(k, g)| init_name(k, g).to_string())
+        .collect();
+    let mut runs = Vec::new();
+    let mut render_s = 0.0;
+    for scenario in &job.scenarios {
+        let scenario = job.preset.apply(scenario)?;
+        let scene = load_or_render_scene(
+            &scenario,
+            job.preset.init_points as usize,
+            &out.join("cache"),
+            progress,
+        )?;
+        render_s += scene.render_s;
+        for (&(kind, grey), name) in inits.iter().zip(&names) {
+            let run_started = Instant::now();
+            let cpu_before = process_cpu_s();
+            let preset = Preset {
+                init: kind,
+                hull_grey_colours: grey,
+                configs: vec!["d".into()],
+                ..job.preset.clone()
+            };
+            let hull = if kind == InitKind::Hull {
+                let (_, report) = hull_initialisation(&scene, &preset)?;
+                progress(&format!(
+                    "{}/{name}: hull from frames {:?}: {} occupied voxels of {:.3} m, {} points, mean {:.3} m from the true surface, {:.2} s",
+                    scene.name,
+                    report.frames,
+                    report.occupied_voxels,
+                    report.voxel_m,
+                    report.points,
+                    report.mean_distance_to_surface_m,
+                    report.carve_s
+                ));
+                Some(report)
+            } else {
+                None
+            };
+            let (run, _) = run_config(&scene, &preset, Variant::D, 0, progress)?;
+            let initial_gaussians = match (&hull, kind) {
+                (Some(h), _) => h.points,
+                (None, InitKind::Surface) => scene.surface.len().min(preset.init_points as usize),
+                (None, _) => preset.init_points as usize,
+            };
+            let cpu_s = match (cpu_before, process_cpu_s()) {
+                (Some(a), Some(b)) => b - a,
+                _ => f64::NAN,
+            };
+            runs.push(InitRun {
+                init: name.clone(),
+                initial_gaussians,
+                cpu_s,
+                wall_s: run_started.elapsed().as_secs_f64(),
+                hull,
+                run,
+            });
+            write_text(&out.join("init.csv"), &to_csv(&runs))?;
+            write_text(&out.join("init.md"), &to_markdown(&runs))?;
+            write_text(&out.join("init_curves.csv"), &curves_csv(&runs))?;
+            write_text(
+                &out.join("runs.json"),
+                &serde_json::to_string_pretty(&runs).map_err(|e| io_error(out, e))?,
+            )?;
+            progress(&format!(
+                "{} of {} runs done, {:.0} s elapsed",
+                runs.len(),
+                inits.len() * job.scenarios.len(),
+                started.elapsed().as_secs_f64()
+            ));
+        }
+    }
+    let canvas = plot(&runs, &names);
+    files::write_png_rgb(
+        &out.join("init.png"),
+        canvas.width,
+        canvas.height,
+        &canvas.rgb8,
+    )?;
+    let total_cpu_s = match (cpu_started, process_cpu_s()) {
+        (Some(a), Some(b)) => b - a,
+        _ => f64::NAN,
+    };
+    Ok(InitAblationResult {
+        runs,
+        render_s,
+        total_s: started.elapsed().as_secs_f64(),
+        total_cpu_s,
+    })
+}
