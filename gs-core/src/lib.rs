@@ -5,6 +5,8 @@
 
 pub mod camera;
 pub mod densify;
+#[cfg(feature = "wgpu")]
+pub mod gpu;
 pub mod hull;
 pub mod init;
 pub mod loss;

@@ -1,0 +1,374 @@
+//! wgpu compute backend (feature `wgpu`): the rasterizer's forward and backward passes
+//! and a tiled GEMM as WGSL compute kernels, checked against the CPU path
+//! (`tests/gpu_parity.rs`).
+//!
+//! [`GpuContext::new`] opens a Vulkan adapter (the only backend compiled in, so wgpu can
+//! never fall back to OpenGL) and reports its name, backend and whether it has
+//! `SHADER_FLOAT32_ATOMIC`. No adapter is an error ([`GpuError::NoAdapter`]), never a
+//! silent fallback to the CPU.
+//!
+//! Invariants:
+//! - the CPU rasterizer (`crate::raster`) is the reference: same conventions, same
+//!   outputs within the tolerances stated in the parity tests;
+//! - bad input is a [`GpuError`] before any GPU work; validation errors raised by wgpu
+//!   while building pipelines are caught and returned, not panicked on;
+//! - every wait on the device is bounded by wgpu's own poll; results are read back only
+//!   where the caller needs them (images, gradients, a 4-byte entry count).
+
+pub mod raster;
+
+use std::sync::Arc;
+
+pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
+
+/// GPU backend error.
+#[derive(Clone, Debug, PartialEq)]
+pub enum GpuError {
+    /// No Vulkan adapter (driver missing, or `WGPU_BACKEND` excludes Vulkan).
+    NoAdapter(String),
+    /// The adapter refused to open a device.
+    Device(String),
+    /// A shader or pipeline failed validation (a bug in this module).
+    Pipeline(String),
+    /// Reading results back from the device failed.
+    Readback(String),
+    /// Inputs the CPU rasterizer would also reject.
+    Raster(crate::raster::RasterError),
+    /// Sizes beyond the device's buffer limits or the kernels' fixed capacities.
+    TooLarge(String),
+    /// Bad arguments (lengths, shapes).
+    Invalid(String),
+}
+
+impl std::fmt::Display for GpuError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            GpuError::NoAdapter(why) => write!(
+                f,
+                "no Vulkan GPU adapter: {why} (install a Vulkan driver, e.g. Mesa's \
+                 software driver: apt-get install mesa-vulkan-drivers libvulkan1)"
+            ),
+            GpuError::Device(why) => write!(f, "GPU device request failed: {why}"),
+            GpuError::Pipeline(why) => write!(f, "GPU pipeline creation failed: {why}"),
+            GpuError::Readback(why) => write!(f, "GPU readback failed: {why}"),
+            GpuError::Raster(e) => write!(f, "rasterizer input: {e}"),
+            GpuError::TooLarge(why) => write!(f, "too large for the GPU backend: {why}"),
+            GpuError::Invalid(why) => write!(f, "invalid GPU input: {why}"),
+        }
+    }
+}
+
+impl std::error::Error for GpuError {}
+
+impl From<crate::raster::RasterError> for GpuError {
+    fn from(e: crate::raster::RasterError) -> Self {
+        GpuError::Raster(e)
+    }
+}
+
+/// How the context is opened.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct GpuOptions {
+    /// Use the compare-and-swap loop on `atomic<u32>` for gradient accumulation even
+    /// where the adapter has f32 atomics (to test the fallback path).
+    pub force_cas_atomics: bool,
+}
+
+/// An open device and queue, and what the adapter offers.
+#[derive(Clone, Debug)]
+pub struct GpuContext {
+    pub(crate) device: wgpu::Device,
+    pub(crate) queue: wgpu::Queue,
+    adapter_name: String,
+    backend: String,
+    driver: String,
+    has_float32_atomics: bool,
+    use_float32_atomics: bool,
+    pub(crate) limits: wgpu::Limits,
+}
+
+impl GpuContext {
+    /// Opens the first high-performance Vulkan adapter, with f32 atomics where it has them.
+    pub fn new() -> Result<Self, GpuError> {
+        Self::with_options(GpuOptions::default())
+    }
+
+    pub fn with_options(options: GpuOptions) -> Result<Self, GpuError> {
+        // Only Vulkan is compiled in; WGPU_BACKEND may narrow it further (to nothing).
+        let backends = wgpu::Backends::from_env().unwrap_or(wgpu::Backends::VULKAN);
+        let instance = wgpu::Instance::new(&wgpu::InstanceDescriptor {
+            backends,
+            ..Default::default()
+        });
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            force_fallback_adapter: false,
+            compatible_surface: None,
+        }))
+        .map_err(|e| GpuError::NoAdapter(format!("{e} (backends {backends:?})")))?;
+        let info = adapter.get_info();
+        let has_float32_atomics = adapter
+            .features()
+            .contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
+        let use_float32_atomics = has_float32_atomics && !options.force_cas_atomics;
+        let required_features = if use_float32_atomics {
+            wgpu::Features::SHADER_FLOAT32_ATOMIC
+        } else {
+            wgpu::Features::empty()
+        };
+        // Ask for what the adapter has: the storage-buffer size limits bound the scenes.
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("gs-core"),
+            required_features,
+            required_limits: limits.clone(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            trace: wgpu::Trace::Off,
+        }))
+        .map_err(|e| GpuError::Device(e.to_string()))?;
+        Ok(Self {
+            device,
+            queue,
+            adapter_name: info.name.clone(),
+            backend: format!("{:?}", info.backend),
+            driver: format!("{} {}", info.driver, info.driver_info),
+            has_float32_atomics,
+            use_float32_atomics,
+            limits,
+        })
+    }
+
+    pub fn adapter_name(&self) -> &str {
+        &self.adapter_name
+    }
+
+    /// Graphics API in use ("Vulkan").
+    pub fn backend(&self) -> &str {
+        &self.backend
+    }
+
+    pub fn driver(&self) -> &str {
+        &self.driver
+    }
+
+    /// Whether the adapter offers `SHADER_FLOAT32_ATOMIC`.
+    pub fn has_float32_atomics(&self) -> bool {
+        self.has_float32_atomics
+    }
+
+    /// Whether gradient accumulation uses f32 atomics (else the compare-and-swap loop).
+    pub fn uses_float32_atomics(&self) -> bool {
+        self.use_float32_atomics
+    }
+
+    /// One line for logs: adapter, backend, driver, atomics.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} ({}, {}), f32 atomics: {}{}",
+            self.adapter_name,
+            self.backend,
+            self.driver.trim(),
+            if self.has_float32_atomics {
+                "yes"
+            } else {
+                "no"
+            },
+            if self.has_float32_atomics && !self.use_float32_atomics {
+                " (CAS loop forced)"
+            } else {
+                ""
+            }
+        )
+    }
+
+    /// Builds a compute pipeline from WGSL source, turning validation errors into
+    /// [`GpuError::Pipeline`].
+    pub(crate) fn pipeline(
+        &self,
+        label: &str,
+        source: &str,
+    ) -> Result<wgpu::ComputePipeline, GpuError> {
+        self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(label),
+                layout: None,
+                module: &module,
+                entry_point: Some("main"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+        match pollster::block_on(self.device.pop_error_scope()) {
+            None => Ok(pipeline),
+            Some(e) => Err(GpuError::Pipeline(format!("{label}: {e}"))),
+        }
+    }
+
+    /// A storage buffer holding `data` (at least 16 bytes, so empty inputs still bind).
+    pub(crate) fn storage_init(&self, label: &str, data: &[u8]) -> wgpu::Buffer {
+        use wgpu::util::DeviceExt;
+        let mut bytes = data.to_vec();
+        bytes.resize(bytes.len().max(16).next_multiple_of(4), 0);
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: &bytes,
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            })
+    }
+
+    /// A zeroed storage buffer of `bytes` (at least 16).
+    pub(crate) fn storage(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        let size = bytes.max(16).next_multiple_of(4);
+        if size > self.limits.max_storage_buffer_binding_size as u64
+            || size > self.limits.max_buffer_size
+        {
+            return Err(GpuError::TooLarge(format!(
+                "{label}: {size} bytes exceeds the device's storage buffer limit ({} bytes)",
+                self.limits.max_storage_buffer_binding_size
+            )));
+        }
+        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        }))
+    }
+
+    pub(crate) fn uniform_init(&self, label: &str, data: &[u8]) -> wgpu::Buffer {
+        use wgpu::util::DeviceExt;
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: data,
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+    }
+
+    /// Copies `ranges` (buffer, byte length) to the host in one submission and one wait.
+    pub(crate) fn read_back(
+        &self,
+        mut encoder: wgpu::CommandEncoder,
+        ranges: &[(&wgpu::Buffer, u64)],
+    ) -> Result<Vec<Vec<u8>>, GpuError> {
+        let mut staging = Vec::with_capacity(ranges.len());
+        for (src, len) in ranges {
+            let size = (*len).max(4).next_multiple_of(4);
+            let dst = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("readback"),
+                size,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            encoder.copy_buffer_to_buffer(src, 0, &dst, 0, size);
+            staging.push((dst, *len));
+        }
+        self.queue.submit(Some(encoder.finish()));
+        let (tx, rx) = std::sync::mpsc::channel();
+        for (i, (dst, _)) in staging.iter().enumerate() {
+            let tx = tx.clone();
+            dst.slice(..).map_async(wgpu::MapMode::Read, move |r| {
+                let _ = tx.send((i, r));
+            });
+        }
+        drop(tx);
+        self.device
+            .poll(wgpu::PollType::Wait)
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        for (i, r) in rx.iter() {
+            r.map_err(|e| GpuError::Readback(format!("buffer {i}: {e}")))?;
+        }
+        Ok(staging
+            .iter()
+            .map(|(dst, len)| {
+                let bytes = dst.slice(..).get_mapped_range()[..*len as usize].to_vec();
+                dst.unmap();
+                bytes
+            })
+            .collect())
+    }
+
+    pub(crate) fn encoder(&self, label: &str) -> wgpu::CommandEncoder {
+        self.device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    pub(crate) fn bind_group(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        buffers: &[&wgpu::Buffer],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        })
+    }
+}
+
+/// Threads per workgroup of the 1D kernels (must match `@workgroup_size` in the WGSL).
+pub(crate) const WG_1D: u32 = 256;
+
+/// Workgroup counts covering `threads` threads of 256: (x, y) with x <= 32768, since a
+/// dispatch dimension is limited to 65535. Kernels rebuild the linear index as
+/// `gid.x + gid.y * num_workgroups.x * 256`.
+pub(crate) fn groups_1d(threads: u64) -> (u32, u32) {
+    let groups = threads.div_ceil(WG_1D as u64).max(1);
+    let x = groups.min(32768);
+    (x as u32, groups.div_ceil(x) as u32)
+}
+
+pub(crate) fn dispatch_1d(
+    pass: &mut wgpu::ComputePass,
+    pipeline: &wgpu::ComputePipeline,
+    bind: &wgpu::BindGroup,
+    threads: u64,
+) {
+    let (x, y) = groups_1d(threads);
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, bind, &[]);
+    pass.dispatch_workgroups(x, y, 1);
+}
+
+pub(crate) fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+pub(crate) fn u32_bytes(v: &[u32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+pub(crate) fn bytes_f32(b: &[u8]) -> Vec<f32> {
+    b.chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+pub(crate) fn bytes_u32(b: &[u8]) -> Vec<u32> {
+    b.chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// Shared handle used by the trainer's backend switch.
+pub type SharedRasterizer = Arc<GpuRasterizer>;

@@ -1,0 +1,657 @@
+//! GPU rasterizer: the CPU rasterizer's forward and backward passes as WGSL kernels.
+//!
+//! Forward, all on the device: projection (one thread per Gaussian) -> exclusive prefix
+//! sum of the per-Gaussian tile counts -> key generation (tile, depth bits, Gaussian) ->
+//! bitonic sort -> per-tile key ranges -> blending (one workgroup per 16x16 tile). The
+//! only mid-pass readback is the 4-byte entry count, which sizes the sort; the image, the
+//! per-pixel alpha and depth and the per-Gaussian radii come back at the end.
+//! Backward: per-tile back-to-front walk with per-key workgroup reductions and atomic
+//! accumulation per Gaussian (f32 atomics, or a compare-and-swap loop), then the
+//! projection backward per Gaussian; the gradients come back in [`GaussianGrads`].
+//!
+//! Invariants:
+//! - the same conventions and formulas as `crate::raster` (see the shaders' headers), so
+//!   outputs agree with it to float rounding, except where a rounding difference moves a
+//!   pixel across the 1/255 cutoff or the 1e-4 stop (see `tests/gpu_parity.rs`);
+//! - keys (tile, depth bits, Gaussian index) are unique, so each tile's list is the CPU's
+//!   list in the CPU's order; the forward is deterministic. The backward's atomic sums are
+//!   not: their order, and so the last bits of the gradients, vary from run to run;
+//! - device buffers of a forward pass live in its [`GpuRenderOutput`] until backward.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use super::{
+    bytes_f32, bytes_u32, dispatch_1d, f32_bytes, groups_1d, u32_bytes, GpuContext, GpuError,
+};
+use crate::camera::Camera;
+use crate::raster::bin::{TileGrid, TILE_PX};
+use crate::raster::blend::{AlphaMode, REC_CHANNELS};
+use crate::raster::{
+    camera_frame, BackwardTimings, GaussianGrads, GaussianView, PixelGrads, RasterSettings,
+};
+
+/// Most channels the GPU kernels take (the backward's workgroup reduction holds
+/// `(7 + channels) * 256` floats in 16 KiB of workgroup memory).
+pub const MAX_GPU_CHANNELS: usize = 8;
+
+const COMMON: &str = include_str!("shaders/common.wgsl");
+const PROJECT: &str = include_str!("shaders/project.wgsl");
+const SCAN_BLOCK: &str = include_str!("shaders/scan_block.wgsl");
+const SCAN_ADD: &str = include_str!("shaders/scan_add.wgsl");
+const KEYGEN: &str = include_str!("shaders/keygen.wgsl");
+const SORT_GLOBAL: &str = include_str!("shaders/sort_global.wgsl");
+const SORT_LOCAL: &str = include_str!("shaders/sort_local.wgsl");
+const RANGES: &str = include_str!("shaders/ranges.wgsl");
+const BLEND: &str = include_str!("shaders/blend.wgsl");
+const BLEND_BACKWARD: &str = include_str!("shaders/blend_backward.wgsl");
+const ACC_F32: &str = include_str!("shaders/acc_f32.wgsl");
+const ACC_CAS: &str = include_str!("shaders/acc_cas.wgsl");
+const PROJECT_BACKWARD: &str = include_str!("shaders/project_backward.wgsl");
+
+/// Values per Gaussian in the gradient readback: 12 parameter/NDC values, a dropped flag,
+/// then the channels.
+const OUT_FIXED: usize = 13;
+/// Per-Gaussian input stride (mean 3, log-scale 3, quaternion 4, opacity logit 1).
+const GSTRIDE: usize = 11;
+/// Per-splat stride on the device (see common.wgsl).
+const SSTRIDE: usize = 12;
+/// The local bitonic kernel sorts blocks of this many keys.
+const SORT_BLOCK: u64 = 512;
+
+/// Pipelines whose shaders depend on the channel count.
+struct ChannelPipelines {
+    project: wgpu::ComputePipeline,
+    keygen: wgpu::ComputePipeline,
+    ranges: wgpu::ComputePipeline,
+    blend: wgpu::ComputePipeline,
+    blend_backward: wgpu::ComputePipeline,
+    project_backward: wgpu::ComputePipeline,
+}
+
+/// The GPU rasterizer: a device and its compiled pipelines (per channel count, built on
+/// first use).
+pub struct GpuRasterizer {
+    ctx: GpuContext,
+    scan_block: wgpu::ComputePipeline,
+    scan_add: wgpu::ComputePipeline,
+    sort_global: wgpu::ComputePipeline,
+    sort_local: wgpu::ComputePipeline,
+    by_channels: Mutex<HashMap<usize, Arc<ChannelPipelines>>>,
+}
+
+impl std::fmt::Debug for GpuRasterizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "GpuRasterizer({})", self.ctx.describe())
+    }
+}
+
+/// Wall-clock split of a GPU forward pass, milliseconds (each stage waits for the device).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct GpuForwardTimings {
+    /// Upload, projection, prefix sum and the entry-count readback.
+    pub project_scan_ms: f64,
+    /// Key generation, sort, tile ranges, blending and the image readback.
+    pub sort_blend_ms: f64,
+}
+
+/// Device state of one forward pass, for its backward.
+struct ForwardState {
+    camera: Camera,
+    settings: RasterSettings,
+    n: usize,
+    nc: usize,
+    frame: wgpu::Buffer,
+    gauss: wgpu::Buffer,
+    chans: wgpu::Buffer,
+    splats: wgpu::Buffer,
+    keys: wgpu::Buffer,
+    ranges: wgpu::Buffer,
+    px_state: wgpu::Buffer,
+    pipelines: Arc<ChannelPipelines>,
+    grid: TileGrid,
+}
+
+/// A GPU render: the same images and per-Gaussian data as [`crate::raster::RenderOutput`].
+pub struct GpuRenderOutput {
+    pub width: u32,
+    pub height: u32,
+    pub n_channels: usize,
+    /// `H * W * n_channels`, `(y * W + x) * C + c`.
+    pub color: Vec<f32>,
+    /// `H * W` accumulated opacity `1 - T_final`.
+    pub alpha: Vec<f32>,
+    /// `H * W` alpha-weighted camera z (not normalised by alpha).
+    pub depth: Vec<f32>,
+    pub radii_px: Vec<f32>,
+    pub visible: Vec<bool>,
+    /// Number of (tile, Gaussian) pairs blended.
+    pub tile_entries: usize,
+    pub timings: GpuForwardTimings,
+    state: ForwardState,
+}
+
+impl std::fmt::Debug for GpuRenderOutput {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "GpuRenderOutput({}x{}, {} channels, {} tile entries)",
+            self.width, self.height, self.n_channels, self.tile_entries
+        )
+    }
+}
+
+/// Alias kept for the module's public surface.
+pub type GpuForward = GpuRenderOutput;
+
+fn ms_since(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+fn check_len(what: &str, expected: usize, got: usize) -> Result<(), GpuError> {
+    if expected == got {
+        Ok(())
+    } else {
+        Err(GpuError::Invalid(format!(
+            "{what}: expected {expected} values, got {got}"
+        )))
+    }
+}
+
+/// The frame uniform (layout of `Frame` in common.wgsl, 144 bytes).
+#[allow(clippy::too_many_arguments)]
+fn frame_bytes(
+    frame: &crate::raster::project::CameraFrame,
+    cutoff: f32,
+    grid: &TileGrid,
+    n: u32,
+    smooth: bool,
+    n_entries: u32,
+    n_sort: u32,
+    background: &[f32],
+) -> Vec<u8> {
+    let mut w = [0u32; 36];
+    for r in 0..3 {
+        for c in 0..3 {
+            w[4 * r + c] = frame.rot_cam_from_world[r][c].to_bits();
+        }
+        w[4 * r + 3] = frame.translation[r].to_bits();
+    }
+    let f = [
+        frame.fx,
+        frame.fy,
+        frame.cx,
+        frame.cy,
+        frame.lim_x,
+        frame.lim_y,
+        frame.near_m,
+        cutoff,
+    ];
+    for (k, v) in f.iter().enumerate() {
+        w[12 + k] = v.to_bits();
+    }
+    w[20] = grid.width;
+    w[21] = grid.height;
+    w[22] = grid.tiles_x;
+    w[23] = grid.tiles_y;
+    w[24] = n;
+    w[25] = smooth as u32;
+    w[26] = n_entries;
+    w[27] = n_sort;
+    for (k, b) in background.iter().enumerate() {
+        w[28 + k] = b.to_bits();
+    }
+    u32_bytes(&w)
+}
+
+impl GpuRasterizer {
+    /// Compiles the channel-independent pipelines.
+    pub fn new(ctx: GpuContext) -> Result<Self, GpuError> {
+        Ok(Self {
+            scan_block: ctx.pipeline("scan_block", SCAN_BLOCK)?,
+            scan_add: ctx.pipeline("scan_add", SCAN_ADD)?,
+            sort_global: ctx.pipeline("sort_global", SORT_GLOBAL)?,
+            sort_local: ctx.pipeline("sort_local", SORT_LOCAL)?,
+            by_channels: Mutex::new(HashMap::new()),
+            ctx,
+        })
+    }
+
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+
+    fn channel_pipelines(&self, nc: usize) -> Result<Arc<ChannelPipelines>, GpuError> {
+        let mut map = self
+            .by_channels
+            .lock()
+            .map_err(|_| GpuError::Pipeline("pipeline cache lock poisoned".into()))?;
+        if let Some(p) = map.get(&nc) {
+            return Ok(p.clone());
+        }
+        let rec = REC_CHANNELS + nc;
+        let prelude = format!(
+            "const NC: u32 = {nc}u;\nconst NCA: u32 = {}u;\nconst REC: u32 = {rec}u;\n\
+             const RED_LEN: u32 = {}u;\nconst OSTRIDE: u32 = {}u;\n{COMMON}\n",
+            nc.max(1),
+            rec * 256,
+            OUT_FIXED + nc,
+        );
+        let acc = if self.ctx.uses_float32_atomics() {
+            ACC_F32
+        } else {
+            ACC_CAS
+        };
+        let build = |label: &str, body: &str| self.ctx.pipeline(label, &format!("{prelude}{body}"));
+        let p = Arc::new(ChannelPipelines {
+            project: build("project", PROJECT)?,
+            keygen: build("keygen", KEYGEN)?,
+            ranges: build("ranges", RANGES)?,
+            blend: build("blend", BLEND)?,
+            blend_backward: build("blend_backward", &format!("{acc}\n{BLEND_BACKWARD}"))?,
+            project_backward: build("project_backward", PROJECT_BACKWARD)?,
+        });
+        map.insert(nc, p.clone());
+        Ok(p)
+    }
+
+    /// Exclusive prefix sum of `len` u32 values in `data`, in place (recursive over
+    /// block sums). `keep` holds the temporaries until submission.
+    fn encode_scan(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        data: &wgpu::Buffer,
+        len: u64,
+        keep: &mut Vec<wgpu::Buffer>,
+    ) -> Result<(), GpuError> {
+        let blocks = len.div_ceil(256).max(1);
+        let sums = self.ctx.storage("scan sums", blocks * 4)?;
+        let params = self.ctx.uniform_init(
+            "scan params",
+            &u32_bytes(&[len as u32, blocks as u32, 0, 0]),
+        );
+        {
+            let bind = self
+                .ctx
+                .bind_group(&self.scan_block, &[&params, data, &sums]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.scan_block, &bind, len);
+        }
+        if blocks > 1 {
+            self.encode_scan(encoder, &sums, blocks, keep)?;
+            let bind = self.ctx.bind_group(&self.scan_add, &[&params, data, &sums]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.scan_add, &bind, len);
+        }
+        keep.push(sums);
+        keep.push(params);
+        Ok(())
+    }
+
+    /// Bitonic sort of `n_sort` (a power of two, >= 512) keys.
+    fn encode_sort(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: &wgpu::Buffer,
+        n_sort: u64,
+        keep: &mut Vec<wgpu::Buffer>,
+    ) {
+        let mut stage = |k: u64, j: u64, local: bool, full: bool| {
+            let params = self.ctx.uniform_init(
+                "sort stage",
+                &u32_bytes(&[k as u32, j as u32, n_sort as u32, full as u32]),
+            );
+            let pipeline = if local {
+                &self.sort_local
+            } else {
+                &self.sort_global
+            };
+            let bind = self.ctx.bind_group(pipeline, &[&params, keys]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            if local {
+                // One workgroup (256 threads) per 512 keys.
+                let (x, y) = groups_1d(n_sort / 2);
+                pass.dispatch_workgroups(x, y, 1);
+            } else {
+                let (x, y) = groups_1d(n_sort);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+            drop(pass);
+            keep.push(params);
+        };
+        stage(0, 0, true, true);
+        let mut k = 2 * SORT_BLOCK;
+        while k <= n_sort {
+            let mut j = k / 2;
+            while j >= SORT_BLOCK {
+                stage(k, j, false, false);
+                j /= 2;
+            }
+            stage(k, 0, true, false);
+            k *= 2;
+        }
+    }
+
+    /// Renders `gaussians` from `camera` (same inputs, checks and outputs as
+    /// [`crate::raster::render`]).
+    pub fn render(
+        &self,
+        camera: &Camera,
+        gaussians: &GaussianView,
+        settings: &RasterSettings,
+    ) -> Result<GpuRenderOutput, GpuError> {
+        let frame = camera_frame(camera, settings.near_m)?;
+        let n = gaussians.len();
+        let nc = gaussians.n_channels;
+        check_len("means (3 per Gaussian)", 3 * n, gaussians.means.len())?;
+        check_len(
+            "log_scales (3 per Gaussian)",
+            3 * n,
+            gaussians.log_scales.len(),
+        )?;
+        check_len(
+            "rotations (4 per Gaussian)",
+            4 * n,
+            gaussians.rotations.len(),
+        )?;
+        check_len(
+            "channels (n_channels per Gaussian)",
+            n.saturating_mul(nc),
+            gaussians.channels.len(),
+        )?;
+        if nc > MAX_GPU_CHANNELS {
+            return Err(GpuError::TooLarge(format!(
+                "{nc} channels (the GPU kernels take at most {MAX_GPU_CHANNELS})"
+            )));
+        }
+        if n >= (u32::MAX as usize) / (GSTRIDE + SSTRIDE) {
+            return Err(GpuError::TooLarge(format!("{n} Gaussians")));
+        }
+        let background = if settings.background.is_empty() {
+            vec![0.0; nc]
+        } else {
+            check_len(
+                "background (one value per channel)",
+                nc,
+                settings.background.len(),
+            )?;
+            if !settings.background.iter().all(|v| v.is_finite()) {
+                return Err(GpuError::Invalid("background is not finite".into()));
+            }
+            settings.background.clone()
+        };
+        let mode = AlphaMode {
+            smooth: settings.smooth_cutoff,
+        };
+        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+        let grid = TileGrid::new(width, height);
+        let pipelines = self.channel_pipelines(nc)?;
+        let ctx = &self.ctx;
+
+        let t0 = Instant::now();
+        let mut packed = Vec::with_capacity(n * GSTRIDE);
+        for i in 0..n {
+            packed.extend_from_slice(&gaussians.means[3 * i..3 * i + 3]);
+            packed.extend_from_slice(&gaussians.log_scales[3 * i..3 * i + 3]);
+            packed.extend_from_slice(&gaussians.rotations[4 * i..4 * i + 4]);
+            packed.push(gaussians.opacity_logits[i]);
+        }
+        let gauss = ctx.storage_init("gaussians", &f32_bytes(&packed));
+        let chans = ctx.storage_init("channels", &f32_bytes(gaussians.channels));
+        let frame0 = ctx.uniform_init(
+            "frame",
+            &frame_bytes(
+                &frame,
+                mode.cutoff(),
+                &grid,
+                n as u32,
+                mode.smooth,
+                0,
+                0,
+                &background,
+            ),
+        );
+        let splats = ctx.storage("splats", (n * SSTRIDE * 4) as u64)?;
+        // One extra zero at the end: its exclusive prefix sum is the entry count.
+        let counts = ctx.storage("tile counts", (n as u64 + 1) * 4)?;
+        let mut keep = Vec::new();
+        let mut encoder = ctx.encoder("forward: project");
+        encoder.clear_buffer(&counts, 0, None);
+        {
+            let bind = ctx.bind_group(
+                &pipelines.project,
+                &[&frame0, &gauss, &chans, &splats, &counts],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &pipelines.project, &bind, n as u64);
+        }
+        self.encode_scan(&mut encoder, &counts, n as u64 + 1, &mut keep)?;
+        // Copy the total to a small buffer so the readback needs no offset.
+        let total_buf = ctx.storage("entry count", 4)?;
+        encoder.copy_buffer_to_buffer(&counts, 4 * n as u64, &total_buf, 0, 4);
+        let total = bytes_u32(&ctx.read_back(encoder, &[(&total_buf, 4)])?[0])[0] as u64;
+        drop(keep);
+        let project_scan_ms = ms_since(t0);
+
+        let t1 = Instant::now();
+        let n_sort = total.next_power_of_two().max(SORT_BLOCK);
+        if n_sort > u32::MAX as u64 / 2 {
+            return Err(GpuError::TooLarge(format!("{total} tile entries")));
+        }
+        let keys = ctx.storage("keys", n_sort * 16)?;
+        let frame = ctx.uniform_init(
+            "frame",
+            &frame_bytes(
+                &frame,
+                mode.cutoff(),
+                &grid,
+                n as u32,
+                mode.smooth,
+                total as u32,
+                n_sort as u32,
+                &background,
+            ),
+        );
+        let ranges = ctx.storage("tile ranges", grid.n_tiles() as u64 * 8)?;
+        let pixels = width as u64 * height as u64;
+        let out_color = ctx.storage("colour", pixels * nc as u64 * 4)?;
+        let px_state = ctx.storage("pixel state", pixels * 16)?;
+        let mut keep = Vec::new();
+        let mut encoder = ctx.encoder("forward: sort and blend");
+        {
+            let bind = ctx.bind_group(&pipelines.keygen, &[&frame, &splats, &counts, &keys]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &pipelines.keygen, &bind, n_sort.max(n as u64));
+        }
+        self.encode_sort(&mut encoder, &keys, n_sort, &mut keep);
+        encoder.clear_buffer(&ranges, 0, None);
+        {
+            let bind = ctx.bind_group(&pipelines.ranges, &[&frame, &keys, &ranges]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &pipelines.ranges, &bind, total);
+        }
+        {
+            let bind = ctx.bind_group(
+                &pipelines.blend,
+                &[
+                    &frame, &keys, &ranges, &splats, &chans, &out_color, &px_state,
+                ],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&pipelines.blend);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(grid.tiles_x, grid.tiles_y, 1);
+        }
+        let back = ctx.read_back(
+            encoder,
+            &[
+                (&out_color, pixels * nc as u64 * 4),
+                (&px_state, pixels * 16),
+                (&splats, (n * SSTRIDE * 4) as u64),
+            ],
+        )?;
+        drop(keep);
+        let color = bytes_f32(&back[0]);
+        let px = bytes_f32(&back[1]);
+        let alpha = px.chunks_exact(4).map(|p| p[0]).collect();
+        let depth = px.chunks_exact(4).map(|p| p[1]).collect();
+        let sp = bytes_f32(&back[2]);
+        let mut radii_px = Vec::with_capacity(n);
+        let mut visible = Vec::with_capacity(n);
+        for s in sp.chunks_exact(SSTRIDE) {
+            visible.push(s[7] >= 0.0);
+            radii_px.push(s[7].max(0.0));
+        }
+        let sort_blend_ms = ms_since(t1);
+        Ok(GpuRenderOutput {
+            width,
+            height,
+            n_channels: nc,
+            color,
+            alpha,
+            depth,
+            radii_px,
+            visible,
+            tile_entries: total as usize,
+            timings: GpuForwardTimings {
+                project_scan_ms,
+                sort_blend_ms,
+            },
+            state: ForwardState {
+                camera: *camera,
+                settings: settings.clone(),
+                n,
+                nc,
+                frame,
+                gauss,
+                chans,
+                splats,
+                keys,
+                ranges,
+                px_state,
+                pipelines,
+                grid,
+            },
+        })
+    }
+
+    /// Gradients of a loss with respect to the Gaussians of `forward` (rendered by this
+    /// rasterizer), given its pixel gradients. Same layouts as
+    /// [`crate::raster::render_backward`]; `camera` and `settings` must be the forward's.
+    pub fn render_backward(
+        &self,
+        camera: &Camera,
+        settings: &RasterSettings,
+        forward: &GpuRenderOutput,
+        grads: &PixelGrads,
+    ) -> Result<GaussianGrads, GpuError> {
+        let st = &forward.state;
+        if *camera != st.camera {
+            return Err(GpuError::Invalid(
+                "backward camera differs from the forward's".into(),
+            ));
+        }
+        if *settings != st.settings {
+            return Err(GpuError::Invalid(
+                "backward settings differ from the forward's".into(),
+            ));
+        }
+        let (n, nc) = (st.n, st.nc);
+        let pixels = forward.width as usize * forward.height as usize;
+        let finite = |what: &str, v: &[f32], len: usize| -> Result<(), GpuError> {
+            check_len(what, len, v.len())?;
+            if v.iter().all(|x| x.is_finite()) {
+                Ok(())
+            } else {
+                Err(GpuError::Invalid(format!("{what} contains NaN or Inf")))
+            }
+        };
+        finite("d_color", grads.d_color, pixels * nc)?;
+        if let Some(d) = grads.d_alpha {
+            finite("d_alpha", d, pixels)?;
+        }
+        if let Some(d) = grads.d_depth {
+            finite("d_depth", d, pixels)?;
+        }
+        let t0 = Instant::now();
+        let pgs = nc + 2;
+        let mut px_grad = vec![0.0f32; pixels * pgs];
+        for (p, row) in px_grad.chunks_exact_mut(pgs).enumerate() {
+            row[..nc].copy_from_slice(&grads.d_color[p * nc..p * nc + nc]);
+            row[nc] = grads.d_alpha.map_or(0.0, |d| d[p]);
+            row[nc + 1] = grads.d_depth.map_or(0.0, |d| d[p]);
+        }
+        let ctx = &self.ctx;
+        let px_grad = ctx.storage_init("pixel grads", &f32_bytes(&px_grad));
+        let rec = REC_CHANNELS + nc;
+        let acc = ctx.storage("grad accumulators", (n * rec * 4) as u64)?;
+        let ostride = OUT_FIXED + nc;
+        let out = ctx.storage("gaussian grads", (n * ostride * 4) as u64)?;
+        let p = &st.pipelines;
+        let mut encoder = ctx.encoder("backward");
+        encoder.clear_buffer(&acc, 0, None);
+        {
+            let bind = ctx.bind_group(
+                &p.blend_backward,
+                &[
+                    &st.frame,
+                    &st.keys,
+                    &st.ranges,
+                    &st.splats,
+                    &st.chans,
+                    &st.px_state,
+                    &px_grad,
+                    &acc,
+                ],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&p.blend_backward);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(st.grid.tiles_x, st.grid.tiles_y, 1);
+        }
+        {
+            let bind = ctx.bind_group(
+                &p.project_backward,
+                &[&st.frame, &st.gauss, &st.splats, &acc, &out],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &p.project_backward, &bind, n as u64);
+        }
+        let back = ctx.read_back(encoder, &[(&out, (n * ostride * 4) as u64)])?;
+        let rows = bytes_f32(&back[0]);
+        let mut g = GaussianGrads {
+            d_means: vec![0.0; 3 * n],
+            d_log_scales: vec![0.0; 3 * n],
+            d_rotations: vec![0.0; 4 * n],
+            d_opacity_logits: vec![0.0; n],
+            d_channels: vec![0.0; nc * n],
+            mean2d_grad_ndc: vec![0.0; n],
+            dropped_nonfinite: 0,
+            timings: BackwardTimings::default(),
+        };
+        for (i, r) in rows.chunks_exact(ostride).enumerate() {
+            g.d_means[3 * i..3 * i + 3].copy_from_slice(&r[0..3]);
+            g.d_log_scales[3 * i..3 * i + 3].copy_from_slice(&r[3..6]);
+            g.d_rotations[4 * i..4 * i + 4].copy_from_slice(&r[6..10]);
+            g.d_opacity_logits[i] = r[10];
+            g.mean2d_grad_ndc[i] = r[11];
+            if r[12] != 0.0 {
+                g.dropped_nonfinite += 1;
+            }
+            g.d_channels[nc * i..nc * i + nc].copy_from_slice(&r[OUT_FIXED..]);
+        }
+        // Both kernels run in one submission: without timestamp queries the split is not
+        // observable, so the whole backward (upload to readback) counts as blending.
+        g.timings = BackwardTimings {
+            blend_ms: ms_since(t0),
+            reduce_project_ms: 0.0,
+        };
+        Ok(g)
+    }
+}
+
+/// Tile edge, pixels (the WGSL `TILE` constant must match).
+const _: () = assert!(TILE_PX == 16);

@@ -1,0 +1,112 @@
+// Forward blending: one workgroup per 16x16 tile, one thread per pixel, walking the
+// tile's depth-sorted keys front to back as raster::blend::blend_tile_forward does:
+// a splat is evaluated only inside its pixel rectangle, alpha = min(0.99, o exp(power))
+// is skipped below the cutoff, and a pixel stops before the splat that would take its
+// transmittance below 1e-4 (never in smooth mode). Every 32 keys the workgroup checks
+// whether all its pixels have stopped.
+// Outputs: colour (pixel-major, NC per pixel, background composited) and per pixel
+// (alpha, depth, final T, bits of `last`), `last` being one past the tile-list index of
+// the last splat blended, as on the CPU.
+
+@group(0) @binding(0) var<uniform> fr: Frame;
+@group(0) @binding(1) var<storage, read> keys: array<vec4<u32>>;
+@group(0) @binding(2) var<storage, read> ranges: array<vec2<u32>>;
+@group(0) @binding(3) var<storage, read> splats: array<f32>;
+@group(0) @binding(4) var<storage, read> chans: array<f32>;
+@group(0) @binding(5) var<storage, read_write> out_color: array<f32>;
+@group(0) @binding(6) var<storage, read_write> out_px: array<vec4<f32>>;
+
+var<workgroup> done_count: atomic<u32>;
+var<workgroup> done_copy: u32;
+
+@compute @workgroup_size(16, 16)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let tile = wid.x + wid.y * fr.tiles_x;
+    let x = wid.x * TILE + l3.x;
+    let y = wid.y * TILE + l3.y;
+    let inside = x < fr.width && y < fr.height;
+    let range = ranges[tile];
+    let smooth_mode = fr.smooth_mode != 0u;
+    var stop = TRANSMITTANCE_STOP;
+    if smooth_mode {
+        stop = 0.0;
+    }
+    var t_acc = 1.0;
+    var acc: array<f32, NCA>;
+    for (var k = 0u; k < NCA; k++) {
+        acc[k] = 0.0;
+    }
+    var depth = 0.0;
+    var last = 0u;
+    var done = !inside;
+    if lid == 0u {
+        atomicStore(&done_count, 0u);
+    }
+    workgroupBarrier();
+    if done {
+        atomicAdd(&done_count, 1u);
+    }
+    let dx0 = f32(wid.x * TILE) + 0.5;
+    let py = f32(y) + 0.5;
+    var j = range.x;
+    loop {
+        workgroupBarrier();
+        if lid == 0u {
+            done_copy = atomicLoad(&done_count);
+        }
+        let n_done = workgroupUniformLoad(&done_copy);
+        if j >= range.y || n_done == 256u {
+            break;
+        }
+        let end = min(j + 32u, range.y);
+        if !done {
+            for (var e = j; e < end; e++) {
+                let g = keys[e].z;
+                let sb = g * SSTRIDE;
+                let rx0 = bitcast<u32>(splats[sb + 8u]);
+                let ry0 = bitcast<u32>(splats[sb + 9u]);
+                let rx1 = bitcast<u32>(splats[sb + 10u]);
+                let ry1 = bitcast<u32>(splats[sb + 11u]);
+                if x < rx0 || x >= rx1 || y < ry0 || y >= ry1 {
+                    continue;
+                }
+                let ca = splats[sb + 2u];
+                let cb = splats[sb + 3u];
+                let cc = splats[sb + 4u];
+                let o = splats[sb + 5u];
+                let dy = splats[sb + 1u] - py;
+                let dx = (splats[sb] - dx0) - f32(l3.x);
+                let power = -0.5 * ca * dx * dx - (cb * dy) * dx + (-0.5 * cc * dy * dy);
+                let gs = fast_exp(power);
+                if !(o * gs >= fr.cutoff) {
+                    continue;
+                }
+                let a = alpha_of(o, gs, smooth_mode, fr.cutoff);
+                if !a.kept {
+                    continue;
+                }
+                let t_next = t_acc * (1.0 - a.alpha);
+                if t_next < stop {
+                    done = true;
+                    atomicAdd(&done_count, 1u);
+                    break;
+                }
+                let w = a.alpha * t_acc;
+                for (var k = 0u; k < NC; k++) {
+                    acc[k] += w * chans[g * NC + k];
+                }
+                depth += w * splats[sb + 6u];
+                t_acc = t_next;
+                last = e - range.x + 1u;
+            }
+        }
+        j = end;
+    }
+    if inside {
+        let pix = y * fr.width + x;
+        for (var k = 0u; k < NC; k++) {
+            out_color[pix * NC + k] = acc[k] + t_acc * background(k, fr);
+        }
+        out_px[pix] = vec4<f32>(1.0 - t_acc, depth, t_acc, bitcast<f32>(last));
+    }
+}
