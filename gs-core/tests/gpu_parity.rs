@@ -342,3 +342,60 @@ fn bad_inputs_are_errors() {
         .render_backward(&scene.camera, &scene.settings, &out, &pg)
         .is_err());
 }
+
+/// The GPU GEMM against `nn::matmul` on the MLP's shapes (and ragged ones).
+///
+/// Tolerance: |gpu - cpu| <= 2 k eps sum_p |a_ip b_pj| + 1e-30, the classical bound on
+/// the rounding error of an f32 dot product of length k (eps = 2^-24) applied to both
+/// results; a wrong index or transpose gives errors of the size of the values themselves.
+#[test]
+fn gemm_matches_cpu() {
+    use gs_core::gpu::{GemmOp, GpuGemm};
+    use gs_core::nn::matmul::{matmul, matmul_a_bt, matmul_at_b};
+    let Some(ctx) = context(GpuOptions::default()) else {
+        return;
+    };
+    let gemm = GpuGemm::new(ctx).unwrap();
+    let mut rng = SplitMix64::new(77);
+    for (m, k, n) in [(300, 88, 256), (256, 256, 256), (37, 55, 32), (1, 3, 1)] {
+        for op in [GemmOp::AB, GemmOp::AtB, GemmOp::ABt] {
+            let a: Vec<f32> = (0..m * k).map(|_| rng.uniform(-1.0, 1.0)).collect();
+            let b: Vec<f32> = (0..k * n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+            let c0: Vec<f32> = (0..m * n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+            let mut cpu = c0.clone();
+            match op {
+                GemmOp::AB => matmul(&a, &b, &mut cpu, m, k, n, true),
+                GemmOp::AtB => matmul_at_b(&a, &b, &mut cpu, k, m, n, true),
+                GemmOp::ABt => matmul_a_bt(&a, &b, &mut cpu, m, k, n, true),
+            }
+            let gpu = gemm.matmul(op, &a, &b, Some(&c0), m, k, n).unwrap();
+            let plain = gemm.matmul(op, &a, &b, None, m, k, n).unwrap();
+            let a_at = |i: usize, p: usize| match op {
+                GemmOp::AtB => a[p * m + i],
+                _ => a[i * k + p],
+            };
+            let b_at = |p: usize, j: usize| match op {
+                GemmOp::ABt => b[j * k + p],
+                _ => b[p * n + j],
+            };
+            let eps = f32::EPSILON as f64 / 2.0;
+            for i in 0..m {
+                for j in 0..n {
+                    let abs_sum: f64 = (0..k)
+                        .map(|p| (a_at(i, p) as f64 * b_at(p, j) as f64).abs())
+                        .sum::<f64>()
+                        + c0[i * n + j].abs() as f64;
+                    let tol = 2.0 * (k + 1) as f64 * eps * abs_sum + 1e-30;
+                    let idx = i * n + j;
+                    let err = (gpu[idx] as f64 - cpu[idx] as f64).abs();
+                    assert!(err <= tol, "{op:?} {m}x{k}x{n} at ({i},{j}): {err} > {tol}");
+                    let err = (plain[idx] as f64 + c0[idx] as f64 - cpu[idx] as f64).abs();
+                    assert!(err <= 2.0 * tol, "{op:?} without C at ({i},{j})");
+                }
+            }
+        }
+    }
+    assert!(gemm
+        .matmul(GemmOp::AB, &[1.0; 5], &[1.0; 6], None, 2, 3, 2)
+        .is_err());
+}

@@ -15,10 +15,12 @@
 //! - every wait on the device is bounded by wgpu's own poll; results are read back only
 //!   where the caller needs them (images, gradients, a 4-byte entry count).
 
+pub mod gemm;
 pub mod raster;
 
 use std::sync::Arc;
 
+pub use gemm::{GemmOp, GpuGemm};
 pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
 
 /// GPU backend error.
