@@ -14,7 +14,9 @@
 //! (all threads; the machine may be shared, so `cpu / threads` is what the wall time would
 //! be with the cores to ourselves). Peak RSS is the process high-water mark over the
 //! measured steps (reset through `/proc/self/clear_refs` before them; it includes the
-//! model, its optimiser state and every buffer the step holds at once).
+//! model, its optimiser state and every buffer the step holds at once). Every size x image
+//! (x setting) runs in its own child process, so memory the allocator kept from an
+//! earlier configuration never counts.
 //!
 //! Network stages: FLOPs from the rows actually evaluated (the step's `visible`) times the
 //! layer shapes (forward `2 k n` per row and layer; backward twice that: weight and input
@@ -507,6 +509,142 @@ fn print_step(m: &Measured, json: bool, scene_name: &str, threads: usize, repeat
     }
 }
 
+/// Runs one configuration in a child process (this executable with `--child-variant`), so
+/// memory the allocator kept from an earlier configuration does not count in its peak.
+fn measure_in_child(
+    args: &[String],
+    n: usize,
+    (width, height): (u32, u32),
+    variant: usize,
+    label: &str,
+) -> Result<Measured, String> {
+    let mut child_args: Vec<String> = Vec::new();
+    let mut i = 0;
+    while i < args.len() {
+        if args[i] == "--sizes" || args[i] == "--images" || args[i] == "--json" {
+            i += if args[i] == "--json" { 1 } else { 2 };
+            continue;
+        }
+        child_args.push(args[i].clone());
+        i += 1;
+    }
+    child_args.extend([
+        "--sizes".to_string(),
+        n.to_string(),
+        "--images".to_string(),
+        format!("{width}x{height}"),
+        "--child-variant".to_string(),
+        variant.to_string(),
+    ]);
+    let exe = std::env::current_exe().map_err(|e| format!("own executable: {e}"))?;
+    let out = std::process::Command::new(exe)
+        .args(&child_args)
+        .stderr(std::process::Stdio::inherit())
+        .output()
+        .map_err(|e| format!("child process: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "child for {n} at {width}x{height} failed: {}",
+            out.status
+        ));
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text
+        .lines()
+        .find_map(|l| l.strip_prefix("MEASURED "))
+        .ok_or("child printed no result")?;
+    Measured::from_line(line, label)
+}
+
+impl Measured {
+    const NET_NAMES: [&'static str; 4] =
+        ["phi_forward", "phi_backward", "psi_forward", "psi_backward"];
+
+    /// Whitespace-separated numbers (the child's report to the parent).
+    fn to_line(&self) -> String {
+        let mut v: Vec<String> = vec![
+            self.gaussians.to_string(),
+            self.width.to_string(),
+            self.height.to_string(),
+            self.visible.to_string(),
+            self.rows.to_string(),
+        ];
+        v.extend(self.stages.stages().iter().map(|(_, ms)| format!("{ms:e}")));
+        for x in [
+            self.stages.total_ms,
+            self.other_ms,
+            self.cpu_ms,
+            self.peak_rss_mb,
+        ] {
+            v.push(format!("{x:e}"));
+        }
+        for net in &self.nets {
+            v.push(net.rows.to_string());
+            for x in [net.gflop, net.stage_ms, net.floor_ms] {
+                v.push(format!("{x:e}"));
+            }
+        }
+        v.join(" ")
+    }
+
+    fn from_line(line: &str, label: &str) -> Result<Self, String> {
+        let f: Vec<f64> = line
+            .split_whitespace()
+            .map(|s| {
+                s.parse::<f64>()
+                    .map_err(|e| format!("child result {s:?}: {e}"))
+            })
+            .collect::<Result<_, _>>()?;
+        if f.len() != 5 + 13 + 4 + 4 * 4 {
+            return Err(format!("child result has {} numbers", f.len()));
+        }
+        let st = &f[5..18];
+        let stages = StepTimings {
+            project_ms: st[0],
+            sort_bin_ms: st[1],
+            contribution_ms: st[2],
+            shadow_pass_ms: st[3],
+            phi_forward_ms: st[4],
+            psi_forward_ms: st[5],
+            blend_forward_ms: st[6],
+            loss_ms: st[7],
+            blend_backward_ms: st[8],
+            project_backward_ms: st[9],
+            phi_backward_ms: st[10],
+            psi_backward_ms: st[11],
+            optimizer_ms: st[12],
+            total_ms: f[18],
+        };
+        let nets = Self::NET_NAMES
+            .iter()
+            .enumerate()
+            .map(|(k, &name)| {
+                let o = 22 + 4 * k;
+                NetStage {
+                    name,
+                    rows: f[o] as usize,
+                    gflop: f[o + 1],
+                    stage_ms: f[o + 2],
+                    floor_ms: f[o + 3],
+                }
+            })
+            .collect();
+        Ok(Self {
+            label: label.to_string(),
+            gaussians: f[0] as usize,
+            width: f[1] as u32,
+            height: f[2] as u32,
+            visible: f[3] as usize,
+            rows: f[4] as usize,
+            stages,
+            other_ms: f[19],
+            cpu_ms: f[20],
+            peak_rss_mb: f[21],
+            nets,
+        })
+    }
+}
+
 fn arg_value<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
     let i = args.iter().position(|a| a == name)?;
     args.get(i + 1).map(String::as_str)
@@ -614,11 +752,23 @@ fn run(args: &[String]) -> Result<(), String> {
             "cpu", "rss MB"
         );
     }
+    if let Some(v) = arg_value(args, "--child-variant") {
+        // One configuration in this (fresh) process: its peak RSS is its own.
+        let i = v
+            .parse::<usize>()
+            .ok()
+            .filter(|&i| i < variants.len())
+            .ok_or("bad --child-variant")?;
+        let (label, config) = &variants[i];
+        let m = measure(sizes[0], images[0], kind, repeats, config, label);
+        println!("MEASURED {}", m.to_line());
+        return Ok(());
+    }
     let mut results = Vec::new();
     for &n in &sizes {
         for &image in &images {
-            for (label, config) in &variants {
-                let m = measure(n, image, kind, repeats, config, label);
+            for (i, (label, _)) in variants.iter().enumerate() {
+                let m = measure_in_child(args, n, image, i, label)?;
                 print_step(&m, json, scene_name, threads, repeats);
                 results.push(m);
             }
