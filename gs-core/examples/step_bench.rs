@@ -455,6 +455,7 @@ fn measure(
 fn set_switch(config: &mut SunAwareConfig, name: &str, on: bool) -> Result<(), String> {
     match name {
         "skip_noncontributing_in_mlp" => config.skip_noncontributing_in_mlp = on,
+        "mlp_recompute_activations" => config.mlp_recompute_activations = on,
         _ => return Err(format!("unknown switch {name:?}")),
     }
     Ok(())

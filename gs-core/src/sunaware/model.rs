@@ -352,6 +352,11 @@ impl SunAwareModel {
 
         let t2 = Instant::now();
         let sun = sun_dir.to_array();
+        let tape = if self.config.mlp_recompute_activations {
+            TapeMode::Recompute
+        } else {
+            TapeMode::Cache
+        };
         let phi = match &self.appearance {
             None => {
                 let rgb = sh_to_rgb(p, sh_degree, cam_pos)?;
@@ -370,9 +375,7 @@ impl SunAwareModel {
                     cam_pos.to_array(),
                     &mut input,
                 )?;
-                let forward = net
-                    .mlp
-                    .forward_train(&input, network_list.len(), TapeMode::Cache)?;
+                let forward = net.mlp.forward_train(&input, network_list.len(), tape)?;
                 for (r, &g) in network_list.iter().enumerate() {
                     let g = g as usize;
                     channels[g * nc..g * nc + 3].copy_from_slice(&forward.output[r * 3..r * 3 + 3]);
@@ -395,9 +398,7 @@ impl SunAwareModel {
                     &self.scene_box,
                     &mut input,
                 )?;
-                let forward = net
-                    .mlp
-                    .forward_train(&input, network_list.len(), TapeMode::Cache)?;
+                let forward = net.mlp.forward_train(&input, network_list.len(), tape)?;
                 refined = vec![0.0f32; n];
                 for (r, &g) in network_list.iter().enumerate() {
                     channels[g as usize * nc + 3] = forward.output[r];
@@ -671,6 +672,42 @@ mod tests {
                 "{what}[{i}]: {x} vs {y} (scale {scale})"
             );
         }
+    }
+
+    #[test]
+    fn recomputed_network_activations_give_the_same_gradient_bits() {
+        let cached = dense_model(500, true);
+        let mut recompute = cached.clone();
+        recompute.config.mlp_recompute_activations = true;
+        let settings = cached.raster_settings(false);
+        let sun = sun_direction(1.1, 0.6);
+        let a = cached.forward(&camera(), sun, 0, &settings, None).unwrap();
+        let b = recompute
+            .forward(&camera(), sun, 0, &settings, None)
+            .unwrap();
+        assert_eq!(bits(&a.image), bits(&b.image));
+        // Recompute keeps no hidden activations.
+        let tape = |p: &FramePass| {
+            p.phi.as_ref().unwrap().forward.tape_len() + p.psi.as_ref().unwrap().forward.tape_len()
+        };
+        assert!(tape(&a) > 0);
+        assert_eq!(tape(&b), 0);
+        let d_image: Vec<f32> = (0..a.image.len())
+            .map(|i| ((i * 104729) % 11) as f32 / 11.0 - 0.5)
+            .collect();
+        let ga = cached.backward(&a, &d_image).unwrap();
+        let gb = recompute.backward(&b, &d_image).unwrap();
+        for p in Param::ALL {
+            assert_eq!(
+                bits(ga.params.get(p)),
+                bits(gb.params.get(p)),
+                "{}",
+                p.name()
+            );
+        }
+        assert_eq!(bits(&ga.appearance), bits(&gb.appearance));
+        assert_eq!(bits(&ga.shadow), bits(&gb.shadow));
+        assert!(ga.appearance.iter().any(|&v| v != 0.0));
     }
 
     #[test]
