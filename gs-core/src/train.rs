@@ -10,13 +10,18 @@
 //! densification statistics, densifies and prunes every `densify_interval` iterations
 //! after `densify_from_iter`, and resets opacities every `opacity_reset_interval`.
 //!
+//! [`Backend`] picks where the rasterizer's arithmetic runs (the CPU rasterizer, or the
+//! wgpu one with the `wgpu` feature); the model, the loss, the SH colour, the optimiser
+//! and densification are the same code on the CPU either way.
+//!
 //! [`Trainer`] is the same loop one step at a time (for an online scheduler that picks
 //! views itself and runs its own learning-rate sawtooth); [`train`] drives it over a
 //! fixed view set.
 //!
 //! Invariants:
-//! - deterministic: same model, views, config and thread count give bit-identical
-//!   results (the only randomness is a [`SplitMix64`] seeded from `config.seed`);
+//! - deterministic on the CPU backend: same model, views, config and thread count give
+//!   bit-identical results (the only randomness is a [`SplitMix64`] seeded from
+//!   `config.seed`); the wgpu backend's gradients sum with atomics, so its last bits vary;
 //! - a step whose gradients contain NaN/Inf is never applied: it is counted in
 //!   `TrainResult::skipped_non_finite_steps` and its densification stats are dropped;
 //! - bad views or configuration are reported before any work, as [`TrainError`].
@@ -34,9 +39,94 @@ use crate::loss::{photometric_loss, psnr, ssim, ImageShape, LossError, LossOutpu
 use crate::model::{GaussianModel, Param, ParamSet};
 use crate::optim::{Adam, ExponentialSchedule, GroupRates, OptimError};
 use crate::raster::{
-    render, render_backward, GaussianView, PixelGrads, RasterError, RasterSettings,
+    render, render_backward, GaussianGrads, GaussianView, PixelGrads, RasterError, RasterSettings,
+    RenderOutput,
 };
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward, ShError};
+
+/// Where the rasterizer's forward and backward passes run. Nothing else moves: one model,
+/// one optimiser, on the CPU.
+#[derive(Clone, Debug, Default)]
+pub enum Backend {
+    /// The CPU rasterizer (`crate::raster`), the reference.
+    #[default]
+    Cpu,
+    /// The wgpu rasterizer (`crate::gpu`); a missing adapter is an error when it is built
+    /// ([`crate::gpu::GpuContext::new`]), never a silent fallback.
+    #[cfg(feature = "wgpu")]
+    Wgpu(std::sync::Arc<crate::gpu::GpuRasterizer>),
+}
+
+/// A forward pass from either backend.
+enum Rendered {
+    Cpu(RenderOutput),
+    #[cfg(feature = "wgpu")]
+    Gpu(crate::gpu::GpuRenderOutput),
+}
+
+impl Rendered {
+    fn color(&self) -> &[f32] {
+        match self {
+            Rendered::Cpu(r) => &r.color,
+            #[cfg(feature = "wgpu")]
+            Rendered::Gpu(r) => &r.color,
+        }
+    }
+
+    fn visible(&self) -> &[bool] {
+        match self {
+            Rendered::Cpu(r) => &r.visible,
+            #[cfg(feature = "wgpu")]
+            Rendered::Gpu(r) => &r.visible,
+        }
+    }
+
+    fn radii_px(&self) -> &[f32] {
+        match self {
+            Rendered::Cpu(r) => &r.radii_px,
+            #[cfg(feature = "wgpu")]
+            Rendered::Gpu(r) => &r.radii_px,
+        }
+    }
+}
+
+impl Backend {
+    fn render(
+        &self,
+        camera: &Camera,
+        gaussians: &GaussianView,
+        settings: &RasterSettings,
+    ) -> Result<Rendered, TrainError> {
+        match self {
+            Backend::Cpu => Ok(Rendered::Cpu(render(camera, gaussians, settings)?)),
+            #[cfg(feature = "wgpu")]
+            Backend::Wgpu(gpu) => Ok(Rendered::Gpu(gpu.render(camera, gaussians, settings)?)),
+        }
+    }
+
+    fn render_backward(
+        &self,
+        camera: &Camera,
+        gaussians: &GaussianView,
+        settings: &RasterSettings,
+        forward: &Rendered,
+        grads: &PixelGrads,
+    ) -> Result<GaussianGrads, TrainError> {
+        match (self, forward) {
+            (Backend::Cpu, Rendered::Cpu(f)) => {
+                Ok(render_backward(camera, gaussians, settings, f, grads)?)
+            }
+            #[cfg(feature = "wgpu")]
+            (Backend::Wgpu(gpu), Rendered::Gpu(f)) => {
+                Ok(gpu.render_backward(camera, settings, f, grads)?)
+            }
+            #[cfg(feature = "wgpu")]
+            _ => Err(TrainError::Raster(RasterError::ForwardMismatch(
+                "forward pass came from another backend",
+            ))),
+        }
+    }
+}
 
 /// Per-group learning rates (3DGS defaults).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -190,6 +280,9 @@ pub enum TrainError {
     Sh(ShError),
     Optim(OptimError),
     Densify(crate::densify::DensifyError),
+    /// The wgpu backend failed (device, readback, sizes).
+    #[cfg(feature = "wgpu")]
+    Gpu(crate::gpu::GpuError),
 }
 
 impl std::fmt::Display for TrainError {
@@ -208,6 +301,8 @@ impl std::fmt::Display for TrainError {
             TrainError::Sh(e) => write!(f, "SH colour: {e}"),
             TrainError::Optim(e) => write!(f, "optimiser: {e}"),
             TrainError::Densify(e) => write!(f, "densification: {e}"),
+            #[cfg(feature = "wgpu")]
+            TrainError::Gpu(e) => write!(f, "GPU backend: {e}"),
         }
     }
 }
@@ -217,6 +312,12 @@ impl std::error::Error for TrainError {}
 impl From<RasterError> for TrainError {
     fn from(e: RasterError) -> Self {
         TrainError::Raster(e)
+    }
+}
+#[cfg(feature = "wgpu")]
+impl From<crate::gpu::GpuError> for TrainError {
+    fn from(e: crate::gpu::GpuError) -> Self {
+        TrainError::Gpu(e)
     }
 }
 impl From<LossError> for TrainError {
@@ -418,6 +519,7 @@ pub struct Trainer {
     config: TrainConfig,
     schedule: ExponentialSchedule,
     settings: RasterSettings,
+    backend: Backend,
     scene_extent: f32,
     iteration: usize,
     skipped_steps: usize,
@@ -467,6 +569,7 @@ impl Trainer {
                 smooth_cutoff: false,
             },
             config: config.clone(),
+            backend: Backend::Cpu,
             scene_extent,
             iteration: 0,
             skipped_steps: 0,
@@ -474,6 +577,16 @@ impl Trainer {
             densify_reports: Vec::new(),
             model,
         })
+    }
+
+    /// The same trainer with its rasterizer on `backend`.
+    pub fn with_backend(mut self, backend: Backend) -> Self {
+        self.backend = backend;
+        self
+    }
+
+    pub fn backend(&self) -> &Backend {
+        &self.backend
     }
 
     pub fn model(&self) -> &GaussianModel {
@@ -529,13 +642,13 @@ impl Trainer {
         let t0 = Instant::now();
         let colours = sh_to_rgb(&self.model.params, degree, camera.position())?;
         let gview = GaussianView::from_model(&self.model, &colours, 3);
-        let forward = render(camera, &gview, &self.settings)?;
+        let forward = self.backend.render(camera, &gview, &self.settings)?;
         let shape = image_shape(camera);
         let t_loss = Instant::now();
         // A non-finite render (values overflowing f32) cannot be scored: count and skip.
-        let loss = if forward.color.iter().all(|v| v.is_finite()) {
+        let loss = if forward.color().iter().all(|v| v.is_finite()) {
             photometric_loss(
-                &forward.color,
+                forward.color(),
                 &view.image,
                 view.mask.as_deref(),
                 shape,
@@ -559,7 +672,13 @@ impl Trainer {
                 d_alpha: None,
                 d_depth: None,
             };
-            let g = render_backward(camera, &gview, &self.settings, &forward, &pixel_grads)?;
+            let g = self.backend.render_backward(
+                camera,
+                &gview,
+                &self.settings,
+                &forward,
+                &pixel_grads,
+            )?;
             self.raster_dropped += g.dropped_nonfinite;
             let mut grads = gather_grads(&self.model.params, &g);
             sh_to_rgb_backward(
@@ -588,7 +707,7 @@ impl Trainer {
             )?;
             if iteration < config.densify_until_iter {
                 self.stats
-                    .accumulate(&g.mean2d_grad_ndc, &forward.visible, &forward.radii_px)?;
+                    .accumulate(&g.mean2d_grad_ndc, forward.visible(), forward.radii_px())?;
                 if iteration > config.densify_from_iter && iteration % config.densify_interval == 0
                 {
                     let screen_limit = iteration > config.opacity_reset_interval
@@ -657,6 +776,17 @@ pub fn train(
     model: GaussianModel,
     views: &[TrainView],
     config: &TrainConfig,
+    progress: impl FnMut(&IterationStats),
+) -> Result<TrainResult, TrainError> {
+    train_with_backend(model, views, config, Backend::Cpu, progress)
+}
+
+/// [`train`] with the rasterizer on `backend`.
+pub fn train_with_backend(
+    model: GaussianModel,
+    views: &[TrainView],
+    config: &TrainConfig,
+    backend: Backend,
     mut progress: impl FnMut(&IterationStats),
 ) -> Result<TrainResult, TrainError> {
     if views.is_empty() {
@@ -669,7 +799,7 @@ pub fn train(
         Some(e) => e,
         None => camera_extent(&views.iter().map(|v| v.camera).collect::<Vec<_>>()),
     };
-    let mut trainer = Trainer::new(model, config, scene_extent)?;
+    let mut trainer = Trainer::new(model, config, scene_extent)?.with_backend(backend);
     let mut shuffle = SplitMix64::new(config.seed);
     let mut order: Vec<usize> = Vec::new();
     let mut losses = Vec::with_capacity(config.iterations);

@@ -136,6 +136,7 @@ fn context_reports_adapter() {
     assert_eq!(ctx.backend(), "Vulkan");
     let forced = GpuContext::with_options(GpuOptions {
         force_cas_atomics: true,
+        ..GpuOptions::default()
     })
     .expect("a second context on the same adapter");
     assert!(!forced.uses_float32_atomics());
@@ -303,6 +304,22 @@ fn gradients_match_cpu_cas_fallback() {
         true,
         GpuOptions {
             force_cas_atomics: true,
+            ..GpuOptions::default()
+        },
+    );
+}
+
+/// The per-tile workgroup reduction variant of the backward (one atomic add per key and
+/// value instead of one per pixel).
+#[test]
+fn gradients_match_cpu_workgroup_reduction() {
+    grads_parity(
+        24,
+        3,
+        false,
+        GpuOptions {
+            workgroup_reduction: true,
+            ..GpuOptions::default()
         },
     );
 }
@@ -398,4 +415,92 @@ fn gemm_matches_cpu() {
     assert!(gemm
         .matmul(GemmOp::AB, &[1.0; 5], &[1.0; 6], None, 2, 3, 2)
         .is_err());
+}
+
+/// A short training run on both backends reaches the same PSNR within 0.1 dB.
+///
+/// Same model, views, config and seed; only the rasterizer differs. The runs stay
+/// before densification (whose thresholds could flip on last-bit differences and send
+/// the runs apart); both are scored by the same CPU evaluator.
+#[test]
+fn training_reaches_the_same_psnr_on_both_backends() {
+    use glam::Quat;
+    use gs_core::init::{inverse_sigmoid, random_in_sphere};
+    use gs_core::sh::rgb_to_sh_dc;
+    use gs_core::train::{evaluate, render_rgb, train_with_backend, Backend, TrainConfig};
+    use gs_core::train::{TrainResult, TrainView};
+    use gs_core::{GaussianModel, ModelLayout, Param};
+    use std::sync::Arc;
+
+    let Some(ctx) = context(GpuOptions::default()) else {
+        return;
+    };
+    let gpu = Arc::new(GpuRasterizer::new(ctx).unwrap());
+    let mut rng = SplitMix64::new(8);
+    let mut gt = GaussianModel::new(ModelLayout::sh(0)).unwrap();
+    gt.params.push_zeros(200);
+    for i in 0..200 {
+        let p = Vec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.4;
+        let q = Quat::from_rotation_z(rng.uniform(0.0, 6.0)) * Quat::from_rotation_x(1.0);
+        let params = &mut gt.params;
+        params
+            .row_mut(Param::Mean, i)
+            .copy_from_slice(&p.to_array());
+        params.row_mut(Param::LogScale, i).copy_from_slice(&[
+            0.12f32.ln(),
+            0.06f32.ln(),
+            0.03f32.ln(),
+        ]);
+        params
+            .row_mut(Param::Rotation, i)
+            .copy_from_slice(&[q.w, q.x, q.y, q.z]);
+        params.row_mut(Param::OpacityLogit, i)[0] = inverse_sigmoid(0.8);
+        for c in params.row_mut(Param::ShDc, i) {
+            *c = rgb_to_sh_dc(rng.uniform(0.0, 1.0));
+        }
+    }
+    let k = Intrinsics::from_fov_x(45f32.to_radians(), 96, 96);
+    let views: Vec<TrainView> = (0..8)
+        .map(|i| {
+            let a = i as f32 / 8.0 * std::f32::consts::TAU;
+            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.8 * (3.0 * a).sin());
+            let camera = Camera::look_at(k, eye, Vec3::ZERO, Vec3::Z);
+            TrainView {
+                camera,
+                image: render_rgb(&gt, &camera, 0, [0.0; 3]).unwrap(),
+                mask: None,
+            }
+        })
+        .collect();
+    let start = random_in_sphere(400, Vec3::ZERO, 1.0, ModelLayout::sh(0), 5)
+        .unwrap()
+        .model;
+    let config = TrainConfig {
+        iterations: 300,
+        densify_from_iter: 100_000,
+        densify_until_iter: 0,
+        opacity_reset_interval: 0,
+        seed: 3,
+        ..TrainConfig::default()
+    };
+    let psnr = |model: &GaussianModel| {
+        let scores = evaluate(model, &views, [0.0; 3]).unwrap();
+        scores.iter().map(|s| s.psnr_db).sum::<f32>() / scores.len() as f32
+    };
+    let run = |backend: Backend| -> TrainResult {
+        train_with_backend(start.clone(), &views, &config, backend, |_| {}).unwrap()
+    };
+    let t = std::time::Instant::now();
+    let cpu = run(Backend::Cpu);
+    let cpu_s = t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
+    let wgpu = run(Backend::Wgpu(gpu));
+    let gpu_s = t.elapsed().as_secs_f64();
+    let (p0, pc, pg) = (psnr(&start), psnr(&cpu.model), psnr(&wgpu.model));
+    eprintln!(
+        "PSNR start {p0:.3} dB, cpu {pc:.3} dB ({cpu_s:.1} s), wgpu {pg:.3} dB ({gpu_s:.1} s)"
+    );
+    assert_eq!(wgpu.skipped_non_finite_steps, 0);
+    assert!(pc > p0 + 3.0, "the run did not learn: {p0} -> {pc}");
+    assert!((pc - pg).abs() <= 0.1, "cpu {pc} dB vs wgpu {pg} dB");
 }

@@ -74,6 +74,11 @@ pub struct GpuOptions {
     /// Use the compare-and-swap loop on `atomic<u32>` for gradient accumulation even
     /// where the adapter has f32 atomics (to test the fallback path).
     pub force_cas_atomics: bool,
+    /// Backward blending with one workgroup reduction per tile and key, then one atomic
+    /// add per value (`true`), instead of atomic adds from every pixel (`false`). The
+    /// reduction needs about 10 workgroup barriers per key, which software drivers run
+    /// slowly; GPUs with many pixels per Gaussian may prefer it.
+    pub workgroup_reduction: bool,
 }
 
 /// An open device and queue, and what the adapter offers.
@@ -86,6 +91,7 @@ pub struct GpuContext {
     driver: String,
     has_float32_atomics: bool,
     use_float32_atomics: bool,
+    pub(crate) options: GpuOptions,
     pub(crate) limits: wgpu::Limits,
 }
 
@@ -136,6 +142,7 @@ impl GpuContext {
             driver: format!("{} {}", info.driver, info.driver_info),
             has_float32_atomics,
             use_float32_atomics,
+            options,
             limits,
         })
     }

@@ -46,6 +46,7 @@ const SORT_LOCAL: &str = include_str!("shaders/sort_local.wgsl");
 const RANGES: &str = include_str!("shaders/ranges.wgsl");
 const BLEND: &str = include_str!("shaders/blend.wgsl");
 const BLEND_BACKWARD: &str = include_str!("shaders/blend_backward.wgsl");
+const BLEND_BACKWARD_DIRECT: &str = include_str!("shaders/blend_backward_direct.wgsl");
 const ACC_F32: &str = include_str!("shaders/acc_f32.wgsl");
 const ACC_CAS: &str = include_str!("shaders/acc_cas.wgsl");
 const PROJECT_BACKWARD: &str = include_str!("shaders/project_backward.wgsl");
@@ -243,13 +244,18 @@ impl GpuRasterizer {
         } else {
             ACC_CAS
         };
+        let blend_backward = if self.ctx.options.workgroup_reduction {
+            BLEND_BACKWARD
+        } else {
+            BLEND_BACKWARD_DIRECT
+        };
         let build = |label: &str, body: &str| self.ctx.pipeline(label, &format!("{prelude}{body}"));
         let p = Arc::new(ChannelPipelines {
             project: build("project", PROJECT)?,
             keygen: build("keygen", KEYGEN)?,
             ranges: build("ranges", RANGES)?,
             blend: build("blend", BLEND)?,
-            blend_backward: build("blend_backward", &format!("{acc}\n{BLEND_BACKWARD}"))?,
+            blend_backward: build("blend_backward", &format!("{acc}\n{blend_backward}"))?,
             project_backward: build("project_backward", PROJECT_BACKWARD)?,
         });
         map.insert(nc, p.clone());

@@ -1,0 +1,205 @@
+//! CPU vs wgpu rasterizer times (feature `wgpu`): forward and backward medians on a
+//! random cloud of Gaussians in front of the camera, for 10K, 50K and 100K Gaussians.
+//!
+//! `cargo run --release -p gs-core --features wgpu --example gpu_bench -- [--runs N]
+//! [--width W --height H] [--gaussians N] [--cas]` [--reduce]` (`--cas`: force the
+//! compare-and-swap gradient accumulation; `--reduce`: per-tile workgroup reductions)
+//!
+//! On Mesa's software Vulkan driver (lavapipe) the "wgpu" column measures a CPU
+//! emulation of a GPU, not a GPU: compare columns only on a machine with a real one.
+//! Times are wall-clock medians after one warm-up; `cpu s` is this process's CPU time
+//! (user + system) over the whole configuration, which on a shared machine says how much
+//! of the wall time was ours.
+
+use std::time::Instant;
+
+use glam::Vec3;
+use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
+use gs_core::raster::{render, render_backward, GaussianView, PixelGrads, RasterSettings};
+use gs_core::rng::SplitMix64;
+use gs_core::{Camera, Intrinsics};
+
+struct Cloud {
+    means: Vec<f32>,
+    log_scales: Vec<f32>,
+    rotations: Vec<f32>,
+    opacity_logits: Vec<f32>,
+    channels: Vec<f32>,
+}
+
+impl Cloud {
+    fn view(&self) -> GaussianView<'_> {
+        GaussianView {
+            means: &self.means,
+            log_scales: &self.log_scales,
+            rotations: &self.rotations,
+            opacity_logits: &self.opacity_logits,
+            channels: &self.channels,
+            n_channels: 3,
+        }
+    }
+}
+
+/// `n` Gaussians in a 2 m ball at 5 m, sized so neighbours overlap.
+fn cloud(n: usize, seed: u64) -> Cloud {
+    let mut rng = SplitMix64::new(seed);
+    let sigma = 2.0 * (4.0 / n as f32).sqrt().min(0.05);
+    let mut c = Cloud {
+        means: Vec::with_capacity(3 * n),
+        log_scales: Vec::with_capacity(3 * n),
+        rotations: Vec::with_capacity(4 * n),
+        opacity_logits: Vec::with_capacity(n),
+        channels: Vec::with_capacity(3 * n),
+    };
+    for _ in 0..n {
+        let p = loop {
+            let p = Vec3::new(
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+            );
+            if p.length_squared() <= 1.0 {
+                break p * 2.0;
+            }
+        };
+        c.means.extend(p.to_array());
+        for _ in 0..3 {
+            c.log_scales.push((sigma * rng.uniform(0.3, 1.5)).ln());
+        }
+        for _ in 0..4 {
+            c.rotations.push(rng.uniform(-1.0, 1.0));
+        }
+        c.opacity_logits.push(rng.uniform(-1.0, 3.0));
+        for _ in 0..3 {
+            c.channels.push(rng.uniform(0.0, 1.0));
+        }
+    }
+    c
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn process_cpu_s() -> f64 {
+    // SAFETY: getrusage only writes the struct it is given.
+    let mut ru: libc_rusage::Rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc_rusage::getrusage(0, &mut ru) };
+    let t = |tv: libc_rusage::Timeval| tv.sec as f64 + tv.usec as f64 * 1e-6;
+    t(ru.utime) + t(ru.stime)
+}
+
+/// The two fields of `struct rusage` read here (Linux x86_64/aarch64 layout), to avoid a
+/// libc dependency for one call.
+mod libc_rusage {
+    #[repr(C)]
+    #[derive(Clone, Copy)]
+    pub struct Timeval {
+        pub sec: i64,
+        pub usec: i64,
+    }
+    #[repr(C)]
+    pub struct Rusage {
+        pub utime: Timeval,
+        pub stime: Timeval,
+        pub rest: [i64; 14],
+    }
+    extern "C" {
+        pub fn getrusage(who: i32, usage: *mut Rusage) -> i32;
+    }
+}
+
+fn arg(args: &[String], name: &str) -> Option<usize> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let runs = arg(&args, "--runs").unwrap_or(5).max(1);
+    let width = arg(&args, "--width").unwrap_or(960) as u32;
+    let height = arg(&args, "--height").unwrap_or(600) as u32;
+    let sizes = match arg(&args, "--gaussians") {
+        Some(n) => vec![n],
+        None => vec![10_000, 50_000, 100_000],
+    };
+    let options = GpuOptions {
+        force_cas_atomics: args.iter().any(|a| a == "--cas"),
+        workgroup_reduction: args.iter().any(|a| a == "--reduce"),
+    };
+    let ctx = match GpuContext::with_options(options) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("{e}");
+            std::process::exit(1);
+        }
+    };
+    println!("adapter: {}", ctx.describe());
+    println!(
+        "image {width}x{height}, {runs} runs (median ms), rayon threads {}",
+        rayon::current_num_threads()
+    );
+    let gpu = GpuRasterizer::new(ctx).expect("pipelines");
+    let camera = Camera::look_at(
+        Intrinsics::from_fov_x(0.9, width, height),
+        Vec3::new(0.0, -5.0, 1.0),
+        Vec3::ZERO,
+        Vec3::Z,
+    );
+    let settings = RasterSettings::default();
+    println!(
+        "{:>8} {:>9} | {:>9} {:>9} | {:>9} {:>9} {:>10} | {:>7}",
+        "gauss", "entries", "cpu fwd", "cpu bwd", "wgpu fwd", "wgpu bwd", "wgpu f+b", "cpu s"
+    );
+    for n in sizes {
+        let c = cloud(n, 1);
+        let view = c.view();
+        let px = (width * height) as usize;
+        let mut rng = SplitMix64::new(2);
+        let d_color: Vec<f32> = (0..px * 3).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let pg = PixelGrads {
+            d_color: &d_color,
+            d_alpha: None,
+            d_depth: None,
+        };
+        let cpu0 = process_cpu_s();
+        let (mut cf, mut cb, mut gf, mut gb) = (vec![], vec![], vec![], vec![]);
+        let mut entries = 0;
+        for r in 0..=runs {
+            let t = Instant::now();
+            let f = render(&camera, &view, &settings).unwrap();
+            let t_f = t.elapsed().as_secs_f64() * 1e3;
+            let t = Instant::now();
+            render_backward(&camera, &view, &settings, &f, &pg).unwrap();
+            let t_b = t.elapsed().as_secs_f64() * 1e3;
+            let t = Instant::now();
+            let g = gpu.render(&camera, &view, &settings).unwrap();
+            let g_f = t.elapsed().as_secs_f64() * 1e3;
+            let t = Instant::now();
+            gpu.render_backward(&camera, &settings, &g, &pg).unwrap();
+            let g_b = t.elapsed().as_secs_f64() * 1e3;
+            entries = g.tile_entries;
+            if r > 0 {
+                cf.push(t_f);
+                cb.push(t_b);
+                gf.push(g_f);
+                gb.push(g_b);
+            }
+        }
+        let (gfm, gbm) = (median(gf), median(gb));
+        println!(
+            "{:>8} {:>9} | {:>9.1} {:>9.1} | {:>9.1} {:>9.1} {:>10.1} | {:>7.1}",
+            n,
+            entries,
+            median(cf),
+            median(cb),
+            gfm,
+            gbm,
+            gfm + gbm,
+            process_cpu_s() - cpu0
+        );
+    }
+}
