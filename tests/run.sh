@@ -14,6 +14,13 @@ cargo clippy --workspace --all-targets -- -D warnings
 step "cargo test (unit, integration, gradient checks, fits, live UDP component)"
 cargo test --workspace
 
+step "GPU backend: wgpu on Mesa's software Vulkan driver (lint and CPU parity tests)"
+# Opt-in feature `wgpu`: only this step builds it. WGPU_BACKEND=vulkan keeps wgpu off the
+# OpenGL path; GS_REQUIRE_GPU=1 makes a missing adapter fail the tests, never skip them.
+bash tests/gpu/setup.sh
+cargo clippy -p gs-core --features wgpu --all-targets -- -D warnings
+GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_parity
+
 step "python test environment"
 python=$(bash tests/setup_venv.sh)
 
