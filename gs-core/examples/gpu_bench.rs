@@ -7,7 +7,8 @@
 //!
 //! On Mesa's software Vulkan driver (lavapipe) the "wgpu" column measures a CPU
 //! emulation of a GPU, not a GPU: compare columns only on a machine with a real one.
-//! Times are wall-clock medians after one warm-up; `cpu s` is this process's CPU time
+//! `wgpu prj` is the part of `wgpu fwd` up to the entry-count readback (upload,
+//! projection, prefix sum). Times are wall-clock medians after one warm-up; `cpu s` is this process's CPU time
 //! (user + system) over the whole configuration, which on a shared machine says how much
 //! of the wall time was ours.
 
@@ -151,8 +152,16 @@ fn main() {
     );
     let settings = RasterSettings::default();
     println!(
-        "{:>8} {:>9} | {:>9} {:>9} | {:>9} {:>9} {:>10} | {:>7}",
-        "gauss", "entries", "cpu fwd", "cpu bwd", "wgpu fwd", "wgpu bwd", "wgpu f+b", "cpu s"
+        "{:>8} {:>9} | {:>9} {:>9} | {:>9} {:>9} {:>9} {:>10} | {:>7}",
+        "gauss",
+        "entries",
+        "cpu fwd",
+        "cpu bwd",
+        "wgpu prj",
+        "wgpu fwd",
+        "wgpu bwd",
+        "wgpu f+b",
+        "cpu s"
     );
     for n in sizes {
         let c = cloud(n, 1);
@@ -166,7 +175,7 @@ fn main() {
             d_depth: None,
         };
         let cpu0 = process_cpu_s();
-        let (mut cf, mut cb, mut gf, mut gb) = (vec![], vec![], vec![], vec![]);
+        let (mut cf, mut cb, mut gf, mut gb, mut gp) = (vec![], vec![], vec![], vec![], vec![]);
         let mut entries = 0;
         for r in 0..=runs {
             let t = Instant::now();
@@ -187,15 +196,17 @@ fn main() {
                 cb.push(t_b);
                 gf.push(g_f);
                 gb.push(g_b);
+                gp.push(g.timings.project_scan_ms);
             }
         }
         let (gfm, gbm) = (median(gf), median(gb));
         println!(
-            "{:>8} {:>9} | {:>9.1} {:>9.1} | {:>9.1} {:>9.1} {:>10.1} | {:>7.1}",
+            "{:>8} {:>9} | {:>9.1} {:>9.1} | {:>9.1} {:>9.1} {:>9.1} {:>10.1} | {:>7.1}",
             n,
             entries,
             median(cf),
             median(cb),
+            median(gp),
             gfm,
             gbm,
             gfm + gbm,

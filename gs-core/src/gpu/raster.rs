@@ -58,6 +58,8 @@ const OUT_FIXED: usize = 13;
 const GSTRIDE: usize = 11;
 /// Per-splat stride on the device (see common.wgsl).
 const SSTRIDE: usize = 12;
+/// Splats per batch staged in workgroup memory by the blend kernels (`BATCH` in WGSL).
+const BATCH: usize = 128;
 /// The local bitonic kernel sorts blocks of this many keys.
 const SORT_BLOCK: u64 = 512;
 
@@ -234,10 +236,11 @@ impl GpuRasterizer {
         let rec = REC_CHANNELS + nc;
         let prelude = format!(
             "const NC: u32 = {nc}u;\nconst NCA: u32 = {}u;\nconst REC: u32 = {rec}u;\n\
-             const RED_LEN: u32 = {}u;\nconst OSTRIDE: u32 = {}u;\n{COMMON}\n",
+             const RED_LEN: u32 = {}u;\nconst OSTRIDE: u32 = {}u;\nconst SH_LEN: u32 = {}u;\n{COMMON}\n",
             nc.max(1),
             rec * 256,
             OUT_FIXED + nc,
+            BATCH * (7 + nc.max(1)),
         );
         let acc = if self.ctx.uses_float32_atomics() {
             ACC_F32

@@ -2,8 +2,9 @@
 // tile's depth-sorted keys front to back as raster::blend::blend_tile_forward does:
 // a splat is evaluated only inside its pixel rectangle, alpha = min(0.99, o exp(power))
 // is skipped below the cutoff, and a pixel stops before the splat that would take its
-// transmittance below 1e-4 (never in smooth mode). Every 32 keys the workgroup checks
-// whether all its pixels have stopped.
+// transmittance below 1e-4 (never in smooth mode). Keys are taken in batches of BATCH:
+// the workgroup first copies the batch's splats into workgroup memory (one per thread),
+// then every pixel walks the batch; between batches it stops once all pixels have.
 // Outputs: colour (pixel-major, NC per pixel, background composited) and per pixel
 // (alpha, depth, final T, bits of `last`), `last` being one past the tile-list index of
 // the last splat blended, as on the CPU.
@@ -16,6 +17,11 @@
 @group(0) @binding(5) var<storage, read_write> out_color: array<f32>;
 @group(0) @binding(6) var<storage, read_write> out_px: array<vec4<f32>>;
 
+const BATCH: u32 = 128u;
+// Per batched splat: mean x, y, conic a, b, c, opacity, depth, then NCA channels.
+const SF: u32 = 7u + NCA;
+var<workgroup> sh_f: array<f32, SH_LEN>;
+var<workgroup> sh_rect: array<vec4<u32>, 128>;
 var<workgroup> done_count: atomic<u32>;
 var<workgroup> done_copy: u32;
 
@@ -58,24 +64,32 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3:
         if j >= range.y || n_done == 256u {
             break;
         }
-        let end = min(j + 32u, range.y);
+        let count = min(BATCH, range.y - j);
+        if lid < count {
+            let g = keys[j + lid].z;
+            let sb = g * SSTRIDE;
+            for (var q = 0u; q < 7u; q++) {
+                sh_f[lid * SF + q] = splats[sb + q];
+            }
+            for (var k = 0u; k < NC; k++) {
+                sh_f[lid * SF + 7u + k] = chans[g * NC + k];
+            }
+            sh_rect[lid] = vec4<u32>(bitcast<u32>(splats[sb + 8u]), bitcast<u32>(splats[sb + 9u]), bitcast<u32>(splats[sb + 10u]), bitcast<u32>(splats[sb + 11u]));
+        }
+        workgroupBarrier();
         if !done {
-            for (var e = j; e < end; e++) {
-                let g = keys[e].z;
-                let sb = g * SSTRIDE;
-                let rx0 = bitcast<u32>(splats[sb + 8u]);
-                let ry0 = bitcast<u32>(splats[sb + 9u]);
-                let rx1 = bitcast<u32>(splats[sb + 10u]);
-                let ry1 = bitcast<u32>(splats[sb + 11u]);
-                if x < rx0 || x >= rx1 || y < ry0 || y >= ry1 {
+            for (var b = 0u; b < count; b++) {
+                let r = sh_rect[b];
+                if x < r.x || x >= r.z || y < r.y || y >= r.w {
                     continue;
                 }
-                let ca = splats[sb + 2u];
-                let cb = splats[sb + 3u];
-                let cc = splats[sb + 4u];
-                let o = splats[sb + 5u];
-                let dy = splats[sb + 1u] - py;
-                let dx = (splats[sb] - dx0) - f32(l3.x);
+                let f = b * SF;
+                let ca = sh_f[f + 2u];
+                let cb = sh_f[f + 3u];
+                let cc = sh_f[f + 4u];
+                let o = sh_f[f + 5u];
+                let dy = sh_f[f + 1u] - py;
+                let dx = (sh_f[f] - dx0) - f32(l3.x);
                 let power = -0.5 * ca * dx * dx - (cb * dy) * dx + (-0.5 * cc * dy * dy);
                 let gs = fast_exp(power);
                 if !(o * gs >= fr.cutoff) {
@@ -93,14 +107,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3:
                 }
                 let w = a.alpha * t_acc;
                 for (var k = 0u; k < NC; k++) {
-                    acc[k] += w * chans[g * NC + k];
+                    acc[k] += w * sh_f[f + 7u + k];
                 }
-                depth += w * splats[sb + 6u];
+                depth += w * sh_f[f + 6u];
                 t_acc = t_next;
-                last = e - range.x + 1u;
+                last = j + b - range.x + 1u;
             }
         }
-        j = end;
+        j += count;
     }
     if inside {
         let pix = y * fr.width + x;
