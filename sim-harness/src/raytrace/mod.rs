@@ -231,7 +231,16 @@ pub fn render_frame(scene: &Scene, req: &FrameRequest) -> Frame {
 
 /// Renders an 8-bit frame, or says why the request is invalid.
 pub fn try_render_frame(scene: &Scene, req: &FrameRequest) -> Result<Frame, RenderError> {
-    let radiance = render_radiance(scene, req)?;
+    try_render_frame_with(scene, req, true)
+}
+
+/// [`try_render_frame`], optionally without cast shadows (see [`render_radiance_with`]).
+pub fn try_render_frame_with(
+    scene: &Scene,
+    req: &FrameRequest,
+    cast_shadows: bool,
+) -> Result<Frame, RenderError> {
+    let radiance = render_radiance_with(scene, req, cast_shadows)?;
     let rgb8 = radiance
         .radiance_rgb
         .par_iter()
@@ -248,6 +257,17 @@ pub fn try_render_frame(scene: &Scene, req: &FrameRequest) -> Result<Frame, Rend
 
 /// Renders linear radiance (before exposure), mask and depth.
 pub fn render_radiance(scene: &Scene, req: &FrameRequest) -> Result<RadianceFrame, RenderError> {
+    render_radiance_with(scene, req, true)
+}
+
+/// [`render_radiance`], optionally without cast shadows (`cast_shadows = false`: no shadow
+/// rays, every surface facing a light receives it). Only for studies of how much the
+/// target's self-shadowing weighs in an image (`sunlight`); datasets always cast shadows.
+pub fn render_radiance_with(
+    scene: &Scene,
+    req: &FrameRequest,
+    cast_shadows: bool,
+) -> Result<RadianceFrame, RenderError> {
     req.validate()?;
     let (width, height) = (req.camera.width as usize, req.camera.height as usize);
     let target_from_camera = req.camera_from_target_rotation.normalize().inverse();
@@ -282,7 +302,9 @@ pub fn render_radiance(scene: &Scene, req: &FrameRequest) -> Result<RadianceFram
                 }
                 let spp = req.samples_per_pixel;
                 let sum = if spp == 1 {
-                    centre_hit.map_or(Vec3::ZERO, |hit| shade(scene, &lights, &centre_ray, hit))
+                    centre_hit.map_or(Vec3::ZERO, |hit| {
+                        shade(scene, &lights, &centre_ray, hit, cast_shadows)
+                    })
                 } else {
                     let mut rng = SplitMix64::new(mix64(req.seed ^ mix64(pixel_index)));
                     // A square count gets a jittered grid; any other count jittered rows
@@ -297,7 +319,7 @@ pub fn render_radiance(scene: &Scene, req: &FrameRequest) -> Result<RadianceFram
                         let sy = (j as f32 + rng.next_f32()) / rows as f32;
                         let ray = ray_through(x as f32 + sx, y as f32 + sy);
                         if let Some(hit) = scene.bvh.closest_hit(&ray, 0.0, f32::INFINITY) {
-                            sum += shade(scene, &lights, &ray, hit);
+                            sum += shade(scene, &lights, &ray, hit, cast_shadows);
                         }
                     }
                     sum
@@ -335,7 +357,7 @@ impl Lights {
 }
 
 /// Radiance leaving the hit point towards the ray origin.
-fn shade(scene: &Scene, lights: &Lights, ray: &Ray, hit: bvh::Hit) -> Vec3 {
+fn shade(scene: &Scene, lights: &Lights, ray: &Ray, hit: bvh::Hit, cast_shadows: bool) -> Vec3 {
     if lights.lights.is_empty() {
         return Vec3::ZERO;
     }
@@ -364,9 +386,10 @@ fn shade(scene: &Scene, lights: &Lights, ray: &Ray, hit: bvh::Hit) -> Vec3 {
         if n_dot_l <= 0.0 {
             continue;
         }
-        if scene
-            .bvh
-            .any_hit(&Ray::new(shadow_origin, to_light), 0.0, f32::INFINITY)
+        if cast_shadows
+            && scene
+                .bvh
+                .any_hit(&Ray::new(shadow_origin, to_light), 0.0, f32::INFINITY)
         {
             continue;
         }
