@@ -2,8 +2,9 @@
 //! random cloud of Gaussians in front of the camera, for 10K, 50K and 100K Gaussians.
 //!
 //! `cargo run --release -p gs-core --features wgpu --example gpu_bench -- [--runs N]
-//! [--width W --height H] [--gaussians N] [--cas]` [--reduce]` (`--cas`: force the
-//! compare-and-swap gradient accumulation; `--reduce`: per-tile workgroup reductions)
+//! [--width W --height H] [--gaussians N] [--cas]` [--reduce] [--deterministic]`
+//! (`--cas`: force the compare-and-swap gradient accumulation; `--reduce`: per-tile
+//! workgroup reductions; `--deterministic`: the fixed-order backward)
 //!
 //! On Mesa's software Vulkan driver (lavapipe) the "wgpu" column measures a CPU
 //! emulation of a GPU, not a GPU: compare columns only on a machine with a real one.
@@ -130,6 +131,7 @@ fn main() {
     let options = GpuOptions {
         force_cas_atomics: args.iter().any(|a| a == "--cas"),
         workgroup_reduction: args.iter().any(|a| a == "--reduce"),
+        deterministic: args.iter().any(|a| a == "--deterministic"),
     };
     let ctx = match GpuContext::with_options(options) {
         Ok(c) => c,

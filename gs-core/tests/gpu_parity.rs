@@ -249,6 +249,25 @@ fn grads_parity(seed: u64, n_channels: usize, smooth: bool, options: GpuOptions)
         .unwrap();
     assert_eq!(g.dropped_nonfinite, 0);
     assert_eq!(cpu.dropped_nonfinite, 0);
+    if options.deterministic {
+        let again = gpu
+            .render_backward(&scene.camera, &scene.settings, &gpu_f, &pg)
+            .unwrap();
+        let bits = |g: &gs_core::raster::GaussianGrads| -> Vec<u32> {
+            [
+                &g.d_means,
+                &g.d_log_scales,
+                &g.d_rotations,
+                &g.d_opacity_logits,
+                &g.d_channels,
+                &g.mean2d_grad_ndc,
+            ]
+            .iter()
+            .flat_map(|v| v.iter().map(|x| x.to_bits()))
+            .collect()
+        };
+        assert!(bits(&g) == bits(&again), "deterministic backward differs");
+    }
     let allowed_off = if smooth { 0.0 } else { 1e-3 };
     let groups: [(&str, &[f32], &[f32]); 6] = [
         ("means", &cpu.d_means, &g.d_means),
@@ -319,6 +338,20 @@ fn gradients_match_cpu_workgroup_reduction() {
         false,
         GpuOptions {
             workgroup_reduction: true,
+            ..GpuOptions::default()
+        },
+    );
+}
+
+/// Deterministic mode: same parity, and two backward passes give the same bits.
+#[test]
+fn gradients_match_cpu_deterministic() {
+    grads_parity(
+        25,
+        3,
+        false,
+        GpuOptions {
+            deterministic: true,
             ..GpuOptions::default()
         },
     );

@@ -79,6 +79,11 @@ pub struct GpuOptions {
     /// reduction needs about 10 workgroup barriers per key, which software drivers run
     /// slowly; GPUs with many pixels per Gaussian may prefer it.
     pub workgroup_reduction: bool,
+    /// Bit-identical backward passes: the per-tile reductions write one record per tile
+    /// entry (no atomics) and a second kernel sums each Gaussian's records in tile order.
+    /// Implies the workgroup reduction (slow on software drivers); the atomic paths' sums
+    /// vary in their last bits from run to run.
+    pub deterministic: bool,
 }
 
 /// An open device and queue, and what the adapter offers.

@@ -15,7 +15,8 @@
 //!   pixel across the 1/255 cutoff or the 1e-4 stop (see `tests/gpu_parity.rs`);
 //! - keys (tile, depth bits, Gaussian index) are unique, so each tile's list is the CPU's
 //!   list in the CPU's order; the forward is deterministic. The backward's atomic sums are
-//!   not: their order, and so the last bits of the gradients, vary from run to run;
+//!   not (their order, and so the last bits of the gradients, vary from run to run)
+//!   unless [`super::GpuOptions::deterministic`] is set;
 //! - device buffers of a forward pass live in its [`GpuRenderOutput`] until backward.
 
 use std::collections::HashMap;
@@ -49,6 +50,8 @@ const BLEND_BACKWARD: &str = include_str!("shaders/blend_backward.wgsl");
 const BLEND_BACKWARD_DIRECT: &str = include_str!("shaders/blend_backward_direct.wgsl");
 const ACC_F32: &str = include_str!("shaders/acc_f32.wgsl");
 const ACC_CAS: &str = include_str!("shaders/acc_cas.wgsl");
+const ACC_RECORDS: &str = include_str!("shaders/acc_records.wgsl");
+const GATHER: &str = include_str!("shaders/gather.wgsl");
 const PROJECT_BACKWARD: &str = include_str!("shaders/project_backward.wgsl");
 
 /// Values per Gaussian in the gradient readback: 12 parameter/NDC values, a dropped flag,
@@ -71,6 +74,8 @@ struct ChannelPipelines {
     blend: wgpu::ComputePipeline,
     blend_backward: wgpu::ComputePipeline,
     project_backward: wgpu::ComputePipeline,
+    /// Deterministic mode only: per-Gaussian sums of the per-entry records.
+    gather: Option<wgpu::ComputePipeline>,
 }
 
 /// The GPU rasterizer: a device and its compiled pipelines (per channel count, built on
@@ -242,12 +247,15 @@ impl GpuRasterizer {
             OUT_FIXED + nc,
             BATCH * (7 + nc.max(1)),
         );
-        let acc = if self.ctx.uses_float32_atomics() {
+        let options = self.ctx.options;
+        let acc = if options.deterministic {
+            ACC_RECORDS
+        } else if self.ctx.uses_float32_atomics() {
             ACC_F32
         } else {
             ACC_CAS
         };
-        let blend_backward = if self.ctx.options.workgroup_reduction {
+        let blend_backward = if options.workgroup_reduction || options.deterministic {
             BLEND_BACKWARD
         } else {
             BLEND_BACKWARD_DIRECT
@@ -260,6 +268,11 @@ impl GpuRasterizer {
             blend: build("blend", BLEND)?,
             blend_backward: build("blend_backward", &format!("{acc}\n{blend_backward}"))?,
             project_backward: build("project_backward", PROJECT_BACKWARD)?,
+            gather: if options.deterministic {
+                Some(build("gather", GATHER)?)
+            } else {
+                None
+            },
         });
         map.insert(nc, p.clone());
         Ok(p)
@@ -600,8 +613,20 @@ impl GpuRasterizer {
         let ostride = OUT_FIXED + nc;
         let out = ctx.storage("gaussian grads", (n * ostride * 4) as u64)?;
         let p = &st.pipelines;
+        // Deterministic mode: the blend kernel writes per-entry records, summed into `acc`
+        // by the gather kernel.
+        let records = match p.gather {
+            Some(_) => Some(ctx.storage(
+                "grad records",
+                (forward.tile_entries.max(1) * rec * 4) as u64,
+            )?),
+            None => None,
+        };
         let mut encoder = ctx.encoder("backward");
         encoder.clear_buffer(&acc, 0, None);
+        if let Some(r) = &records {
+            encoder.clear_buffer(r, 0, None);
+        }
         {
             let bind = ctx.bind_group(
                 &p.blend_backward,
@@ -613,13 +638,21 @@ impl GpuRasterizer {
                     &st.chans,
                     &st.px_state,
                     &px_grad,
-                    &acc,
+                    records.as_ref().unwrap_or(&acc),
                 ],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&p.blend_backward);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(st.grid.tiles_x, st.grid.tiles_y, 1);
+        }
+        if let (Some(gather), Some(records)) = (&p.gather, &records) {
+            let bind = ctx.bind_group(
+                gather,
+                &[&st.frame, &st.splats, &st.keys, &st.ranges, records, &acc],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, gather, &bind, n as u64);
         }
         {
             let bind = ctx.bind_group(

@@ -12,3 +12,8 @@ fn acc_add(i: u32, v: f32) {
         old = r.old_value;
     }
 }
+
+// Accumulator row of Gaussian `g` (one per Gaussian, shared by all its tile entries).
+fn slot(g: u32, e: u32) -> u32 {
+    return g * REC;
+}

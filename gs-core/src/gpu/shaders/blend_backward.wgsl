@@ -149,7 +149,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3:
         if lid < REC {
             let v = red[lid * 256u];
             if v != 0.0 {
-                acc_add(g * REC + lid, v);
+                acc_add(slot(g, range.x + j) + lid, v);
             }
         }
     }
