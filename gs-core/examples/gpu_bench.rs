@@ -2,16 +2,16 @@
 //! random cloud of Gaussians in front of the camera, for 10K, 50K and 100K Gaussians.
 //!
 //! `cargo run --release -p gs-core --features wgpu --example gpu_bench -- [--runs N]
-//! [--width W --height H] [--gaussians N] [--cas]` [--reduce] [--deterministic]`
+//! [--width W --height H] [--gaussians N] [--cas] [--reduce] [--deterministic]`
 //! (`--cas`: force the compare-and-swap gradient accumulation; `--reduce`: per-tile
 //! workgroup reductions; `--deterministic`: the fixed-order backward)
 //!
 //! On Mesa's software Vulkan driver (lavapipe) the "wgpu" column measures a CPU
 //! emulation of a GPU, not a GPU: compare columns only on a machine with a real one.
 //! `wgpu prj` is the part of `wgpu fwd` up to the entry-count readback (upload,
-//! projection, prefix sum). Times are wall-clock medians after one warm-up; `cpu s` is this process's CPU time
-//! (user + system) over the whole configuration, which on a shared machine says how much
-//! of the wall time was ours.
+//! projection, prefix sum). Times are wall-clock medians after one warm-up; `cpu s` is
+//! this process's CPU time (user + system) over the whole configuration, which on a
+//! shared machine says how much of the wall time was ours.
 
 use std::time::Instant;
 
