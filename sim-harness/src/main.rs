@@ -12,6 +12,11 @@
 //! [--preset NAME] [--inits surface,random,hull]` compares initialisations (see
 //! `sim_harness::experiment::ablation_init`).
 //!
+//! `sim-harness pareto --out DIR [--scenario FILE | --target NAME] [--preset NAME]` sweeps
+//! the time-for-error knobs; `sim-harness skips --out DIR [...]` measures each switchable
+//! skip; `sim-harness ablation-window --out DIR [--windows 5,10,20,40]` is the window
+//! ablation (see `sim_harness::experiment::{pareto, skips, ablation}`).
+//!
 //! `sim-harness buslogs --dataset DIR [--out DIR/bus] [--config FILE]` writes the dataset as
 //! the component's bus logs (`can.log`, `udp.rec`) for `fsw-component --replay`;
 //! `sim-harness play --dataset DIR --udp HOST:PORT [--telemetry-udp HOST:PORT] [--can IFACE]
@@ -23,8 +28,18 @@ use sim_harness::busfeed::{
 };
 use sim_harness::dataset::{generate, GenerateOptions};
 use sim_harness::experiment::ablation_init::{self, run_init_ablation, InitAblationJob};
+use sim_harness::experiment::ablation::{
+    run_window_ablation, to_markdown as window_markdown, WindowJob,
+};
 use sim_harness::experiment::demo::run_demo;
+use sim_harness::experiment::pareto::{
+    builtin_scenario, from_csv as pareto_from_csv, run_pareto, select_settings,
+    to_markdown as pareto_markdown, write_outputs as write_pareto_outputs, ParetoJob,
+};
 use sim_harness::experiment::preset::Preset;
+use sim_harness::experiment::skips::{
+    run_skips, switchable_skips, to_markdown as skips_markdown, SkipsJob,
+};
 use sim_harness::experiment::table::to_markdown;
 use sim_harness::experiment::table_job::{builtin_scenarios, run_table, TableJob};
 use sim_harness::scenario::Scenario;
@@ -138,12 +153,86 @@ enum Command {
         #[arg(long)]
         hull_resolution: Option<u32>,
     },
+    /// Sweep the knobs that trade training time for error on one target; write
+    /// pareto.csv, pareto.md and pareto.png (time against PSNR, Pareto front marked).
+    Pareto {
+        /// Output folder (pareto.csv, pareto.md, pareto.png, cache/).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        target: TargetArgs,
+        /// Base preset the settings change one knob of at a time.
+        #[arg(long, default_value = "pareto-base")]
+        preset: String,
+        /// Run only these settings (comma-separated names; default: the whole sweep).
+        #[arg(long, value_delimiter = ',')]
+        settings: Vec<String>,
+    },
+    /// Re-plot rows of pareto-schema CSV files together (e.g. the sweep and the skips'
+    /// runs): pareto.csv, pareto.md and pareto.png in OUT with the front over all rows.
+    ParetoPlot {
+        /// Output folder.
+        #[arg(long)]
+        out: PathBuf,
+        /// CSV files written by `pareto` (pareto.csv) or `skips` (skips-runs.csv).
+        #[arg(long, required = true)]
+        csv: Vec<PathBuf>,
+    },
+    /// Time saved and error cost of each switchable skip: skips.csv and skips.md.
+    Skips {
+        /// Output folder (skips.csv, skips.md, cache/).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        target: TargetArgs,
+        /// Base preset (every skip at its default).
+        #[arg(long, default_value = "pareto-base")]
+        preset: String,
+    },
+    /// Keyframe-window ablation (the paper's Fig. 6): W values on the three built-in targets;
+    /// window.csv, window.md and window.png.
+    AblationWindow {
+        /// Output folder (window.csv, window.md, window.png, cache/).
+        #[arg(long)]
+        out: PathBuf,
+        /// Preset the window sizes change.
+        #[arg(long, default_value = "window-ablation")]
+        preset: String,
+        /// Window sizes, comma-separated.
+        #[arg(long, value_delimiter = ',', default_values_t = [5usize, 10, 20, 40])]
+        windows: Vec<usize>,
+        /// Scenario file to use instead of the three built-in targets (repeatable).
+        #[arg(long)]
+        scenario: Vec<PathBuf>,
+    },
     /// Train configuration d online on a small embedded Cassini-like scenario.
     Demo {
         /// Output folder.
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
     },
+}
+
+/// One target: a scenario file or a built-in target's name (default cassini).
+#[derive(clap::Args)]
+struct TargetArgs {
+    /// Scenario TOML file.
+    #[arg(long, conflicts_with = "target")]
+    scenario: Option<PathBuf>,
+    /// Built-in target: cassini, rosetta or starlink.
+    #[arg(long)]
+    target: Option<String>,
+}
+
+impl TargetArgs {
+    fn scenario(&self) -> Result<Scenario, Box<dyn std::error::Error>> {
+        match &self.scenario {
+            Some(path) => Ok(Scenario::load(path)?),
+            None => Ok(builtin_scenario(
+                self.target.as_deref().unwrap_or("cassini"),
+            )?),
+        }
+    }
 }
 
 /// How the simulated spacecraft's nodes talk to the component.
@@ -341,6 +430,83 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 result.render_s,
                 out.display()
             );
+            Ok(())
+        }
+        Command::Pareto {
+            out,
+            target,
+            preset,
+            settings,
+        } => {
+            let job = ParetoJob {
+                base: Preset::load(&preset)?,
+                scenario: target.scenario()?,
+                settings: select_settings(&settings)?,
+                out_dir: out.clone(),
+            };
+            let (rows, front) = run_pareto(&job, &mut |line| eprintln!("{line}"))?;
+            eprintln!("\n{}", pareto_markdown(&rows, &front));
+            eprintln!(
+                "wrote {}",
+                ["pareto.csv", "pareto.md", "pareto.png"]
+                    .map(|f| out.join(f).display().to_string())
+                    .join(", ")
+            );
+            Ok(())
+        }
+        Command::ParetoPlot { out, csv } => {
+            let mut rows = Vec::new();
+            for path in &csv {
+                let text = std::fs::read_to_string(path)
+                    .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+                rows.extend(
+                    pareto_from_csv(&text).map_err(|e| format!("{}: {e}", path.display()))?,
+                );
+            }
+            let front = write_pareto_outputs(&out, &rows)?;
+            eprintln!("{}", pareto_markdown(&rows, &front));
+            eprintln!("wrote {}", out.join("pareto.png").display());
+            Ok(())
+        }
+        Command::Skips {
+            out,
+            target,
+            preset,
+        } => {
+            let job = SkipsJob {
+                base: Preset::load(&preset)?,
+                scenario: target.scenario()?,
+                skips: switchable_skips(),
+                out_dir: out.clone(),
+            };
+            let table = run_skips(&job, &mut |line| eprintln!("{line}"))?;
+            eprintln!("\n{}", skips_markdown(&table));
+            eprintln!("wrote {}", out.join("skips.md").display());
+            Ok(())
+        }
+        Command::AblationWindow {
+            out,
+            preset,
+            windows,
+            scenario,
+        } => {
+            let scenarios = if scenario.is_empty() {
+                builtin_scenarios()?
+            } else {
+                scenario
+                    .iter()
+                    .map(|p| Scenario::load(p))
+                    .collect::<Result<_, _>>()?
+            };
+            let job = WindowJob {
+                base: Preset::load(&preset)?,
+                scenarios,
+                windows,
+                out_dir: out.clone(),
+            };
+            let rows = run_window_ablation(&job, &mut |line| eprintln!("{line}"))?;
+            eprintln!("\n{}", window_markdown(&rows));
+            eprintln!("wrote {}", out.join("window.md").display());
             Ok(())
         }
         Command::Demo { out } => {

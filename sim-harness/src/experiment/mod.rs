@@ -9,14 +9,17 @@
 //! every number written comes from a run in this process (or a cache of rendered images whose
 //! key matches), never from a constant.
 
+pub mod ablation;
 pub mod ablation_init;
 pub mod cache;
 pub mod data;
 pub mod demo;
 pub mod evaluate;
 pub mod figure;
+pub mod pareto;
 pub mod preset;
 pub mod runner;
+pub mod skips;
 pub mod table;
 pub mod table_job;
 

@@ -100,6 +100,22 @@ pub struct Preset {
     pub hull_resolution: u32,
     /// `init = "hull"`: grey points instead of colours sampled from the keyframes.
     pub hull_grey_colours: bool,
+    /// Width of the appearance feature f_i, Phi's per-Gaussian input (paper: 72).
+    pub feature_dim: usize,
+    /// L of the positional encoding of the Sun and view vectors (DESIGN.md: 4).
+    pub encoding_frequencies: usize,
+    /// Passes over the window per round, each in its own shuffled order (paper: 1).
+    pub passes_per_round: u32,
+    /// Skip frames flagged as in eclipse (the online trainer counts them).
+    pub skip_eclipse: bool,
+    /// Skip frames whose mean full-frame brightness is below 0.01 (no mask: the black
+    /// background counts, so a small lit target can be skipped too).
+    pub skip_unlit: bool,
+    /// Train only when the keyframe window changed (the paper); false: a round after every
+    /// offered frame once the window is full.
+    pub skip_unchanged_window: bool,
+    /// Run Phi and Psi only for the Gaussians the blend reads (gs-core's default).
+    pub skip_noncontributing_in_mlp: bool,
 }
 
 impl Default for Preset {
@@ -127,6 +143,13 @@ impl Default for Preset {
             hull_views: 0,
             hull_resolution: 96,
             hull_grey_colours: false,
+            feature_dim: 72,
+            encoding_frequencies: 4,
+            passes_per_round: 1,
+            skip_eclipse: true,
+            skip_unlit: false,
+            skip_unchanged_window: true,
+            skip_noncontributing_in_mlp: true,
         }
     }
 }
@@ -213,6 +236,21 @@ impl Preset {
         }
         if self.max_gaussians == 0 {
             return bad("max_gaussians must be positive".into());
+        }
+        if !(1..=1024).contains(&self.feature_dim) {
+            return bad(format!("feature_dim {} is outside 1..=1024", self.feature_dim));
+        }
+        if self.encoding_frequencies > 16 {
+            return bad(format!(
+                "encoding_frequencies {} is above 16",
+                self.encoding_frequencies
+            ));
+        }
+        if !(1..=100).contains(&self.passes_per_round) {
+            return bad(format!(
+                "passes_per_round {} is outside 1..=100",
+                self.passes_per_round
+            ));
         }
         if !(8..=320).contains(&self.hull_resolution) {
             return bad(format!(

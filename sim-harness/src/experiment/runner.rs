@@ -68,6 +68,9 @@ pub struct RunOutcome {
     pub skipped_eclipse: u64,
     pub skipped_view: u64,
     pub train_s: f64,
+    /// Process CPU time (all threads, user + system, getrusage) spent inside training
+    /// rounds, seconds: on a shared machine a steadier cost measure than `train_s`.
+    pub train_cpu_s: f64,
     pub step_ms: f64,
     pub eval_s: f64,
     pub curve: Vec<RoundPoint>,
@@ -99,6 +102,9 @@ pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
     model.max_gaussians = preset.max_gaussians;
     model.light.resolution_px = preset.light_resolution_px;
     model.seed = preset.seed;
+    model.feature_dim = preset.feature_dim;
+    model.encoding_frequencies = preset.encoding_frequencies;
+    model.skip_noncontributing_in_mlp = preset.skip_noncontributing_in_mlp;
     OnlineConfig {
         window: WindowConfig {
             capacity: preset.window,
@@ -106,14 +112,16 @@ pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
         },
         model,
         densify_every_rounds: preset.densify_every_rounds as u64,
-        skip_eclipse: true,
-        // Without a mask the unlit test would average over the black background; eclipse
-        // frames are flagged by the simulator and skipped above.
-        skip_unlit: false,
+        passes_per_round: preset.passes_per_round,
+        skip_eclipse: preset.skip_eclipse,
+        // Off by default: without a mask the unlit test averages over the black background;
+        // eclipse frames are flagged by the simulator and skipped above.
+        skip_unlit: preset.skip_unlit,
         shuffle_seed: preset.seed,
         // Extra rounds on an unchanged window only when the preset asks for them (the
         // runner counts them per change; the trainer alone would refuse a repeat).
-        require_window_change: preset.rounds_per_window_change <= 1,
+        require_window_change: preset.rounds_per_window_change <= 1
+            && preset.skip_unchanged_window,
         ..OnlineConfig::default()
     }
 }
@@ -204,6 +212,7 @@ pub fn run_config(
     let mut curve = Vec::new();
     let mut eval_curve = Vec::new();
     let mut train_s = 0.0;
+    let mut train_cpu_s = 0.0;
     let report_every = (scene.frames.len() / 10).max(1);
     let rounds_per_change = preset.rounds_per_window_change.max(1);
     for i in 0..scene.frames.len() {
@@ -212,15 +221,19 @@ pub fn run_config(
         // The paper: one round per window change (a round is only ever due right after a
         // change). `rounds_per_window_change` > 1 trains the changed window that many times
         // (more iterations per frame on a sparse frame subset).
-        let rounds_due = if trainer.window().generation() != generation_before {
+        let rounds_due = if trainer.window().generation() != generation_before
+            || !preset.skip_unchanged_window
+        {
             rounds_per_change
         } else {
             0
         };
         for _ in 0..rounds_due {
+            let cpu_before_s = super::pareto::process_cpu_s();
             let Some(report) = trainer.run_round_if_due()? else {
                 break;
             };
+            train_cpu_s += super::pareto::process_cpu_s() - cpu_before_s;
             train_s += report.duration_s;
             curve.push(RoundPoint {
                 round: report.rounds,
@@ -280,6 +293,7 @@ pub fn run_config(
         skipped_eclipse: counters.skipped_eclipse,
         skipped_view: counters.skipped_view,
         train_s,
+        train_cpu_s,
         step_ms: if steps > 0 {
             1e3 * train_s / steps as f64
         } else {

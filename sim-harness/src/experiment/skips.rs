@@ -1,0 +1,240 @@
+//! The skips table: for each switchable skip (the online trainer's frame and round skips,
+//! gs-core's network skip), the same scenario trained with the skip active
+//! and without it; the training time it saves and what it costs in evaluation error
+//! (`skips.csv`, `skips.md`; every run in the Pareto schema in `skips-runs.csv`). Skips that cannot be switched yet are listed with the reason.
+//!
+//! Invariants: the base preset (every skip at its default) runs once and is reused as the
+//! "with" or "without" side of every skip whose default matches; every other run changes
+//! exactly one skip; `saved` = without - with (positive: the skip saves time) and `cost` =
+//! PSNR without - PSNR with (positive: the skip loses quality).
+
+use super::pareto::{io_error, run_settings, write_text, Knob, Setting, SweepRow};
+use super::preset::Preset;
+use super::ExperimentError;
+use crate::scenario::Scenario;
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+/// One switchable skip: the knob values that turn it on and off.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SkipSpec {
+    pub name: String,
+    pub what: String,
+    pub on: Knob,
+    pub off: Knob,
+}
+
+/// The skips the experiments can switch today: the online trainer's three and gs-core's
+/// `skip_noncontributing_in_mlp`.
+pub fn switchable_skips() -> Vec<SkipSpec> {
+    vec![
+        SkipSpec {
+            name: "eclipse".into(),
+            what: "frames flagged as in eclipse never enter the window".into(),
+            on: Knob::SkipEclipse(true),
+            off: Knob::SkipEclipse(false),
+        },
+        SkipSpec {
+            name: "unlit".into(),
+            what: "frames with mean full-frame brightness < 0.01 never enter the window".into(),
+            on: Knob::SkipUnlit(true),
+            off: Knob::SkipUnlit(false),
+        },
+        SkipSpec {
+            name: "unchanged-window".into(),
+            what: "no round when the keyframe window did not change since the last one".into(),
+            on: Knob::SkipUnchangedWindow(true),
+            off: Knob::SkipUnchangedWindow(false),
+        },
+        SkipSpec {
+            name: "noncontributing-mlp".into(),
+            what: "Phi and Psi run only for Gaussians the blend reads (alpha-only pass first)"
+                .into(),
+            on: Knob::SkipNoncontributingMlp(true),
+            off: Knob::SkipNoncontributingMlp(false),
+        },
+    ]
+}
+
+/// Skips in the renderer and the networks that have no switch yet (always on), with why.
+pub const NOT_SWITCHABLE: [(&str, &str); 3] = [
+    (
+        "frustum and near culling",
+        "always on in gs-core's projection (raster/project.rs); no config field",
+    ),
+    (
+        "early termination",
+        "always on in the blend (transmittance below 1e-4, raster/blend.rs); no config field",
+    ),
+    (
+        "background tiles outside the mask",
+        "training frames carry no mask in the experiments (full-frame loss, as the paper scores); no tile skip in gs-core",
+    ),
+];
+
+/// One skip measured with and without.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SkipRow {
+    pub spec: SkipSpec,
+    /// The skip is active in the base preset.
+    pub default_on: bool,
+    pub with: SweepRow,
+    pub without: SweepRow,
+}
+
+impl SkipRow {
+    /// Training CPU seconds the skip saves.
+    pub fn saved_cpu_s(&self) -> f64 {
+        self.without.train_cpu_s - self.with.train_cpu_s
+    }
+
+    /// PSNR the skip costs, dB (negative: the skip improves the score).
+    pub fn psnr_cost_db(&self) -> f64 {
+        self.without.psnr_db - self.with.psnr_db
+    }
+
+    pub fn ssim_cost(&self) -> f64 {
+        self.without.ssim - self.with.ssim
+    }
+}
+
+fn knob_is_set(preset: &Preset, knob: Knob) -> bool {
+    let mut p = preset.clone();
+    knob.apply(&mut p);
+    &p == preset
+}
+
+/// What the skips job needs.
+#[derive(Clone, Debug)]
+pub struct SkipsJob {
+    pub base: Preset,
+    pub scenario: Scenario,
+    pub skips: Vec<SkipSpec>,
+    pub out_dir: PathBuf,
+}
+
+/// The CSV header, exactly.
+pub const CSV_HEADER: &str = "skip,default_on,with_train_cpu_s,without_train_cpu_s,saved_cpu_s,\
+with_train_s,without_train_s,with_steps,without_steps,with_psnr_db,without_psnr_db,psnr_cost_db,\
+with_ssim,without_ssim,ssim_cost";
+
+pub fn to_csv(rows: &[SkipRow]) -> String {
+    let mut out = String::from(CSV_HEADER);
+    out.push('\n');
+    for r in rows {
+        let _ = writeln!(
+            out,
+            "{},{},{:.2},{:.2},{:.2},{:.2},{:.2},{},{},{:.3},{:.3},{:.3},{:.4},{:.4},{:.4}",
+            r.spec.name,
+            r.default_on,
+            r.with.train_cpu_s,
+            r.without.train_cpu_s,
+            r.saved_cpu_s(),
+            r.with.train_s,
+            r.without.train_s,
+            r.with.steps,
+            r.without.steps,
+            r.with.psnr_db,
+            r.without.psnr_db,
+            r.psnr_cost_db(),
+            r.with.ssim,
+            r.without.ssim,
+            r.ssim_cost()
+        );
+    }
+    out
+}
+
+/// Markdown: the measured skips, then the ones without a switch.
+pub fn to_markdown(rows: &[SkipRow]) -> String {
+    let mut out = String::from(
+        "| Skip | Default | What it skips | Steps with / without | Train CPU s with / without | Saved CPU s (%) | Train wall s with / without | PSNR dB with / without | Cost dB | SSIM with / without |\n\
+         |---|---|---|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for r in rows {
+        let pct = 100.0 * r.saved_cpu_s() / r.without.train_cpu_s.max(1e-9);
+        let _ = writeln!(
+            out,
+            "| {} | {} | {} | {} / {} | {:.1} / {:.1} | {:+.1} ({:+.0} %) | {:.1} / {:.1} | {:.2} / {:.2} | {:+.2} | {:.4} / {:.4} |",
+            r.spec.name,
+            if r.default_on { "on" } else { "off" },
+            r.spec.what,
+            r.with.steps,
+            r.without.steps,
+            r.with.train_cpu_s,
+            r.without.train_cpu_s,
+            r.saved_cpu_s(),
+            pct,
+            r.with.train_s,
+            r.without.train_s,
+            r.with.psnr_db,
+            r.without.psnr_db,
+            r.psnr_cost_db(),
+            r.with.ssim,
+            r.without.ssim
+        );
+    }
+    out.push_str("\nNot switchable (always on, not measured):\n\n");
+    for (name, why) in NOT_SWITCHABLE {
+        let _ = writeln!(out, "- {name}: {why}");
+    }
+    out
+}
+
+/// Runs the base and one run per skip toggled away from its default; writes `skips.csv`
+/// and `skips.md`.
+pub fn run_skips(
+    job: &SkipsJob,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Vec<SkipRow>, ExperimentError> {
+    let out = &job.out_dir;
+    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    let mut settings = vec![Setting::new("base", &[])];
+    let mut default_on = Vec::new();
+    for s in &job.skips {
+        let on = knob_is_set(&job.base, s.on);
+        default_on.push(on);
+        let (name, knob) = if on {
+            (format!("{}-off", s.name), s.off)
+        } else {
+            (format!("{}-on", s.name), s.on)
+        };
+        settings.push(Setting::new(&name, &[knob]));
+    }
+    let sweep = run_settings(
+        &job.scenario,
+        &job.base,
+        &settings,
+        &out.join("cache"),
+        progress,
+        &mut |_| Ok(()),
+    )?;
+    let base = &sweep[0];
+    let rows: Vec<SkipRow> = job
+        .skips
+        .iter()
+        .zip(&default_on)
+        .zip(&sweep[1..])
+        .map(|((spec, &on), toggled)| {
+            let (with, without) = if on {
+                (base.clone(), toggled.clone())
+            } else {
+                (toggled.clone(), base.clone())
+            };
+            SkipRow {
+                spec: spec.clone(),
+                default_on: on,
+                with,
+                without,
+            }
+        })
+        .collect();
+    write_text(&out.join("skips.csv"), &to_csv(&rows))?;
+    // Every run in the Pareto sweep's schema, to plot beside the sweep (`pareto-plot`).
+    write_text(
+        &out.join("skips-runs.csv"),
+        &super::pareto::to_csv(&sweep, &[]),
+    )?;
+    write_text(&out.join("skips.md"), &to_markdown(&rows))?;
+    Ok(rows)
+}
