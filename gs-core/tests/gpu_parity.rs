@@ -377,6 +377,21 @@ fn bad_inputs_are_errors() {
     assert!(gpu
         .render(&scene.camera, &view, &RasterSettings::default())
         .is_err());
+    // No Gaussians: the background, no tile entries.
+    let empty = GaussianView {
+        means: &[],
+        log_scales: &[],
+        rotations: &[],
+        opacity_logits: &[],
+        channels: &[],
+        n_channels: 3,
+    };
+    let out = gpu.render(&scene.camera, &empty, &scene.settings).unwrap();
+    assert_eq!(out.tile_entries, 0);
+    assert!(out.alpha.iter().all(|&a| a == 0.0));
+    for px in out.color.chunks_exact(3) {
+        assert_eq!(px, &scene.settings.background[..]);
+    }
     let out = gpu
         .render(&scene.camera, &scene.view(), &scene.settings)
         .unwrap();
