@@ -2,9 +2,10 @@
 //! random cloud of Gaussians in front of the camera, for 10K, 50K and 100K Gaussians.
 //!
 //! `cargo run --release -p gs-core --features wgpu --example gpu_bench -- [--runs N]
-//! [--width W --height H] [--gaussians N] [--cas] [--reduce] [--deterministic]`
+//! [--width W --height H] [--gaussians N] [--cas] [--reduce] [--deterministic] [--train]`
 //! (`--cas`: force the compare-and-swap gradient accumulation; `--reduce`: per-tile
-//! workgroup reductions; `--deterministic`: the fixed-order backward)
+//! workgroup reductions; `--deterministic`: the fixed-order backward; `--train`: also
+//! time one `train::Trainer` step (SH colour, render, loss, backward, Adam) per backend)
 //!
 //! On Mesa's software Vulkan driver (lavapipe) the "wgpu" column measures a CPU
 //! emulation of a GPU, not a GPU: compare columns only on a machine with a real one.
@@ -19,7 +20,9 @@ use glam::Vec3;
 use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
 use gs_core::raster::{render, render_backward, GaussianView, PixelGrads, RasterSettings};
 use gs_core::rng::SplitMix64;
-use gs_core::{Camera, Intrinsics};
+use gs_core::sh::rgb_to_sh_dc;
+use gs_core::train::{Backend, TrainConfig, TrainView, Trainer};
+use gs_core::{Camera, GaussianModel, Intrinsics, ModelLayout, Param};
 
 struct Cloud {
     means: Vec<f32>,
@@ -77,6 +80,53 @@ fn cloud(n: usize, seed: u64) -> Cloud {
         }
     }
     c
+}
+
+/// The cloud as a degree-0 SH model (colours as the DC terms).
+fn cloud_model(c: &Cloud) -> GaussianModel {
+    let n = c.opacity_logits.len();
+    let mut m = GaussianModel::new(ModelLayout::sh(0)).expect("degree 0");
+    m.params.push_zeros(n);
+    m.params.get_mut(Param::Mean).copy_from_slice(&c.means);
+    m.params
+        .get_mut(Param::LogScale)
+        .copy_from_slice(&c.log_scales);
+    m.params
+        .get_mut(Param::Rotation)
+        .copy_from_slice(&c.rotations);
+    m.params
+        .get_mut(Param::OpacityLogit)
+        .copy_from_slice(&c.opacity_logits);
+    for (dc, rgb) in m.params.get_mut(Param::ShDc).iter_mut().zip(&c.channels) {
+        *dc = rgb_to_sh_dc(*rgb);
+    }
+    m
+}
+
+/// Median wall time (ms) of `runs` training steps after one warm-up, on a grey target.
+fn step_ms(model: &GaussianModel, camera: &Camera, backend: Backend, runs: usize) -> f64 {
+    let config = TrainConfig {
+        densify_until_iter: 0,
+        opacity_reset_interval: 0,
+        ..TrainConfig::default()
+    };
+    let mut trainer = Trainer::new(model.clone(), &config, 3.0)
+        .expect("trainer")
+        .with_backend(backend);
+    let view = TrainView {
+        camera: *camera,
+        image: vec![0.5; camera.intrinsics.pixel_count() * 3],
+        mask: None,
+    };
+    let mut times = Vec::new();
+    for r in 0..=runs {
+        let t = Instant::now();
+        trainer.step(&view, 0).expect("step");
+        if r > 0 {
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    median(times)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -145,7 +195,8 @@ fn main() {
         "image {width}x{height}, {runs} runs (median ms), rayon threads {}",
         rayon::current_num_threads()
     );
-    let gpu = GpuRasterizer::new(ctx).expect("pipelines");
+    let train = args.iter().any(|a| a == "--train");
+    let gpu = std::sync::Arc::new(GpuRasterizer::new(ctx).expect("pipelines"));
     let camera = Camera::look_at(
         Intrinsics::from_fov_x(0.9, width, height),
         Vec3::new(0.0, -5.0, 1.0),
@@ -214,5 +265,11 @@ fn main() {
             gfm + gbm,
             process_cpu_s() - cpu0
         );
+        if train {
+            let model = cloud_model(&c);
+            let cpu_step = step_ms(&model, &camera, Backend::Cpu, runs);
+            let gpu_step = step_ms(&model, &camera, Backend::Wgpu(gpu.clone()), runs);
+            println!("{n:>8} training step: cpu {cpu_step:.1} ms, wgpu {gpu_step:.1} ms");
+        }
     }
 }
