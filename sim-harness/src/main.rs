@@ -152,6 +152,9 @@ enum Command {
         /// Voxels along the side of the hull's cube.
         #[arg(long)]
         hull_resolution: Option<u32>,
+        /// Only write hull.png (surface samples beside each target's hull), no training.
+        #[arg(long)]
+        hull_figure_only: bool,
     },
     /// Sweep the knobs that trade training time for error on one target; write
     /// pareto.csv, pareto.md and pareto.png (time against PSNR, Pareto front marked).
@@ -400,6 +403,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             eval_every,
             hull_views,
             hull_resolution,
+            hull_figure_only,
         } => {
             let mut preset = Preset::load(&preset)?;
             preset.eval_every_rounds = eval_every;
@@ -420,10 +424,18 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 inits,
                 out_dir: out.clone(),
             };
+            if hull_figure_only {
+                ablation_init::write_hull_figure(&job, &mut |line| eprintln!("{line}"))?;
+                eprintln!("wrote {}", out.join("hull.png").display());
+                return Ok(());
+            }
             let result = run_init_ablation(&job, &mut |line| eprintln!("{line}"))?;
+            if job.inits.iter().any(|i| i.starts_with("hull")) {
+                ablation_init::write_hull_figure(&job, &mut |line| eprintln!("{line}"))?;
+            }
             eprintln!("\n{}", ablation_init::to_markdown(&result.runs));
             eprintln!(
-                "{} runs in {:.0} s wall, {:.0} s process CPU (rendering {:.0} s); wrote init.csv, init.md, init_curves.csv, init.png, runs.json to {}",
+                "{} runs in {:.0} s wall, {:.0} s process CPU (rendering {:.0} s); wrote init.csv, init.md, init_curves.csv, init.png, runs.json (and hull.png) to {}",
                 result.runs.len(),
                 result.total_s,
                 result.total_cpu_s,

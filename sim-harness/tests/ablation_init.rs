@@ -6,7 +6,7 @@ use fsw_component::online::Initialisation;
 use glam::Vec3;
 use sim_harness::experiment::ablation_init::{
     first_keyframes, hull_initialisation, mean_nearest_distance, parse_init, run_init_ablation,
-    InitAblationJob, CSV_HEADER,
+    write_hull_figure, InitAblationJob, CSV_HEADER,
 };
 use sim_harness::experiment::data::{render_scene, SceneData};
 use sim_harness::experiment::preset::{InitKind, Preset};
@@ -183,5 +183,23 @@ fn tiny_ablation_writes_every_file_with_finite_metrics() {
     assert_eq!(curves.lines().count(), rounds + 1);
     let png = image::open(out.join("init.png")).unwrap();
     assert!(png.width() >= 400 && png.height() >= 500);
+    // hull.png: one row of four panels (model and hull, two projections each), with the
+    // points drawn over the dark panel background.
+    let reports = write_hull_figure(&job, &mut |_| {}).unwrap();
+    assert_eq!(reports.len(), 1);
+    let (figure, trained) = (&reports[0].1, result.runs[2].hull.as_ref().unwrap());
+    assert_eq!(
+        (&figure.frames, figure.points, figure.occupied_voxels),
+        (&trained.frames, trained.points, trained.occupied_voxels)
+    );
+    let hull_png = image::open(out.join("hull.png")).unwrap().to_rgb8();
+    assert!(hull_png.width() >= 4 * 220);
+    let background = image::Rgb([35u8, 35, 45]);
+    let white = image::Rgb([255u8, 255, 255]);
+    let drawn = hull_png
+        .pixels()
+        .filter(|p| **p != background && **p != white)
+        .count();
+    assert!(drawn > 1000, "{drawn}");
     let _ = std::fs::remove_dir_all(&out);
 }

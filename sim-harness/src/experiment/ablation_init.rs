@@ -3,7 +3,7 @@
 //! (2) random points in the bounding sphere, (3) a visual hull carved from the first
 //! keyframes' masks and known poses (no ground-truth model needed); written to `init.csv`,
 //! `init.md`, `init_curves.csv`, `runs.json` and `init.png` (PSNR bars per target, Gaussian
-//! count over rounds).
+//! count over rounds); `hull.png` shows each target's surface samples beside its hull.
 //!
 //! The hull's views are the first K keyframes the online trainer's window would take (the
 //! first K lit frames each at least `min_view_angle_deg` from the previous keyframe): what the
@@ -627,6 +627,168 @@ fn gaussian_panel(
             previous = next;
         }
     }
+}
+
+/// Points of one cloud with their sRGB colours in [0, 1].
+pub struct Cloud<'a> {
+    pub label: String,
+    pub points: &'a [Vec3],
+    pub colours: &'a [[f32; 3]],
+}
+
+const CLOUD_PANEL_PX: f64 = 220.0;
+const CLOUD_BACKGROUND: Rgb = [35, 35, 45];
+
+/// hull.png: one row per target, the clouds side by side, each seen along the body z axis
+/// (x right, y up) and along the body y axis (x right, z up), at one scale per row so the
+/// clouds compare directly. Points are 2x2 pixel squares in their colours.
+pub fn cloud_figure(rows: &[(String, Vec<Cloud>)]) -> Canvas {
+    let columns = rows.iter().map(|(_, c)| 2 * c.len()).max().unwrap_or(1) as f64;
+    let width = (20.0 + columns * (CLOUD_PANEL_PX + 10.0)) as u32;
+    let row_h = CLOUD_PANEL_PX + 40.0;
+    let height = (20.0 + rows.len() as f64 * row_h) as u32;
+    let mut canvas = Canvas::new(width, height, [255, 255, 255]);
+    for (r, (target, clouds)) in rows.iter().enumerate() {
+        let top = 30.0 + r as f64 * row_h;
+        let half_extent = clouds
+            .iter()
+            .flat_map(|c| c.points.iter())
+            .map(|p| p.abs().max_element() as f64)
+            .filter(|v| v.is_finite())
+            .fold(1e-3f64, f64::max);
+        let scale = 0.5 * (CLOUD_PANEL_PX - 10.0) / half_extent;
+        for (c, cloud) in clouds.iter().enumerate() {
+            for (view, (axis_u, axis_v, name)) in [(0usize, 1usize, "XY"), (0, 2, "XZ")]
+                .into_iter()
+                .enumerate()
+            {
+                let left = 10.0 + (2 * c + view) as f64 * (CLOUD_PANEL_PX + 10.0);
+                let label = format!(
+                    "{} {} {}",
+                    target_label(target).to_uppercase(),
+                    cloud.label,
+                    name
+                );
+                draw_text(&mut canvas, left as i64, top as i64 - 18, &label, 2, AXIS);
+                canvas.fill_rect(
+                    left as i64,
+                    top as i64,
+                    CLOUD_PANEL_PX as i64,
+                    CLOUD_PANEL_PX as i64,
+                    CLOUD_BACKGROUND,
+                );
+                let centre = (left + 0.5 * CLOUD_PANEL_PX, top + 0.5 * CLOUD_PANEL_PX);
+                for (p, colour) in cloud.points.iter().zip(cloud.colours) {
+                    let x = centre.0 + scale * p[axis_u] as f64;
+                    let y = centre.1 - scale * p[axis_v] as f64;
+                    if !(x.is_finite() && y.is_finite()) {
+                        continue;
+                    }
+                    let rgb = colour.map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8);
+                    canvas.fill_rect(x as i64, y as i64, 2, 2, rgb);
+                }
+            }
+        }
+    }
+    canvas
+}
+
+/// The surface samples (material colours) and the hull (its initial colours) of a scene.
+struct FigureRow {
+    name: String,
+    surface: Vec<Vec3>,
+    surface_colours: Vec<[f32; 3]>,
+    hull: Vec<Vec3>,
+    hull_colours: Vec<[f32; 3]>,
+}
+
+fn hull_figure_row(scene: &SceneData, preset: &Preset) -> Result<FigureRow, ExperimentError> {
+    let n = (preset.init_points as usize).min(scene.surface.len());
+    let surface = scene.surface[..n].iter().map(|s| s.position_m).collect();
+    let surface_colours = scene.surface[..n]
+        .iter()
+        .map(|s| {
+            s.albedo_rgb
+                .map(|c| crate::raytrace::linear_to_srgb8(c) as f32 / 255.0)
+        })
+        .collect();
+    let (init, _) = hull_initialisation(scene, preset)?;
+    let Initialisation::SurfaceSamples {
+        points, colours, ..
+    } = init
+    else {
+        return Err(ExperimentError::Invalid(
+            "a hull initialises from points".into(),
+        ));
+    };
+    let hull_colours = colours.unwrap_or_else(|| vec![GREY; points.len()]);
+    Ok(FigureRow {
+        name: scene.name.clone(),
+        surface,
+        surface_colours,
+        hull: points,
+        hull_colours,
+    })
+}
+
+/// Writes `OUT/hull.png` (true surface samples beside the hull of each scenario) without
+/// training; returns the hull reports.
+pub fn write_hull_figure(
+    job: &InitAblationJob,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Vec<(String, HullReport)>, ExperimentError> {
+    let out = &job.out_dir;
+    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    let preset = Preset {
+        init: InitKind::Hull,
+        ..job.preset.clone()
+    };
+    let mut data = Vec::new();
+    let mut reports = Vec::new();
+    for scenario in &job.scenarios {
+        let scenario = preset.apply(scenario)?;
+        let scene = load_or_render_scene(
+            &scenario,
+            preset.init_points as usize,
+            &out.join("cache"),
+            progress,
+        )?;
+        let (_, report) = hull_initialisation(&scene, &preset)?;
+        progress(&format!(
+            "{}: hull from frames {:?}, {} points, mean {:.3} m from the true surface",
+            scene.name, report.frames, report.points, report.mean_distance_to_surface_m
+        ));
+        reports.push((scene.name.clone(), report));
+        data.push(hull_figure_row(&scene, &preset)?);
+    }
+    let rows: Vec<(String, Vec<Cloud>)> = data
+        .iter()
+        .map(|row| {
+            (
+                row.name.clone(),
+                vec![
+                    Cloud {
+                        label: "MODEL".into(),
+                        points: &row.surface,
+                        colours: &row.surface_colours,
+                    },
+                    Cloud {
+                        label: "HULL".into(),
+                        points: &row.hull,
+                        colours: &row.hull_colours,
+                    },
+                ],
+            )
+        })
+        .collect();
+    let canvas = cloud_figure(&rows);
+    files::write_png_rgb(
+        &out.join("hull.png"),
+        canvas.width,
+        canvas.height,
+        &canvas.rgb8,
+    )?;
+    Ok(reports)
 }
 
 /// Runs the job, reporting progress lines.
