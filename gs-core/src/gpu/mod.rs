@@ -17,11 +17,13 @@
 
 pub mod gemm;
 pub mod raster;
+pub mod shadow;
 
 use std::sync::Arc;
 
 pub use gemm::{GemmOp, GpuGemm};
 pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
+pub use shadow::GpuShadow;
 
 /// GPU backend error.
 #[derive(Clone, Debug, PartialEq)]
@@ -317,6 +319,26 @@ impl GpuContext {
     pub(crate) fn encoder(&self, label: &str) -> wgpu::CommandEncoder {
         self.device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// A bind group with explicit binding numbers (for layouts with gaps).
+    pub(crate) fn bind_group_at(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        buffers: &[(u32, &wgpu::Buffer)],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: *i,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        })
     }
 
     pub(crate) fn bind_group(

@@ -60,17 +60,30 @@ const OUT_FIXED: usize = 13;
 /// Per-Gaussian input stride (mean 3, log-scale 3, quaternion 4, opacity logit 1).
 const GSTRIDE: usize = 11;
 /// Per-splat stride on the device (see common.wgsl).
-const SSTRIDE: usize = 12;
+pub(super) const SSTRIDE: usize = 12;
 /// Splats per batch staged in workgroup memory by the blend kernels (`BATCH` in WGSL).
 const BATCH: usize = 128;
 /// The local bitonic kernel sorts blocks of this many keys.
-const SORT_BLOCK: u64 = 512;
+pub(super) const SORT_BLOCK: u64 = 512;
+
+/// Constants the raster shaders expect before common.wgsl, then common.wgsl.
+pub(super) fn prelude(nc: usize) -> String {
+    let rec = REC_CHANNELS + nc;
+    format!(
+        "const NC: u32 = {nc}u;\nconst NCA: u32 = {}u;\nconst REC: u32 = {rec}u;\n\
+         const RED_LEN: u32 = {}u;\nconst OSTRIDE: u32 = {}u;\nconst SH_LEN: u32 = {}u;\n{COMMON}\n",
+        nc.max(1),
+        rec * 256,
+        OUT_FIXED + nc,
+        BATCH * (7 + nc.max(1)),
+    )
+}
 
 /// Pipelines whose shaders depend on the channel count.
-struct ChannelPipelines {
+pub(super) struct ChannelPipelines {
     project: wgpu::ComputePipeline,
-    keygen: wgpu::ComputePipeline,
-    ranges: wgpu::ComputePipeline,
+    pub(super) keygen: wgpu::ComputePipeline,
+    pub(super) ranges: wgpu::ComputePipeline,
     blend: wgpu::ComputePipeline,
     blend_backward: wgpu::ComputePipeline,
     project_backward: wgpu::ComputePipeline,
@@ -81,7 +94,7 @@ struct ChannelPipelines {
 /// The GPU rasterizer: a device and its compiled pipelines (per channel count, built on
 /// first use).
 pub struct GpuRasterizer {
-    ctx: GpuContext,
+    pub(super) ctx: GpuContext,
     scan_block: wgpu::ComputePipeline,
     scan_add: wgpu::ComputePipeline,
     sort_global: wgpu::ComputePipeline,
@@ -169,7 +182,7 @@ fn check_len(what: &str, expected: usize, got: usize) -> Result<(), GpuError> {
 
 /// The frame uniform (layout of `Frame` in common.wgsl, 144 bytes).
 #[allow(clippy::too_many_arguments)]
-fn frame_bytes(
+pub(super) fn frame_bytes(
     frame: &crate::raster::project::CameraFrame,
     cutoff: f32,
     grid: &TileGrid,
@@ -230,7 +243,16 @@ impl GpuRasterizer {
         &self.ctx
     }
 
-    fn channel_pipelines(&self, nc: usize) -> Result<Arc<ChannelPipelines>, GpuError> {
+    /// WGSL of the atomic accumulator `acc_add` (binding 7): f32 atomics or the CAS loop.
+    pub(super) fn atomic_accumulator(&self) -> &'static str {
+        if self.ctx.uses_float32_atomics() {
+            ACC_F32
+        } else {
+            ACC_CAS
+        }
+    }
+
+    pub(super) fn channel_pipelines(&self, nc: usize) -> Result<Arc<ChannelPipelines>, GpuError> {
         let mut map = self
             .by_channels
             .lock()
@@ -238,22 +260,12 @@ impl GpuRasterizer {
         if let Some(p) = map.get(&nc) {
             return Ok(p.clone());
         }
-        let rec = REC_CHANNELS + nc;
-        let prelude = format!(
-            "const NC: u32 = {nc}u;\nconst NCA: u32 = {}u;\nconst REC: u32 = {rec}u;\n\
-             const RED_LEN: u32 = {}u;\nconst OSTRIDE: u32 = {}u;\nconst SH_LEN: u32 = {}u;\n{COMMON}\n",
-            nc.max(1),
-            rec * 256,
-            OUT_FIXED + nc,
-            BATCH * (7 + nc.max(1)),
-        );
+        let prelude = prelude(nc);
         let options = self.ctx.options;
         let acc = if options.deterministic {
             ACC_RECORDS
-        } else if self.ctx.uses_float32_atomics() {
-            ACC_F32
         } else {
-            ACC_CAS
+            self.atomic_accumulator()
         };
         let blend_backward = if options.workgroup_reduction || options.deterministic {
             BLEND_BACKWARD
@@ -280,7 +292,7 @@ impl GpuRasterizer {
 
     /// Exclusive prefix sum of `len` u32 values in `data`, in place (recursive over
     /// block sums). `keep` holds the temporaries until submission.
-    fn encode_scan(
+    pub(super) fn encode_scan(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         data: &wgpu::Buffer,
@@ -312,7 +324,7 @@ impl GpuRasterizer {
     }
 
     /// Bitonic sort of `n_sort` (a power of two, >= 512) keys.
-    fn encode_sort(
+    pub(super) fn encode_sort(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         keys: &wgpu::Buffer,
