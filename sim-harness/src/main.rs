@@ -17,6 +17,10 @@
 //! skip; `sim-harness ablation-window --out DIR [--windows 5,10,20,40]` is the window
 //! ablation (see `sim_harness::experiment::{pareto, skips, ablation}`).
 //!
+//! `sim-harness shadow-study --out DIR [--target NAME | --scenario FILE] [--preset NAME]
+//! [--views N] [--cache DIR] [--no-train]` checks shadow splatting against the ray tracer's
+//! ground-truth shadows (see `sim_harness::experiment::shadow_study`).
+//!
 //! `sim-harness buslogs --dataset DIR [--out DIR/bus] [--config FILE]` writes the dataset as
 //! the component's bus logs (`can.log`, `udp.rec`) for `fsw-component --replay`;
 //! `sim-harness play --dataset DIR --udp HOST:PORT [--telemetry-udp HOST:PORT] [--can IFACE]
@@ -37,6 +41,9 @@ use sim_harness::experiment::pareto::{
     to_markdown as pareto_markdown, write_outputs as write_pareto_outputs, ParetoJob,
 };
 use sim_harness::experiment::preset::Preset;
+use sim_harness::experiment::shadow_study::{
+    run_shadow_study, to_markdown as shadow_markdown, ShadowStudyJob,
+};
 use sim_harness::experiment::skips::{
     run_skips, switchable_skips, to_markdown as skips_markdown, SkipsJob,
 };
@@ -207,6 +214,31 @@ enum Command {
         /// Scenario file to use instead of the three built-in targets (repeatable).
         #[arg(long)]
         scenario: Vec<PathBuf>,
+    },
+    /// Shadow splatting (configuration c) against the ray tracer's ground-truth shadows on
+    /// one target: shadow_study.json, shadow_study.md, before.png, after.png.
+    ShadowStudy {
+        /// Output folder.
+        #[arg(long)]
+        out: PathBuf,
+        /// Preset name (config/presets/NAME.toml) or file.
+        #[arg(long, default_value = "cpu")]
+        preset: String,
+        /// Scenario file (default: the built-in target named by --target).
+        #[arg(long)]
+        scenario: Option<PathBuf>,
+        /// Built-in target: cassini, rosetta or starlink.
+        #[arg(long, default_value = "cassini")]
+        target: String,
+        /// Evaluation views and training frames scored and drawn (each).
+        #[arg(long, default_value_t = 4)]
+        views: usize,
+        /// Rendered-scene cache (default OUT/cache; a table's OUT/cache is reused as is).
+        #[arg(long)]
+        cache: Option<PathBuf>,
+        /// Only the ground truth, the Sun coverage and the light pass on known geometry.
+        #[arg(long)]
+        no_train: bool,
     },
     /// Train configuration d online on a small embedded Cassini-like scenario.
     Demo {
@@ -519,6 +551,37 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             let rows = run_window_ablation(&job, &mut |line| eprintln!("{line}"))?;
             eprintln!("\n{}", window_markdown(&rows));
             eprintln!("wrote {}", out.join("window.md").display());
+            Ok(())
+        }
+        Command::ShadowStudy {
+            out,
+            preset,
+            scenario,
+            target,
+            views,
+            cache,
+            no_train,
+        } => {
+            let scenario = match scenario {
+                Some(path) => Scenario::load(&path)?,
+                None => builtin_scenarios()?
+                    .into_iter()
+                    .find(|s| s.name == target)
+                    .ok_or_else(|| {
+                        format!("no built-in target {target:?} (cassini, rosetta, starlink)")
+                    })?,
+            };
+            let job = ShadowStudyJob {
+                preset: Preset::load(&preset)?,
+                scenario,
+                cache_dir: cache.unwrap_or_else(|| out.join("cache")),
+                out_dir: out.clone(),
+                views,
+                train: !no_train,
+            };
+            let report = run_shadow_study(&job, &mut |line| eprintln!("{line}"))?;
+            eprintln!("\n{}", shadow_markdown(&report));
+            eprintln!("wrote {}", out.join("shadow_study.md").display());
             Ok(())
         }
         Command::Demo { out } => {

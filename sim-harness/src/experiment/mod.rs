@@ -19,6 +19,7 @@ pub mod figure;
 pub mod pareto;
 pub mod preset;
 pub mod runner;
+pub mod shadow_study;
 pub mod skips;
 pub mod table;
 pub mod table_job;
