@@ -600,3 +600,47 @@ fn shadow_visibility_matches_cpu() {
         assert!(n_off * 200 <= cpu.len(), "{n_off} Gaussians off");
     }
 }
+
+/// `GpuShadow::sun_visibility` against `sunaware::light::sun_visibility` for a model, a
+/// Sun direction and both light projections (same tolerance as the splat-level test).
+#[test]
+fn sun_visibility_matches_cpu() {
+    use gs_core::gpu::GpuShadow;
+    use gs_core::init::random_in_sphere;
+    use gs_core::nn::SceneBox;
+    use gs_core::sunaware::config::{LightConfig, LightProjection};
+    use gs_core::sunaware::light::sun_visibility;
+    use gs_core::ModelLayout;
+    use std::sync::Arc;
+
+    let Some(ctx) = context(GpuOptions::default()) else {
+        return;
+    };
+    let shadow = GpuShadow::new(Arc::new(GpuRasterizer::new(ctx).unwrap())).unwrap();
+    let model = random_in_sphere(1500, Vec3::ZERO, 1.0, ModelLayout::sh(0), 9)
+        .unwrap()
+        .model;
+    let scene_box = SceneBox::new([-1.0; 3], [1.0; 3]).unwrap();
+    let sun = Vec3::new(0.3, -0.5, 0.8).normalize();
+    let camera_centre = Vec3::new(0.0, -6.0, 1.0);
+    for projection in [LightProjection::Perspective, LightProjection::Orthographic] {
+        let config = LightConfig {
+            projection,
+            ..LightConfig::default()
+        };
+        let cpu = sun_visibility(&model, sun, camera_centre, &scene_box, &config, 0.01).unwrap();
+        let gpu = shadow
+            .sun_visibility(&model, sun, camera_centre, &scene_box, &config, 0.01)
+            .unwrap();
+        let worst = max_abs_diff(&gpu, &cpu);
+        let n_off = count_above(&gpu, &cpu, 1e-4);
+        let shadowed = cpu.iter().filter(|&&v| v < 0.5).count();
+        eprintln!(
+            "{projection:?}: max |dV| {worst:.2e}, {n_off} of {} above 1e-4, {shadowed} with V < 0.5",
+            cpu.len()
+        );
+        assert!(shadowed > 50);
+        assert!(worst <= 2e-2, "max |dV| {worst}");
+        assert!(n_off * 200 <= cpu.len(), "{n_off} Gaussians off");
+    }
+}

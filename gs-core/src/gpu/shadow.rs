@@ -55,6 +55,35 @@ impl GpuShadow {
         })
     }
 
+    /// `V_i` of every Gaussian of `model` for one image: the GPU counterpart of
+    /// `sunaware::light::sun_visibility` (light camera, splats and receiver margins from
+    /// the CPU functions, the per-pixel pass here).
+    pub fn sun_visibility(
+        &self,
+        model: &crate::model::GaussianModel,
+        sun_dir: glam::Vec3,
+        camera_centre: glam::Vec3,
+        scene_box: &crate::nn::SceneBox,
+        config: &crate::sunaware::config::LightConfig,
+        near_m: f32,
+    ) -> Result<Vec<f32>, GpuError> {
+        use crate::sunaware::light;
+        let bad = |e: crate::sunaware::error::SunAwareError| GpuError::Invalid(e.to_string());
+        let camera = light::light_camera(sun_dir, camera_centre, scene_box, config).map_err(bad)?;
+        let splats = light::light_splats(model, &camera, near_m).map_err(bad)?;
+        let margin: Vec<f32> = light::light_axis_sigmas_m(model, &camera)
+            .iter()
+            .map(|s| s * light::RECEIVER_EXTENT_SIGMAS)
+            .collect();
+        self.visibility_from_splats(
+            &splats,
+            config.resolution_px,
+            config.footprint_radius_px,
+            camera.depth_bias_m,
+            &margin,
+        )
+    }
+
     /// `V_i` for every Gaussian from its splats in the `side_px` x `side_px` light image:
     /// the GPU counterpart of `sunaware::light::visibility_from_splats` (same arguments).
     pub fn visibility_from_splats(
