@@ -1,6 +1,8 @@
 //! wgpu compute backend (feature `wgpu`): the rasterizer's forward and backward passes
-//! and a tiled GEMM as WGSL compute kernels, checked against the CPU path
-//! (`tests/gpu_parity.rs`).
+//! ([`GpuRasterizer`]), the shadow pass's per-pixel visibility ([`GpuShadow`]) and a tiled
+//! GEMM for the MLP products ([`GpuGemm`]) as WGSL compute kernels (`shaders/`), checked
+//! against the CPU path (`tests/gpu_parity.rs`). `crate::train::Backend::Wgpu` moves the
+//! plain 3DGS trainer's rasterizer here.
 //!
 //! [`GpuContext::new`] opens a Vulkan adapter (the only backend compiled in, so wgpu can
 //! never fall back to OpenGL) and reports its name, backend and whether it has
