@@ -456,6 +456,7 @@ fn set_switch(config: &mut SunAwareConfig, name: &str, on: bool) -> Result<(), S
     match name {
         "skip_noncontributing_in_mlp" => config.skip_noncontributing_in_mlp = on,
         "mlp_recompute_activations" => config.mlp_recompute_activations = on,
+        "reuse_step_buffers" => config.reuse_step_buffers = on,
         _ => return Err(format!("unknown switch {name:?}")),
     }
     Ok(())

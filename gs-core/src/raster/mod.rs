@@ -448,6 +448,17 @@ pub struct RasterWorkspace {
     sums: Vec<f32>,
 }
 
+impl RasterWorkspace {
+    /// Frees the backward's gradient records and sums (the largest buffers: one record
+    /// per tile entry), keeping the forward's tile buffers. For callers that hold the
+    /// workspace across other memory-hungry work and care more about peak memory than
+    /// about the backward's page faults.
+    pub fn release_backward_buffers(&mut self) {
+        self.records = Vec::new();
+        self.sums = Vec::new();
+    }
+}
+
 /// The first `len` values of `buf`, growing it (with zeros) when shorter. Values already
 /// there are left as they are: callers overwrite or clear what they read.
 fn scratch(buf: &mut Vec<f32>, len: usize) -> &mut [f32] {

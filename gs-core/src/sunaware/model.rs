@@ -19,6 +19,7 @@
 //! the inputs, so results are deterministic; nothing non-finite is returned as a gradient
 //! (the caller checks before stepping).
 
+use std::sync::Mutex;
 use std::time::Instant;
 
 use glam::Vec3;
@@ -28,7 +29,7 @@ use crate::init::SplitMix64;
 use crate::model::{GaussianModel, Param, ParamSet};
 use crate::nn::{AppearanceNet, MlpForward, PositionalEncoding, SceneBox, ShadowNet, TapeMode};
 use crate::raster::{
-    prepare_view, render_backward, render_prepared, BackwardTimings as RasterBackwardTimings,
+    prepare_view, render_backward_with, render_prepared, BackwardTimings as RasterBackwardTimings,
     ForwardTimings as RasterForwardTimings, GaussianGrads, GaussianView, PixelGrads,
     RasterSettings, RasterWorkspace, RenderOutput,
 };
@@ -48,6 +49,68 @@ pub struct SunAwareModel {
     pub shadow: Option<ShadowNet>,
     pub scene_box: SceneBox,
     pub config: SunAwareConfig,
+    scratch: Scratch,
+}
+
+/// Buffers a forward and backward reuse from the previous step when
+/// `config.reuse_step_buffers` is on: the rasterizer's scratch memory and the networks'
+/// inputs and tapes (handed back by [`SunAwareModel::recycle`]).
+/// Reuse only spares allocation and page faults: every reused value is overwritten before
+/// it is read, so results are the same bits as with fresh buffers. Not part of the model's
+/// value: a clone starts empty and equality ignores it. A call that finds the buffers in
+/// use by another thread works with fresh ones.
+#[derive(Default)]
+struct Scratch(Mutex<ScratchBuffers>);
+
+#[derive(Default)]
+struct ScratchBuffers {
+    raster: RasterWorkspace,
+    phi: Option<NetPass>,
+    psi: Option<NetPass>,
+}
+
+impl Clone for Scratch {
+    fn clone(&self) -> Self {
+        Self::default()
+    }
+}
+
+impl PartialEq for Scratch {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for Scratch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Scratch")
+    }
+}
+
+impl Scratch {
+    /// Runs `f` with the kept rasterizer workspace (`reuse`), or a fresh one when not
+    /// reusing or when it is busy.
+    fn with_raster<T>(&self, reuse: bool, f: impl FnOnce(&mut RasterWorkspace) -> T) -> T {
+        match self.0.try_lock() {
+            Ok(mut s) if reuse => f(&mut s.raster),
+            _ => f(&mut RasterWorkspace::default()),
+        }
+    }
+
+    /// The kept network buffers (Phi, Psi), leaving none behind (fresh ones unless
+    /// `reuse`).
+    fn take_nets(&self, reuse: bool) -> (NetPass, NetPass) {
+        if !reuse {
+            return Default::default();
+        }
+        match self.0.try_lock() {
+            Ok(mut s) => (
+                s.phi.take().unwrap_or_default(),
+                s.psi.take().unwrap_or_default(),
+            ),
+            Err(_) => Default::default(),
+        }
+    }
 }
 
 /// Gradients of one step: every Gaussian group and both networks' flat weights.
@@ -81,7 +144,7 @@ impl SunAwareGrads {
 }
 
 /// Network batch kept from forward for backward.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 struct NetPass {
     input: Vec<f32>,
     forward: MlpForward,
@@ -250,6 +313,7 @@ impl SunAwareModel {
             shadow,
             scene_box,
             config,
+            scratch: Scratch::default(),
         })
     }
 
@@ -357,6 +421,8 @@ impl SunAwareModel {
         } else {
             TapeMode::Cache
         };
+        let (mut phi_buffers, mut psi_buffers) =
+            self.scratch.take_nets(self.config.reuse_step_buffers);
         let phi = match &self.appearance {
             None => {
                 let rgb = sh_to_rgb(p, sh_degree, cam_pos)?;
@@ -366,7 +432,10 @@ impl SunAwareModel {
                 None
             }
             Some(net) => {
-                let mut input = Vec::new();
+                let NetPass {
+                    mut input,
+                    mut forward,
+                } = std::mem::take(&mut phi_buffers);
                 net.assemble_input(
                     &network_list,
                     p.get(Param::Feature),
@@ -375,7 +444,8 @@ impl SunAwareModel {
                     cam_pos.to_array(),
                     &mut input,
                 )?;
-                let forward = net.mlp.forward_train(&input, network_list.len(), tape)?;
+                net.mlp
+                    .forward_train_into(&input, network_list.len(), tape, &mut forward)?;
                 for (r, &g) in network_list.iter().enumerate() {
                     let g = g as usize;
                     channels[g * nc..g * nc + 3].copy_from_slice(&forward.output[r * 3..r * 3 + 3]);
@@ -388,7 +458,10 @@ impl SunAwareModel {
         let mut refined = Vec::new();
         let psi = match &self.shadow {
             Some(net) if shadowed => {
-                let mut input = Vec::new();
+                let NetPass {
+                    mut input,
+                    mut forward,
+                } = std::mem::take(&mut psi_buffers);
                 net.assemble_input(
                     &network_list,
                     &vis,
@@ -398,7 +471,8 @@ impl SunAwareModel {
                     &self.scene_box,
                     &mut input,
                 )?;
-                let forward = net.mlp.forward_train(&input, network_list.len(), tape)?;
+                net.mlp
+                    .forward_train_into(&input, network_list.len(), tape, &mut forward)?;
                 refined = vec![0.0f32; n];
                 for (r, &g) in network_list.iter().enumerate() {
                     channels[g as usize * nc + 3] = forward.output[r];
@@ -411,7 +485,11 @@ impl SunAwareModel {
         timings.psi_forward_ms = ms_since(t_psi);
 
         let t3 = Instant::now();
-        let render_out = render_prepared(&mut RasterWorkspace::default(), prepared, &channels, nc)?;
+        let render_out = self
+            .scratch
+            .with_raster(self.config.reuse_step_buffers, |ws| {
+                render_prepared(ws, prepared, &channels, nc)
+            })?;
         timings.raster.blend_ms = render_out.timings.blend_ms;
         let pixels = k.pixel_count();
         let mut rgb = vec![0.0f32; pixels * 3];
@@ -452,6 +530,19 @@ impl SunAwareModel {
             render: render_out,
             settings: settings.clone(),
         })
+    }
+
+    /// Hands a finished pass's network buffers back, so the next forward reuses them
+    /// instead of allocating (the trainer calls this after each step; a no-op unless
+    /// `config.reuse_step_buffers`).
+    pub fn recycle(&self, pass: FramePass) {
+        if !self.config.reuse_step_buffers {
+            return;
+        }
+        if let Ok(mut s) = self.scratch.0.try_lock() {
+            s.phi = pass.phi;
+            s.psi = pass.psi;
+        }
     }
 
     /// Backward of [`SunAwareModel::forward`] for `d_image = dL/d(RGB * S)` (`H * W * 3`).
@@ -501,17 +592,26 @@ impl SunAwareModel {
         timings.compose_ms = ms_since(t0);
         let t1 = Instant::now();
         let view = GaussianView::from_model(&self.gaussians, &pass.channels, nc);
-        let g = render_backward(
-            &pass.camera,
-            &view,
-            &pass.settings,
-            &pass.render,
-            &PixelGrads {
-                d_color: &d_color,
-                d_alpha: None,
-                d_depth: None,
-            },
-        )?;
+        let g = self
+            .scratch
+            .with_raster(self.config.reuse_step_buffers, |ws| {
+                // The records are one per tile entry (tens of MB): keeping them through the
+                // networks' backward would raise the step's peak, so they go now.
+                let g = render_backward_with(
+                    ws,
+                    &pass.camera,
+                    &view,
+                    &pass.settings,
+                    &pass.render,
+                    &PixelGrads {
+                        d_color: &d_color,
+                        d_alpha: None,
+                        d_depth: None,
+                    },
+                );
+                ws.release_backward_buffers();
+                g
+            })?;
         let p = &self.gaussians.params;
         let mut params = gather_geometry(p, &g);
         timings.raster = g.timings;
@@ -544,17 +644,17 @@ impl SunAwareModel {
                     &mut d_appearance,
                     Some(&mut d_input),
                 )?;
-                let mut d_features = vec![0.0f32; p.get(Param::Feature).len()];
+                // The rasterizer gives features no gradient: the group is still zeros, so
+                // the scatter adds straight into it (as into a fresh zero buffer).
                 let mut d_means = vec![0.0f32; n * 3];
                 net.scatter_input_grad(
                     &pass.network_list,
                     p.get(Param::Mean),
                     cam_pos.to_array(),
                     &d_input,
-                    &mut d_features,
+                    params.get_mut(Param::Feature),
                     &mut d_means,
                 )?;
-                params.get_mut(Param::Feature).copy_from_slice(&d_features);
                 for (a, b) in params.get_mut(Param::Mean).iter_mut().zip(&d_means) {
                     *a += b;
                 }
@@ -671,6 +771,59 @@ mod tests {
                 (x - y).abs() <= 1e-5 * scale,
                 "{what}[{i}]: {x} vs {y} (scale {scale})"
             );
+        }
+    }
+
+    fn camera_sized(width: u32, height: u32, eye: Vec3) -> Camera {
+        Camera::look_at(
+            Intrinsics::from_fov_x(0.8, width, height),
+            eye,
+            Vec3::ZERO,
+            Vec3::Z,
+        )
+    }
+
+    #[test]
+    fn reused_step_buffers_give_the_same_bits_as_fresh_ones() {
+        for recompute in [false, true] {
+            let mut warm = dense_model(700, true);
+            warm.config.mlp_recompute_activations = recompute;
+            warm.config.reuse_step_buffers = true;
+            let settings = warm.raster_settings(false);
+            // Large, small, large again (leftovers of a bigger call sit in the buffers),
+            // and different views, so the network batches change size too.
+            let views = [
+                (80, 60, Vec3::new(1.2, -2.2, 0.9)),
+                (24, 20, Vec3::new(-2.0, 0.5, 1.5)),
+                (64, 48, Vec3::new(0.3, 2.4, -0.8)),
+                (80, 60, Vec3::new(2.5, 0.2, 0.1)),
+            ];
+            for (i, &(w, h, eye)) in views.iter().enumerate() {
+                let cam = camera_sized(w, h, eye);
+                let sun = sun_direction(0.3 + i as f32, 0.4);
+                // A clone starts with empty buffers: the fresh reference.
+                let fresh = warm.clone();
+                let a = warm.forward(&cam, sun, 0, &settings, None).unwrap();
+                let b = fresh.forward(&cam, sun, 0, &settings, None).unwrap();
+                assert_eq!(bits(&a.image), bits(&b.image), "view {i}");
+                assert_eq!(a.network_list, b.network_list);
+                let d_image: Vec<f32> = (0..a.image.len())
+                    .map(|k| ((k * 31 + i) % 7) as f32 / 7.0 - 0.4)
+                    .collect();
+                let ga = warm.backward(&a, &d_image).unwrap();
+                let gb = fresh.backward(&b, &d_image).unwrap();
+                for p in Param::ALL {
+                    assert_eq!(
+                        bits(ga.params.get(p)),
+                        bits(gb.params.get(p)),
+                        "{}",
+                        p.name()
+                    );
+                }
+                assert_eq!(bits(&ga.appearance), bits(&gb.appearance));
+                assert_eq!(bits(&ga.shadow), bits(&gb.shadow));
+                warm.recycle(a);
+            }
         }
     }
 

@@ -508,6 +508,7 @@ impl SunAwareTrainer {
             _ => {
                 self.skipped_nonfinite += 1;
                 stats.skipped = true;
+                self.model.recycle(pass);
                 timings.total_ms = ms_since(t_start);
                 stats.timings = timings;
                 return Ok(stats);
@@ -532,6 +533,7 @@ impl SunAwareTrainer {
             .accumulate(&grads.mean2d_grad_ndc, pass.visible(), pass.radii_px())?;
         self.steps += 1;
         stats.step = self.steps;
+        self.model.recycle(pass);
         timings.optimizer_ms = ms_since(t_opt);
         timings.total_ms = ms_since(t_start);
         stats.timings = timings;
