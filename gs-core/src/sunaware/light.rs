@@ -26,7 +26,7 @@
 //! centre is nearer the light by up to the spacing times the tilt's tangent, far more than a
 //! fixed bias, and the splats overlap. Measured with the ray tracer's ground truth on the
 //! three targets' surfaces made opaque (docs/shadows.md), a lit Gaussian had a mean `V` of
-//! only 0.26-0.57 with the fixed bias alone. What lies within `i`'s own extent along the
+//! only 0.31-0.57 with the fixed bias alone. What lies within `i`'s own extent along the
 //! light ray is beside it, not in front of it; flat Gaussians tilted towards the light get a
 //! large `sigma_i`, face-on ones a small one, so this is the splatting form of a
 //! slope-scaled depth bias.

@@ -667,6 +667,10 @@ fn class_rgb8(map: &SunlightMap) -> Vec<u8> {
         .collect()
 }
 
+/// One view's report, its pixel accumulators (S, V image), its Gaussian accumulators
+/// (V, V') and its figure cells.
+type ViewStudy = (ViewShadowReport, [PixelAcc; 2], [GaussianAcc; 2], Vec<Cell>);
+
 /// Scores and figure cells of one view for one model.
 fn study_view(
     model: &SunAwareModel,
@@ -675,7 +679,7 @@ fn study_view(
     view: &ViewData,
     label: String,
     step_m: f32,
-) -> Result<(ViewShadowReport, [PixelAcc; 2], [GaussianAcc; 2], Vec<Cell>), ExperimentError> {
+) -> Result<ViewStudy, ExperimentError> {
     let k = &scene.intrinsics;
     let camera = camera_of(k, view);
     let sun = sun_of(view);

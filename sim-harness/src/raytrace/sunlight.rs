@@ -117,7 +117,7 @@ pub fn render_sunlight(scene: &Scene, req: &FrameRequest) -> Result<SunlightMap,
 /// point, a zero Sun vector or a negative step.
 pub fn sun_reaches_point(scene: &Scene, point: Vec3, sun_dir: Vec3, step_m: f32) -> Option<bool> {
     let sun = sun_dir.try_normalize()?;
-    if !point.is_finite() || !(step_m >= 0.0 && step_m.is_finite()) {
+    if !point.is_finite() || !step_m.is_finite() || step_m < 0.0 {
         return None;
     }
     let start = point + sun * step_m;
@@ -242,5 +242,11 @@ mod tests {
             Some(false)
         );
         assert_eq!(sun_reaches_point(&scene, bottom, Vec3::ZERO, 1e-3), None);
+        assert_eq!(sun_reaches_point(&scene, bottom, Vec3::Z, -1e-3), None);
+        assert_eq!(sun_reaches_point(&scene, bottom, Vec3::Z, f32::NAN), None);
+        assert_eq!(
+            sun_reaches_point(&scene, Vec3::splat(f32::NAN), Vec3::Z, 1e-3),
+            None
+        );
     }
 }
