@@ -177,6 +177,12 @@ fn tiny_ablation_writes_every_file_with_finite_metrics() {
     );
     let md = std::fs::read_to_string(out.join("init.md")).unwrap();
     assert!(md.contains("| Quick | hull |"), "{md}");
+    // Every row of a table has as many cells as its header (pipes in text are escaped).
+    let cells = |line: &str| line.replace("\\|", "").matches('|').count();
+    for table in md.split("\n\n").filter(|t| t.starts_with('|')) {
+        let header = cells(table.lines().next().unwrap());
+        assert!(table.lines().all(|l| cells(l) == header), "{table}");
+    }
     assert!(md.contains("Visual hulls"));
     let curves = std::fs::read_to_string(out.join("init_curves.csv")).unwrap();
     let rounds: usize = result.runs.iter().map(|r| r.run.curve.len()).sum();

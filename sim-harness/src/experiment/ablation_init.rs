@@ -320,7 +320,7 @@ pub fn to_csv(runs: &[InitRun]) -> String {
 pub fn to_markdown(runs: &[InitRun]) -> String {
     let mut out = String::from(
         "Configuration (d), evaluation views, full frame (masked = target pixels only).\n\n\
-         | Target | Init. | PSNR↑ | SSIM↑ | masked PSNR | seen PSNR | Δ PSNR vs surface | |G| start → end | train s | run CPU s |\n\
+         | Target | Init. | PSNR↑ | SSIM↑ | masked PSNR | seen PSNR | Δ PSNR vs surface | \\|G\\| start → end | train s | run CPU s |\n\
          |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in runs {
