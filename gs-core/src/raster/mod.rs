@@ -1,5 +1,11 @@
 //! Tile rasterizer for Gaussians: projection, binning, blending, and the backward pass.
 //!
+//! Two ways in: [`render`] / [`render_with`] do everything in one call; or
+//! [`prepare_view`] projects, sorts and bins the geometry alone, [`PreparedView::contributing`]
+//! tells which Gaussians the blend will read (an alpha-only walk of the tiles), and
+//! [`render_prepared`] blends channels computed afterwards (e.g. by a network, for those
+//! Gaussians only) without projecting again. Both give the same bits.
+//!
 //! Stages (each a reusable function, so a shadow pass from a light camera is an
 //! addition): [`project_splats`] (per Gaussian, rayon), depth sort + [`bin::bin_tiles`]
 //! (serial radix/counting sorts), [`blend::blend_tile_forward`] (rayon over 16x16 tiles).

@@ -2,22 +2,31 @@
 //! backward pass of one image.
 //!
 //! Forward for a camera and a Sun vector (target body frame):
-//! 1. project every Gaussian into the camera; those that survive culling are the
-//!    *visible list* (Phi and Psi run only on it, in index order);
+//! 1. project every Gaussian into the camera, depth-sort and bin once
+//!    ([`crate::raster::prepare_view`]); those that survive culling are the *visible list*.
+//!    The networks' batch (*network list*, index order) is the visible list, or with
+//!    `config.skip_noncontributing_in_mlp` only the Gaussians the blend reads (an
+//!    alpha-only pass, [`crate::raster::PreparedView::contributing`]): the others have no
+//!    effect on the image, so their channels are left at 0;
 //! 2. colour: SH (a) or Phi([f_i, gamma(sun), gamma(view_i)]) (b-d);
 //! 3. shadow (c-d): `V` from the light pass ([`super::light`]), `V' = Psi([V_i, gamma(sun),
 //!    gamma(mu_i normalised), l_i])`;
-//! 4. one rasterizer call with channels `[R, G, B]` or `[R, G, B, V']` (background
-//!    `[bg, 1]`); the image is `RGB * S` with `S` the fourth channel.
+//! 4. the blend of the prepared view ([`crate::raster::render_prepared`]) with channels
+//!    `[R, G, B]` or `[R, G, B, V']` (background `[bg, 1]`); the image is `RGB * S` with
+//!    `S` the fourth channel.
 //!
 //! Backward takes `dL/d image` and returns gradients for every Gaussian group and for both
 //! networks' weights: through `S` into Psi, the latents and (through the rasterizer) the
 //! main pass geometry; through `RGB` into Phi, the features and the means (view vector).
 //! `V` is data: no gradient flows through it.
 //!
+//! Every stage is timed ([`ForwardTimings`], [`BackwardTimings`]); timing only reads clocks.
+//!
 //! Invariants: the visible list, the channel layout and every network batch are fixed by
 //! the inputs, so results are deterministic; nothing non-finite is returned as a gradient
-//! (the caller checks before stepping).
+//! (the caller checks before stepping); the speed switches (`skip_noncontributing_in_mlp`,
+//! `mlp_recompute_activations`, `reuse_step_buffers`) never change the image, and change
+//! gradients at most by float summation order (the skip's smaller network batch).
 
 use std::sync::Mutex;
 use std::time::Instant;
