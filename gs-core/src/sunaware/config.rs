@@ -208,8 +208,11 @@ pub struct SunAwareConfig {
     /// tiles finds them first), instead of every Gaussian that survived culling. The
     /// image and the rasterizer's gradients are the same bits either way (a Gaussian the
     /// blend never reads has no effect and gets zero gradient); the networks' weight
-    /// gradients differ only by float summation order (their batch has fewer rows). A
-    /// speed setting, not part of the model: checkpoints do not store it.
+    /// gradients differ only by float summation order (their batch has fewer rows). It
+    /// applies to training steps and renders (`SunAwareModel::forward_for_step`);
+    /// `SunAwareModel::forward` always runs the networks on every visible Gaussian, so its
+    /// per-Gaussian outputs stay complete. A speed setting, not part of the model:
+    /// checkpoints do not store it.
     pub skip_noncontributing_in_mlp: bool,
     /// Phi and Psi keep only their inputs and outputs from forward to backward, and the
     /// backward recomputes each block's hidden activations (one more forward pass of the

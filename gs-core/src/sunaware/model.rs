@@ -4,10 +4,11 @@
 //! Forward for a camera and a Sun vector (target body frame):
 //! 1. project every Gaussian into the camera, depth-sort and bin once
 //!    ([`crate::raster::prepare_view`]); those that survive culling are the *visible list*.
-//!    The networks' batch (*network list*, index order) is the visible list, or with
-//!    `config.skip_noncontributing_in_mlp` only the Gaussians the blend reads (an
-//!    alpha-only pass, [`crate::raster::PreparedView::contributing`]): the others have no
-//!    effect on the image, so their channels are left at 0;
+//!    The networks' batch (*network list*, index order) is the visible list, or in
+//!    [`SunAwareModel::forward_for_step`] with `config.skip_noncontributing_in_mlp` only
+//!    the Gaussians the blend reads (an alpha-only pass,
+//!    [`crate::raster::PreparedView::contributing`]): the others have no effect on the
+//!    image, so their channels are left at 0;
 //! 2. colour: SH (a) or Phi([f_i, gamma(sun), gamma(view_i)]) (b-d);
 //! 3. shadow (c-d): `V` from the light pass ([`super::light`]), `V' = Psi([V_i, gamma(sun),
 //!    gamma(mu_i normalised), l_i])`;
@@ -206,8 +207,8 @@ pub struct FramePass {
     /// Gaussians that survived culling, ascending.
     pub visible_list: Vec<u32>,
     /// The networks' batch, ascending: the Gaussians the blend reads when
-    /// `config.skip_noncontributing_in_mlp` (a subset of `visible_list`), else
-    /// `visible_list` itself.
+    /// `config.skip_noncontributing_in_mlp` in [`SunAwareModel::forward_for_step`] (a subset
+    /// of `visible_list`), else `visible_list` itself.
     pub network_list: Vec<u32>,
     /// `H * W * 3`, `RGB * S`.
     pub image: Vec<f32>,
@@ -363,8 +364,10 @@ impl SunAwareModel {
         )
     }
 
-    /// Forward of one image. `visibility` overrides the shadow pass (tests hold `V` fixed
-    /// while they perturb the geometry, since no gradient flows through it).
+    /// Forward of one image with the networks run on every visible Gaussian, so the
+    /// per-Gaussian outputs (`refined_visibility`) are complete. `visibility` overrides the
+    /// shadow pass (tests hold `V` fixed while they perturb the geometry, since no gradient
+    /// flows through it).
     pub fn forward(
         &self,
         camera: &Camera,
@@ -372,6 +375,35 @@ impl SunAwareModel {
         sh_degree: u32,
         settings: &RasterSettings,
         visibility: Option<&[f32]>,
+    ) -> Result<FramePass, SunAwareError> {
+        self.forward_with(camera, sun_dir, sh_degree, settings, visibility, false)
+    }
+
+    /// [`SunAwareModel::forward`] as training steps and renders run it: with
+    /// `config.skip_noncontributing_in_mlp` the networks run only on the Gaussians the
+    /// blend reads (the image and the rasterizer's gradients are the same bits; the
+    /// networks' gradients differ by summation order; `refined_visibility` is 0 outside
+    /// `network_list`).
+    pub fn forward_for_step(
+        &self,
+        camera: &Camera,
+        sun_dir: Vec3,
+        sh_degree: u32,
+        settings: &RasterSettings,
+        visibility: Option<&[f32]>,
+    ) -> Result<FramePass, SunAwareError> {
+        let skip = self.config.skip_noncontributing_in_mlp;
+        self.forward_with(camera, sun_dir, sh_degree, settings, visibility, skip)
+    }
+
+    fn forward_with(
+        &self,
+        camera: &Camera,
+        sun_dir: Vec3,
+        sh_degree: u32,
+        settings: &RasterSettings,
+        visibility: Option<&[f32]>,
+        skip_noncontributing: bool,
     ) -> Result<FramePass, SunAwareError> {
         if !(sun_dir.is_finite() && sun_dir.length_squared() > 1e-12) {
             return Err(SunAwareError::BadObservation(format!(
@@ -394,7 +426,7 @@ impl SunAwareModel {
         timings.cull_ms =
             (ms_since(t0) - prepared.timings.project_ms - prepared.timings.sort_bin_ms).max(0.0);
         let t_contrib = Instant::now();
-        let network_list = if self.config.skip_noncontributing_in_mlp && self.appearance.is_some() {
+        let network_list = if skip_noncontributing && self.appearance.is_some() {
             indices_of(&prepared.contributing())
         } else {
             visible_list.clone()
@@ -812,8 +844,12 @@ mod tests {
                 let sun = sun_direction(0.3 + i as f32, 0.4);
                 // A clone starts with empty buffers: the fresh reference.
                 let fresh = warm.clone();
-                let a = warm.forward(&cam, sun, 0, &settings, None).unwrap();
-                let b = fresh.forward(&cam, sun, 0, &settings, None).unwrap();
+                let a = warm
+                    .forward_for_step(&cam, sun, 0, &settings, None)
+                    .unwrap();
+                let b = fresh
+                    .forward_for_step(&cam, sun, 0, &settings, None)
+                    .unwrap();
                 assert_eq!(bits(&a.image), bits(&b.image), "view {i}");
                 assert_eq!(a.network_list, b.network_list);
                 let d_image: Vec<f32> = (0..a.image.len())
@@ -879,8 +915,16 @@ mod tests {
         assert_eq!(full.gaussians, skip.gaussians);
         let settings = full.raster_settings(false);
         let sun = sun_direction(0.7, 0.5);
-        let a = full.forward(&camera(), sun, 0, &settings, None).unwrap();
-        let b = skip.forward(&camera(), sun, 0, &settings, None).unwrap();
+        let a = full
+            .forward_for_step(&camera(), sun, 0, &settings, None)
+            .unwrap();
+        let b = skip
+            .forward_for_step(&camera(), sun, 0, &settings, None)
+            .unwrap();
+        // The plain forward never skips: complete per-Gaussian outputs.
+        let plain = skip.forward(&camera(), sun, 0, &settings, None).unwrap();
+        assert_eq!(plain.network_list, plain.visible_list);
+        assert_eq!(bits(&plain.image), bits(&b.image));
         assert_eq!(a.visible_list, b.visible_list);
         assert_eq!(a.network_list, a.visible_list);
         // The skip must actually drop rows here, or this test shows nothing.

@@ -296,7 +296,7 @@ pub fn loss_and_grads(
 ) -> Result<(LossParts, FramePass, Option<SunAwareGrads>, StepTimings), SunAwareError> {
     let t_call = Instant::now();
     let mut timings = StepTimings::default();
-    let pass = model.forward(&obs.camera, obs.sun_dir, sh_degree, settings, visibility)?;
+    let pass = model.forward_for_step(&obs.camera, obs.sun_dir, sh_degree, settings, visibility)?;
     timings.add_forward(&pass.timings);
     let t0 = Instant::now();
     if !pass.image.iter().all(|v| v.is_finite()) {
@@ -615,7 +615,7 @@ impl SunAwareModel {
     pub fn render(&self, camera: &Camera, sun_dir: Vec3) -> Result<RenderedImages, SunAwareError> {
         let settings = self.raster_settings(false);
         let degree = self.gaussians.layout().sh_degree;
-        let pass = self.forward(camera, sun_dir, degree, &settings, None)?;
+        let pass = self.forward_for_step(camera, sun_dir, degree, &settings, None)?;
         Ok(RenderedImages {
             image: pass.image,
             rgb: pass.rgb,
