@@ -329,7 +329,9 @@ fn tiny_skips_table_switches_one_skip_per_run() {
         assert!(r.saved_cpu_s().is_finite() && r.psnr_cost_db().is_finite());
     }
     // The network skip changes no image: the blend never reads the skipped Gaussians, so
-    // only the networks' summation order differs (metrics equal to well under 0.01 dB).
+    // only the networks' summation order differs, which over this short run moves the
+    // metrics by far less than the 0.05 dB bound (over hundreds of steps the two paths
+    // drift apart by tenths of a dB: docs/runtime-vs-error.md).
     let m = &rows[3];
     assert_eq!(m.with.steps, m.without.steps);
     assert!(m.psnr_cost_db().abs() < 0.05, "{m:?}");
