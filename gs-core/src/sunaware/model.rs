@@ -23,12 +23,23 @@
 //!
 //! Every stage is timed ([`ForwardTimings`], [`BackwardTimings`]); timing only reads clocks.
 //!
+//! Backend ([`SunAwareModel::set_backend`], not part of the model's value nor of its
+//! checkpoint): on [`crate::train::Backend::Wgpu`] the camera pass's blend and its backward
+//! run in [`crate::gpu::GpuRasterizer`] and the shadow pass's per-pixel walk in
+//! [`crate::gpu::GpuShadow::sun_visibility`]. The visible list then comes from the CPU
+//! projection alone ([`crate::raster::project_splats`], no sort or binning), the networks
+//! run on every visible Gaussian (`skip_noncontributing_in_mlp` needs the CPU's prepared
+//! view, so it has no effect there), and Phi, Psi, SH colour and Adam stay on the CPU.
+//! The CPU backend is the reference and its results are unchanged by this switch.
+//!
 //! Invariants: the visible list, the channel layout and every network batch are fixed by
 //! the inputs, so results are deterministic; nothing non-finite is returned as a gradient
 //! (the caller checks before stepping); the speed switches (`skip_noncontributing_in_mlp`,
 //! `mlp_recompute_activations`, `reuse_step_buffers`) never change the image, and change
 //! gradients at most by float summation order (the skip's smaller network batch).
 
+#[cfg(feature = "wgpu")]
+use std::sync::Arc;
 use std::sync::Mutex;
 use std::time::Instant;
 
@@ -38,16 +49,104 @@ use crate::camera::Camera;
 use crate::init::SplitMix64;
 use crate::model::{GaussianModel, Param, ParamSet};
 use crate::nn::{AppearanceNet, MlpForward, PositionalEncoding, SceneBox, ShadowNet, TapeMode};
+use crate::raster::blend::AlphaMode;
 use crate::raster::{
-    prepare_view, render_backward_with, render_prepared, BackwardTimings as RasterBackwardTimings,
-    ForwardTimings as RasterForwardTimings, GaussianGrads, GaussianView, PixelGrads,
-    RasterSettings, RasterWorkspace, RenderOutput,
+    camera_frame, prepare_view, project_splats, render_backward_with, render_prepared,
+    BackwardTimings as RasterBackwardTimings, ForwardTimings as RasterForwardTimings,
+    GaussianGrads, GaussianView, PixelGrads, RasterSettings, RasterWorkspace, RenderOutput,
 };
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 
 use super::config::SunAwareConfig;
 use super::error::SunAwareError;
 use super::light::sun_visibility;
+
+/// Where the camera pass's rasterizer and the shadow pass run (see the module header).
+/// Not part of the model's value: equality ignores it, checkpoints never hold it.
+#[derive(Clone, Default)]
+struct BackendSlot {
+    #[cfg(feature = "wgpu")]
+    gpu: Option<GpuPair>,
+}
+
+#[cfg(feature = "wgpu")]
+#[derive(Clone)]
+struct GpuPair {
+    raster: Arc<crate::gpu::GpuRasterizer>,
+    shadow: Arc<crate::gpu::GpuShadow>,
+}
+
+impl PartialEq for BackendSlot {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for BackendSlot {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        #[cfg(feature = "wgpu")]
+        if let Some(g) = &self.gpu {
+            return write!(f, "Wgpu({:?})", g.raster);
+        }
+        f.write_str("Cpu")
+    }
+}
+
+/// A GPU error as a Sun-aware error (rasterizer input errors keep their type).
+#[cfg(feature = "wgpu")]
+fn from_gpu(e: crate::gpu::GpuError) -> SunAwareError {
+    match e {
+        crate::gpu::GpuError::Raster(r) => SunAwareError::Raster(r),
+        other => SunAwareError::Config(format!("wgpu backend: {other}")),
+    }
+}
+
+/// The camera pass's render, from the backend that made it (its backward runs there too).
+/// One per step, moved rarely: the size difference between the variants costs nothing.
+#[derive(Clone, Debug)]
+#[allow(clippy::large_enum_variant)]
+enum PassRender {
+    Cpu(RenderOutput),
+    #[cfg(feature = "wgpu")]
+    Gpu {
+        out: Arc<crate::gpu::GpuRenderOutput>,
+        raster: Arc<crate::gpu::GpuRasterizer>,
+    },
+}
+
+impl PassRender {
+    fn color(&self) -> &[f32] {
+        match self {
+            PassRender::Cpu(r) => &r.color,
+            #[cfg(feature = "wgpu")]
+            PassRender::Gpu { out, .. } => &out.color,
+        }
+    }
+
+    fn alpha(&self) -> &[f32] {
+        match self {
+            PassRender::Cpu(r) => &r.alpha,
+            #[cfg(feature = "wgpu")]
+            PassRender::Gpu { out, .. } => &out.alpha,
+        }
+    }
+
+    fn visible(&self) -> &[bool] {
+        match self {
+            PassRender::Cpu(r) => &r.visible,
+            #[cfg(feature = "wgpu")]
+            PassRender::Gpu { out, .. } => &out.visible,
+        }
+    }
+
+    fn radii_px(&self) -> &[f32] {
+        match self {
+            PassRender::Cpu(r) => &r.radii_px,
+            #[cfg(feature = "wgpu")]
+            PassRender::Gpu { out, .. } => &out.radii_px,
+        }
+    }
+}
 
 /// Gaussians, networks, scene box and settings.
 #[derive(Clone, Debug, PartialEq)]
@@ -60,6 +159,7 @@ pub struct SunAwareModel {
     pub scene_box: SceneBox,
     pub config: SunAwareConfig,
     scratch: Scratch,
+    backend: BackendSlot,
 }
 
 /// Buffers a forward and backward reuse from the previous step when
@@ -228,18 +328,18 @@ pub struct FramePass {
     n_channels: usize,
     phi: Option<NetPass>,
     psi: Option<NetPass>,
-    render: RenderOutput,
+    render: PassRender,
     settings: RasterSettings,
 }
 
 impl FramePass {
     /// Per Gaussian: touched the image.
     pub fn visible(&self) -> &[bool] {
-        &self.render.visible
+        self.render.visible()
     }
 
     pub fn radii_px(&self) -> &[f32] {
-        &self.render.radii_px
+        self.render.radii_px()
     }
 }
 
@@ -324,7 +424,40 @@ impl SunAwareModel {
             scene_box,
             config,
             scratch: Scratch::default(),
+            backend: BackendSlot::default(),
         })
+    }
+
+    /// Moves the camera pass's rasterizer and the shadow pass to `backend` (the networks,
+    /// SH colour and every optimiser stay on the CPU). For `Wgpu` this compiles the shadow
+    /// pipelines on the rasterizer's device (an error if they fail, never a fallback).
+    pub fn set_backend(&mut self, backend: &crate::train::Backend) -> Result<(), SunAwareError> {
+        match backend {
+            crate::train::Backend::Cpu => {
+                self.backend = BackendSlot::default();
+                Ok(())
+            }
+            #[cfg(feature = "wgpu")]
+            crate::train::Backend::Wgpu(raster) => {
+                let shadow = crate::gpu::GpuShadow::new(raster.clone()).map_err(from_gpu)?;
+                self.backend = BackendSlot {
+                    gpu: Some(GpuPair {
+                        raster: raster.clone(),
+                        shadow: Arc::new(shadow),
+                    }),
+                };
+                Ok(())
+            }
+        }
+    }
+
+    /// The backend in use (`Cpu` unless [`SunAwareModel::set_backend`] moved it).
+    pub fn backend(&self) -> crate::train::Backend {
+        #[cfg(feature = "wgpu")]
+        if let Some(g) = &self.backend.gpu {
+            return crate::train::Backend::Wgpu(g.raster.clone());
+        }
+        crate::train::Backend::Cpu
     }
 
     pub fn len(&self) -> usize {
@@ -354,6 +487,20 @@ impl SunAwareModel {
         camera: &Camera,
         sun_dir: Vec3,
     ) -> Result<Vec<f32>, SunAwareError> {
+        #[cfg(feature = "wgpu")]
+        if let Some(g) = &self.backend.gpu {
+            return g
+                .shadow
+                .sun_visibility(
+                    &self.gaussians,
+                    sun_dir,
+                    camera.position(),
+                    &self.scene_box,
+                    &self.config.light,
+                    self.config.near_m,
+                )
+                .map_err(from_gpu);
+        }
         sun_visibility(
             &self.gaussians,
             sun_dir,
@@ -419,19 +566,35 @@ impl SunAwareModel {
         let t0 = Instant::now();
         let k = &camera.intrinsics;
         let bare = GaussianView::from_model(&self.gaussians, &[], 0);
-        let prepared = prepare_view(camera, &bare, settings)?;
-        timings.raster = prepared.timings;
-        let survived = prepared.survived();
-        let visible_list = indices_of(&survived);
-        timings.cull_ms =
-            (ms_since(t0) - prepared.timings.project_ms - prepared.timings.sort_bin_ms).max(0.0);
-        let t_contrib = Instant::now();
-        let network_list = if skip_noncontributing && self.appearance.is_some() {
-            indices_of(&prepared.contributing())
+        let (prepared, visible_list, network_list) = if self.gpu_active() {
+            // The GPU projects, sorts and bins again in its render; here only the visible
+            // list for the networks' batch.
+            let frame = camera_frame(camera, settings.near_m)?;
+            let mode = AlphaMode {
+                smooth: settings.smooth_cutoff,
+            };
+            let projected = project_splats(&frame, &bare, mode, k.width, k.height);
+            timings.raster.project_ms = ms_since(t0);
+            let survived: Vec<bool> = projected.splats.iter().map(Option::is_some).collect();
+            let visible_list = indices_of(&survived);
+            (None, visible_list.clone(), visible_list)
         } else {
-            visible_list.clone()
+            let prepared = prepare_view(camera, &bare, settings)?;
+            timings.raster = prepared.timings;
+            let survived = prepared.survived();
+            let visible_list = indices_of(&survived);
+            timings.cull_ms =
+                (ms_since(t0) - prepared.timings.project_ms - prepared.timings.sort_bin_ms)
+                    .max(0.0);
+            let t_contrib = Instant::now();
+            let network_list = if skip_noncontributing && self.appearance.is_some() {
+                indices_of(&prepared.contributing())
+            } else {
+                visible_list.clone()
+            };
+            timings.contribution_ms = ms_since(t_contrib);
+            (Some(prepared), visible_list, network_list)
         };
-        timings.contribution_ms = ms_since(t_contrib);
 
         let shadowed = self.config.variant.uses_shadow();
         let nc = if shadowed { 4 } else { 3 };
@@ -526,12 +689,23 @@ impl SunAwareModel {
         timings.psi_forward_ms = ms_since(t_psi);
 
         let t3 = Instant::now();
-        let render_out = self
-            .scratch
-            .with_raster(self.config.reuse_step_buffers, |ws| {
-                render_prepared(ws, prepared, &channels, nc)
-            })?;
-        timings.raster.blend_ms = render_out.timings.blend_ms;
+        let render_out = match prepared {
+            Some(prepared) => {
+                let out = self
+                    .scratch
+                    .with_raster(self.config.reuse_step_buffers, |ws| {
+                        render_prepared(ws, prepared, &channels, nc)
+                    })?;
+                timings.raster.blend_ms = out.timings.blend_ms;
+                PassRender::Cpu(out)
+            }
+            None => {
+                let out = self.render_gpu(camera, &channels, nc, settings)?;
+                timings.raster.blend_ms = ms_since(t3);
+                out
+            }
+        };
+        let render_color = render_out.color();
         let pixels = k.pixel_count();
         let mut rgb = vec![0.0f32; pixels * 3];
         let mut shadow_image = Vec::new();
@@ -540,7 +714,7 @@ impl SunAwareModel {
             shadow_image = vec![0.0f32; pixels];
         }
         for px in 0..pixels {
-            let c = &render_out.color[px * nc..px * nc + nc];
+            let c = &render_color[px * nc..px * nc + nc];
             let s = if shadowed { c[3] } else { 1.0 };
             for ch in 0..3 {
                 rgb[px * 3 + ch] = c[ch];
@@ -559,7 +733,7 @@ impl SunAwareModel {
             image,
             rgb,
             shadow_image,
-            alpha: render_out.alpha.clone(),
+            alpha: render_out.alpha().to_vec(),
             visibility: vis,
             refined_visibility: refined,
             sh_degree,
@@ -571,6 +745,47 @@ impl SunAwareModel {
             render: render_out,
             settings: settings.clone(),
         })
+    }
+
+    /// True when the camera pass runs on the GPU.
+    fn gpu_active(&self) -> bool {
+        #[cfg(feature = "wgpu")]
+        return self.backend.gpu.is_some();
+        #[cfg(not(feature = "wgpu"))]
+        false
+    }
+
+    /// The camera pass's blend on the GPU (projection, sort and binning included).
+    #[cfg(feature = "wgpu")]
+    fn render_gpu(
+        &self,
+        camera: &Camera,
+        channels: &[f32],
+        nc: usize,
+        settings: &RasterSettings,
+    ) -> Result<PassRender, SunAwareError> {
+        let Some(g) = &self.backend.gpu else {
+            return Err(SunAwareError::Config("no GPU backend set".into()));
+        };
+        let view = GaussianView::from_model(&self.gaussians, channels, nc);
+        let out = g.raster.render(camera, &view, settings).map_err(from_gpu)?;
+        Ok(PassRender::Gpu {
+            out: Arc::new(out),
+            raster: g.raster.clone(),
+        })
+    }
+
+    #[cfg(not(feature = "wgpu"))]
+    fn render_gpu(
+        &self,
+        _camera: &Camera,
+        _channels: &[f32],
+        _nc: usize,
+        _settings: &RasterSettings,
+    ) -> Result<PassRender, SunAwareError> {
+        Err(SunAwareError::Config(
+            "the wgpu backend is not compiled in (cargo feature `wgpu`)".into(),
+        ))
     }
 
     /// Hands a finished pass's network buffers back, so the next forward reuses them
@@ -618,7 +833,7 @@ impl SunAwareModel {
         let shadowed = nc == 4;
         let mut d_color = vec![0.0f32; pixels * nc];
         for px in 0..pixels {
-            let c = &pass.render.color[px * nc..px * nc + nc];
+            let c = &pass.render.color()[px * nc..px * nc + nc];
             let s = if shadowed { c[3] } else { 1.0 };
             let mut d_s = 0.0f32;
             for ch in 0..3 {
@@ -633,26 +848,35 @@ impl SunAwareModel {
         timings.compose_ms = ms_since(t0);
         let t1 = Instant::now();
         let view = GaussianView::from_model(&self.gaussians, &pass.channels, nc);
-        let g = self
-            .scratch
-            .with_raster(self.config.reuse_step_buffers, |ws| {
-                // The records are one per tile entry (tens of MB): keeping them through the
-                // networks' backward would raise the step's peak, so they go now.
-                let g = render_backward_with(
-                    ws,
-                    &pass.camera,
-                    &view,
-                    &pass.settings,
-                    &pass.render,
-                    &PixelGrads {
-                        d_color: &d_color,
-                        d_alpha: None,
-                        d_depth: None,
-                    },
-                );
-                ws.release_backward_buffers();
-                g
-            })?;
+        let pixel_grads = PixelGrads {
+            d_color: &d_color,
+            d_alpha: None,
+            d_depth: None,
+        };
+        let g = match &pass.render {
+            PassRender::Cpu(render) => {
+                self.scratch
+                    .with_raster(self.config.reuse_step_buffers, |ws| {
+                        // The records are one per tile entry (tens of MB): keeping them
+                        // through the networks' backward would raise the step's peak, so
+                        // they go now.
+                        let g = render_backward_with(
+                            ws,
+                            &pass.camera,
+                            &view,
+                            &pass.settings,
+                            render,
+                            &pixel_grads,
+                        );
+                        ws.release_backward_buffers();
+                        g
+                    })?
+            }
+            #[cfg(feature = "wgpu")]
+            PassRender::Gpu { out, raster } => raster
+                .render_backward(&pass.camera, &pass.settings, out, &pixel_grads)
+                .map_err(from_gpu)?,
+        };
         let p = &self.gaussians.params;
         let mut params = gather_geometry(p, &g);
         timings.raster = g.timings;

@@ -435,6 +435,13 @@ impl SunAwareTrainer {
         }
     }
 
+    /// Moves the camera pass's rasterizer and the shadow pass to `backend` (see
+    /// [`SunAwareModel::set_backend`]); Phi, Psi and the three Adam states stay on the CPU.
+    /// The backend is not part of the trainer's value or of its checkpoint.
+    pub fn set_backend(&mut self, backend: &crate::train::Backend) -> Result<(), SunAwareError> {
+        self.model.set_backend(backend)
+    }
+
     /// Target size used for the position rate and the clone/split boundary, metres.
     pub fn scene_extent(&self) -> f32 {
         2.0 * box_sphere(&self.model.scene_box).1
