@@ -86,6 +86,93 @@ impl std::fmt::Display for Variant {
     }
 }
 
+/// Where the rasterizer and the shadow pass run, by name (`--backend cpu|wgpu` and the
+/// component's `[training] backend`). Not part of [`SunAwareConfig`] or of a checkpoint:
+/// it moves arithmetic, never changes the model. [`BackendKind::open`] turns it into a
+/// [`crate::train::Backend`] for [`super::SunAwareTrainer::set_backend`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum BackendKind {
+    /// The CPU rasterizer and shadow pass (the reference).
+    #[default]
+    Cpu,
+    /// The wgpu compute backend (cargo feature `wgpu` of gs-core).
+    Wgpu,
+}
+
+impl BackendKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            BackendKind::Cpu => "cpu",
+            BackendKind::Wgpu => "wgpu",
+        }
+    }
+
+    /// Whether this build can run it (`wgpu` needs the cargo feature).
+    pub fn compiled_in(self) -> bool {
+        match self {
+            BackendKind::Cpu => true,
+            BackendKind::Wgpu => cfg!(feature = "wgpu"),
+        }
+    }
+
+    /// Errors unless this build can run the backend: the message names the cargo feature.
+    pub fn check_compiled_in(self) -> Result<(), SunAwareError> {
+        if self.compiled_in() {
+            Ok(())
+        } else {
+            Err(SunAwareError::Config(format!(
+                "backend {:?} is not compiled into this build: rebuild with the cargo feature \
+                 `wgpu` (e.g. `cargo build --release --features wgpu`; sim-harness and \
+                 fsw-component forward it to gs-core/wgpu)",
+                self.name()
+            )))
+        }
+    }
+
+    /// Opens the backend: `Cpu` always succeeds; `Wgpu` opens a Vulkan adapter and compiles
+    /// the rasterizer's pipelines. No adapter, or no `wgpu` feature, is an error, never a
+    /// silent fallback to the CPU.
+    pub fn open(self) -> Result<crate::train::Backend, SunAwareError> {
+        self.check_compiled_in()?;
+        match self {
+            BackendKind::Cpu => Ok(crate::train::Backend::Cpu),
+            #[cfg(feature = "wgpu")]
+            BackendKind::Wgpu => {
+                let open = || -> Result<crate::train::Backend, crate::gpu::GpuError> {
+                    let ctx = crate::gpu::GpuContext::new()?;
+                    let raster = crate::gpu::GpuRasterizer::new(ctx)?;
+                    Ok(crate::train::Backend::Wgpu(std::sync::Arc::new(raster)))
+                };
+                open().map_err(|e| SunAwareError::Config(format!("backend \"wgpu\": {e}")))
+            }
+            #[cfg(not(feature = "wgpu"))]
+            BackendKind::Wgpu => unreachable!("checked by check_compiled_in"),
+        }
+    }
+}
+
+impl FromStr for BackendKind {
+    type Err = SunAwareError;
+
+    /// `cpu` or `wgpu` (either case). Parsing never checks the build: see
+    /// [`BackendKind::check_compiled_in`].
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "cpu" => Ok(BackendKind::Cpu),
+            "wgpu" => Ok(BackendKind::Wgpu),
+            other => Err(SunAwareError::Config(format!(
+                "unknown backend {other:?}: expected \"cpu\" or \"wgpu\""
+            ))),
+        }
+    }
+}
+
+impl std::fmt::Display for BackendKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// How the light camera projects.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum LightProjection {
@@ -378,6 +465,24 @@ impl SunAwareConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn backend_names_parse_and_a_missing_feature_is_a_clear_error() {
+        assert_eq!("cpu".parse::<BackendKind>().unwrap(), BackendKind::Cpu);
+        assert_eq!(" WGPU ".parse::<BackendKind>().unwrap(), BackendKind::Wgpu);
+        let e = "cuda".parse::<BackendKind>().unwrap_err().to_string();
+        assert!(e.contains("cuda") && e.contains("wgpu"), "{e}");
+        assert!(BackendKind::Cpu.check_compiled_in().is_ok());
+        assert!(matches!(
+            BackendKind::Cpu.open().unwrap(),
+            crate::train::Backend::Cpu
+        ));
+        assert_eq!(BackendKind::Wgpu.compiled_in(), cfg!(feature = "wgpu"));
+        if !cfg!(feature = "wgpu") {
+            let e = BackendKind::Wgpu.open().unwrap_err().to_string();
+            assert!(e.contains("feature `wgpu`"), "{e}");
+        }
+    }
 
     #[test]
     fn variants_parse_and_name_round_trip() {

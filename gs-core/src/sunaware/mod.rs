@@ -25,7 +25,9 @@ pub mod model;
 pub mod synthetic;
 pub mod trainer;
 
-pub use config::{LightConfig, LightProjection, SunAwareConfig, SunAwareRates, Variant};
+pub use config::{
+    BackendKind, LightConfig, LightProjection, SunAwareConfig, SunAwareRates, Variant,
+};
 pub use error::SunAwareError;
 pub use model::{FramePass, SunAwareGrads, SunAwareModel};
 pub use trainer::{Observation, StepStats, StepTimings, SunAwareTrainer, ViewScore};
