@@ -9,7 +9,7 @@
 use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use crate::sync::SyncConfig;
 use glam::DQuat;
-use gs_core::sunaware::{SunAwareError, Variant};
+use gs_core::sunaware::{BackendKind, SunAwareError, Variant};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
@@ -110,6 +110,10 @@ pub struct TrainingConfig {
     pub min_view_angle_deg: f64,
     /// Worker threads of the trainer (fixed for bit-identical results).
     pub threads: usize,
+    /// Where the rasterizer and the shadow pass run: "cpu" (default) or "wgpu" (needs the
+    /// cargo feature `wgpu` and a Vulkan adapter; either missing stops the start with an
+    /// error, never a silent fallback). The networks and Adam stay on the CPU.
+    pub backend: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -199,6 +203,7 @@ impl Default for TrainingConfig {
             window_size: window.capacity,
             min_view_angle_deg: window.min_view_angle_deg,
             threads: 2,
+            backend: "cpu".to_string(),
         }
     }
 }
@@ -347,6 +352,7 @@ impl ComponentConfig {
         if self.training.threads == 0 {
             return Err(invalid("training.threads", "must be at least 1"));
         }
+        self.backend()?;
         if self.checkpoint.path.as_os_str().is_empty() {
             return Err(invalid("checkpoint.path", "must not be empty"));
         }
@@ -425,6 +431,19 @@ impl ComponentConfig {
             .map_err(|e: SunAwareError| invalid("training.variant", e.to_string()))
     }
 
+    /// The backend named by `training.backend`, checked against this build (`wgpu` needs
+    /// the cargo feature). Whether an adapter exists is found when it is opened.
+    pub fn backend(&self) -> Result<BackendKind, ConfigError> {
+        let kind: BackendKind = self
+            .training
+            .backend
+            .parse()
+            .map_err(|e: SunAwareError| invalid("training.backend", e.to_string()))?;
+        kind.check_compiled_in()
+            .map_err(|e| invalid("training.backend", e.to_string()))?;
+        Ok(kind)
+    }
+
     pub fn window_config(&self) -> Result<WindowConfig, ConfigError> {
         let window = WindowConfig {
             capacity: self.training.window_size,
@@ -489,6 +508,26 @@ mod tests {
         }
         let message = parse("[node]\nnode_idd = 3\n").unwrap_err().to_string();
         assert!(message.contains("node_idd"), "{message}");
+    }
+
+    #[test]
+    fn training_backend_is_validated_against_the_build() {
+        let config = parse("[training]\nbackend = \"cpu\"\n").unwrap();
+        assert_eq!(config.backend().unwrap(), BackendKind::Cpu);
+        assert_eq!(
+            invalid_key("[training]\nbackend = \"cuda\"\n"),
+            "training.backend"
+        );
+        let wgpu = parse("[training]\nbackend = \"wgpu\"\n");
+        if cfg!(feature = "wgpu") {
+            assert_eq!(wgpu.unwrap().backend().unwrap(), BackendKind::Wgpu);
+        } else {
+            let message = wgpu.unwrap_err().to_string();
+            assert!(
+                message.contains("training.backend") && message.contains("feature `wgpu`"),
+                "{message}"
+            );
+        }
     }
 
     #[test]

@@ -93,6 +93,13 @@ pub fn build_learner(
         LearnerKind::SunAware => {
             let mut settings = SunAwareSettings::with_window(window);
             settings.online.passes_per_round = config.training.passes_per_round;
+            // A missing feature or adapter stops the start here (never a CPU fallback).
+            let kind = config
+                .backend()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?;
+            settings.backend = kind
+                .open()
+                .map_err(|e| RuntimeError::Config(format!("training.backend: {e}")))?;
             settings.online.model.variant = config
                 .variant()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?;

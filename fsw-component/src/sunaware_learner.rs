@@ -46,6 +46,9 @@ pub struct SunAwareSettings {
     pub target_radius_m: f32,
     pub initial_gaussians: usize,
     pub init_seed: u64,
+    /// Where the rasterizer and the shadow pass run (`[training] backend`, opened by the
+    /// runtime); the networks and Adam stay on the CPU. Not saved in checkpoints.
+    pub backend: gs_core::train::Backend,
 }
 
 impl SunAwareSettings {
@@ -60,6 +63,7 @@ impl SunAwareSettings {
             target_radius_m: DEFAULT_TARGET_RADIUS_M,
             initial_gaussians: DEFAULT_INITIAL_GAUSSIANS,
             init_seed: 0,
+            backend: gs_core::train::Backend::Cpu,
         }
     }
 
@@ -78,8 +82,13 @@ impl SunAwareSettings {
     }
 
     fn build(&self) -> Result<OnlineTrainer, String> {
-        OnlineTrainer::new(self.online.clone(), &self.init(), self.scene_box()?)
-            .map_err(|e| e.to_string())
+        let mut online = OnlineTrainer::new(self.online.clone(), &self.init(), self.scene_box()?)
+            .map_err(|e| e.to_string())?;
+        online
+            .trainer_mut()
+            .set_backend(&self.backend)
+            .map_err(|e| e.to_string())?;
+        Ok(online)
     }
 }
 
@@ -257,6 +266,11 @@ impl Learner for SunAwareLearner {
         let trainer = checkpoint::from_bytes(&body[24..]).map_err(|e| bad(e.to_string()))?;
         let mut online = self.settings.build().map_err(bad)?;
         *online.trainer_mut() = trainer;
+        // A checkpoint holds no backend: the restored trainer runs where this one did.
+        online
+            .trainer_mut()
+            .set_backend(&self.settings.backend)
+            .map_err(|e| bad(e.to_string()))?;
         self.online = online;
         self.rounds_offset = rounds;
         Ok(())
