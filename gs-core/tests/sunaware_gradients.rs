@@ -11,12 +11,17 @@ use gs_core::init::{inverse_sigmoid, SplitMix64};
 use gs_core::model::{GaussianModel, Param};
 use gs_core::nn::SceneBox;
 use gs_core::sunaware::trainer::loss_and_grads;
-use gs_core::sunaware::{Observation, SunAwareConfig, SunAwareModel, Variant};
+use gs_core::sunaware::{Observation, ShadowRefinement, SunAwareConfig, SunAwareModel, Variant};
 
 fn scene(variant: Variant) -> SunAwareModel {
+    scene_with(variant, SunAwareConfig::default().shadow_refinement)
+}
+
+fn scene_with(variant: Variant, shadow_refinement: ShadowRefinement) -> SunAwareModel {
     let config = SunAwareConfig {
         variant,
         encoding_frequencies: 2,
+        shadow_refinement,
         ..SunAwareConfig::for_variant(variant)
     };
     let mut g = GaussianModel::new(config.layout()).unwrap();
@@ -139,7 +144,13 @@ fn check_group(
 
 #[test]
 fn shadow_channel_gradients_match_finite_differences() {
-    let model = scene(Variant::C);
+    for refinement in [ShadowRefinement::Replace, ShadowRefinement::Multiply] {
+        check_shadow_channel(&scene_with(Variant::C, refinement));
+    }
+}
+
+fn check_shadow_channel(model: &SunAwareModel) {
+    let model = model.clone();
     let vis = model.sun_visibility(&camera(), sun()).unwrap();
     assert!(
         vis.iter().any(|&v| v < 0.9),

@@ -3,7 +3,7 @@
 //! File layout (all integers and floats little-endian):
 //! ```text
 //! magic     8 bytes  b"SUNGSCKP"
-//! version   u32      1
+//! version   u32      2 (1 is still read: it has no shadow refinement byte and means Replace)
 //! length    u64      payload bytes
 //! payload   length bytes (below)
 //! checksum  u64      FNV-1a 64 of the payload
@@ -18,7 +18,8 @@
 //!    MLP), densify 6 f32 (grad threshold, percent dense, min opacity, max screen radius,
 //!    max world scale fraction, split divisor), size_prune u8, max_gaussians u64,
 //!    densify_from_step u64,
-//!    background 3 f32, near_m f32, seed u64, feature_init_std f32;
+//!    background 3 f32, near_m f32, seed u64, feature_init_std f32, and from version 2
+//!    shadow refinement u8 (0 replace, 1 multiply);
 //! 2. scene box: min 3 f32, max 3 f32;
 //! 3. Gaussians: count u64, then each group of `Param::ALL` in order (count x width f32,
 //!    widths from the config's layout);
@@ -45,13 +46,17 @@ use crate::nn::SceneBox;
 use crate::optim::Adam;
 use crate::regularizer::IsoReduction;
 
-use super::config::{LightConfig, LightProjection, SunAwareConfig, SunAwareRates, Variant};
+use super::config::{
+    LightConfig, LightProjection, ShadowRefinement, SunAwareConfig, SunAwareRates, Variant,
+};
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
 use super::trainer::{FlatAdam, SunAwareTrainer};
 
 pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
+/// Oldest version [`from_bytes`] reads.
+pub const OLDEST_READABLE_VERSION: u32 = 1;
 
 /// FNV-1a, 64 bit.
 pub fn fnv1a64(bytes: &[u8]) -> u64 {
@@ -207,9 +212,13 @@ fn write_config(w: &mut Writer, c: &SunAwareConfig) {
     w.f32(c.near_m);
     w.u64(c.seed);
     w.f32(c.feature_init_std);
+    w.u8(match c.shadow_refinement {
+        ShadowRefinement::Replace => 0,
+        ShadowRefinement::Multiply => 1,
+    });
 }
 
-fn read_config(r: &mut Reader) -> Result<SunAwareConfig, SunAwareError> {
+fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareError> {
     let code = r.u8("variant")?;
     let variant = Variant::from_code(code).ok_or_else(|| ck(format!("unknown variant {code}")))?;
     let sh_degree = r.u32("sh_degree")?;
@@ -284,6 +293,16 @@ fn read_config(r: &mut Reader) -> Result<SunAwareConfig, SunAwareError> {
         near_m: r.f32("near_m")?,
         seed: r.u64("seed")?,
         feature_init_std: r.f32("feature_init_std")?,
+        // Version 1 predates the switch: its models were trained with Psi replacing V.
+        shadow_refinement: if version >= 2 {
+            match r.u8("shadow refinement")? {
+                0 => ShadowRefinement::Replace,
+                1 => ShadowRefinement::Multiply,
+                other => return Err(ck(format!("unknown shadow refinement {other}"))),
+            }
+        } else {
+            ShadowRefinement::Replace
+        },
         ..SunAwareConfig::default()
     };
     config
@@ -387,9 +406,10 @@ pub fn from_bytes(bytes: &[u8]) -> Result<SunAwareTrainer, SunAwareError> {
         return Err(ck("not a Sun-aware checkpoint (bad magic)"));
     }
     let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
-    if version != VERSION {
+    if !(OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
         return Err(ck(format!(
-            "version {version} is not supported (this build reads {VERSION})"
+            "version {version} is not supported (this build reads \
+             {OLDEST_READABLE_VERSION} to {VERSION})"
         )));
     }
     let len = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes"));
@@ -408,7 +428,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<SunAwareTrainer, SunAwareError> {
         buf: payload,
         pos: 0,
     };
-    let config = read_config(&mut r)?;
+    let config = read_config(&mut r, version)?;
     let lo = r.f32s(3, "scene box min")?;
     let hi = r.f32s(3, "scene box max")?;
     let scene_box = SceneBox::new([lo[0], lo[1], lo[2]], [hi[0], hi[1], hi[2]])?;
@@ -501,4 +521,40 @@ pub fn save_file(t: &SunAwareTrainer, path: impl AsRef<Path>) -> Result<(), SunA
 /// Reads a checkpoint file.
 pub fn load_file(path: impl AsRef<Path>) -> Result<SunAwareTrainer, SunAwareError> {
     from_bytes(&std::fs::read(path)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config_bytes(refinement: ShadowRefinement) -> Vec<u8> {
+        let mut w = Writer(Vec::new());
+        write_config(
+            &mut w,
+            &SunAwareConfig {
+                shadow_refinement: refinement,
+                ..SunAwareConfig::for_variant(Variant::C)
+            },
+        );
+        w.0
+    }
+
+    fn read(bytes: &[u8], version: u32) -> Result<SunAwareConfig, SunAwareError> {
+        read_config(&mut Reader { buf: bytes, pos: 0 }, version)
+    }
+
+    #[test]
+    fn shadow_refinement_round_trips_and_version_1_means_replace() {
+        for refinement in [ShadowRefinement::Replace, ShadowRefinement::Multiply] {
+            let bytes = config_bytes(refinement);
+            assert_eq!(read(&bytes, 2).unwrap().shadow_refinement, refinement);
+            // A version-1 config section is the same bytes without the last one.
+            let v1 = read(&bytes[..bytes.len() - 1], 1).unwrap();
+            assert_eq!(v1.shadow_refinement, ShadowRefinement::Replace);
+        }
+        let mut bad = config_bytes(ShadowRefinement::Multiply);
+        *bad.last_mut().unwrap() = 7;
+        let err = read(&bad, 2).unwrap_err().to_string();
+        assert!(err.contains("shadow refinement"), "{err}");
+    }
 }

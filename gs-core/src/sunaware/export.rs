@@ -16,6 +16,7 @@ use crate::model::{GaussianModel, ModelLayout, Param};
 use crate::ply::write_ply;
 use crate::sh::rgb_to_sh_dc;
 
+use super::config::ShadowRefinement;
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
 
@@ -70,9 +71,11 @@ pub fn baked_colours(
             &mut input,
         )?;
         let refined = psi.mlp.forward(&input, n)?;
-        for (c, s) in rgb.chunks_exact_mut(3).zip(&refined) {
+        let multiply = model.config.shadow_refinement == ShadowRefinement::Multiply;
+        for ((c, s), v_i) in rgb.chunks_exact_mut(3).zip(&refined).zip(&vis) {
+            let shadow = if multiply { s * v_i } else { *s };
             for v in c {
-                *v *= s;
+                *v *= shadow;
             }
         }
     }

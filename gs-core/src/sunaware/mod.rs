@@ -26,7 +26,8 @@ pub mod synthetic;
 pub mod trainer;
 
 pub use config::{
-    BackendKind, LightConfig, LightProjection, SunAwareConfig, SunAwareRates, Variant,
+    BackendKind, LightConfig, LightProjection, ShadowRefinement, SunAwareConfig, SunAwareRates,
+    Variant,
 };
 pub use error::SunAwareError;
 pub use model::{FramePass, SunAwareGrads, SunAwareModel};

@@ -10,8 +10,9 @@
 //!    [`crate::raster::PreparedView::contributing`]): the others have no effect on the
 //!    image, so their channels are left at 0;
 //! 2. colour: SH (a) or Phi([f_i, gamma(sun), gamma(view_i)]) (b-d);
-//! 3. shadow (c-d): `V` from the light pass ([`super::light`]), `V' = Psi([V_i, gamma(sun),
-//!    gamma(mu_i normalised), l_i])`;
+//! 3. shadow (c-d): `V` from the light pass ([`super::light`]), `P = Psi([V_i, gamma(sun),
+//!    gamma(mu_i normalised), l_i])`, and `V' = V_i * P` (default) or `V' = P` (the paper's
+//!    form), per [`super::config::ShadowRefinement`];
 //! 4. the blend of the prepared view ([`crate::raster::render_prepared`]) with channels
 //!    `[R, G, B]` or `[R, G, B, V']` (background `[bg, 1]`); the image is `RGB * S` with
 //!    `S` the fourth channel.
@@ -57,7 +58,7 @@ use crate::raster::{
 };
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 
-use super::config::SunAwareConfig;
+use super::config::{ShadowRefinement, SunAwareConfig};
 use super::error::SunAwareError;
 use super::light::sun_visibility;
 
@@ -678,9 +679,16 @@ impl SunAwareModel {
                 net.mlp
                     .forward_train_into(&input, network_list.len(), tape, &mut forward)?;
                 refined = vec![0.0f32; n];
+                let multiply = self.config.shadow_refinement == ShadowRefinement::Multiply;
                 for (r, &g) in network_list.iter().enumerate() {
-                    channels[g as usize * nc + 3] = forward.output[r];
-                    refined[g as usize] = forward.output[r];
+                    let g = g as usize;
+                    let v = if multiply {
+                        vis[g] * forward.output[r]
+                    } else {
+                        forward.output[r]
+                    };
+                    channels[g * nc + 3] = v;
+                    refined[g] = v;
                 }
                 Some(NetPass { input, forward })
             }
@@ -934,10 +942,20 @@ impl SunAwareModel {
         let t3 = Instant::now();
         let mut d_shadow = Vec::new();
         if let (Some(net), Some(psi)) = (&self.shadow, &pass.psi) {
+            let multiply = self.config.shadow_refinement == ShadowRefinement::Multiply;
             let d_out: Vec<f32> = pass
                 .network_list
                 .iter()
-                .map(|&gi| g.d_channels[gi as usize * nc + 3])
+                .map(|&gi| {
+                    let gi = gi as usize;
+                    // d V' / d Psi is V under Multiply; V itself is data (no gradient).
+                    let d = g.d_channels[gi * nc + 3];
+                    if multiply {
+                        d * pass.visibility[gi]
+                    } else {
+                        d
+                    }
+                })
                 .collect();
             d_shadow = vec![0.0f32; net.mlp.num_params()];
             let mut d_input = vec![0.0f32; psi.input.len()];
