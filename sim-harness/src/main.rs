@@ -35,7 +35,7 @@ use sim_harness::experiment::ablation_init::{self, run_init_ablation, InitAblati
 use sim_harness::experiment::ablation::{
     run_window_ablation, to_markdown as window_markdown, WindowJob,
 };
-use sim_harness::experiment::demo::run_demo;
+use sim_harness::experiment::demo::{demo_inputs, run_demo_with};
 use sim_harness::experiment::pareto::{
     builtin_scenario, from_csv as pareto_from_csv, run_pareto, select_settings,
     to_markdown as pareto_markdown, write_outputs as write_pareto_outputs, ParetoJob,
@@ -61,6 +61,24 @@ use std::path::{Path, PathBuf};
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Where the rasterizer and the shadow pass run in `table`, `demo` and `pareto`: cpu or
+    /// wgpu (a build with `--features wgpu` and a Vulkan adapter); overrides the preset's
+    /// `backend`. The networks and Adam stay on the CPU either way.
+    #[arg(long, global = true)]
+    backend: Option<String>,
+}
+
+/// `preset` with `--backend` applied, validated (wgpu without the cargo feature is an error
+/// naming it; a missing adapter is one when the first run opens it).
+fn with_backend(
+    mut preset: Preset,
+    backend: &Option<String>,
+) -> Result<Preset, Box<dyn std::error::Error>> {
+    if let Some(name) = backend {
+        preset.backend = name.clone();
+    }
+    preset.validate()?;
+    Ok(preset)
 }
 
 #[derive(Subcommand)]
@@ -335,6 +353,14 @@ fn buslogs(
 }
 
 fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
+    let backend = cli.backend;
+    let uses_backend = matches!(
+        cli.command,
+        Command::Table { .. } | Command::Pareto { .. } | Command::Demo { .. }
+    );
+    if backend.is_some() && !uses_backend {
+        return Err("--backend applies to table, demo and pareto only".into());
+    }
     match cli.command {
         Command::Generate {
             scenario,
@@ -399,7 +425,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             scenario,
             keep_data,
         } => {
-            let preset = Preset::load(&preset)?;
+            let preset = with_backend(Preset::load(&preset)?, &backend)?;
             let scenarios = if scenario.is_empty() {
                 builtin_scenarios()?
             } else {
@@ -483,7 +509,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             settings,
         } => {
             let job = ParetoJob {
-                base: Preset::load(&preset)?,
+                base: with_backend(Preset::load(&preset)?, &backend)?,
                 scenario: target.scenario()?,
                 settings: select_settings(&settings)?,
                 out_dir: out.clone(),
@@ -585,7 +611,9 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             Ok(())
         }
         Command::Demo { out } => {
-            let summary = run_demo(&out, &mut |line| eprintln!("{line}"))?;
+            let (scenario, preset) = demo_inputs()?;
+            let preset = with_backend(preset, &backend)?;
+            let summary = run_demo_with(&scenario, &preset, &out, &mut |line| eprintln!("{line}"))?;
             let e = &summary.run.eval;
             eprintln!(
                 "demo: {} frames of {}x{}, configuration d: {} rounds, {} Gaussians; \
@@ -614,5 +642,50 @@ fn main() {
     if let Err(e) = run(Cli::parse()) {
         eprintln!("error: {e}");
         std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Runs `sim-harness LINE` with `OUT` replaced by `out`.
+    fn run_line(line: &str, out: &str) -> Result<(), String> {
+        let args = std::iter::once("sim-harness").chain(line.split_whitespace().map(|a| {
+            if a == "OUT" {
+                out
+            } else {
+                a
+            }
+        }));
+        let cli = Cli::try_parse_from(args).map_err(|e| e.to_string())?;
+        run(cli).map_err(|e| e.to_string())
+    }
+
+    /// `--backend` is checked before any work: an unknown name, `wgpu` in a build without
+    /// the feature, and the flag on a subcommand that trains nothing are clear errors.
+    #[test]
+    fn backend_flag_errors_are_clear() {
+        let out = std::env::temp_dir().join("sim-harness-backend-flag-test");
+        let out = out.to_str().unwrap();
+        let e = run_line("--backend cuda demo --out OUT", out).unwrap_err();
+        assert!(e.contains("cuda") && e.contains("wgpu"), "{e}");
+        if !cfg!(feature = "wgpu") {
+            for line in [
+                "--backend wgpu demo --out OUT",
+                "demo --out OUT --backend wgpu",
+                "table --preset cpu --out OUT --backend wgpu",
+                "pareto --out OUT --backend wgpu",
+            ] {
+                let e = run_line(line, out).unwrap_err();
+                assert!(e.contains("feature `wgpu`"), "{line}: {e}");
+            }
+        }
+        let e = run_line("--backend cpu buslogs --dataset OUT", out).unwrap_err();
+        assert!(e.contains("table, demo and pareto"), "{e}");
+        assert!(
+            !std::path::Path::new(out).exists(),
+            "an erroring run wrote {out}"
+        );
     }
 }

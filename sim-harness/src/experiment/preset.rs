@@ -7,6 +7,7 @@
 //! duration, evaluation views, ray-tracing samples) and re-validates the scenario.
 
 use crate::scenario::{Scenario, ScenarioError};
+use gs_core::sunaware::{BackendKind, SunAwareError};
 use serde::Deserialize;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -116,6 +117,9 @@ pub struct Preset {
     pub skip_unchanged_window: bool,
     /// Run Phi and Psi only for the Gaussians the blend reads (gs-core's default).
     pub skip_noncontributing_in_mlp: bool,
+    /// Where the rasterizer and the shadow pass run: "cpu" or "wgpu" (a build with
+    /// `--features wgpu`; `--backend` overrides it). Changes run time, not the method.
+    pub backend: String,
 }
 
 impl Default for Preset {
@@ -150,6 +154,7 @@ impl Default for Preset {
             skip_unlit: false,
             skip_unchanged_window: true,
             skip_noncontributing_in_mlp: true,
+            backend: "cpu".into(),
         }
     }
 }
@@ -191,6 +196,18 @@ impl Preset {
             message: e.to_string(),
         })?;
         Preset::from_toml_str(&text, &path.display().to_string())
+    }
+
+    /// The backend named by `backend`, checked against this build (`wgpu` needs the cargo
+    /// feature; whether an adapter exists is found when a run opens it).
+    pub fn backend_kind(&self) -> Result<BackendKind, PresetError> {
+        let kind: BackendKind = self
+            .backend
+            .parse()
+            .map_err(|e: SunAwareError| PresetError::Invalid(format!("backend: {e}")))?;
+        kind.check_compiled_in()
+            .map_err(|e| PresetError::Invalid(format!("backend: {e}")))?;
+        Ok(kind)
     }
 
     /// Checks every value; the error names the field.
@@ -261,6 +278,7 @@ impl Preset {
         if self.configs.is_empty() {
             return bad("configs is empty".into());
         }
+        self.backend_kind()?;
         for c in &self.configs {
             if !["a", "b", "c", "d"].contains(&c.as_str()) {
                 return bad(format!(
@@ -288,6 +306,23 @@ impl Preset {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn backend_is_checked_against_the_build() {
+        let p = Preset::from_toml_str("backend = \"cpu\"\n", "t.toml").unwrap();
+        assert_eq!(p.backend_kind().unwrap(), BackendKind::Cpu);
+        let e = Preset::from_toml_str("backend = \"cuda\"\n", "t.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("backend") && e.contains("cuda"), "{e}");
+        let wgpu = Preset::from_toml_str("backend = \"wgpu\"\n", "t.toml");
+        if cfg!(feature = "wgpu") {
+            assert_eq!(wgpu.unwrap().backend_kind().unwrap(), BackendKind::Wgpu);
+        } else {
+            let e = wgpu.unwrap_err().to_string();
+            assert!(e.contains("feature `wgpu`"), "{e}");
+        }
+    }
 
     #[test]
     fn shipped_presets_parse_and_apply() {

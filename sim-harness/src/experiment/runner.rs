@@ -20,7 +20,7 @@ use fsw_component::keyframe::WindowConfig;
 use fsw_component::online::{Frame, Initialisation, OnlineConfig, OnlineError, OnlineTrainer};
 use glam::Vec3;
 use gs_core::nn::SceneBox;
-use gs_core::sunaware::{SunAwareConfig, Variant};
+use gs_core::sunaware::{BackendKind, SunAwareConfig, Variant};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -202,6 +202,12 @@ pub fn run_config(
         &try_initialisation(scene, preset)?,
         scene_box(scene)?,
     )?;
+    // The preset's backend (a missing feature or adapter is an error here, before training).
+    let backend = preset
+        .backend
+        .parse::<BackendKind>()
+        .and_then(BackendKind::open)?;
+    trainer.trainer_mut().set_backend(&backend)?;
     progress(&format!(
         "{label}: {} initial Gaussians, {} frames, W = {}",
         trainer.trainer().model.len(),
