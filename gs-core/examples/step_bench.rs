@@ -27,7 +27,13 @@
 //!
 //! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
 //! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]
-//! [--set SWITCH=on|off,...] [--ab SWITCH]`
+//! [--set SWITCH=on|off,...] [--ab SWITCH] [--backend cpu,wgpu]`
+//!
+//! `--backend cpu,wgpu` measures each configuration on each listed backend (default `cpu`;
+//! `wgpu` needs `--features wgpu` and a Vulkan adapter): the camera pass's rasterizer and
+//! the shadow pass move to the GPU, Phi, Psi and Adam stay on the CPU. On a software
+//! Vulkan driver (Mesa's lavapipe) the wgpu rows are CPU timings of the GPU kernels, not
+//! GPU timings; the adapter is printed with the results.
 //!
 //! `--set` changes speed switches of `SunAwareConfig` (defaults otherwise); `--ab SWITCH`
 //! measures every size and image twice in the same run, the switch off then on, so a
@@ -47,7 +53,7 @@ use gs_core::nn::mlp::BLOCK_ROWS;
 use gs_core::nn::{Mlp, SceneBox};
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::{
-    Observation, StepTimings, SunAwareConfig, SunAwareModel, SunAwareTrainer, Variant,
+    BackendKind, Observation, StepTimings, SunAwareConfig, SunAwareModel, SunAwareTrainer, Variant,
 };
 use gs_core::{Camera, Intrinsics};
 use rayon::prelude::*;
@@ -342,13 +348,21 @@ fn measure(
     kind: SceneKind,
     repeats: usize,
     config: &SunAwareConfig,
+    backend: BackendKind,
     label: &str,
-) -> Measured {
+) -> Result<Measured, String> {
     let gaussians = scene(n, kind, config, 7);
     let h = BOX_HALF_M;
     let scene_box = SceneBox::new([-h[0], -h[1], -h[2]], h).expect("box");
     let model = SunAwareModel::new(gaussians, scene_box, config.clone()).expect("model");
     let mut trainer = SunAwareTrainer::new(model);
+    let opened = backend.open().map_err(|e| e.to_string())?;
+    if let Some(adapter) = adapter_of(&opened) {
+        eprintln!("step_bench: backend wgpu on {adapter}");
+    }
+    trainer
+        .set_backend(&opened)
+        .map_err(|e| format!("backend {backend}: {e}"))?;
     let cam = camera(width, height);
     let mut rng = SplitMix64::new(11);
     let target: Vec<f32> = (0..width as usize * height as usize * 3)
@@ -436,7 +450,7 @@ fn measure(
             floor_ms: floor_bwd,
         });
     }
-    Measured {
+    Ok(Measured {
         label: label.to_string(),
         gaussians: n,
         width,
@@ -448,6 +462,15 @@ fn measure(
         cpu_ms: median(cpu),
         peak_rss_mb: peak,
         nets,
+    })
+}
+
+/// The adapter a wgpu backend runs on (None for the CPU).
+fn adapter_of(backend: &gs_core::train::Backend) -> Option<String> {
+    match backend {
+        gs_core::train::Backend::Cpu => None,
+        #[cfg(feature = "wgpu")]
+        gs_core::train::Backend::Wgpu(raster) => Some(raster.context().describe()),
     }
 }
 
@@ -728,13 +751,32 @@ fn run(args: &[String]) -> Result<(), String> {
     }
     // Each measured configuration: a label and its settings. With `--ab NAME` every size
     // and image runs with the switch off, then on (the rest as set), in the same run.
-    let mut variants = vec![("as set".to_string(), config.clone())];
+    let mut settings = vec![("as set".to_string(), config.clone())];
     if let Some(name) = arg_value(args, "--ab") {
         let mut off = config.clone();
         set_switch(&mut off, name, false)?;
         let mut on = config.clone();
         set_switch(&mut on, name, true)?;
-        variants = vec![(format!("{name}=off"), off), (format!("{name}=on"), on)];
+        settings = vec![(format!("{name}=off"), off), (format!("{name}=on"), on)];
+    }
+    let backends = match arg_value(args, "--backend") {
+        Some(v) => parse_list(v, |s| s.parse::<BackendKind>().ok())?,
+        None => vec![BackendKind::Cpu],
+    };
+    for b in &backends {
+        b.check_compiled_in().map_err(|e| e.to_string())?;
+    }
+    // Every setting on every backend; the backend joins the label when there is a choice.
+    let mut variants = Vec::new();
+    for (label, config) in &settings {
+        for &b in &backends {
+            let label = if backends.len() > 1 || b != BackendKind::Cpu {
+                format!("{label} backend={b}")
+            } else {
+                label.clone()
+            };
+            variants.push((label, config.clone(), b));
+        }
     }
     let main_label = variants[variants.len() - 1].0.clone();
     let scene_name = if kind == SceneKind::Volume {
@@ -747,6 +789,12 @@ fn run(args: &[String]) -> Result<(), String> {
         println!(
             "step_bench: configuration d, {scene_name} scene, {threads} threads, median of {repeats} steps after one warm-up (ms)"
         );
+        if backends.contains(&BackendKind::Wgpu) {
+            println!(
+                "backend=wgpu: rasterizer and shadow pass on the GPU (adapter on stderr), networks and Adam on the CPU; \
+                 on a software Vulkan driver (lavapipe) these are CPU timings, not GPU timings"
+            );
+        }
         println!(
             "{:>7} {:>8} {:>7} {:>7} | {:>6} {:>6} {:>6} {:>6} {:>7} {:>6} {:>7} {:>6} {:>7} {:>7} {:>7} {:>6} {:>6} {:>6} | {:>7} {:>7} {:>7} | settings",
             "gauss", "image", "visible", "rows", "proj", "sort", "contr", "shadow", "phi-f", "psi-f",
@@ -761,15 +809,15 @@ fn run(args: &[String]) -> Result<(), String> {
             .ok()
             .filter(|&i| i < variants.len())
             .ok_or("bad --child-variant")?;
-        let (label, config) = &variants[i];
-        let m = measure(sizes[0], images[0], kind, repeats, config, label);
+        let (label, config, backend) = &variants[i];
+        let m = measure(sizes[0], images[0], kind, repeats, config, *backend, label)?;
         println!("MEASURED {}", m.to_line());
         return Ok(());
     }
     let mut results = Vec::new();
     for &n in &sizes {
         for &image in &images {
-            for (i, (label, _)) in variants.iter().enumerate() {
+            for (i, (label, _, _)) in variants.iter().enumerate() {
                 let m = measure_in_child(args, n, image, i, label)?;
                 print_step(&m, json, scene_name, threads, repeats);
                 results.push(m);
