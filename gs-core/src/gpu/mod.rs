@@ -2,7 +2,9 @@
 //! ([`GpuRasterizer`]), the shadow pass's per-pixel visibility ([`GpuShadow`]) and a tiled
 //! GEMM for the MLP products ([`GpuGemm`]) as WGSL compute kernels (`shaders/`), checked
 //! against the CPU path (`tests/gpu_parity.rs`). `crate::train::Backend::Wgpu` moves the
-//! plain 3DGS trainer's rasterizer here.
+//! plain 3DGS trainer's rasterizer here, and through
+//! `crate::sunaware::SunAwareModel::set_backend` the Sun-aware trainer's camera pass and
+//! shadow pass (`tests/gpu_sunaware.rs`); the networks and every optimiser stay on the CPU.
 //!
 //! [`GpuContext::new`] opens a Vulkan adapter (the only backend compiled in, so wgpu can
 //! never fall back to OpenGL) and reports its name, backend and whether it has
