@@ -16,6 +16,7 @@ use glam::Vec3;
 use gs_core::gpu::{GpuContext, GpuRasterizer};
 use gs_core::init::from_points;
 use gs_core::rng::SplitMix64;
+use gs_core::sunaware::checkpoint;
 use gs_core::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
 use gs_core::sunaware::{
     LightConfig, Observation, SunAwareConfig, SunAwareModel, SunAwareTrainer, Variant,
@@ -252,6 +253,11 @@ fn training_parity(variant: Variant, steps: usize) {
     let (cpu, cpu_s) = run(&Backend::Cpu);
     let (gpu, gpu_s) = run(&backend);
     assert_eq!(gpu.skipped_nonfinite, 0);
+    // The backend is no part of a checkpoint: the trained state round-trips bit for bit
+    // and comes back on the CPU.
+    let loaded = checkpoint::from_bytes(&checkpoint::to_bytes(&gpu)).unwrap();
+    assert!(matches!(loaded.model.backend(), Backend::Cpu));
+    assert!(loaded == gpu, "checkpoint round trip changed the trainer");
     let (p0, pc, pg) = (score(&start), score(&cpu.model), score(&gpu.model));
     eprintln!(
         "configuration {variant}: {steps} steps, PSNR start {p0:.3} dB, cpu {pc:.3} dB \
