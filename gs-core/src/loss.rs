@@ -10,7 +10,9 @@
 //! (F the window filter, y the fixed target), the per-pixel derivatives of the SSIM map
 //! with respect to `mu`, `m_xx`, `m_xy` are filtered back with F^T (= F: the window is
 //! symmetric and zero padding makes the transpose the same operation) and combined as
-//! `dL/dx = F^T g_mu + 2 x F^T g_xx + y F^T g_xy`.
+//! `dL/dx = F^T g_mu + 2 x F^T g_xx + y F^T g_xy`. The filtering runs as three row-parallel
+//! passes that fuse the moments, the map and the backward per row; each value is the same
+//! sum in the same order whatever the thread count, so results are bit-identical.
 //!
 //! How the foreground mask enters (`mask`: one weight in [0, 1] per pixel): both terms
 //! become mask-weighted means over pixels, `L1 = sum_p m_p sum_c |x - y| / (C sum_p m_p)`
@@ -148,6 +150,263 @@ pub fn ssim_window() -> [f64; SSIM_WINDOW] {
     w
 }
 
+/// Horizontal zero-padded "same" filtering of one row with the SSIM window, one tap at a
+/// time over the whole row so the inner loop vectorises: `dst[x] = sum_t k_t row[x + t -
+/// HALF]` over the in-row indices, taps added in order `t = 0..11` (the order every
+/// value's rounding depends on).
+fn filter_row<T: Real>(row: &[T], taps: &[T; SSIM_WINDOW], dst: &mut [T]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above).
+        unsafe { filter_row_avx2(row, taps, dst) };
+        return;
+    }
+    filter_row_body(row, taps, dst);
+}
+
+/// [`filter_row_body`] compiled for AVX2: 8 lanes instead of SSE's 4, the same separate
+/// multiplies and adds (Rust never contracts them into FMAs), so the same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn filter_row_avx2<T: Real>(row: &[T], taps: &[T; SSIM_WINDOW], dst: &mut [T]) {
+    filter_row_body(row, taps, dst);
+}
+
+#[inline(always)]
+fn filter_row_body<T: Real>(row: &[T], taps: &[T; SSIM_WINDOW], dst: &mut [T]) {
+    let w = row.len();
+    dst.iter_mut().for_each(|v| *v = T::ZERO);
+    for (t, &k) in taps.iter().enumerate() {
+        if t >= HALF {
+            let shift = t - HALF;
+            if shift < w {
+                for (d, &v) in dst[..w - shift].iter_mut().zip(&row[shift..]) {
+                    *d += k * v;
+                }
+            }
+        } else {
+            let shift = HALF - t;
+            if shift < w {
+                for (d, &v) in dst[shift..].iter_mut().zip(&row[..w - shift]) {
+                    *d += k * v;
+                }
+            }
+        }
+    }
+}
+
+/// Vertical pass for output row `y`: `acc = sum_yy k_{yy - y + HALF} rows[yy]` over the
+/// rows inside the image, added in order of `yy` (zero padding). `rows` holds `h` rows of
+/// `stride` values each, of which the first `acc.len()` are filtered, each independently.
+fn filter_column_into<T: Real>(
+    rows: &[T],
+    stride: usize,
+    h: usize,
+    y: usize,
+    taps: &[T; SSIM_WINDOW],
+    acc: &mut [T],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above).
+        unsafe { filter_column_avx2(rows, stride, h, y, taps, acc) };
+        return;
+    }
+    filter_column_body(rows, stride, h, y, taps, acc);
+}
+
+/// [`filter_column_body`] compiled for AVX2 (same bits, as for rows).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn filter_column_avx2<T: Real>(
+    rows: &[T],
+    stride: usize,
+    h: usize,
+    y: usize,
+    taps: &[T; SSIM_WINDOW],
+    acc: &mut [T],
+) {
+    filter_column_body(rows, stride, h, y, taps, acc);
+}
+
+#[inline(always)]
+fn filter_column_body<T: Real>(
+    rows: &[T],
+    stride: usize,
+    h: usize,
+    y: usize,
+    taps: &[T; SSIM_WINDOW],
+    acc: &mut [T],
+) {
+    acc.iter_mut().for_each(|v| *v = T::ZERO);
+    let len = acc.len();
+    let lo = y.saturating_sub(HALF);
+    let hi = (y + HALF + 1).min(h);
+    for yy in lo..hi {
+        let t = taps[yy + HALF - y];
+        for (d, &s) in acc.iter_mut().zip(&rows[yy * stride..yy * stride + len]) {
+            *d += t * s;
+        }
+    }
+}
+
+/// Rows per rayon task in the SSIM passes: enough work per task to amortise scheduling;
+/// every value is computed the same way whatever the split, so results never depend on it.
+const SSIM_ROWS_PER_TASK: usize = 32;
+
+/// Weighted SSIM of two images and optionally its gradient with respect to `x`.
+///
+/// `pixel_weight[p]` is the weight of pixel `p`'s SSIM values, already divided by the
+/// normaliser, so the result is `sum_p sum_c pixel_weight[p] S_c(p)`.
+///
+/// Three passes over rows, each parallel over rows (row results do not depend on the
+/// split): (1) the five moment planes of every channel filtered horizontally; (2) filtered
+/// vertically, the SSIM map and its derivatives, those filtered horizontally; (3) filtered
+/// vertically and combined into `dL/dx`. Every value is the same sum in the same order as
+/// filtering whole planes one after another (`weighted_ssim_by_planes`, the test
+/// reference), and the total is summed per channel in pixel order, so results are the same
+/// bits as before the fusion.
+fn weighted_ssim<T: Real>(
+    x: &[T],
+    y: &[T],
+    shape: ImageShape,
+    pixel_weight: &[T],
+    want_grad: bool,
+) -> (T, Option<Vec<T>>) {
+    let (w, h, nc) = (shape.width, shape.height, shape.channels);
+    let n = w * h;
+    let taps64 = ssim_window();
+    let taps: [T; SSIM_WINDOW] = std::array::from_fn(|k| T::from_f64(taps64[k]));
+    let c1 = T::from_f64(SSIM_C1);
+    let c2 = T::from_f64(SSIM_C2);
+    let two = T::from_f64(2.0);
+
+    // Pass 1: per row, channel-major then plane (x, y, x^2, y^2, xy), each filtered along
+    // the row.
+    let moment_stride = 5 * nc * w;
+    let mut moments_h = vec![T::ZERO; moment_stride * h];
+    moments_h
+        .par_chunks_mut(moment_stride)
+        .with_min_len(SSIM_ROWS_PER_TASK)
+        .enumerate()
+        .for_each_init(
+            || vec![T::ZERO; 5 * w],
+            |planes, (row, out)| {
+                let (xr, rest) = planes.split_at_mut(w);
+                let (yr, rest) = rest.split_at_mut(w);
+                let (xx, rest) = rest.split_at_mut(w);
+                let (yy, xy) = rest.split_at_mut(w);
+                for c in 0..nc {
+                    for i in 0..w {
+                        let p = row * w + i;
+                        let (a, b) = (x[p * nc + c], y[p * nc + c]);
+                        xr[i] = a;
+                        yr[i] = b;
+                        xx[i] = a * a;
+                        yy[i] = b * b;
+                        xy[i] = a * b;
+                    }
+                    let dst = &mut out[5 * c * w..5 * (c + 1) * w];
+                    for (q, src) in [&*xr, &*yr, &*xx, &*yy, &*xy].into_iter().enumerate() {
+                        filter_row(src, &taps, &mut dst[q * w..(q + 1) * w]);
+                    }
+                }
+            },
+        );
+
+    // Pass 2: per row, the derivatives of the SSIM map with respect to (mu_x, E[x^2],
+    // E[xy]) filtered along the row (3 planes per channel, when the gradient is wanted),
+    // then `pixel_weight * S` per channel (summed in pixel order below).
+    let grad_width = if want_grad { 3 * nc * w } else { 0 };
+    let map_stride = grad_width + nc * w;
+    let mut maps = vec![T::ZERO; map_stride * h];
+    maps.par_chunks_mut(map_stride)
+        .with_min_len(SSIM_ROWS_PER_TASK)
+        .enumerate()
+        .for_each_init(
+            || (vec![T::ZERO; moment_stride], vec![T::ZERO; 3 * w]),
+            |(m, g), (row, out)| {
+                filter_column_into(&moments_h, moment_stride, h, row, &taps, m);
+                let (grad_h, weighted) = out.split_at_mut(grad_width);
+                for c in 0..nc {
+                    let mc = &m[5 * c * w..5 * (c + 1) * w];
+                    let (mu_x, rest) = mc.split_at(w);
+                    let (mu_y, rest) = rest.split_at(w);
+                    let (m_xx, rest) = rest.split_at(w);
+                    let (m_yy, m_xy) = rest.split_at(w);
+                    let wrow = &pixel_weight[row * w..(row + 1) * w];
+                    let ws = &mut weighted[c * w..(c + 1) * w];
+                    for i in 0..w {
+                        let (mx, my) = (mu_x[i], mu_y[i]);
+                        let sxx = m_xx[i] - mx * mx;
+                        let syy = m_yy[i] - my * my;
+                        let sxy = m_xy[i] - mx * my;
+                        let a1 = two * mx * my + c1;
+                        let a2 = two * sxy + c2;
+                        let b1 = mx * mx + my * my + c1;
+                        let b2 = sxx + syy + c2;
+                        let s = (a1 * a2) / (b1 * b2);
+                        let wp = wrow[i];
+                        ws[i] = wp * s;
+                        if want_grad {
+                            let d_mu = (two * my * (a2 - a1)) / (b1 * b2) - two * mx * s / b1
+                                + two * mx * s / b2;
+                            g[i] = wp * d_mu;
+                            g[w + i] = wp * (-s / b2);
+                            g[2 * w + i] = wp * (two * a1 / (b1 * b2));
+                        }
+                    }
+                    if want_grad {
+                        for q in 0..3 {
+                            filter_row(
+                                &g[q * w..(q + 1) * w],
+                                &taps,
+                                &mut grad_h[(3 * c + q) * w..(3 * c + q + 1) * w],
+                            );
+                        }
+                    }
+                }
+            },
+        );
+    let mut total = T::ZERO;
+    for c in 0..nc {
+        let mut channel_total = T::ZERO;
+        for row in maps.chunks_exact(map_stride) {
+            for &v in &row[grad_width + c * w..grad_width + (c + 1) * w] {
+                channel_total += v;
+            }
+        }
+        total += channel_total;
+    }
+    if !want_grad {
+        return (total, None);
+    }
+
+    // Pass 3: the vertical half of F^T, then dL/dx = F^T g_mu + 2 x F^T g_xx + y F^T g_xy.
+    let mut grad = vec![T::ZERO; n * nc];
+    grad.par_chunks_mut(w * nc)
+        .with_min_len(SSIM_ROWS_PER_TASK)
+        .enumerate()
+        .for_each_init(
+            || vec![T::ZERO; grad_width],
+            |back, (row, out)| {
+                filter_column_into(&maps, map_stride, h, row, &taps, back);
+                for c in 0..nc {
+                    let f_mu = &back[3 * c * w..(3 * c + 1) * w];
+                    let f_xx = &back[(3 * c + 1) * w..(3 * c + 2) * w];
+                    let f_xy = &back[(3 * c + 2) * w..(3 * c + 3) * w];
+                    for i in 0..w {
+                        let p = row * w + i;
+                        out[i * nc + c] =
+                            f_mu[i] + two * x[p * nc + c] * f_xx[i] + y[p * nc + c] * f_xy[i];
+                    }
+                }
+            },
+        );
+    (total, Some(grad))
+}
+
+#[cfg(test)]
 /// Separable zero-padded "same" filtering of one `w x h` plane with the SSIM window.
 /// `tmp` and `out` must hold `w * h` values.
 fn blur<T: Real>(
@@ -197,11 +456,13 @@ fn blur<T: Real>(
     }
 }
 
-/// Weighted SSIM of two images and optionally its gradient with respect to `x`.
+/// The SSIM before the row-fused passes: whole planes filtered one after another. Kept as
+/// the tests' reference for [`weighted_ssim`] (the same bits).
+#[cfg(test)]
 ///
 /// `pixel_weight[p]` is the weight of pixel `p`'s SSIM values, already divided by the
 /// normaliser, so the result is `sum_p sum_c pixel_weight[p] S_c(p)`.
-fn weighted_ssim<T: Real>(
+fn weighted_ssim_by_planes<T: Real>(
     x: &[T],
     y: &[T],
     shape: ImageShape,
@@ -618,6 +879,49 @@ mod tests {
     }
 
     /// The f32 training path agrees with the f64 reference to f32 accuracy.
+    #[test]
+    fn row_fused_ssim_is_bit_identical_to_whole_plane_filtering() {
+        // Shapes narrower and shorter than the window, odd sizes, one and three channels,
+        // with and without a mask: value and gradient must be the same bits, in f32 (the
+        // training path) and f64 (metrics).
+        for (i, &(w, h, nc)) in [(40, 23, 3), (7, 5, 3), (3, 30, 1), (61, 2, 3), (16, 16, 2)]
+            .iter()
+            .enumerate()
+        {
+            let shape = ImageShape::new(w, h, nc);
+            let x64 = random_image(shape, 11 + i as u64);
+            let y64 = random_image(shape, 31 + i as u64);
+            let mask: Vec<f32> = random_image(ImageShape::new(w, h, 1), 51 + i as u64)
+                .iter()
+                .map(|&v| if v < 0.3 { 0.0 } else { v as f32 })
+                .collect();
+            for masked in [false, true] {
+                let m = masked.then_some(&mask[..]);
+                let w32: Vec<f32> = pixel_weights(m, shape).unwrap();
+                let x: Vec<f32> = x64.iter().map(|&v| v as f32).collect();
+                let y: Vec<f32> = y64.iter().map(|&v| v as f32).collect();
+                for want_grad in [false, true] {
+                    let (s_new, g_new) = weighted_ssim(&x, &y, shape, &w32, want_grad);
+                    let (s_ref, g_ref) = weighted_ssim_by_planes(&x, &y, shape, &w32, want_grad);
+                    assert_eq!(s_new.to_bits(), s_ref.to_bits(), "{shape:?} mask {masked}");
+                    let bits = |g: Option<Vec<f32>>| {
+                        g.map(|g| g.iter().map(|v| v.to_bits()).collect::<Vec<_>>())
+                    };
+                    assert_eq!(bits(g_new), bits(g_ref), "{shape:?} mask {masked}");
+                }
+                let w64: Vec<f64> = pixel_weights(m, shape).unwrap();
+                let (s_new, g_new) = weighted_ssim(&x64, &y64, shape, &w64, true);
+                let (s_ref, g_ref) = weighted_ssim_by_planes(&x64, &y64, shape, &w64, true);
+                assert_eq!(s_new.to_bits(), s_ref.to_bits());
+                let (g_new, g_ref) = (g_new.unwrap(), g_ref.unwrap());
+                assert!(g_new
+                    .iter()
+                    .zip(&g_ref)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()));
+            }
+        }
+    }
+
     #[test]
     fn f32_path_matches_f64_reference() {
         let shape = ImageShape::new(40, 23, 3);
