@@ -255,7 +255,10 @@ impl Preset {
             return bad("max_gaussians must be positive".into());
         }
         if !(1..=1024).contains(&self.feature_dim) {
-            return bad(format!("feature_dim {} is outside 1..=1024", self.feature_dim));
+            return bad(format!(
+                "feature_dim {} is outside 1..=1024",
+                self.feature_dim
+            ));
         }
         if self.encoding_frequencies > 16 {
             return bad(format!(
