@@ -20,6 +20,7 @@ step "GPU backend: wgpu on Mesa's software Vulkan driver (lint and CPU parity te
 bash tests/gpu/setup.sh
 cargo clippy -p gs-core --features wgpu --all-targets -- -D warnings
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_parity
+GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_sunaware
 
 step "python test environment"
 python=$(bash tests/setup_venv.sh)

@@ -31,10 +31,10 @@ use sim_harness::busfeed::{
     play, write_bus_logs, BusFeedOptions, PlaySpeed, PlayTargets, AOCS_NODE_ID, NAVIGATION_NODE_ID,
 };
 use sim_harness::dataset::{generate, GenerateOptions};
-use sim_harness::experiment::ablation_init::{self, run_init_ablation, InitAblationJob};
 use sim_harness::experiment::ablation::{
     run_window_ablation, to_markdown as window_markdown, WindowJob,
 };
+use sim_harness::experiment::ablation_init::{self, run_init_ablation, InitAblationJob};
 use sim_harness::experiment::demo::{demo_inputs, run_demo_with};
 use sim_harness::experiment::pareto::{
     builtin_scenario, from_csv as pareto_from_csv, run_pareto, select_settings,
@@ -153,34 +153,6 @@ enum Command {
         #[arg(long)]
         keep_data: bool,
     },
-    /// Initialisation ablation: configuration d from surface samples, random points and a
-    /// visual hull carved from the first keyframes' masks (init.csv, init.md, init.png).
-    AblationInit {
-        /// Preset name (config/presets/NAME.toml) or file; its configs are ignored (d only).
-        #[arg(long, default_value = "cpu")]
-        preset: String,
-        /// Output folder (init.csv, init.md, init_curves.csv, init.png, runs.json, cache/).
-        #[arg(long)]
-        out: PathBuf,
-        /// Scenario file to use instead of the three built-in targets (repeatable).
-        #[arg(long)]
-        scenario: Vec<PathBuf>,
-        /// Initialisations to compare, in order: surface, random, hull, hull-grey.
-        #[arg(long, value_delimiter = ',', default_value = "surface,random,hull")]
-        inits: Vec<String>,
-        /// Evaluate every N rounds during training (0: only at the end).
-        #[arg(long, default_value_t = 100)]
-        eval_every: u64,
-        /// Keyframes the hull is carved from (0: the window size W).
-        #[arg(long)]
-        hull_views: Option<usize>,
-        /// Voxels along the side of the hull's cube.
-        #[arg(long)]
-        hull_resolution: Option<u32>,
-        /// Only write hull.png (surface samples beside each target's hull), no training.
-        #[arg(long)]
-        hull_figure_only: bool,
-    },
     /// Sweep the knobs that trade training time for error on one target; write
     /// pareto.csv, pareto.md and pareto.png (time against PSNR, Pareto front marked).
     Pareto {
@@ -232,6 +204,34 @@ enum Command {
         /// Scenario file to use instead of the three built-in targets (repeatable).
         #[arg(long)]
         scenario: Vec<PathBuf>,
+    },
+    /// Initialisation ablation: configuration d from surface samples, random points and a
+    /// visual hull carved from the first keyframes' masks (init.csv, init.md, init.png).
+    AblationInit {
+        /// Preset name (config/presets/NAME.toml) or file; its configs are ignored (d only).
+        #[arg(long, default_value = "cpu")]
+        preset: String,
+        /// Output folder (init.csv, init.md, init_curves.csv, init.png, runs.json, cache/).
+        #[arg(long)]
+        out: PathBuf,
+        /// Scenario file to use instead of the three built-in targets (repeatable).
+        #[arg(long)]
+        scenario: Vec<PathBuf>,
+        /// Initialisations to compare, in order: surface, random, hull, hull-grey.
+        #[arg(long, value_delimiter = ',', default_value = "surface,random,hull")]
+        inits: Vec<String>,
+        /// Evaluate every N rounds during training (0: only at the end).
+        #[arg(long, default_value_t = 100)]
+        eval_every: u64,
+        /// Keyframes the hull is carved from (0: the window size W).
+        #[arg(long)]
+        hull_views: Option<usize>,
+        /// Voxels along the side of the hull's cube.
+        #[arg(long)]
+        hull_resolution: Option<u32>,
+        /// Only write hull.png (surface samples beside each target's hull), no training.
+        #[arg(long)]
+        hull_figure_only: bool,
     },
     /// Shadow splatting (configuration c) against the ray tracer's ground-truth shadows on
     /// one target: shadow_study.json, shadow_study.md, before.png, after.png.
@@ -453,55 +453,6 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             );
             Ok(())
         }
-        Command::AblationInit {
-            preset,
-            out,
-            scenario,
-            inits,
-            eval_every,
-            hull_views,
-            hull_resolution,
-            hull_figure_only,
-        } => {
-            let mut preset = Preset::load(&preset)?;
-            preset.eval_every_rounds = eval_every;
-            preset.hull_views = hull_views.unwrap_or(preset.hull_views);
-            preset.hull_resolution = hull_resolution.unwrap_or(preset.hull_resolution);
-            preset.validate()?;
-            let scenarios = if scenario.is_empty() {
-                builtin_scenarios()?
-            } else {
-                scenario
-                    .iter()
-                    .map(|p| Scenario::load(p))
-                    .collect::<Result<_, _>>()?
-            };
-            let job = InitAblationJob {
-                preset,
-                scenarios,
-                inits,
-                out_dir: out.clone(),
-            };
-            if hull_figure_only {
-                ablation_init::write_hull_figure(&job, &mut |line| eprintln!("{line}"))?;
-                eprintln!("wrote {}", out.join("hull.png").display());
-                return Ok(());
-            }
-            let result = run_init_ablation(&job, &mut |line| eprintln!("{line}"))?;
-            if job.inits.iter().any(|i| i.starts_with("hull")) {
-                ablation_init::write_hull_figure(&job, &mut |line| eprintln!("{line}"))?;
-            }
-            eprintln!("\n{}", ablation_init::to_markdown(&result.runs));
-            eprintln!(
-                "{} runs in {:.0} s wall, {:.0} s process CPU (rendering {:.0} s); wrote init.csv, init.md, init_curves.csv, init.png, runs.json (and hull.png) to {}",
-                result.runs.len(),
-                result.total_s,
-                result.total_cpu_s,
-                result.render_s,
-                out.display()
-            );
-            Ok(())
-        }
         Command::Pareto {
             out,
             target,
@@ -577,6 +528,55 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             let rows = run_window_ablation(&job, &mut |line| eprintln!("{line}"))?;
             eprintln!("\n{}", window_markdown(&rows));
             eprintln!("wrote {}", out.join("window.md").display());
+            Ok(())
+        }
+        Command::AblationInit {
+            preset,
+            out,
+            scenario,
+            inits,
+            eval_every,
+            hull_views,
+            hull_resolution,
+            hull_figure_only,
+        } => {
+            let mut preset = Preset::load(&preset)?;
+            preset.eval_every_rounds = eval_every;
+            preset.hull_views = hull_views.unwrap_or(preset.hull_views);
+            preset.hull_resolution = hull_resolution.unwrap_or(preset.hull_resolution);
+            preset.validate()?;
+            let scenarios = if scenario.is_empty() {
+                builtin_scenarios()?
+            } else {
+                scenario
+                    .iter()
+                    .map(|p| Scenario::load(p))
+                    .collect::<Result<_, _>>()?
+            };
+            let job = InitAblationJob {
+                preset,
+                scenarios,
+                inits,
+                out_dir: out.clone(),
+            };
+            if hull_figure_only {
+                ablation_init::write_hull_figure(&job, &mut |line| eprintln!("{line}"))?;
+                eprintln!("wrote {}", out.join("hull.png").display());
+                return Ok(());
+            }
+            let result = run_init_ablation(&job, &mut |line| eprintln!("{line}"))?;
+            if job.inits.iter().any(|i| i.starts_with("hull")) {
+                ablation_init::write_hull_figure(&job, &mut |line| eprintln!("{line}"))?;
+            }
+            eprintln!("\n{}", ablation_init::to_markdown(&result.runs));
+            eprintln!(
+                "{} runs in {:.0} s wall, {:.0} s process CPU (rendering {:.0} s); wrote init.csv, init.md, init_curves.csv, init.png, runs.json (and hull.png) to {}",
+                result.runs.len(),
+                result.total_s,
+                result.total_cpu_s,
+                result.render_s,
+                out.display()
+            );
             Ok(())
         }
         Command::ShadowStudy {
