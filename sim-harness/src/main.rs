@@ -323,6 +323,17 @@ impl BusArgs {
     }
 }
 
+/// The scenario files given on the command line, else the three built-in targets.
+fn scenarios_or_builtin(files: &[PathBuf]) -> Result<Vec<Scenario>, Box<dyn std::error::Error>> {
+    if files.is_empty() {
+        return Ok(builtin_scenarios()?);
+    }
+    Ok(files
+        .iter()
+        .map(|p| Scenario::load(p))
+        .collect::<Result<_, _>>()?)
+}
+
 fn bus_options(
     config: &Path,
     adjust: impl FnOnce(&mut BusFeedOptions),
@@ -426,14 +437,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             keep_data,
         } => {
             let preset = with_backend(Preset::load(&preset)?, &backend)?;
-            let scenarios = if scenario.is_empty() {
-                builtin_scenarios()?
-            } else {
-                scenario
-                    .iter()
-                    .map(|p| Scenario::load(p))
-                    .collect::<Result<_, _>>()?
-            };
+            let scenarios = scenarios_or_builtin(&scenario)?;
             let job = TableJob {
                 preset,
                 scenarios,
@@ -511,14 +515,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             windows,
             scenario,
         } => {
-            let scenarios = if scenario.is_empty() {
-                builtin_scenarios()?
-            } else {
-                scenario
-                    .iter()
-                    .map(|p| Scenario::load(p))
-                    .collect::<Result<_, _>>()?
-            };
+            let scenarios = scenarios_or_builtin(&scenario)?;
             let job = WindowJob {
                 base: Preset::load(&preset)?,
                 scenarios,
@@ -545,14 +542,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             preset.hull_views = hull_views.unwrap_or(preset.hull_views);
             preset.hull_resolution = hull_resolution.unwrap_or(preset.hull_resolution);
             preset.validate()?;
-            let scenarios = if scenario.is_empty() {
-                builtin_scenarios()?
-            } else {
-                scenario
-                    .iter()
-                    .map(|p| Scenario::load(p))
-                    .collect::<Result<_, _>>()?
-            };
+            let scenarios = scenarios_or_builtin(&scenario)?;
             let job = InitAblationJob {
                 preset,
                 scenarios,
