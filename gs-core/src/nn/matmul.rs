@@ -13,6 +13,16 @@
 
 use gemm::Parallelism;
 
+/// Arithmetic of the networks' matrix products.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum MatmulPrecision {
+    /// f32 inputs, f32 accumulation (the `gemm` crate).
+    #[default]
+    F32,
+    /// Inputs rounded to bfloat16, f32 accumulation (AVX-512 BF16 where the CPU has it).
+    Bf16,
+}
+
 /// Row-major stride pair `(column stride, row stride)` of a dense `rows x cols` matrix.
 const fn row_major(cols: usize) -> (isize, isize) {
     (1, cols as isize)

@@ -41,5 +41,6 @@ pub mod shadow;
 pub use appearance::AppearanceNet;
 pub use encoding::PositionalEncoding;
 pub use error::NnError;
+pub use matmul::MatmulPrecision;
 pub use mlp::{HiddenActivation, Init, Mlp, MlpForward, TapeMode};
 pub use shadow::{SceneBox, ShadowNet};

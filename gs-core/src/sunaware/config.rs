@@ -328,6 +328,22 @@ pub struct SunAwareConfig {
     /// buffers between steps: +45-60 MB of peak at 100K, 960x600 on the volume scene, and
     /// Phi's whole tape when every Gaussian contributes. Not stored in checkpoints.
     pub reuse_step_buffers: bool,
+    /// Width of each of Phi's three hidden layers (paper: 256). A model knob: it sets the
+    /// network's shape, so checkpoints store it.
+    pub appearance_hidden_width: usize,
+    /// Arithmetic of the networks' matrix products on the CPU: `F32`, or `Bf16` (inputs
+    /// rounded to bfloat16, f32 accumulation, where the CPU has AVX-512 BF16). A speed
+    /// setting, not stored in checkpoints.
+    pub mlp_precision: crate::nn::MatmulPrecision,
+    /// Frustum and near-plane culling of Gaussians before binning (a skip: off projects
+    /// and bins every Gaussian with a finite footprint). Not stored in checkpoints.
+    pub cull_outside_frustum: bool,
+    /// Stop blending a pixel once its transmittance falls below 1e-4 (a skip). Not stored
+    /// in checkpoints.
+    pub early_termination: bool,
+    /// With a foreground mask on the training frame and a masked loss: tiles with no mask
+    /// pixel are neither blended nor back-propagated (a skip). Not stored in checkpoints.
+    pub skip_masked_background_tiles: bool,
 }
 
 impl Default for SunAwareConfig {
@@ -356,6 +372,11 @@ impl Default for SunAwareConfig {
             skip_noncontributing_in_mlp: true,
             mlp_recompute_activations: false,
             reuse_step_buffers: false,
+            appearance_hidden_width: 256,
+            mlp_precision: crate::nn::MatmulPrecision::F32,
+            cull_outside_frustum: true,
+            early_termination: true,
+            skip_masked_background_tiles: true,
         }
     }
 }
@@ -461,6 +482,12 @@ impl SunAwareConfig {
                     "learning rate {name} = {v} must be finite and >= 0"
                 ));
             }
+        }
+        if !(1..=4096).contains(&self.appearance_hidden_width) {
+            return bad(format!(
+                "appearance_hidden_width {} is outside 1..=4096",
+                self.appearance_hidden_width
+            ));
         }
         if self.max_gaussians == 0 {
             return bad("max_gaussians must be positive".into());
