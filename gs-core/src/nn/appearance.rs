@@ -1,7 +1,8 @@
 //! The appearance network Phi of the paper: per-Gaussian colour from the Gaussian's
 //! appearance feature, the Sun direction and the viewing direction.
 //!
-//! Network: input -> 3 x 256 ReLU -> 3 (RGB through a sigmoid), PyTorch-default init.
+//! Network: input -> 3 x H ReLU -> 3 (RGB through a sigmoid), PyTorch-default init, with
+//! hidden width `H` (paper: 256; `SunAwareConfig::appearance_hidden_width`).
 //! Input row of Gaussian `i` for image `j` (width `feature_dim + 2 * 3 * 2L`):
 //! `[f_i (feature_dim) | gamma_L(sun_j) (6L) | gamma_L(view_ij) (6L)]`, with
 //! `view_ij = (camera_centre_j - mu_i) / |camera_centre_j - mu_i|`, the unit vector from the
@@ -20,8 +21,11 @@ use super::error::{check_finite, check_len, NnError};
 use super::gather::{check_indices, check_rows_finite, rows_of, unit_vector};
 use super::mlp::{HiddenActivation, Init, Mlp};
 
-/// Hidden widths of Phi (paper: 3 x 256-D hidden layers).
-pub const APPEARANCE_HIDDEN: [usize; 3] = [256, 256, 256];
+/// Hidden width of Phi in the paper (3 x 256-D hidden layers).
+pub const DEFAULT_APPEARANCE_HIDDEN_WIDTH: usize = 256;
+
+/// Hidden layers of Phi (all of one width).
+pub const APPEARANCE_HIDDEN_LAYERS: usize = 3;
 
 /// RGB.
 pub const APPEARANCE_OUTPUT: usize = 3;
@@ -47,9 +51,20 @@ fn view_direction(mean: &[f32], camera_centre: [f32; 3]) -> ([f32; 3], f32) {
 }
 
 impl AppearanceNet {
-    /// A fresh Phi for features of `feature_dim` values (72 in the paper).
+    /// A fresh Phi for features of `feature_dim` values (72 in the paper), hidden layers of
+    /// the paper's width.
     pub fn new(
         feature_dim: usize,
+        encoding: PositionalEncoding,
+        seed: u64,
+    ) -> Result<Self, NnError> {
+        Self::with_hidden_width(feature_dim, DEFAULT_APPEARANCE_HIDDEN_WIDTH, encoding, seed)
+    }
+
+    /// A fresh Phi whose three hidden layers are `hidden_width` wide.
+    pub fn with_hidden_width(
+        feature_dim: usize,
+        hidden_width: usize,
         encoding: PositionalEncoding,
         seed: u64,
     ) -> Result<Self, NnError> {
@@ -58,7 +73,12 @@ impl AppearanceNet {
                 "appearance feature width must be positive".into(),
             ));
         }
-        let widths = Self::widths_for(feature_dim, encoding);
+        if hidden_width == 0 {
+            return Err(NnError::Config(
+                "appearance hidden width must be positive".into(),
+            ));
+        }
+        let widths = Self::widths_for(feature_dim, hidden_width, encoding);
         let mlp = Mlp::new(
             &widths,
             HiddenActivation::Relu,
@@ -72,13 +92,15 @@ impl AppearanceNet {
         })
     }
 
-    /// Wraps a loaded network, checking that its shape is Phi's for these settings.
+    /// Wraps a loaded network, checking that its shape is Phi's for these settings (with
+    /// any hidden width, taken from the network's first hidden layer).
     pub fn from_mlp(
         mlp: Mlp,
         feature_dim: usize,
         encoding: PositionalEncoding,
     ) -> Result<Self, NnError> {
-        let widths = Self::widths_for(feature_dim, encoding);
+        let hidden_width = mlp.widths().get(1).copied().unwrap_or(0);
+        let widths = Self::widths_for(feature_dim, hidden_width, encoding);
         if mlp.widths() != widths || mlp.hidden_activation() != HiddenActivation::Relu {
             return Err(NnError::Config(format!(
                 "appearance network must be {widths:?} with ReLU, got {:?} with {:?}",
@@ -93,15 +115,24 @@ impl AppearanceNet {
         })
     }
 
-    fn widths_for(feature_dim: usize, encoding: PositionalEncoding) -> Vec<usize> {
+    fn widths_for(
+        feature_dim: usize,
+        hidden_width: usize,
+        encoding: PositionalEncoding,
+    ) -> Vec<usize> {
         let mut widths = vec![feature_dim + 2 * encoding.width(3)];
-        widths.extend(APPEARANCE_HIDDEN);
+        widths.extend([hidden_width; APPEARANCE_HIDDEN_LAYERS]);
         widths.push(APPEARANCE_OUTPUT);
         widths
     }
 
     pub fn feature_dim(&self) -> usize {
         self.feature_dim
+    }
+
+    /// Width of each hidden layer.
+    pub fn hidden_width(&self) -> usize {
+        self.mlp.widths()[1]
     }
 
     pub fn encoding(&self) -> PositionalEncoding {

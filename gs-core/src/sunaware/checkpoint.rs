@@ -3,7 +3,8 @@
 //! File layout (all integers and floats little-endian):
 //! ```text
 //! magic     8 bytes  b"SUNGSCKP"
-//! version   u32      2 (1 is still read: it has no shadow refinement byte and means Replace)
+//! version   u32      3 (2 is still read: no hidden-width field, Phi is 256 wide; 1 also
+//!                    has no shadow refinement byte and means Replace)
 //! length    u64      payload bytes
 //! payload   length bytes (below)
 //! checksum  u64      FNV-1a 64 of the payload
@@ -18,8 +19,9 @@
 //!    MLP), densify 6 f32 (grad threshold, percent dense, min opacity, max screen radius,
 //!    max world scale fraction, split divisor), size_prune u8, max_gaussians u64,
 //!    densify_from_step u64,
-//!    background 3 f32, near_m f32, seed u64, feature_init_std f32, and from version 2
-//!    shadow refinement u8 (0 replace, 1 multiply);
+//!    background 3 f32, near_m f32, seed u64, feature_init_std f32, from version 2
+//!    shadow refinement u8 (0 replace, 1 multiply), from version 3 appearance hidden width
+//!    u64 (the width of Phi's hidden layers: the weights' shape depends on it);
 //! 2. scene box: min 3 f32, max 3 f32;
 //! 3. Gaussians: count u64, then each group of `Param::ALL` in order (count x width f32,
 //!    widths from the config's layout);
@@ -54,7 +56,7 @@ use super::model::SunAwareModel;
 use super::trainer::{FlatAdam, SunAwareTrainer};
 
 pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 /// Oldest version [`from_bytes`] reads.
 pub const OLDEST_READABLE_VERSION: u32 = 1;
 
@@ -216,6 +218,7 @@ fn write_config(w: &mut Writer, c: &SunAwareConfig) {
         ShadowRefinement::Replace => 0,
         ShadowRefinement::Multiply => 1,
     });
+    w.u64(c.appearance_hidden_width as u64);
 }
 
 fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareError> {
@@ -302,6 +305,12 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
             }
         } else {
             ShadowRefinement::Replace
+        },
+        // Before version 3 Phi's width was fixed at the paper's 256.
+        appearance_hidden_width: if version >= 3 {
+            r.usize("appearance hidden width")?
+        } else {
+            crate::nn::appearance::DEFAULT_APPEARANCE_HIDDEN_WIDTH
         },
         ..SunAwareConfig::default()
     };
@@ -547,14 +556,38 @@ mod tests {
     fn shadow_refinement_round_trips_and_version_1_means_replace() {
         for refinement in [ShadowRefinement::Replace, ShadowRefinement::Multiply] {
             let bytes = config_bytes(refinement);
-            assert_eq!(read(&bytes, 2).unwrap().shadow_refinement, refinement);
-            // A version-1 config section is the same bytes without the last one.
-            let v1 = read(&bytes[..bytes.len() - 1], 1).unwrap();
+            assert_eq!(read(&bytes, 3).unwrap().shadow_refinement, refinement);
+            // A version-2 config section ends before the hidden width (8 bytes), a
+            // version-1 section also before the refinement byte.
+            let v2 = read(&bytes[..bytes.len() - 8], 2).unwrap();
+            assert_eq!(v2.shadow_refinement, refinement);
+            let v1 = read(&bytes[..bytes.len() - 9], 1).unwrap();
             assert_eq!(v1.shadow_refinement, ShadowRefinement::Replace);
         }
         let mut bad = config_bytes(ShadowRefinement::Multiply);
-        *bad.last_mut().unwrap() = 7;
-        let err = read(&bad, 2).unwrap_err().to_string();
+        let at = bad.len() - 9;
+        bad[at] = 7;
+        let err = read(&bad, 3).unwrap_err().to_string();
         assert!(err.contains("shadow refinement"), "{err}");
+    }
+
+    #[test]
+    fn appearance_hidden_width_round_trips_and_older_versions_mean_256() {
+        let mut w = Writer(Vec::new());
+        let config = SunAwareConfig {
+            appearance_hidden_width: 64,
+            ..SunAwareConfig::for_variant(Variant::D)
+        };
+        write_config(&mut w, &config);
+        let bytes = w.0;
+        assert_eq!(read(&bytes, 3).unwrap().appearance_hidden_width, 64);
+        let v2 = read(&bytes[..bytes.len() - 8], 2).unwrap();
+        assert_eq!(v2.appearance_hidden_width, 256);
+        // A stored width outside the validated range is a checkpoint error, not a model.
+        let mut bad = bytes.clone();
+        let at = bad.len() - 8;
+        bad[at..].copy_from_slice(&0u64.to_le_bytes());
+        let err = read(&bad, 3).unwrap_err().to_string();
+        assert!(err.contains("appearance_hidden_width"), "{err}");
     }
 }

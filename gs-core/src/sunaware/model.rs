@@ -400,8 +400,9 @@ impl SunAwareModel {
             for f in gaussians.params.get_mut(Param::Feature) {
                 *f = rng.normal() * config.feature_init_std;
             }
-            Some(AppearanceNet::new(
+            Some(AppearanceNet::with_hidden_width(
                 config.feature_dim,
+                config.appearance_hidden_width,
                 encoding,
                 config.seed.wrapping_add(1),
             )?)
