@@ -9,7 +9,15 @@
 //! carve it). A voxel survives when no voting view carves it and at least `min_views` views
 //! voted. The surface voxels (occupied, with at least one empty 6-neighbour; outside the grid
 //! counts as empty) become the points, at the voxel centres, with outward normals from the
-//! occupancy gradient, subsampled to the requested count by a seeded shuffle.
+//! occupancy gradient, subsampled to the requested count by a seeded shuffle
+//! ([`HullSampling::Shell`]); or every occupied voxel is a candidate and each point lies at a
+//! seeded uniform position inside its voxel ([`HullSampling::Volume`]), so the points fill
+//! the hull and some lie on the true surface wherever it is inside the hull.
+//!
+//! [`CarvedVolume`] keeps the occupancy between calls: an online trainer carves it with each
+//! new view as it arrives and asks whether a point is still inside (to prune Gaussians the
+//! later views show to be outside the object). Carving is monotone: a voxel once carved stays
+//! carved, and the result after views A then B equals the result after B then A.
 //!
 //! Invariants:
 //! - conservative: with `margin_px >= 1` (masks sampled at pixel centres), every voxel that
@@ -106,8 +114,22 @@ pub struct HullOptions {
     /// A voxel needs at least this many voting views to survive (1: at least one view
     /// must have seen it).
     pub min_views: u32,
-    /// Seed of the subsampling shuffle.
+    /// Seed of the subsampling shuffle (and of the in-voxel positions for `Volume`).
     pub seed: u64,
+    /// Where the points go: the hull's surface voxels or all its voxels.
+    pub sampling: HullSampling,
+}
+
+/// Which voxels give points.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum HullSampling {
+    /// Surface voxels (an empty 6-neighbour), at their centres.
+    #[default]
+    Shell,
+    /// Every occupied voxel, at a seeded uniform position inside it. Interior voxels have
+    /// no outward direction: their normal is the occupancy-gradient fallback (+z where the
+    /// neighbourhood is full), which matters only for colour sampling.
+    Volume,
 }
 
 impl Default for HullOptions {
@@ -117,6 +139,7 @@ impl Default for HullOptions {
             margin_px: 1,
             min_views: 1,
             seed: 0,
+            sampling: HullSampling::Shell,
         }
     }
 }
@@ -134,6 +157,8 @@ pub struct HullPoints {
     pub occupied: usize,
     /// Surface voxels before subsampling.
     pub surface: usize,
+    /// The carved occupancy, one byte per voxel (1 occupied), x fastest then y then z.
+    pub occupancy: Vec<u8>,
 }
 
 /// Why carving could not produce points.
@@ -382,9 +407,13 @@ pub fn carve(
         })
         .collect();
     let surface_count = surface.len();
+    let candidates = match options.sampling {
+        HullSampling::Shell => surface,
+        HullSampling::Volume => (0..total).filter(|&i| occupancy[i] != 0).collect(),
+    };
 
     // Deterministic subsample: a seeded partial Fisher-Yates, then back to index order.
-    let mut chosen = surface;
+    let mut chosen = candidates;
     if chosen.len() > options.point_count {
         let mut rng = SplitMix64::new(options.seed);
         for i in 0..options.point_count {
@@ -399,8 +428,18 @@ pub fn carve(
         .par_iter()
         .map(|&i| {
             let (x, y, z) = unflatten(dims, i);
-            let centre = corner_of(x as usize, y as usize, z as usize) + Vec3::splat(0.5 * voxel_m);
-            (centre, outward_normal(&occ, x, y, z))
+            let offset = match options.sampling {
+                HullSampling::Shell => Vec3::splat(0.5),
+                HullSampling::Volume => {
+                    // Per-voxel stream: independent of thread count and of the other voxels.
+                    let mut rng = SplitMix64::new(
+                        options.seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F),
+                    );
+                    Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32())
+                }
+            };
+            let point = corner_of(x as usize, y as usize, z as usize) + offset * voxel_m;
+            (point, outward_normal(&occ, x, y, z))
         })
         .unzip();
     Ok(HullPoints {
@@ -410,7 +449,134 @@ pub fn carve(
         dims,
         occupied,
         surface: surface_count,
+        occupancy,
     })
+}
+
+/// A carving volume that keeps its occupancy between views: every voxel starts occupied
+/// and each [`CarvedVolume::carve`] removes the voxels that view shows to be background
+/// (same vote as [`carve`]; a view that does not see a voxel wholly abstains, so voxels no
+/// view has seen stay occupied).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CarvedVolume {
+    grid: HullGrid,
+    voxel_m: f32,
+    dims: [usize; 3],
+    /// One byte per voxel (1 occupied), x fastest then y then z.
+    occupancy: Vec<u8>,
+    occupied: usize,
+    views: usize,
+}
+
+impl CarvedVolume {
+    /// Every voxel of `grid` occupied.
+    pub fn new(grid: HullGrid) -> Result<Self, HullError> {
+        let (voxel_m, dims) = grid.layout()?;
+        let total = dims[0] * dims[1] * dims[2];
+        Ok(CarvedVolume {
+            grid,
+            voxel_m,
+            dims,
+            occupancy: vec![1; total],
+            occupied: total,
+            views: 0,
+        })
+    }
+
+    /// Carves with one view (footprints grown by `margin_px`); returns how many voxels it
+    /// removed. A bad camera or mask is an error and changes nothing. Carving away every
+    /// voxel is allowed here (the caller decides what an empty hull means).
+    pub fn carve(&mut self, view: &HullView, margin_px: u32) -> Result<usize, HullError> {
+        let prepared = PreparedView::new(self.views, view)?;
+        let margin = margin_px as f32;
+        let (grid, voxel_m, dims) = (self.grid, self.voxel_m, self.dims);
+        let slab = dims[0] * dims[1];
+        let removed: usize = self
+            .occupancy
+            .par_chunks_mut(slab)
+            .enumerate()
+            .map(|(z, slab_occ)| {
+                let mut removed = 0;
+                for y in 0..dims[1] {
+                    for x in 0..dims[0] {
+                        let cell = &mut slab_occ[x + dims[0] * y];
+                        if *cell == 0 {
+                            continue;
+                        }
+                        let lo = grid.min_m + Vec3::new(x as f32, y as f32, z as f32) * voxel_m;
+                        if prepared.vote(lo, lo + Vec3::splat(voxel_m), margin) == Some(false) {
+                            *cell = 0;
+                            removed += 1;
+                        }
+                    }
+                }
+                removed
+            })
+            .sum();
+        self.occupied -= removed;
+        self.views += 1;
+        Ok(removed)
+    }
+
+    /// Whether `point` lies in an occupied voxel or within `dilate_voxels` voxels (in each
+    /// axis) of one. Points outside the grid, or not finite, are outside.
+    pub fn contains(&self, point: Vec3, dilate_voxels: u32) -> bool {
+        let rel = (point - self.grid.min_m) / self.voxel_m;
+        if !rel.is_finite() {
+            return false;
+        }
+        let d = dilate_voxels as i64;
+        let centre = [
+            rel.x.floor() as i64,
+            rel.y.floor() as i64,
+            rel.z.floor() as i64,
+        ];
+        for dz in -d..=d {
+            for dy in -d..=d {
+                for dx in -d..=d {
+                    let (x, y, z) = (centre[0] + dx, centre[1] + dy, centre[2] + dz);
+                    if x < 0
+                        || y < 0
+                        || z < 0
+                        || x >= self.dims[0] as i64
+                        || y >= self.dims[1] as i64
+                        || z >= self.dims[2] as i64
+                    {
+                        continue;
+                    }
+                    if self.occupancy[voxel_index(self.dims, x as usize, y as usize, z as usize)]
+                        != 0
+                    {
+                        return true;
+                    }
+                }
+            }
+        }
+        false
+    }
+
+    /// Occupied voxels.
+    pub fn occupied(&self) -> usize {
+        self.occupied
+    }
+
+    /// Views carved with so far.
+    pub fn views(&self) -> usize {
+        self.views
+    }
+
+    pub fn voxel_m(&self) -> f32 {
+        self.voxel_m
+    }
+
+    pub fn dims(&self) -> [usize; 3] {
+        self.dims
+    }
+
+    /// The occupancy, one byte per voxel (1 occupied), x fastest then y then z.
+    pub fn occupancy(&self) -> &[u8] {
+        &self.occupancy
+    }
 }
 
 const FACE_NEIGHBOURS: [[i64; 3]; 6] = [

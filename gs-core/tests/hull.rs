@@ -7,7 +7,8 @@
 use glam::Vec3;
 use gs_core::camera::{Camera, Intrinsics};
 use gs_core::hull::{
-    carve, sample_colours, ColourView, HullError, HullGrid, HullOptions, HullPoints, HullView,
+    carve, sample_colours, CarvedVolume, ColourView, HullError, HullGrid, HullOptions, HullPoints,
+    HullSampling, HullView,
 };
 
 const SIZE_PX: u32 = 64;
@@ -131,6 +132,7 @@ fn options(point_count: usize) -> HullOptions {
         margin_px: 1,
         min_views: 1,
         seed: 7,
+        sampling: HullSampling::Shell,
     }
 }
 
@@ -502,4 +504,221 @@ fn bad_input_is_a_clear_error() {
     )
     .unwrap_err();
     assert_eq!(err, HullError::BadCamera { view: 0 });
+}
+
+/// Carving one view at a time into a [`CarvedVolume`] is the one-shot carve where voxels no
+/// view votes on survive (`min_views: 0`), in either order.
+#[test]
+fn carving_view_by_view_equals_one_shot_carving_in_any_order() {
+    let scene = sphere_scene(6, RADIUS_M);
+    let one_shot = carve(
+        &scene.views(),
+        grid(),
+        HullOptions {
+            min_views: 0,
+            ..options(usize::MAX)
+        },
+    )
+    .unwrap();
+    let mut forward = CarvedVolume::new(grid()).unwrap();
+    let total = forward.occupied();
+    let mut removed = 0;
+    for view in scene.views() {
+        removed += forward.carve(&view, 1).unwrap();
+    }
+    assert_eq!(forward.views(), 6);
+    assert_eq!(forward.occupancy(), &one_shot.occupancy[..]);
+    assert_eq!(forward.occupied(), one_shot.occupied);
+    assert_eq!(total - removed, one_shot.occupied);
+    let mut backward = CarvedVolume::new(grid()).unwrap();
+    for view in scene.views().iter().rev() {
+        backward.carve(view, 1).unwrap();
+    }
+    assert_eq!(backward.occupancy(), forward.occupancy());
+    // Carving again with a view already used removes nothing.
+    assert_eq!(forward.carve(&scene.views()[2], 1).unwrap(), 0);
+}
+
+/// A thin plate (|x| <= 0.05 m, |y|, |z| <= 0.5 m) seen only from near +x carves to a thick
+/// slab; one view from the side removes the phantom slab and nothing of the plate.
+#[test]
+fn a_side_view_carves_away_the_phantom_volume_and_never_the_object() {
+    let half = Vec3::new(0.05, 0.5, 0.5);
+    let hits_plate = |o: Vec3, d: Vec3| ray_hits_cube(o / half, d / half, 1.0);
+    let front: Vec<Camera> = [
+        Vec3::new(1.0, 0.2, 0.0),
+        Vec3::new(1.0, -0.2, 0.1),
+        Vec3::new(1.0, 0.0, -0.2),
+    ]
+    .into_iter()
+    .map(camera_towards_origin)
+    .collect();
+    let side = camera_towards_origin(Vec3::Y);
+    let front_masks: Vec<Vec<u8>> = front.iter().map(|c| render_mask(c, hits_plate)).collect();
+    let side_mask = render_mask(&side, hits_plate);
+    let mut volume = CarvedVolume::new(grid()).unwrap();
+    for (camera, mask) in front.iter().zip(&front_masks) {
+        volume
+            .carve(
+                &HullView {
+                    camera: *camera,
+                    mask,
+                },
+                1,
+            )
+            .unwrap();
+    }
+    let voxel_m = volume.voxel_m();
+    // Points on the plate's faces, edges included.
+    let mut on_plate = Vec::new();
+    for i in 0..=20 {
+        for j in 0..=20 {
+            let (u, v) = (i as f32 / 10.0 - 1.0, j as f32 / 10.0 - 1.0);
+            on_plate.push(Vec3::new(1.0, u, v) * half);
+            on_plate.push(Vec3::new(-1.0, u, v) * half);
+            on_plate.push(Vec3::new(u, 1.0, v) * half);
+            on_plate.push(Vec3::new(u, v, 1.0) * half);
+        }
+    }
+    // In front of and behind the plate, along x: inside the three front views' cones.
+    let phantom = [Vec3::new(0.3, 0.0, 0.0), Vec3::new(-0.3, 0.1, 0.1)];
+    for p in phantom {
+        assert!(volume.contains(p, 0), "{p} carved by the front views alone");
+    }
+    let before = volume.occupied();
+    volume
+        .carve(
+            &HullView {
+                camera: side,
+                mask: &side_mask,
+            },
+            1,
+        )
+        .unwrap();
+    assert!(
+        volume.occupied() < before / 2,
+        "{} of {before}",
+        volume.occupied()
+    );
+    for p in &on_plate {
+        assert!(volume.contains(*p, 0), "plate point {p} carved");
+    }
+    for p in phantom {
+        assert!(!volume.contains(p, 1), "{p} survives the side view");
+    }
+    // Every occupied voxel is within the side view's silhouette up to voxel and pixel
+    // slack: its centre lies within |x| <= 0.05 m plus the slack (the side camera looks
+    // along -y, so x is an image axis at range about DISTANCE_M - y).
+    let dims = volume.dims();
+    let grid_min = Vec3::splat(-GRID_HALF_M);
+    for (i, &o) in volume.occupancy().iter().enumerate() {
+        if o == 0 {
+            continue;
+        }
+        let (x, y, z) = (
+            i % dims[0],
+            (i / dims[0]) % dims[1],
+            i / (dims[0] * dims[1]),
+        );
+        let centre = grid_min + (Vec3::new(x as f32, y as f32, z as f32) + 0.5) * voxel_m;
+        let slack = angular_slack_rad(centre, &side, voxel_m, 1);
+        let range = DISTANCE_M - centre.y;
+        let bound = (half.x / (DISTANCE_M - half.y)).atan() + slack;
+        assert!(
+            (centre.x / range).atan().abs() <= bound + 1e-4,
+            "voxel at {centre} outside the side silhouette"
+        );
+    }
+}
+
+#[test]
+fn contains_is_false_outside_the_grid_and_for_non_finite_points() {
+    let mut volume = CarvedVolume::new(grid()).unwrap();
+    assert!(volume.contains(Vec3::ZERO, 0));
+    assert!(!volume.contains(Vec3::splat(GRID_HALF_M + 0.5), 0));
+    assert!(!volume.contains(Vec3::new(f32::NAN, 0.0, 0.0), 1));
+    assert!(!volume.contains(Vec3::splat(f32::INFINITY), 1));
+    // A bad view is an error and changes nothing.
+    let scene = sphere_scene(1, RADIUS_M);
+    let short = [0u8; 10];
+    let err = volume.carve(
+        &HullView {
+            camera: scene.cameras[0],
+            mask: &short,
+        },
+        1,
+    );
+    assert!(matches!(err, Err(HullError::MaskSize { .. })));
+    assert_eq!(volume.occupied(), volume.occupancy().len());
+    assert_eq!(volume.views(), 0);
+    // Dilation reaches exactly the requested number of voxels.
+    volume.carve(&scene.views()[0], 1).unwrap();
+    let h = volume.voxel_m();
+    let outside = Vec3::new(0.0, 0.0, RADIUS_M + 4.5 * h);
+    let nearest_occupied = (0..40)
+        .map(|k| outside - Vec3::Z * (k as f32 * 0.25 * h))
+        .find(|p| volume.contains(*p, 0))
+        .unwrap();
+    let gap_voxels = ((outside.z - nearest_occupied.z) / h).floor() as u32;
+    assert!(gap_voxels >= 1);
+    assert!(!volume.contains(outside, gap_voxels.saturating_sub(1)));
+    assert!(volume.contains(outside, gap_voxels + 1));
+}
+
+/// Volume sampling: points lie in occupied voxels (anywhere inside them, not only at the
+/// centres), reach deep inside the hull, and are seeded and thread-count independent.
+#[test]
+fn volume_sampling_fills_the_hull() {
+    let scene = sphere_scene(6, RADIUS_M);
+    let volume_options = HullOptions {
+        sampling: HullSampling::Volume,
+        ..options(3000)
+    };
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| carve(&scene.views(), grid(), volume_options).unwrap())
+    };
+    let hull = run(1);
+    assert_eq!(hull, run(3));
+    assert_eq!(hull.points.len(), 3000);
+    let mut volume = CarvedVolume::new(grid()).unwrap();
+    for view in scene.views() {
+        volume.carve(&view, 1).unwrap();
+    }
+    let h = hull.voxel_m;
+    let mut off_centre = 0;
+    let mut deep = 0;
+    for p in &hull.points {
+        assert!(volume.contains(*p, 0), "{p} outside the carved voxels");
+        let cell = (*p + Vec3::splat(GRID_HALF_M)) / h;
+        let from_centre = cell - cell.floor() - Vec3::splat(0.5);
+        if from_centre.abs().max_element() > 0.1 {
+            off_centre += 1;
+        }
+        if p.length() < 0.5 * RADIUS_M {
+            deep += 1;
+        }
+    }
+    // Uniform over the hull (at least the unit ball): about 1/8 of the points lie within
+    // half the radius, and nearly all points sit away from their voxel's centre.
+    assert!(deep > 3000 / 16, "{deep} points deep inside");
+    assert!(
+        off_centre > 2500,
+        "{off_centre} points off their voxel centre"
+    );
+    let shell = carve(&scene.views(), grid(), options(3000)).unwrap();
+    assert!(shell.points.iter().all(|p| p.length() > RADIUS_M - h));
+    let other = carve(
+        &scene.views(),
+        grid(),
+        HullOptions {
+            seed: 99,
+            ..volume_options
+        },
+    )
+    .unwrap();
+    assert_ne!(other.points, hull.points);
 }
