@@ -227,16 +227,33 @@ pub fn light_splats(
     }
 }
 
-/// The rasterizer's alpha of an occluder at a pixel centre: `min(0.99, o exp(power))`.
-fn occluder_alpha(s: &Splat, px: f32, py: f32) -> f32 {
+/// The exponent of an occluder's footprint at a pixel centre (`alpha = o exp(power)`).
+fn occluder_power(s: &Splat, px: f32, py: f32) -> f32 {
     let dx = s.mean_px[0] - px;
     let dy = s.mean_px[1] - py;
     let [a, b, c] = s.conic;
-    let raw = s.opacity * (-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy).exp();
+    -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+}
+
+/// The rasterizer's alpha of an occluder at a pixel centre: `min(0.99, o exp(power))`.
+fn occluder_alpha(s: &Splat, px: f32, py: f32) -> f32 {
+    let raw = s.opacity * occluder_power(s, px, py).exp();
     if raw.is_nan() {
         0.0
     } else {
         raw.min(ALPHA_MAX)
+    }
+}
+
+/// Below this exponent an occluder's alpha is certainly under [`ALPHA_MIN`]:
+/// `ln(ALPHA_MIN / o)` less a margin far above the rounding of `exp` and `ln`, so testing it
+/// first skips the exponential without changing which occluders count.
+fn occluder_power_floor(s: &Splat) -> f32 {
+    let floor = (ALPHA_MIN / s.opacity).ln() - 1e-3;
+    if floor.is_nan() {
+        f32::NEG_INFINITY
+    } else {
+        floor
     }
 }
 
@@ -246,6 +263,8 @@ pub fn light_axis_sigmas_m(model: &GaussianModel, light: &LightCamera) -> Vec<f3
     let axis = glam::Mat3::from_quat(light.camera.rotation.normalize()).row(2);
     let p = &model.params;
     (0..model.len())
+        .into_par_iter()
+        .with_min_len(4096)
         .map(|i| {
             let log_scale = p.row(Param::LogScale, i);
             let q = p.row(Param::Rotation, i);
@@ -291,66 +310,22 @@ pub fn visibility_from_splats(
             s.depth - depth_bias_m - margin.max(0.0)
         })
         .collect();
+    let power_floor_of_rank: Vec<f32> = ranked.iter().map(occluder_power_floor).collect();
     let grid = TileGrid::new(side_px, side_px);
     let rects: Vec<PixelRect> = ranked.iter().map(|s| s.rect).collect();
     let bins = bin_tiles(&grid, &rects);
-    let r2 = footprint_radius_px * footprint_radius_px;
     let per_tile: Vec<Vec<[f32; 2]>> = (0..grid.n_tiles())
         .into_par_iter()
         .map(|t| {
             let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
-            let mut acc = vec![[0.0f32; 2]; list.len()];
-            // Receivers in increasing limit (ties by position): the occluders nearer than
-            // the limit then only grow, so one pointer walks them in depth order.
-            let mut receivers: Vec<usize> = (0..list.len()).collect();
-            receivers.sort_by(|&a, &b| {
-                limit_of_rank[list[a] as usize]
-                    .total_cmp(&limit_of_rank[list[b] as usize])
-                    .then(a.cmp(&b))
-            });
-            let rect = grid.tile_rect(t);
-            for py in rect.y0..rect.y1 {
-                for px in rect.x0..rect.x1 {
-                    let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
-                    let mut trans = 1.0f32;
-                    let mut next_occluder = 0;
-                    for &k in &receivers {
-                        let rank = list[k];
-                        let s = &ranked[rank as usize];
-                        let dx = s.mean_px[0] - fx;
-                        let dy = s.mean_px[1] - fy;
-                        if dx * dx + dy * dy > r2 {
-                            continue;
-                        }
-                        let [a, b, c] = s.conic;
-                        let weight = (-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy).exp();
-                        if weight.is_nan() || weight <= 1e-6 {
-                            continue;
-                        }
-                        let limit = limit_of_rank[rank as usize];
-                        while next_occluder < list.len()
-                            && ranked[list[next_occluder] as usize].depth < limit
-                        {
-                            if trans >= TRANSMITTANCE_STOP {
-                                let o = &ranked[list[next_occluder] as usize];
-                                let alpha = occluder_alpha(o, fx, fy);
-                                if alpha >= ALPHA_MIN {
-                                    trans *= 1.0 - alpha;
-                                }
-                            }
-                            next_occluder += 1;
-                        }
-                        let seen = if trans < TRANSMITTANCE_STOP {
-                            0.0
-                        } else {
-                            trans
-                        };
-                        acc[k][0] += weight;
-                        acc[k][1] += weight * seen;
-                    }
-                }
-            }
-            acc
+            tile_visibility(
+                list,
+                &ranked,
+                &limit_of_rank,
+                &power_floor_of_rank,
+                grid.tile_rect(t),
+                footprint_radius_px,
+            )
         })
         .collect();
     let mut sum_w = vec![0.0f64; n];
@@ -374,6 +349,103 @@ pub fn visibility_from_splats(
             }
         })
         .collect()
+}
+
+/// One light tile's `[sum of footprint weights, sum of weight x transmittance]` per entry
+/// of its depth-ordered `list` (ranks into `ranked`).
+///
+/// Receivers are served in increasing `limit` (ties by list position) while one pointer
+/// applies the occluders in depth order to a transmittance image of the tile: before a
+/// receiver is served, every occluder nearer than its limit has been applied, so each of its
+/// pixels reads the transmittance of exactly what lies in front of it. An occluder only
+/// touches the pixels of its own rectangle (outside it its alpha is below the cutoff by
+/// construction), and skips the exponential where its exponent is certainly below the
+/// cutoff; a pixel stops at `T < 1e-4`. Per receiver the sums run over its pixels in
+/// row-major order, so the result is the same bits as a per-pixel scan of the whole list
+/// (`tests::tile_walk_matches_the_plain_scan_bit_for_bit`) at the cost of the occluders'
+/// footprints instead of pixels x list length.
+fn tile_visibility(
+    list: &[u32],
+    ranked: &[Splat],
+    limit_of_rank: &[f32],
+    power_floor_of_rank: &[f32],
+    rect: PixelRect,
+    footprint_radius_px: f32,
+) -> Vec<[f32; 2]> {
+    let mut acc = vec![[0.0f32; 2]; list.len()];
+    let tile_w = (rect.x1 - rect.x0) as usize;
+    if list.is_empty() || rect.is_empty() {
+        return acc;
+    }
+    let mut receivers: Vec<usize> = (0..list.len()).collect();
+    receivers.sort_by(|&a, &b| {
+        limit_of_rank[list[a] as usize]
+            .total_cmp(&limit_of_rank[list[b] as usize])
+            .then(a.cmp(&b))
+    });
+    let mut trans = vec![1.0f32; tile_w * (rect.y1 - rect.y0) as usize];
+    let pixel_index = |px: u32, py: u32| (py - rect.y0) as usize * tile_w + (px - rect.x0) as usize;
+    let r2 = footprint_radius_px * footprint_radius_px;
+    // Pixel centres within the footprint radius lie in this range (one pixel wider than
+    // needed, so rounding never drops one; the exact test below decides).
+    let reach = footprint_radius_px.ceil() as i64 + 1;
+    let mut next_occluder = 0;
+    for &k in &receivers {
+        let rank = list[k] as usize;
+        let s = &ranked[rank];
+        if !(s.mean_px[0].is_finite() && s.mean_px[1].is_finite()) {
+            continue;
+        }
+        let limit = limit_of_rank[rank];
+        while next_occluder < list.len() && ranked[list[next_occluder] as usize].depth < limit {
+            let o_rank = list[next_occluder] as usize;
+            let o = &ranked[o_rank];
+            let floor = power_floor_of_rank[o_rank];
+            let (x0, x1) = (o.rect.x0.max(rect.x0), o.rect.x1.min(rect.x1));
+            let (y0, y1) = (o.rect.y0.max(rect.y0), o.rect.y1.min(rect.y1));
+            for py in y0..y1.max(y0) {
+                for px in x0..x1.max(x0) {
+                    let t = &mut trans[pixel_index(px, py)];
+                    let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+                    // Most of the rectangle misses the footprint: no exponential there.
+                    if *t < TRANSMITTANCE_STOP || occluder_power(o, fx, fy) < floor {
+                        continue;
+                    }
+                    let alpha = occluder_alpha(o, fx, fy);
+                    if alpha >= ALPHA_MIN {
+                        *t *= 1.0 - alpha;
+                    }
+                }
+            }
+            next_occluder += 1;
+        }
+        let cx = s.mean_px[0].floor() as i64;
+        let cy = s.mean_px[1].floor() as i64;
+        let x0 = (cx - reach).max(rect.x0 as i64);
+        let x1 = (cx + reach + 1).min(rect.x1 as i64);
+        let y0 = (cy - reach).max(rect.y0 as i64);
+        let y1 = (cy + reach + 1).min(rect.y1 as i64);
+        for py in y0..y1.max(y0) {
+            for px in x0..x1.max(x0) {
+                let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+                let dx = s.mean_px[0] - fx;
+                let dy = s.mean_px[1] - fy;
+                if dx * dx + dy * dy > r2 {
+                    continue;
+                }
+                let [a, b, c] = s.conic;
+                let weight = (-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy).exp();
+                if weight.is_nan() || weight <= 1e-6 {
+                    continue;
+                }
+                let t = trans[pixel_index(px as u32, py as u32)];
+                let seen = if t < TRANSMITTANCE_STOP { 0.0 } else { t };
+                acc[k][0] += weight;
+                acc[k][1] += weight * seen;
+            }
+        }
+    }
+    acc
 }
 
 /// `V_i` of every Gaussian for one image: light camera, splats, visibility.
@@ -429,4 +501,142 @@ pub fn sun_visibility_with_margin(
         light.depth_bias_m,
         &margin,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::SplitMix64;
+
+    /// The per-pixel scan over the whole tile list that `tile_visibility` replaces.
+    fn plain_scan_tile(
+        list: &[u32],
+        ranked: &[Splat],
+        limit_of_rank: &[f32],
+        rect: PixelRect,
+        footprint_radius_px: f32,
+    ) -> Vec<[f32; 2]> {
+        let mut acc = vec![[0.0f32; 2]; list.len()];
+        let mut receivers: Vec<usize> = (0..list.len()).collect();
+        receivers.sort_by(|&a, &b| {
+            limit_of_rank[list[a] as usize]
+                .total_cmp(&limit_of_rank[list[b] as usize])
+                .then(a.cmp(&b))
+        });
+        let r2 = footprint_radius_px * footprint_radius_px;
+        for py in rect.y0..rect.y1 {
+            for px in rect.x0..rect.x1 {
+                let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
+                let mut trans = 1.0f32;
+                let mut next_occluder = 0;
+                for &k in &receivers {
+                    let s = &ranked[list[k] as usize];
+                    let (dx, dy) = (s.mean_px[0] - fx, s.mean_px[1] - fy);
+                    if dx * dx + dy * dy > r2 {
+                        continue;
+                    }
+                    let [a, b, c] = s.conic;
+                    let weight = (-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy).exp();
+                    if weight.is_nan() || weight <= 1e-6 {
+                        continue;
+                    }
+                    let limit = limit_of_rank[list[k] as usize];
+                    while next_occluder < list.len()
+                        && ranked[list[next_occluder] as usize].depth < limit
+                    {
+                        if trans >= TRANSMITTANCE_STOP {
+                            let alpha =
+                                occluder_alpha(&ranked[list[next_occluder] as usize], fx, fy);
+                            if alpha >= ALPHA_MIN {
+                                trans *= 1.0 - alpha;
+                            }
+                        }
+                        next_occluder += 1;
+                    }
+                    let seen = if trans < TRANSMITTANCE_STOP {
+                        0.0
+                    } else {
+                        trans
+                    };
+                    acc[k][0] += weight;
+                    acc[k][1] += weight * seen;
+                }
+            }
+        }
+        acc
+    }
+
+    #[test]
+    fn tile_walk_matches_the_plain_scan_bit_for_bit() {
+        let rect = PixelRect {
+            x0: 16,
+            y0: 32,
+            x1: 32,
+            y1: 48,
+        };
+        let mut rng = SplitMix64::new(7);
+        for (trial, &count) in [0usize, 1, 5, 40, 300].iter().enumerate() {
+            for &radius in &[0.5f32, 1.3, 2.0, 3.7] {
+                // Centres in and around the tile, some far off and one non-finite; dense,
+                // opaque occluders so that pixels saturate; depths with ties.
+                // Each splat's rectangle is the rasterizer's bound in a 64 x 64 image.
+                let mut ranked: Vec<Splat> = (0..count)
+                    .map(|i| {
+                        let wide = rng.uniform(0.02, 0.6);
+                        let conic = [wide, rng.uniform_symmetric(0.5 * wide), wide * 1.3];
+                        let det = conic[0] * conic[2] - conic[1] * conic[1];
+                        let cov = [conic[2] / det, -conic[1] / det, conic[0] / det];
+                        let mean_px = [rng.uniform(12.0, 36.0), rng.uniform(28.0, 52.0)];
+                        let opacity = if i % 7 == 0 {
+                            rng.uniform(0.0, 0.01)
+                        } else {
+                            rng.uniform(0.05, 0.99)
+                        };
+                        let q_max = 2.0 * (opacity / ALPHA_MIN).ln();
+                        let rect = if q_max > 0.0 {
+                            splat_rect(mean_px, cov, q_max, 64, 64)
+                        } else {
+                            PixelRect {
+                                x0: 0,
+                                y0: 0,
+                                x1: 0,
+                                y1: 0,
+                            }
+                        };
+                        Splat {
+                            mean_px,
+                            conic,
+                            opacity,
+                            depth: (i / 3) as f32 * 0.01,
+                            rect,
+                        }
+                    })
+                    .collect();
+                if count > 3 {
+                    ranked[2].mean_px[0] = f32::NAN;
+                    ranked[3].mean_px = [1e9, -1e9];
+                }
+                let limit_of_rank: Vec<f32> = ranked
+                    .iter()
+                    .map(|s| s.depth - rng.uniform(0.0, 0.05))
+                    .collect();
+                let list: Vec<u32> = (0..count as u32).collect();
+                let floors: Vec<f32> = ranked.iter().map(occluder_power_floor).collect();
+                let got = tile_visibility(&list, &ranked, &limit_of_rank, &floors, rect, radius);
+                let want = plain_scan_tile(&list, &ranked, &limit_of_rank, rect, radius);
+                let bits = |v: &[[f32; 2]]| {
+                    v.iter()
+                        .flat_map(|p| [p[0].to_bits(), p[1].to_bits()])
+                        .collect::<Vec<_>>()
+                };
+                assert_eq!(bits(&got), bits(&want), "trial {trial}, radius {radius}");
+                if count >= 40 {
+                    assert!(
+                        got.iter().any(|a| a[0] > 0.0 && a[1] < a[0]),
+                        "no shadowing"
+                    );
+                }
+            }
+        }
+    }
 }
