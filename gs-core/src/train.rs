@@ -567,6 +567,7 @@ impl Trainer {
                 near_m: config.near_m,
                 background: config.background.to_vec(),
                 smooth_cutoff: false,
+                ..RasterSettings::default()
             },
             config: config.clone(),
             backend: Backend::Cpu,

@@ -74,6 +74,7 @@ fn random_scene(seed: u64, n: usize, n_channels: usize, smooth: bool) -> Scene {
             near_m: 0.2,
             background: (0..n_channels).map(|_| rng.uniform(0.0, 1.0)).collect(),
             smooth_cutoff: smooth,
+            ..RasterSettings::default()
         },
         means: Vec::with_capacity(3 * n),
         log_scales: Vec::with_capacity(3 * n),

@@ -69,6 +69,7 @@ fn random_scene(seed: u64) -> Scene {
             near_m: 0.2,
             background: (0..n_channels).map(|_| rng.uniform(0.0, 1.0)).collect(),
             smooth_cutoff: true,
+            ..RasterSettings::default()
         },
         means: vec![],
         log_scales: vec![],

@@ -8,7 +8,11 @@
 //! Invariants:
 //! - `tile_offsets` has `n_tiles + 1` entries; tile `t` owns `tile_ranks[tile_offsets[t]..tile_offsets[t+1]]`;
 //! - a rank's entries are listed in `entry_of_rank[rank_offsets[r]..rank_offsets[r+1]]`
-//!   (positions in `tile_ranks`), in tile order.
+//!   (positions in `tile_ranks`), in tile order;
+//! - a [`TileSelection`] built from a pixel mask holds every tile with a pixel within
+//!   `reach_px` (Chebyshev distance) of a mask pixel above zero, and no other.
+
+use std::sync::Arc;
 
 /// Tile edge, pixels.
 pub const TILE_PX: u32 = 16;
@@ -27,6 +31,110 @@ pub struct PixelRect {
 impl PixelRect {
     pub fn is_empty(&self) -> bool {
         self.x0 >= self.x1 || self.y0 >= self.y1
+    }
+}
+
+/// The tiles of an image that the blend runs on (the others are left at the background).
+/// Built from a foreground mask, so a masked loss's gradient is zero on every tile left
+/// out (see `RasterSettings::blend_tiles`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TileSelection {
+    width: u32,
+    height: u32,
+    /// Per tile, row-major over the tile grid: blended.
+    active: Arc<[bool]>,
+}
+
+/// Why a [`TileSelection`] could not be built.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum TileSelectionError {
+    /// The mask does not have one value per pixel.
+    Length { expected: usize, got: usize },
+    /// Width or height is zero.
+    EmptyImage,
+}
+
+impl std::fmt::Display for TileSelectionError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TileSelectionError::Length { expected, got } => {
+                write!(f, "mask has {got} values, the image has {expected} pixels")
+            }
+            TileSelectionError::EmptyImage => write!(f, "image has no pixels"),
+        }
+    }
+}
+
+impl std::error::Error for TileSelectionError {}
+
+impl TileSelection {
+    /// Every tile with a pixel within `reach_px` (in x and in y) of a pixel whose `mask`
+    /// value is above zero (NaN counts as zero). `mask` is `width * height`, row-major. A
+    /// loss that reads rendered pixels up to `reach_px` away from the mask (a windowed
+    /// SSIM) needs that reach; a loss on the mask pixels alone needs 0.
+    pub fn from_mask(
+        mask: &[f32],
+        width: u32,
+        height: u32,
+        reach_px: u32,
+    ) -> Result<TileSelection, TileSelectionError> {
+        if width == 0 || height == 0 {
+            return Err(TileSelectionError::EmptyImage);
+        }
+        let (w, h) = (width as usize, height as usize);
+        if mask.len() != w * h {
+            return Err(TileSelectionError::Length {
+                expected: w * h,
+                got: mask.len(),
+            });
+        }
+        let grid = TileGrid::new(width, height);
+        let tiles_x = grid.tiles_x as usize;
+        let tile = TILE_PX as usize;
+        let reach = reach_px as usize;
+        let mut active = vec![false; grid.n_tiles()];
+        for y in 0..h {
+            let row = &mask[y * w..(y + 1) * w];
+            if !row.iter().any(|&m| m > 0.0) {
+                continue;
+            }
+            let ty0 = y.saturating_sub(reach) / tile;
+            let ty1 = (y + reach).min(h - 1) / tile;
+            for (x, &m) in row.iter().enumerate() {
+                if m > 0.0 {
+                    let tx0 = x.saturating_sub(reach) / tile;
+                    let tx1 = (x + reach).min(w - 1) / tile;
+                    for ty in ty0..=ty1 {
+                        active[ty * tiles_x + tx0..=ty * tiles_x + tx1].fill(true);
+                    }
+                }
+            }
+        }
+        Ok(TileSelection {
+            width,
+            height,
+            active: active.into(),
+        })
+    }
+
+    /// Image size the selection was built for, pixels.
+    pub fn image_size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    /// Tile `t` (row-major over the tile grid) is blended; false beyond the grid.
+    pub fn is_active(&self, tile: usize) -> bool {
+        self.active.get(tile).copied().unwrap_or(false)
+    }
+
+    /// Number of tiles blended.
+    pub fn active_count(&self) -> usize {
+        self.active.iter().filter(|&&a| a).count()
+    }
+
+    /// Number of tiles of the image.
+    pub fn n_tiles(&self) -> usize {
+        self.active.len()
     }
 }
 
@@ -246,5 +354,53 @@ mod tests {
                 assert_eq!(bins.tile_ranks[e as usize], rank as u32);
             }
         }
+    }
+
+    /// Against the definition, pixel by pixel: a tile is selected iff one of its pixels is
+    /// within `reach` (in x and y) of a mask pixel above zero; ragged edge tiles included.
+    #[test]
+    fn tile_selection_matches_its_definition() {
+        let (w, h) = (53u32, 37u32);
+        let mut mask = vec![0.0f32; (w * h) as usize];
+        for (x, y, v) in [(20, 18, 1.0), (52, 0, 0.5), (3, 36, 0.01), (40, 30, -1.0)] {
+            mask[y * w as usize + x] = v;
+        }
+        mask[5] = f32::NAN;
+        let grid = TileGrid::new(w, h);
+        for reach in [0u32, 1, 5, 16, 100] {
+            let sel = TileSelection::from_mask(&mask, w, h, reach).unwrap();
+            assert_eq!(sel.n_tiles(), grid.n_tiles());
+            for t in 0..grid.n_tiles() {
+                let r = grid.tile_rect(t);
+                let mut expected = false;
+                for y in r.y0..r.y1 {
+                    for x in r.x0..r.x1 {
+                        for my in 0..h {
+                            for mx in 0..w {
+                                let m = mask[(my * w + mx) as usize];
+                                if m > 0.0 && x.abs_diff(mx) <= reach && y.abs_diff(my) <= reach {
+                                    expected = true;
+                                }
+                            }
+                        }
+                    }
+                }
+                assert_eq!(sel.is_active(t), expected, "reach {reach} tile {t}");
+            }
+        }
+        let sel = TileSelection::from_mask(&mask, w, h, 0).unwrap();
+        assert_eq!(sel.active_count(), 3);
+        assert!(!sel.is_active(grid.n_tiles()));
+        assert_eq!(
+            TileSelection::from_mask(&mask, w, h + 1, 0),
+            Err(TileSelectionError::Length {
+                expected: (w * (h + 1)) as usize,
+                got: (w * h) as usize
+            })
+        );
+        assert_eq!(
+            TileSelection::from_mask(&[], 0, 4, 0),
+            Err(TileSelectionError::EmptyImage)
+        );
     }
 }

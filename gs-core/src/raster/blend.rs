@@ -1,7 +1,8 @@
 //! Front-to-back alpha blending of one tile, and its backward pass.
 //!
 //! Forward, per pixel: `alpha = min(0.99, o exp(power))`, skipped when below 1/255,
-//! and blending stops before a Gaussian that would take the transmittance below 1e-4.
+//! and blending stops before a Gaussian that would take the transmittance below 1e-4
+//! (early termination; switched off, below [`TRANSMITTANCE_FLOOR`] instead, 1.2e-38).
 //! Colour = sum_i c_i alpha_i T_i + T_final * background, depth = sum_i z_i alpha_i T_i
 //! (not normalised by alpha), alpha = 1 - T_final.
 //!
@@ -10,6 +11,9 @@
 //! lies behind (`S`), so `dC/dalpha_i = c_i T_i - S / (1 - alpha_i)`: no per-pixel lists.
 //! Per-Gaussian sums are written to one record per list entry (each entry belongs to
 //! exactly one tile, so tiles never write the same memory: no atomics, no races).
+//! The backward needs no knowledge of where the forward stopped beyond each pixel's
+//! final transmittance and last blended entry, so it is the exact gradient of the forward
+//! that ran with early termination on or off.
 //!
 //! Invariants:
 //! - forward and backward evaluate alpha with the same functions (`row_gauss`, [`alpha_of`]),
@@ -25,6 +29,13 @@ use super::bin::{PixelRect, TILE_PIXELS, TILE_PX};
 pub const ALPHA_MAX: f32 = 0.99;
 pub const ALPHA_MIN: f32 = 1.0 / 255.0;
 pub const TRANSMITTANCE_STOP: f32 = 1e-4;
+/// With early termination off a pixel still stops before a Gaussian that would take its
+/// transmittance below the smallest normal f32 (1.2e-38): the backward rebuilds each
+/// `T_i` by dividing the final transmittance by `1 - alpha`, which needs that value to
+/// keep its full precision (a subnormal or zero `T_final` would lose the gradients of
+/// everything in front). What is left behind weighs less than 1.2e-38 per unit of
+/// colour, far below what an f32 image resolves.
+pub const TRANSMITTANCE_FLOOR: f32 = f32::MIN_POSITIVE;
 /// Smooth-mode ramp: zero below `SMOOTH_LO`, the identity above `SMOOTH_HI`.
 pub const SMOOTH_LO: f32 = 0.5 / 255.0;
 pub const SMOOTH_HI: f32 = 1.5 / 255.0;
@@ -65,11 +76,16 @@ impl AlphaMode {
         }
     }
 
-    fn stop(&self) -> f32 {
+    /// Transmittance below which a pixel stops blending. Smooth mode (test-only) never
+    /// stops; `early_termination` off stops only where the transmittance would leave the
+    /// normal range of f32 (see [`TRANSMITTANCE_FLOOR`]).
+    pub fn stop(&self, early_termination: bool) -> f32 {
         if self.smooth {
             0.0
-        } else {
+        } else if early_termination {
             TRANSMITTANCE_STOP
+        } else {
+            TRANSMITTANCE_FLOOR
         }
     }
 }
@@ -256,6 +272,7 @@ pub fn blend_tile_forward(
     n_channels: usize,
     background: &[f32],
     mode: AlphaMode,
+    early_termination: bool,
     out: TileForwardOut,
 ) {
     #[cfg(target_arch = "x86_64")]
@@ -270,6 +287,7 @@ pub fn blend_tile_forward(
                 n_channels,
                 background,
                 mode,
+                early_termination,
                 out,
             )
         };
@@ -283,6 +301,7 @@ pub fn blend_tile_forward(
         n_channels,
         background,
         mode,
+        early_termination,
         out,
     );
 }
@@ -298,6 +317,7 @@ unsafe fn forward_avx2(
     n_channels: usize,
     background: &[f32],
     mode: AlphaMode,
+    early_termination: bool,
     out: TileForwardOut,
 ) {
     forward_dispatch(
@@ -308,6 +328,7 @@ unsafe fn forward_avx2(
         n_channels,
         background,
         mode,
+        early_termination,
         out,
     );
 }
@@ -323,6 +344,7 @@ fn forward_dispatch(
     n_channels: usize,
     background: &[f32],
     mode: AlphaMode,
+    early_termination: bool,
     out: TileForwardOut,
 ) {
     macro_rules! go {
@@ -335,6 +357,7 @@ fn forward_dispatch(
                 n_channels,
                 background,
                 mode,
+                early_termination,
                 out,
             )
         };
@@ -358,6 +381,7 @@ fn forward_body<const FIXED: usize>(
     n_channels: usize,
     background: &[f32],
     mode: AlphaMode,
+    early_termination: bool,
     out: TileForwardOut,
 ) {
     let nc = if FIXED > 0 { FIXED } else { n_channels };
@@ -380,7 +404,7 @@ fn forward_body<const FIXED: usize>(
         *m = full;
     }
     let mut n_active = ((tile.x1 - tile.x0) * (tile.y1 - tile.y0)) as usize;
-    let stop = mode.stop();
+    let stop = mode.stop(early_termination);
     let cutoff = mode.cutoff();
     let mut gauss = [0.0f32; TILE_PX as usize];
     for (j, &rank) in list.iter().enumerate() {
@@ -446,15 +470,16 @@ pub fn tile_contributions(
     list: &[u32],
     splats: &[Splat],
     mode: AlphaMode,
+    early_termination: bool,
     flags: &mut [bool],
 ) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
-        unsafe { contributions_avx2(tile, list, splats, mode, flags) };
+        unsafe { contributions_avx2(tile, list, splats, mode, early_termination, flags) };
         return;
     }
-    contributions_body(tile, list, splats, mode, flags);
+    contributions_body(tile, list, splats, mode, early_termination, flags);
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -464,9 +489,10 @@ unsafe fn contributions_avx2(
     list: &[u32],
     splats: &[Splat],
     mode: AlphaMode,
+    early_termination: bool,
     flags: &mut [bool],
 ) {
-    contributions_body(tile, list, splats, mode, flags);
+    contributions_body(tile, list, splats, mode, early_termination, flags);
 }
 
 /// [`forward_body`] without channels or depth: only the transmittance and the flags.
@@ -476,6 +502,7 @@ fn contributions_body(
     list: &[u32],
     splats: &[Splat],
     mode: AlphaMode,
+    early_termination: bool,
     flags: &mut [bool],
 ) {
     flags.fill(false);
@@ -494,7 +521,7 @@ fn contributions_body(
         *m = full;
     }
     let mut n_active = ((tile.x1 - tile.x0) * (tile.y1 - tile.y0)) as usize;
-    let stop = mode.stop();
+    let stop = mode.stop(early_termination);
     let cutoff = mode.cutoff();
     let mut gauss = [0.0f32; TILE_PX as usize];
     for (j, &rank) in list.iter().enumerate() {
@@ -959,19 +986,23 @@ mod tests {
         (splats, channels)
     }
 
-    fn render_tile(splats: &[Splat], channels: &[f32]) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<u32>) {
+    type TileImages = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<u32>);
+
+    fn render_tile(splats: &[Splat], channels: &[f32], early_termination: bool) -> TileImages {
+        let list: Vec<u32> = (0..splats.len() as u32).collect();
         let mut color = vec![0.0; TILE_PIXELS * NC];
         let mut depth = vec![0.0; TILE_PIXELS];
         let mut trans = vec![0.0; TILE_PIXELS];
         let mut last = vec![0; TILE_PIXELS];
         blend_tile_forward(
             &tile(),
-            &[0, 1, 2, 3, 4],
+            &list,
             splats,
             channels,
             NC,
             &[0.25, 0.75],
             AlphaMode { smooth: false },
+            early_termination,
             TileForwardOut {
                 color: &mut color,
                 depth: &mut depth,
@@ -996,9 +1027,9 @@ mod tests {
         (c, a, d)
     }
 
-    fn loss(splats: &[Splat], channels: &[f32]) -> f64 {
+    fn loss(splats: &[Splat], channels: &[f32], early_termination: bool) -> f64 {
         let (wc, wa, wd) = weights();
-        let (color, depth, trans, _) = render_tile(splats, channels);
+        let (color, depth, trans, _) = render_tile(splats, channels, early_termination);
         let t = tile();
         let mut sum = 0.0f64;
         for y in t.y0..t.y1 {
@@ -1031,25 +1062,27 @@ mod tests {
         assert!(fast_exp(1e30).is_finite());
     }
 
-    /// Hard mode with the early stop active: backward matches central differences of
-    /// every splat quantity, and the stopped splats get exactly zero. The rectangles keep
-    /// every kept alpha far from 1/255 and the stop margins are large, so steps of 1e-3
-    /// (relative) never change which splats a pixel keeps. Tolerance 1e-2 relative plus
-    /// 1e-3 absolute covers f32 noise of the ~1e-6 loss rounding over 2h.
-    #[test]
-    fn hard_mode_backward_matches_finite_differences_with_early_stop() {
-        let (splats, channels) = splats();
-        let (_, _, trans, last) = render_tile(&splats, &channels);
-        // The stack really stops early in some pixels and not in others.
-        assert!(trans.iter().any(|&t| t < 2e-4 && t > 1e-4));
-        assert!(last.contains(&5));
+    /// Hard mode, early termination on and off: backward matches central differences of
+    /// every splat quantity (on: the stopped splats get exactly zero; off: the stack is
+    /// blended past T = 1e-4 and the same check holds). The rectangles keep every kept
+    /// alpha far from 1/255 and the stop margins are large, so steps of 1e-3 (relative)
+    /// never change which splats a pixel keeps. Tolerance 1e-2 relative plus 1e-3 absolute
+    /// covers f32 noise of the ~1e-6 loss rounding over 2h.
+    fn check_backward_against_finite_differences(
+        splats: &[Splat],
+        channels: &[f32],
+        early_termination: bool,
+    ) {
+        let n = splats.len();
+        let list: Vec<u32> = (0..n as u32).collect();
+        let (_, _, trans, last) = render_tile(splats, channels, early_termination);
         let (wc, wa, wd) = weights();
-        let mut records = vec![f32::NAN; 5 * (REC_CHANNELS + NC)];
+        let mut records = vec![f32::NAN; n * (REC_CHANNELS + NC)];
         blend_tile_backward(
             &tile(),
-            &[0, 1, 2, 3, 4],
-            &splats,
-            &channels,
+            &list,
+            splats,
+            channels,
             NC,
             &[0.25, 0.75],
             AlphaMode { smooth: false },
@@ -1066,21 +1099,21 @@ mod tests {
             &mut records,
         );
         let stride = REC_CHANNELS + NC;
-        for i in 0..5 {
+        for i in 0..n {
             let rec = &records[i * stride..(i + 1) * stride];
             let check = |name: &str, an: f32, bump: Bump| {
                 let h = 1e-3f32;
-                let (mut sp, mut ch) = (splats.clone(), channels.clone());
+                let (mut sp, mut ch) = (splats.to_vec(), channels.to_vec());
                 bump(&mut sp, &mut ch, h);
-                let plus = loss(&sp, &ch);
-                let (mut sp, mut ch) = (splats.clone(), channels.clone());
+                let plus = loss(&sp, &ch, early_termination);
+                let (mut sp, mut ch) = (splats.to_vec(), channels.to_vec());
                 bump(&mut sp, &mut ch, -h);
-                let minus = loss(&sp, &ch);
+                let minus = loss(&sp, &ch, early_termination);
                 let fd = (plus - minus) / (2.0 * h as f64);
                 let tol = 1e-3 + 1e-2 * fd.abs().max(an.abs() as f64);
                 assert!(
                     (fd - an as f64).abs() < tol,
-                    "splat {i} {name}: fd {fd} analytic {an}"
+                    "early {early_termination} splat {i} {name}: fd {fd} analytic {an}"
                 );
             };
             check("mean x", rec[REC_MEAN_X], &|s, _, h| s[i].mean_px[0] += h);
@@ -1098,5 +1131,67 @@ mod tests {
                 });
             }
         }
+    }
+
+    #[test]
+    fn hard_mode_backward_matches_finite_differences_with_early_stop() {
+        let (splats, channels) = splats();
+        let (_, _, trans, last) = render_tile(&splats, &channels, true);
+        // The stack really stops early in some pixels and not in others.
+        assert!(trans.iter().any(|&t| t < 2e-4 && t > 1e-4));
+        assert!(last.contains(&5));
+        check_backward_against_finite_differences(&splats, &channels, true);
+    }
+
+    /// Early termination off: the pixels that stopped above now blend the fourth splat
+    /// (T down to ~1.25e-5), and the backward is still the exact gradient.
+    #[test]
+    fn hard_mode_backward_matches_finite_differences_without_early_stop() {
+        let (splats, channels) = splats();
+        let (color_on, _, trans_on, _) = render_tile(&splats, &channels, true);
+        let (color_off, _, trans_off, _) = render_tile(&splats, &channels, false);
+        assert!(trans_off.iter().all(|&t| t >= TRANSMITTANCE_FLOOR));
+        assert!(trans_off.iter().any(|&t| t < TRANSMITTANCE_STOP));
+        assert!(trans_on.iter().all(|&t| t >= TRANSMITTANCE_STOP));
+        // The difference per pixel is bounded by the residual transmittance of the stopped
+        // pixel times the largest |channel - background| (here 0.75 - 0.1 = 0.65).
+        let mut differ = 0;
+        for p in 0..TILE_PIXELS {
+            for k in 0..NC {
+                let d = (color_on[p * NC + k] - color_off[p * NC + k]).abs();
+                assert!(d <= trans_on[p] * 0.65 + 1e-6, "pixel {p}: {d}");
+                differ += usize::from(d > 0.0);
+            }
+        }
+        assert!(differ > 0);
+        check_backward_against_finite_differences(&splats, &channels, false);
+    }
+
+    /// A stack of 40 near-opaque splats: with early termination off the transmittance
+    /// stops at the normal-float floor instead of underflowing, so the backward's rebuilt
+    /// `T_i` keep full precision and the front splats' gradients still match.
+    #[test]
+    fn deep_stack_without_early_stop_keeps_exact_gradients() {
+        let rect = PixelRect {
+            x0: 18,
+            y0: 34,
+            x1: 22,
+            y1: 38,
+        };
+        let splats: Vec<Splat> = (0..40)
+            .map(|i| Splat {
+                mean_px: [20.0 + 0.05 * i as f32, 36.0 - 0.03 * i as f32],
+                conic: [0.004, 0.001, 0.006],
+                opacity: 0.97,
+                depth: 1.0 + 0.1 * i as f32,
+                rect,
+            })
+            .collect();
+        let channels: Vec<f32> = (0..40 * NC).map(|i| 0.1 + 0.02 * (i % 37) as f32).collect();
+        let (_, _, trans, last) = render_tile(&splats, &channels, false);
+        let inside = ((36 - 32) * TILE_PX + (20 - 16)) as usize;
+        assert!(trans[inside] >= TRANSMITTANCE_FLOOR && trans[inside] < 1e-30);
+        assert!(last[inside] > 20 && last[inside] < 40);
+        check_backward_against_finite_differences(&splats, &channels, false);
     }
 }

@@ -34,7 +34,7 @@ use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::model::{GaussianModel, Param};
-use bin::{PixelRect, TileBins, TileGrid, TILE_PIXELS, TILE_PX};
+use bin::{PixelRect, TileBins, TileGrid, TileSelection, TILE_PIXELS, TILE_PX};
 use blend::{AlphaMode, Splat, REC_CHANNELS, REC_CONIC, REC_DEPTH, REC_OPACITY};
 use project::{CameraFrame, GaussianParams, ProjectedGrad, JACOBIAN_CLAMP_FACTOR};
 
@@ -51,6 +51,28 @@ pub struct RasterSettings {
     /// Test-only: a C1 ramp instead of the 1/255 alpha step, and no early stop at
     /// T < 1e-4, so finite differences can check the analytic gradients.
     pub smooth_cutoff: bool,
+    /// Cull a Gaussian before its covariance is projected when a conservative bound from
+    /// its centre and largest scale shows that its footprint misses the image
+    /// ([`project::footprint_certainly_misses`]). Changes no bit of any output, only time.
+    /// Off: every Gaussian in front of the near plane is projected in full and dropped only
+    /// when its footprint misses the image. Gaussians whose centre is nearer than `near_m`
+    /// are dropped either way: the perspective projection is not defined there.
+    pub cull_outside_frustum: bool,
+    /// Stop blending a pixel before a Gaussian that would take its transmittance below
+    /// 1e-4 ([`blend::TRANSMITTANCE_STOP`]). Off: every pixel blends its whole tile list
+    /// (stopping only below 1.2e-38, [`blend::TRANSMITTANCE_FLOOR`], where the backward
+    /// could no longer rebuild the transmittance). A stopped pixel has `T * (1 - alpha) <
+    /// 1e-4` with alpha <= 0.99, so `T < 0.01`: the image with it on differs from the one
+    /// without by at most `T` times the largest `|channel - background|` per pixel.
+    /// Ignored in smooth mode (which never stops) and by the wgpu rasterizer.
+    pub early_termination: bool,
+    /// Tiles to blend; `None`: every tile. Tiles left out get the background (alpha 0,
+    /// depth 0) and no gradient. For a loss whose gradient is zero outside a foreground
+    /// mask and its neighbourhood ([`bin::TileSelection::from_mask`] with the loss's reach),
+    /// the loss, the image where the loss reads it and every gradient are the same bits
+    /// as with `None`. Must be built for this image size (else
+    /// [`RasterError::InvalidSettings`]). Ignored by the wgpu rasterizer.
+    pub blend_tiles: Option<TileSelection>,
 }
 
 impl Default for RasterSettings {
@@ -59,6 +81,9 @@ impl Default for RasterSettings {
             near_m: 0.01,
             background: Vec::new(),
             smooth_cutoff: false,
+            cull_outside_frustum: true,
+            early_termination: true,
+            blend_tiles: None,
         }
     }
 }
@@ -364,12 +389,26 @@ fn splat_rect(mean_px: [f32; 2], cov2: [f32; 3], q_max: f32, width: u32, height:
 }
 
 /// Projects every Gaussian (rayon); culled ones and those touching no pixel are `None`.
+/// Same as [`project_splats_with`] with the early frustum cull on.
 pub fn project_splats(
     frame: &CameraFrame,
     gaussians: &GaussianView,
     mode: AlphaMode,
     width: u32,
     height: u32,
+) -> ProjectedSet {
+    project_splats_with(frame, gaussians, mode, width, height, true)
+}
+
+/// [`project_splats`] with the early frustum cull switchable
+/// ([`RasterSettings::cull_outside_frustum`]): the result is the same either way.
+pub fn project_splats_with(
+    frame: &CameraFrame,
+    gaussians: &GaussianView,
+    mode: AlphaMode,
+    width: u32,
+    height: u32,
+    cull_outside_frustum: bool,
 ) -> ProjectedSet {
     let nc = gaussians.n_channels;
     let cutoff = mode.cutoff();
@@ -383,7 +422,13 @@ pub fn project_splats(
             {
                 return (None, 0.0);
             }
-            let Ok(p) = project::project_forward(frame, &gaussians.params(i), cutoff) else {
+            let params = gaussians.params(i);
+            if cull_outside_frustum
+                && project::footprint_certainly_misses(frame, &params, cutoff, width, height)
+            {
+                return (None, 0.0);
+            }
+            let Ok(p) = project::project_forward(frame, &params, cutoff) else {
                 return (None, 0.0);
             };
             let q_max = 2.0 * (p.opacity / cutoff).ln();
@@ -536,9 +581,23 @@ fn prepare(
     };
     let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
     let grid = TileGrid::new(width, height);
+    if let Some(selection) = &settings.blend_tiles {
+        if selection.image_size() != (width, height) {
+            return Err(RasterError::InvalidSettings(
+                "blend_tiles was built for another image size",
+            ));
+        }
+    }
 
     let t0 = Instant::now();
-    let projected = project_splats(&frame, gaussians, mode, width, height);
+    let projected = project_splats_with(
+        &frame,
+        gaussians,
+        mode,
+        width,
+        height,
+        settings.cull_outside_frustum,
+    );
     let project_ms = ms_since(t0);
 
     let t1 = Instant::now();
@@ -625,7 +684,14 @@ impl PreparedView {
         }
         per_tile.into_par_iter().enumerate().for_each(|(t, flags)| {
             let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
-            blend::tile_contributions(&grid.tile_rect(t), list, &self.splats, self.mode, flags);
+            blend::tile_contributions(
+                &grid.tile_rect(t),
+                list,
+                &self.splats,
+                self.mode,
+                self.settings.early_termination,
+                flags,
+            );
         });
         let mut out = vec![false; self.n_gaussians];
         for (rank, &g) in self.gaussian_of_rank.iter().enumerate() {
@@ -697,6 +763,7 @@ pub fn render_prepared(
     let tile_depth = scratch(&mut workspace.tile_depth, n_tiles * TILE_PIXELS);
     let mut tile_transmittance = vec![0.0f32; n_tiles * TILE_PIXELS];
     let mut tile_last = vec![0u32; n_tiles * TILE_PIXELS];
+    let blend_tiles = settings.blend_tiles.as_ref();
     tile_color
         .par_chunks_mut(color_chunk)
         .zip(tile_depth.par_chunks_mut(TILE_PIXELS))
@@ -704,6 +771,16 @@ pub fn render_prepared(
         .zip(tile_last.par_chunks_mut(TILE_PIXELS))
         .enumerate()
         .for_each(|(t, (((color, depth), trans), last))| {
+            if blend_tiles.is_some_and(|sel| !sel.is_active(t)) {
+                // A tile left out: nothing blended, the background behind T = 1.
+                for px in color[..TILE_PIXELS * nc].chunks_exact_mut(nc.max(1)) {
+                    px[..nc].copy_from_slice(&background);
+                }
+                depth.fill(0.0);
+                trans.fill(1.0);
+                last.fill(0);
+                return;
+            }
             let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
             blend::blend_tile_forward(
                 &grid.tile_rect(t),
@@ -713,6 +790,7 @@ pub fn render_prepared(
                 nc,
                 &background,
                 mode,
+                settings.early_termination,
                 blend::TileForwardOut {
                     color: &mut color[..TILE_PIXELS * nc],
                     depth,
@@ -905,6 +983,7 @@ pub fn render_backward_with(
         per_tile.push(head);
         rest = tail;
     }
+    let blend_tiles = st.settings.blend_tiles.as_ref();
     let pixel_view = blend::PixelGradsView {
         width: forward.width as usize,
         d_color: grads.d_color,
@@ -915,6 +994,11 @@ pub fn render_backward_with(
         .into_par_iter()
         .enumerate()
         .for_each(|(t, tile_records)| {
+            if blend_tiles.is_some_and(|sel| !sel.is_active(t)) {
+                // Not blended in the forward: no gradient reaches its entries.
+                tile_records.fill(0.0);
+                return;
+            }
             let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
             let px = t * TILE_PIXELS..(t + 1) * TILE_PIXELS;
             blend::blend_tile_backward(

@@ -9,6 +9,8 @@
 //! - a Gaussian with any non-finite input, `|q|^2 < 1e-6`, depth below the near plane,
 //!   a non-positive or non-finite 2D covariance, or an opacity below the blending
 //!   threshold is culled ([`Culled`]); everything a surviving Gaussian produces is finite;
+//! - [`footprint_certainly_misses`] (the early frustum cull) only flags Gaussians whose
+//!   blend rectangle would be empty, so culling them changes no output;
 //! - [`project_backward`] recomputes the forward with exactly the same operations and
 //!   differentiates every step, including the Jacobian clamp (a clamped ratio passes no
 //!   gradient to x or y, but its `1/z` factor does pass gradient to z).
@@ -260,6 +262,57 @@ pub fn project_forward(
         mean_px,
         opacity,
     })
+}
+
+/// Early frustum test: true only when the Gaussian's footprint certainly misses the
+/// `width` x `height` image, decided from its centre and largest scale before the
+/// covariance is projected. Conservative by construction, so culling what it flags changes
+/// no output: the dilated 2D covariance satisfies `Sigma_xx <= (fx/z)^2 (1 + r_x^2)
+/// s_max^2 + 0.3` (the Jacobian row has norm `fx/z sqrt(1 + r_x^2)` with the clamped ratio
+/// `|r_x| <= lim_x`, the world-to-camera rotation is orthonormal, and `Sigma3 <= s_max^2
+/// I`), the pixel rectangle of the blend extends `sqrt(q_max Sigma_xx)` (plus 0.1 % and
+/// 0.01 px) around the centre, and this bound is widened by 1 % and a further pixel for
+/// rounding. Anything it cannot decide (non-finite values, a centre behind the near
+/// plane, an opacity below the threshold) returns false and is left to [`project_forward`].
+pub fn footprint_certainly_misses(
+    frame: &CameraFrame,
+    g: &GaussianParams,
+    alpha_threshold: f32,
+    width: u32,
+    height: u32,
+) -> bool {
+    let w = &frame.rot_cam_from_world;
+    let mut t_cam = [0.0f32; 3];
+    for (r, t) in t_cam.iter_mut().enumerate() {
+        *t = w[r][0] * g.mean[0] + w[r][1] * g.mean[1] + w[r][2] * g.mean[2] + frame.translation[r];
+    }
+    let z = t_cam[2];
+    let opacity = sigmoid(g.opacity_logit);
+    // Written so that NaN anywhere leaves the decision to the full projection.
+    if !(all_finite(&t_cam) && z >= frame.near_m && opacity >= alpha_threshold) {
+        return false;
+    }
+    let s_max = g.log_scale[0].max(g.log_scale[1]).max(g.log_scale[2]).exp();
+    let q_max = 2.0 * (opacity / alpha_threshold).ln();
+    let inv_z = 1.0 / z;
+    let raw_x = t_cam[0] * inv_z;
+    let raw_y = t_cam[1] * inv_z;
+    let rx = raw_x.abs().min(frame.lim_x);
+    let ry = raw_y.abs().min(frame.lim_y);
+    let fz_x = frame.fx * inv_z * s_max;
+    let fz_y = frame.fy * inv_z * s_max;
+    let sxx = fz_x * fz_x * (1.0 + rx * rx) + COV2D_DILATION_PX2;
+    let syy = fz_y * fz_y * (1.0 + ry * ry) + COV2D_DILATION_PX2;
+    let ext_x = (q_max * sxx * 1.02).sqrt() * 1.01 + 1.0;
+    let ext_y = (q_max * syy * 1.02).sqrt() * 1.01 + 1.0;
+    let mx = frame.fx * (t_cam[0] / z) + frame.cx;
+    let my = frame.fy * (t_cam[1] / z) + frame.cy;
+    let misses = mx + ext_x < 0.0
+        || mx - ext_x > width as f32
+        || my + ext_y < 0.0
+        || my - ext_y > height as f32;
+    // A non-finite bound (huge scales) decides nothing.
+    misses && ext_x.is_finite() && ext_y.is_finite() && mx.is_finite() && my.is_finite()
 }
 
 /// Chain rule from the projected quantities back to the raw parameters.

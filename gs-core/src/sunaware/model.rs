@@ -470,7 +470,8 @@ impl SunAwareModel {
         self.gaussians.is_empty()
     }
 
-    /// Rasterizer settings for this model (test code may switch on the smooth cutoff).
+    /// Rasterizer settings for this model: near plane, background, the frustum-cull and
+    /// early-termination switches of the config (test code may switch on the smooth cutoff).
     pub fn raster_settings(&self, smooth_cutoff: bool) -> RasterSettings {
         let mut background = self.config.background.to_vec();
         if self.config.variant.uses_shadow() {
@@ -480,6 +481,10 @@ impl SunAwareModel {
             near_m: self.config.near_m,
             background,
             smooth_cutoff,
+            cull_outside_frustum: self.config.cull_outside_frustum,
+            early_termination: self.config.early_termination,
+            // Per frame: the step adds the mask's tiles (`trainer::loss_and_grads`).
+            blend_tiles: None,
         }
     }
 

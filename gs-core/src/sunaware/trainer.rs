@@ -23,9 +23,10 @@ use glam::Vec3;
 use crate::camera::Camera;
 use crate::densify::{densify_and_prune, DensifyConfig, DensifyReport, DensifyStats};
 use crate::init::SplitMix64;
-use crate::loss::{photometric_loss, psnr, ssim, ImageShape};
+use crate::loss::{photometric_loss, psnr, ssim, ImageShape, SSIM_WINDOW};
 use crate::model::Param;
 use crate::optim::{Adam, GroupRates};
+use crate::raster::bin::TileSelection;
 use crate::raster::RasterSettings;
 use crate::regularizer::IsotropicLoss;
 
@@ -284,6 +285,35 @@ fn ms_since(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
+/// `settings` restricted to the tiles the masked loss reads
+/// (`SunAwareConfig::skip_masked_background_tiles`, an observation with a mask; the wgpu
+/// rasterizer ignores it): the mask dilated by the SSIM window's half width, since the
+/// windowed SSIM of a mask pixel reads its neighbours. Every other pixel has
+/// exactly zero loss gradient, so the loss and every gradient are the same bits as with all
+/// tiles blended. `None` when the skip does not apply.
+fn masked_background_tiles(
+    model: &SunAwareModel,
+    obs: &Observation,
+    settings: &RasterSettings,
+) -> Result<Option<RasterSettings>, SunAwareError> {
+    let Some(mask) = obs.mask else {
+        return Ok(None);
+    };
+    if !model.config.skip_masked_background_tiles || settings.blend_tiles.is_some() {
+        return Ok(None);
+    }
+    // The SSIM of a mask pixel reads its window (also with lambda_dssim = 0: the reported
+    // SSIM value must not change either).
+    let reach_px = (SSIM_WINDOW / 2) as u32;
+    let k = &obs.camera.intrinsics;
+    let selection = TileSelection::from_mask(mask, k.width, k.height, reach_px)
+        .map_err(|e| SunAwareError::BadObservation(format!("mask: {e}")))?;
+    Ok(Some(RasterSettings {
+        blend_tiles: Some(selection),
+        ..settings.clone()
+    }))
+}
+
 /// Forward, loss and backward of one observation, without touching the model: the core of
 /// a step, exposed so gradient checks run the very same code. The timings cover every
 /// stage but the optimizer (`total_ms` is this call's duration).
@@ -296,6 +326,14 @@ pub fn loss_and_grads(
 ) -> Result<(LossParts, FramePass, Option<SunAwareGrads>, StepTimings), SunAwareError> {
     let t_call = Instant::now();
     let mut timings = StepTimings::default();
+    let masked_settings;
+    let settings = match masked_background_tiles(model, obs, settings)? {
+        Some(s) => {
+            masked_settings = s;
+            &masked_settings
+        }
+        None => settings,
+    };
     let pass = model.forward_for_step(&obs.camera, obs.sun_dir, sh_degree, settings, visibility)?;
     timings.add_forward(&pass.timings);
     let t0 = Instant::now();

@@ -697,6 +697,7 @@ fn study_view(
         near_m: settings.near_m,
         background: vec![1.0],
         smooth_cutoff: false,
+        ..RasterSettings::default()
     };
     let v_image = render(&camera, &v_view, &v_settings)
         .map_err(|e| ExperimentError::Invalid(format!("V image: {e}")))?
