@@ -309,12 +309,15 @@ fn tiny_skips_table_switches_one_skip_per_run() {
             "eclipse",
             "unlit",
             "unchanged-window",
-            "noncontributing-mlp"
+            "noncontributing-mlp",
+            "frustum-cull",
+            "early-termination",
+            "masked-background-tiles"
         ]
     );
     // Defaults: the unlit skip off, the others on.
     let on: Vec<bool> = rows.iter().map(|r| r.default_on).collect();
-    assert_eq!(on, [true, false, true, true]);
+    assert_eq!(on, [true, false, true, true, true, true, true]);
     // The base run is reused: eclipse "with" and unlit "without" are the same run.
     assert_eq!(rows[0].with, rows[1].without);
     assert!(rows[0].with.skip_eclipse && !rows[0].without.skip_eclipse);
@@ -335,12 +338,32 @@ fn tiny_skips_table_switches_one_skip_per_run() {
     let m = &rows[3];
     assert_eq!(m.with.steps, m.without.steps);
     assert!(m.psnr_cost_db().abs() < 0.05, "{m:?}");
+    // The frustum cull and the background-tile skip change no image and no gradient, so
+    // the runs with and without them train the same model to the bit.
+    for r in [&rows[4], &rows[6]] {
+        assert_eq!(
+            (r.with.psnr_db, r.with.ssim, r.with.gaussians, r.with.steps),
+            (
+                r.without.psnr_db,
+                r.without.ssim,
+                r.without.gaussians,
+                r.without.steps
+            ),
+            "{}",
+            r.spec.name
+        );
+    }
+    // The background-tile row trains masked on both sides (its own two runs), so it
+    // differs from the full-frame base.
+    assert_ne!(rows[6].with.psnr_db, rows[0].with.psnr_db);
     let csv = std::fs::read_to_string(out.join("skips.csv")).unwrap();
-    assert_eq!(csv.lines().count(), 5);
-    // The five runs (base and one per skip) in the sweep's schema, readable back.
+    assert_eq!(csv.lines().count(), 8);
+    // The nine runs (base, one per context-free skip, two for the background tiles) in the
+    // sweep's schema, readable back.
     let runs = std::fs::read_to_string(out.join("skips-runs.csv")).unwrap();
     let runs = from_csv(&runs).unwrap();
-    assert_eq!(runs.len(), 5);
+    assert_eq!(runs.len(), 9);
+    assert_eq!(runs[7].setting, "masked-background-tiles-on");
     assert_eq!(runs[0].setting, "base");
     assert_eq!(runs[0].psnr_db, (rows[0].with.psnr_db * 1e3).round() / 1e3);
     let md = std::fs::read_to_string(out.join("skips.md")).unwrap();

@@ -24,6 +24,7 @@ use super::ExperimentError;
 use crate::dataset::files;
 use crate::dataset::plots::{Canvas, Rgb};
 use crate::scenario::Scenario;
+use gs_core::nn::MatmulPrecision;
 use gs_core::sunaware::Variant;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -90,6 +91,18 @@ pub enum Knob {
     SkipUnchangedWindow(bool),
     /// Phi and Psi only for the Gaussians the blend reads.
     SkipNoncontributingMlp(bool),
+    /// Training frames carry their masks and the loss is weighed by them.
+    MaskedLoss(bool),
+    /// gs-core's early frustum cull.
+    CullOutsideFrustum(bool),
+    /// Blending stops at transmittance 1e-4.
+    EarlyTermination(bool),
+    /// With masked training: only the tiles the masked loss reads are blended.
+    SkipMaskedBackgroundTiles(bool),
+    /// Hidden width of Phi's layers.
+    AppearanceHiddenWidth(usize),
+    /// Arithmetic of the networks' matrix products.
+    MlpPrecision(MatmulPrecision),
     Config(Variant),
 }
 
@@ -111,8 +124,22 @@ impl Knob {
             Knob::SkipUnlit(v) => preset.skip_unlit = v,
             Knob::SkipUnchangedWindow(v) => preset.skip_unchanged_window = v,
             Knob::SkipNoncontributingMlp(v) => preset.skip_noncontributing_in_mlp = v,
+            Knob::MaskedLoss(v) => preset.masked_loss = v,
+            Knob::CullOutsideFrustum(v) => preset.cull_outside_frustum = v,
+            Knob::EarlyTermination(v) => preset.early_termination = v,
+            Knob::SkipMaskedBackgroundTiles(v) => preset.skip_masked_background_tiles = v,
+            Knob::AppearanceHiddenWidth(v) => preset.appearance_hidden_width = v,
+            Knob::MlpPrecision(v) => preset.mlp_precision = precision_name(v).into(),
             Knob::Config(v) => preset.configs = vec![v.name().to_string()],
         }
+    }
+}
+
+/// The preset's name of a matrix-product precision (`Preset::mlp_precision`).
+pub fn precision_name(p: MatmulPrecision) -> &'static str {
+    match p {
+        MatmulPrecision::F32 => "f32",
+        MatmulPrecision::Bf16 => "bf16",
     }
 }
 
@@ -180,10 +207,22 @@ pub fn default_settings() -> Vec<Setting> {
 }
 
 /// Settings `--settings` can name besides the default sweep: the skips toggled (also in
-/// the `skips` table), a second pass per round, and a dear combined point.
+/// the `skips` table), a second pass per round, a dear combined point, Phi's hidden width
+/// 128 and 64 (`mlp128`, `mlp64`) and bfloat16 matrix products (`bf16`, a CPU with
+/// AVX-512 BF16).
 pub fn optional_settings() -> Vec<Setting> {
     use Knob::*;
     vec![
+        Setting::new("mlp128", &[AppearanceHiddenWidth(128)]),
+        Setting::new("mlp64", &[AppearanceHiddenWidth(64)]),
+        Setting::new("bf16", &[MlpPrecision(MatmulPrecision::Bf16)]),
+        Setting::new("frustum-off", &[CullOutsideFrustum(false)]),
+        Setting::new("earlystop-off", &[EarlyTermination(false)]),
+        Setting::new("masked", &[MaskedLoss(true)]),
+        Setting::new(
+            "masked-tiles-off",
+            &[MaskedLoss(true), SkipMaskedBackgroundTiles(false)],
+        ),
         Setting::new("passes2", &[PassesPerRound(2)]),
         Setting::new("eclipse-off", &[SkipEclipse(false)]),
         Setting::new("unlit-on", &[SkipUnlit(true)]),
@@ -515,6 +554,12 @@ pub fn describe(knobs: &[Knob]) -> String {
             Knob::SkipUnlit(v) => format!("skip_unlit={v}"),
             Knob::SkipUnchangedWindow(v) => format!("skip_unchanged_window={v}"),
             Knob::SkipNoncontributingMlp(v) => format!("skip_noncontributing_in_mlp={v}"),
+            Knob::MaskedLoss(v) => format!("masked_loss={v}"),
+            Knob::CullOutsideFrustum(v) => format!("cull_outside_frustum={v}"),
+            Knob::EarlyTermination(v) => format!("early_termination={v}"),
+            Knob::SkipMaskedBackgroundTiles(v) => format!("skip_masked_background_tiles={v}"),
+            Knob::AppearanceHiddenWidth(v) => format!("appearance_hidden_width={v}"),
+            Knob::MlpPrecision(v) => format!("mlp_precision={}", precision_name(*v)),
             Knob::Config(v) => format!("config={}", v.name()),
         })
         .collect::<Vec<_>>()
@@ -919,6 +964,33 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("window"), "{e}");
+    }
+
+    /// The network settings the lead runs by name: not in the default sweep, and each sets
+    /// only its knob (which reaches the trainer's configuration).
+    #[test]
+    fn network_settings_are_optional_and_set_their_knob() {
+        let names: Vec<String> = ["mlp128", "mlp64", "bf16"].map(String::from).to_vec();
+        assert!(default_settings().iter().all(|s| !names.contains(&s.name)));
+        let base = Preset::default();
+        let presets: Vec<Preset> = select_settings(&names)
+            .unwrap()
+            .iter()
+            .map(|s| s.preset(&base).unwrap())
+            .collect();
+        assert_eq!(presets[0].appearance_hidden_width, 128);
+        assert_eq!(presets[1].appearance_hidden_width, 64);
+        assert_eq!(presets[2].mlp_precision, "bf16");
+        assert_eq!(presets[2].appearance_hidden_width, 256);
+        assert_eq!(presets[0].mlp_precision, "f32");
+        let c = super::super::runner::online_config(&presets[2], Variant::D);
+        assert_eq!(c.model.mlp_precision, MatmulPrecision::Bf16);
+        let c = super::super::runner::online_config(&presets[1], Variant::D);
+        assert_eq!(c.model.appearance_hidden_width, 64);
+        assert_eq!(
+            describe(&[Knob::MlpPrecision(MatmulPrecision::Bf16)]),
+            "mlp_precision=bf16"
+        );
     }
 
     #[test]

@@ -7,6 +7,7 @@
 //! duration, evaluation views, ray-tracing samples) and re-validates the scenario.
 
 use crate::scenario::{Scenario, ScenarioError};
+use gs_core::nn::MatmulPrecision;
 use gs_core::sunaware::{BackendKind, SunAwareError};
 use serde::Deserialize;
 use std::fmt;
@@ -120,6 +121,22 @@ pub struct Preset {
     /// Where the rasterizer and the shadow pass run: "cpu" or "wgpu" (a build with
     /// `--features wgpu`; `--backend` overrides it). Changes run time, not the method.
     pub backend: String,
+    /// Train on the foreground-masked loss: training frames carry their masks (the
+    /// simulator's), so L1 and SSIM weigh the target's pixels only (default: the full
+    /// frame, as the paper scores). Evaluation is unchanged.
+    pub masked_loss: bool,
+    /// gs-core's early frustum cull (same result either way; `SunAwareConfig`).
+    pub cull_outside_frustum: bool,
+    /// Stop blending a pixel at transmittance 1e-4 (`SunAwareConfig`).
+    pub early_termination: bool,
+    /// With `masked_loss`: blend and back-propagate only the tiles the masked loss reads
+    /// (`SunAwareConfig`; no effect without masks).
+    pub skip_masked_background_tiles: bool,
+    /// Hidden width of Phi's three layers (paper: 256).
+    pub appearance_hidden_width: usize,
+    /// Arithmetic of the networks' matrix products: "f32" or "bf16" (a CPU with AVX-512
+    /// BF16; elsewhere the run's configuration is refused).
+    pub mlp_precision: String,
 }
 
 impl Default for Preset {
@@ -155,6 +172,12 @@ impl Default for Preset {
             skip_unchanged_window: true,
             skip_noncontributing_in_mlp: true,
             backend: "cpu".into(),
+            masked_loss: false,
+            cull_outside_frustum: true,
+            early_termination: true,
+            skip_masked_background_tiles: true,
+            appearance_hidden_width: 256,
+            mlp_precision: "f32".into(),
         }
     }
 }
@@ -208,6 +231,17 @@ impl Preset {
         kind.check_compiled_in()
             .map_err(|e| PresetError::Invalid(format!("backend: {e}")))?;
         Ok(kind)
+    }
+
+    /// The precision named by `mlp_precision`.
+    pub fn mlp_precision_kind(&self) -> Result<MatmulPrecision, PresetError> {
+        match self.mlp_precision.as_str() {
+            "f32" => Ok(MatmulPrecision::F32),
+            "bf16" => Ok(MatmulPrecision::Bf16),
+            other => Err(PresetError::Invalid(format!(
+                "mlp_precision {other:?} is not \"f32\" or \"bf16\""
+            ))),
+        }
     }
 
     /// Checks every value; the error names the field.
@@ -282,6 +316,13 @@ impl Preset {
             return bad("configs is empty".into());
         }
         self.backend_kind()?;
+        self.mlp_precision_kind()?;
+        if !(1..=4096).contains(&self.appearance_hidden_width) {
+            return bad(format!(
+                "appearance_hidden_width {} is outside 1..=4096",
+                self.appearance_hidden_width
+            ));
+        }
         for c in &self.configs {
             if !["a", "b", "c", "d"].contains(&c.as_str()) {
                 return bad(format!(
@@ -341,6 +382,50 @@ mod tests {
         let k = s.camera_intrinsics();
         assert_eq!((k.width, k.height, paper.window), (960, 600, 10));
         assert_eq!(s.frame_count(), 5764);
+    }
+
+    /// The knobs of the rasterizer skips, the masked loss and the networks parse, default
+    /// to gs-core's defaults, and reach the trainer's configuration.
+    #[test]
+    fn skip_and_network_knobs_parse_and_reach_the_config() {
+        use gs_core::sunaware::{SunAwareConfig, Variant};
+        let d = Preset::default();
+        let c = super::super::runner::online_config(&d, Variant::D);
+        let base = SunAwareConfig::for_variant(Variant::D);
+        assert!(!d.masked_loss);
+        assert_eq!(c.model.cull_outside_frustum, base.cull_outside_frustum);
+        assert_eq!(c.model.early_termination, base.early_termination);
+        assert_eq!(
+            c.model.skip_masked_background_tiles,
+            base.skip_masked_background_tiles
+        );
+        assert_eq!(
+            c.model.appearance_hidden_width,
+            base.appearance_hidden_width
+        );
+        assert_eq!(c.model.mlp_precision, base.mlp_precision);
+        let p = Preset::from_toml_str(
+            "masked_loss = true\ncull_outside_frustum = false\nearly_termination = false\n\
+             skip_masked_background_tiles = false\nappearance_hidden_width = 64\n\
+             mlp_precision = \"bf16\"\n",
+            "t.toml",
+        )
+        .unwrap();
+        assert!(p.masked_loss);
+        let c = super::super::runner::online_config(&p, Variant::D);
+        assert!(!c.model.cull_outside_frustum);
+        assert!(!c.model.early_termination);
+        assert!(!c.model.skip_masked_background_tiles);
+        assert_eq!(c.model.appearance_hidden_width, 64);
+        assert_eq!(c.model.mlp_precision, MatmulPrecision::Bf16);
+        for (text, field) in [
+            ("mlp_precision = \"f16\"", "mlp_precision"),
+            ("appearance_hidden_width = 0", "appearance_hidden_width"),
+            ("early_termination = 1", "early_termination"),
+        ] {
+            let e = Preset::from_toml_str(text, "t").unwrap_err().to_string();
+            assert!(e.contains(field), "{text}: {e}");
+        }
     }
 
     #[test]

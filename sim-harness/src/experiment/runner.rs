@@ -5,7 +5,9 @@
 //!
 //! Invariants: frames are offered strictly in time order and evaluation views never train;
 //! training uses the full frame on the black background (no mask: the background is part of
-//! what the paper's full-frame metrics score) and ground-truth poses and Sun vectors;
+//! what the paper's full-frame metrics score; `Preset::masked_loss` gives the frames their
+//! masks instead, and a frame whose mask is empty is then refused with an error) and
+//! ground-truth poses and Sun vectors;
 //! eclipse frames are skipped (the online trainer counts them); `train_s` is the wall time
 //! spent inside training rounds (densification included) and `step_ms` that time divided by
 //! the steps applied.
@@ -105,6 +107,12 @@ pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
     model.feature_dim = preset.feature_dim;
     model.encoding_frequencies = preset.encoding_frequencies;
     model.skip_noncontributing_in_mlp = preset.skip_noncontributing_in_mlp;
+    model.cull_outside_frustum = preset.cull_outside_frustum;
+    model.early_termination = preset.early_termination;
+    model.skip_masked_background_tiles = preset.skip_masked_background_tiles;
+    model.appearance_hidden_width = preset.appearance_hidden_width;
+    // `Preset::validate` refuses any other name.
+    model.mlp_precision = preset.mlp_precision_kind().unwrap_or_default();
     OnlineConfig {
         window: WindowConfig {
             capacity: preset.window,
@@ -172,8 +180,14 @@ pub fn try_initialisation(
     }
 }
 
-/// The online trainer's frame for sequence frame `i` of `scene`.
+/// The online trainer's frame for sequence frame `i` of `scene` (full-frame loss).
 pub fn training_frame(scene: &SceneData, i: usize) -> Frame {
+    training_frame_with_mask(scene, i, false)
+}
+
+/// [`training_frame`], carrying the frame's foreground mask when `masked` (the trainer
+/// then weighs the loss by it: `Preset::masked_loss`).
+pub fn training_frame_with_mask(scene: &SceneData, i: usize, masked: bool) -> Frame {
     let view = &scene.frames[i];
     Frame {
         id: view.index as u64,
@@ -181,7 +195,7 @@ pub fn training_frame(scene: &SceneData, i: usize) -> Frame {
         camera: camera_of(&scene.intrinsics, view),
         sun_dir_target: sun_of(view),
         image: view.rgb_f32(),
-        mask: None,
+        mask: masked.then(|| view.mask_f32()),
         eclipse: view.eclipse,
     }
 }
@@ -222,7 +236,7 @@ pub fn run_config(
     let rounds_per_change = preset.rounds_per_window_change.max(1);
     for i in 0..scene.frames.len() {
         let generation_before = trainer.window().generation();
-        trainer.offer(training_frame(scene, i))?;
+        trainer.offer(training_frame_with_mask(scene, i, preset.masked_loss))?;
         // The paper: one round per window change (a round is only ever due right after a
         // change). `rounds_per_window_change` > 1 trains the changed window that many times
         // (more iterations per frame on a sparse frame subset).

@@ -1,12 +1,16 @@
 //! The skips table: for each switchable skip (the online trainer's frame and round skips,
-//! gs-core's network skip), the same scenario trained with the skip active
-//! and without it; the training time it saves and what it costs in evaluation error
-//! (`skips.csv`, `skips.md`; every run in the Pareto schema in `skips-runs.csv`). Skips that cannot be switched yet are listed with the reason.
+//! gs-core's network skip and its three rasterizer skips), the same scenario trained with
+//! the skip active and without it; the training time it saves and what it costs in
+//! evaluation error (`skips.csv`, `skips.md`; every run in the Pareto schema in
+//! `skips-runs.csv`).
 //!
 //! Invariants: the base preset (every skip at its default) runs once and is reused as the
-//! "with" or "without" side of every skip whose default matches; every other run changes
-//! exactly one skip; `saved` = without - with (positive: the skip saves time) and `cost` =
-//! PSNR without - PSNR with (positive: the skip loses quality).
+//! "with" or "without" side of every skip whose default matches and that needs no other
+//! knob; a skip that only acts under other knobs (`SkipSpec::context`, e.g. the masked
+//! loss for the background-tile skip) runs twice, with the context on both sides; every
+//! run differs from its partner in exactly one skip; `saved` = without - with (positive:
+//! the skip saves time) and `cost` = PSNR without - PSNR with (positive: the skip loses
+//! quality).
 
 use super::pareto::{io_error, run_settings, write_text, Knob, Setting, SweepRow};
 use super::preset::Preset;
@@ -22,10 +26,14 @@ pub struct SkipSpec {
     pub what: String,
     pub on: Knob,
     pub off: Knob,
+    /// Knobs set on both sides (the conditions under which the skip acts at all); empty:
+    /// the base preset as it is.
+    pub context: Vec<Knob>,
 }
 
-/// The skips the experiments can switch today: the online trainer's three and gs-core's
-/// `skip_noncontributing_in_mlp`.
+/// The skips the experiments can switch: the online trainer's three, gs-core's
+/// `skip_noncontributing_in_mlp` and its rasterizer skips (frustum cull, early
+/// termination, background tiles under the masked loss).
 pub fn switchable_skips() -> Vec<SkipSpec> {
     vec![
         SkipSpec {
@@ -33,18 +41,21 @@ pub fn switchable_skips() -> Vec<SkipSpec> {
             what: "frames flagged as in eclipse never enter the window".into(),
             on: Knob::SkipEclipse(true),
             off: Knob::SkipEclipse(false),
+            context: Vec::new(),
         },
         SkipSpec {
             name: "unlit".into(),
             what: "frames with mean full-frame brightness < 0.01 never enter the window".into(),
             on: Knob::SkipUnlit(true),
             off: Knob::SkipUnlit(false),
+            context: Vec::new(),
         },
         SkipSpec {
             name: "unchanged-window".into(),
             what: "no round when the keyframe window did not change since the last one".into(),
             on: Knob::SkipUnchangedWindow(true),
             off: Knob::SkipUnchangedWindow(false),
+            context: Vec::new(),
         },
         SkipSpec {
             name: "noncontributing-mlp".into(),
@@ -52,25 +63,42 @@ pub fn switchable_skips() -> Vec<SkipSpec> {
                 .into(),
             on: Knob::SkipNoncontributingMlp(true),
             off: Knob::SkipNoncontributingMlp(false),
+            context: Vec::new(),
+        },
+        SkipSpec {
+            name: "frustum-cull".into(),
+            what: "Gaussians whose footprint certainly misses the image are dropped before \
+                   their covariance is projected (same image and gradients)"
+                .into(),
+            on: Knob::CullOutsideFrustum(true),
+            off: Knob::CullOutsideFrustum(false),
+            context: Vec::new(),
+        },
+        SkipSpec {
+            name: "early-termination".into(),
+            what: "a pixel stops blending before its transmittance falls below 1e-4".into(),
+            on: Knob::EarlyTermination(true),
+            off: Knob::EarlyTermination(false),
+            context: Vec::new(),
+        },
+        SkipSpec {
+            name: "masked-background-tiles".into(),
+            what: "masked training (both runs): tiles farther than the SSIM window from the \
+                   mask are neither blended nor back-propagated (same gradients)"
+                .into(),
+            on: Knob::SkipMaskedBackgroundTiles(true),
+            off: Knob::SkipMaskedBackgroundTiles(false),
+            context: vec![Knob::MaskedLoss(true)],
         },
     ]
 }
 
-/// Skips in the renderer and the networks that have no switch yet (always on), with why.
-pub const NOT_SWITCHABLE: [(&str, &str); 3] = [
-    (
-        "frustum and near culling",
-        "always on in gs-core's projection (raster/project.rs); no config field",
-    ),
-    (
-        "early termination",
-        "always on in the blend (transmittance below 1e-4, raster/blend.rs); no config field",
-    ),
-    (
-        "background tiles outside the mask",
-        "training frames carry no mask in the experiments (full-frame loss, as the paper scores); no tile skip in gs-core",
-    ),
-];
+/// Skips that have no switch (always on), with why; listed under the table.
+pub const NOT_SWITCHABLE: [(&str, &str); 1] = [(
+    "near-plane culling",
+    "a Gaussian whose centre is nearer than the near plane has no perspective projection: \
+     dropped whatever `cull_outside_frustum` says",
+)];
 
 /// One skip measured with and without.
 #[derive(Clone, Debug, PartialEq)]
@@ -181,8 +209,16 @@ pub fn to_markdown(rows: &[SkipRow]) -> String {
     out
 }
 
-/// Runs the base and one run per skip toggled away from its default; writes `skips.csv`
-/// and `skips.md`.
+/// Where a skip's two sides come from in the sweep.
+enum Sides {
+    /// The base run is one side, run `toggled` the other.
+    Base { toggled: usize },
+    /// Both sides run under the skip's context: runs `with` and `without`.
+    Own { with: usize, without: usize },
+}
+
+/// Runs the base, one run per context-free skip toggled away from its default, and two per
+/// skip with a context; writes `skips.csv`, `skips.md` and `skips-runs.csv`.
 pub fn run_skips(
     job: &SkipsJob,
     progress: &mut dyn FnMut(&str),
@@ -191,15 +227,32 @@ pub fn run_skips(
     std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
     let mut settings = vec![Setting::new("base", &[])];
     let mut default_on = Vec::new();
+    let mut sides = Vec::new();
     for s in &job.skips {
         let on = knob_is_set(&job.base, s.on);
         default_on.push(on);
-        let (name, knob) = if on {
-            (format!("{}-off", s.name), s.off)
+        if s.context.is_empty() {
+            let (name, knob) = if on {
+                (format!("{}-off", s.name), s.off)
+            } else {
+                (format!("{}-on", s.name), s.on)
+            };
+            sides.push(Sides::Base {
+                toggled: settings.len(),
+            });
+            settings.push(Setting::new(&name, &[knob]));
         } else {
-            (format!("{}-on", s.name), s.on)
-        };
-        settings.push(Setting::new(&name, &[knob]));
+            let with = settings.len();
+            for (suffix, knob) in [("on", s.on), ("off", s.off)] {
+                let mut knobs = s.context.clone();
+                knobs.push(knob);
+                settings.push(Setting::new(&format!("{}-{suffix}", s.name), &knobs));
+            }
+            sides.push(Sides::Own {
+                with,
+                without: with + 1,
+            });
+        }
     }
     let sweep = run_settings(
         &job.scenario,
@@ -214,12 +267,12 @@ pub fn run_skips(
         .skips
         .iter()
         .zip(&default_on)
-        .zip(&sweep[1..])
-        .map(|((spec, &on), toggled)| {
-            let (with, without) = if on {
-                (base.clone(), toggled.clone())
-            } else {
-                (toggled.clone(), base.clone())
+        .zip(&sides)
+        .map(|((spec, &on), side)| {
+            let (with, without) = match *side {
+                Sides::Base { toggled } if on => (base.clone(), sweep[toggled].clone()),
+                Sides::Base { toggled } => (sweep[toggled].clone(), base.clone()),
+                Sides::Own { with, without } => (sweep[with].clone(), sweep[without].clone()),
             };
             SkipRow {
                 spec: spec.clone(),
