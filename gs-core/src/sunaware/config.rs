@@ -335,14 +335,23 @@ pub struct SunAwareConfig {
     /// rounded to bfloat16, f32 accumulation, where the CPU has AVX-512 BF16). A speed
     /// setting, not stored in checkpoints.
     pub mlp_precision: crate::nn::MatmulPrecision,
-    /// Frustum and near-plane culling of Gaussians before binning (a skip: off projects
-    /// and bins every Gaussian with a finite footprint). Not stored in checkpoints.
+    /// Early frustum cull (`RasterSettings::cull_outside_frustum`): a Gaussian whose
+    /// footprint certainly misses the image is dropped before its covariance is projected.
+    /// Same image and gradients either way (a pure time skip); Gaussians behind the near
+    /// plane are dropped in both modes (no perspective projection there). Not stored in
+    /// checkpoints.
     pub cull_outside_frustum: bool,
-    /// Stop blending a pixel once its transmittance falls below 1e-4 (a skip). Not stored
-    /// in checkpoints.
+    /// Stop blending a pixel before its transmittance falls below 1e-4
+    /// (`RasterSettings::early_termination`; off: the whole tile list is blended and the
+    /// image moves by at most the stopped pixel's transmittance, below 0.01, times the
+    /// largest |colour - background|). The backward is exact in both modes. CPU
+    /// rasterizer only. Not stored in checkpoints.
     pub early_termination: bool,
-    /// With a foreground mask on the training frame and a masked loss: tiles with no mask
-    /// pixel are neither blended nor back-propagated (a skip). Not stored in checkpoints.
+    /// When the training observation has a foreground mask (the loss is then masked):
+    /// only the tiles within the SSIM window's half width (5 px) of a mask pixel are
+    /// blended and back-propagated (`RasterSettings::blend_tiles`). The loss and every
+    /// gradient are the same bits as without the skip; only the rendered background away
+    /// from the mask differs. CPU rasterizer only. Not stored in checkpoints.
     pub skip_masked_background_tiles: bool,
 }
 
