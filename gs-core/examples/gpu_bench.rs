@@ -112,7 +112,8 @@ fn step_ms(model: &GaussianModel, camera: &Camera, backend: Backend, runs: usize
     };
     let mut trainer = Trainer::new(model.clone(), &config, 3.0)
         .expect("trainer")
-        .with_backend(backend);
+        .with_backend(backend)
+        .expect("backend");
     let view = TrainView {
         camera: *camera,
         image: vec![0.5; camera.intrinsics.pixel_count() * 3],

@@ -10,9 +10,16 @@
 //! densification statistics, densifies and prunes every `densify_interval` iterations
 //! after `densify_from_iter`, and resets opacities every `opacity_reset_interval`.
 //!
-//! [`Backend`] picks where the rasterizer's arithmetic runs (the CPU rasterizer, or the
-//! wgpu one with the `wgpu` feature); the model, the loss, the SH colour, the optimiser
-//! and densification are the same code on the CPU either way.
+//! [`Backend`] picks where a step's arithmetic runs, and nothing else: the loop, the
+//! schedules (learning rates, SH degree, densification and reset intervals), the loss
+//! and densification are one code path. `Trainer::step_with_position_lr` has a single
+//! `match` on the backend, choosing between `cpu_arithmetic` (SH colour, render, backward,
+//! Adam and statistics on the host) and `resident_arithmetic` (the same stages as kernels
+//! on [`crate::gpu::ResidentModel`]'s device buffers, wgpu feature); both score the render
+//! with the same CPU loss. On wgpu the parameters, moments and statistics stay on the
+//! device: the host copy is refreshed only where the host needs it (densification and
+//! opacity resets, which run on the CPU and re-upload; [`Trainer::sync_model`];
+//! [`Trainer::try_finish`]).
 //!
 //! [`Trainer`] is the same loop one step at a time (for an online scheduler that picks
 //! views itself and runs its own learning-rate sawtooth); [`train`] drives it over a
@@ -22,6 +29,8 @@
 //! - deterministic on the CPU backend: same model, views, config and thread count give
 //!   bit-identical results (the only randomness is a [`SplitMix64`] seeded from
 //!   `config.seed`); the wgpu backend's gradients sum with atomics, so its last bits vary;
+//! - on wgpu, `model()`/`optimiser()` are the host copy as of the last sync
+//!   (`host_is_current()` says whether it is current);
 //! - a step whose gradients contain NaN/Inf is never applied: it is counted in
 //!   `TrainResult::skipped_non_finite_steps` and its densification stats are dropped;
 //! - bad views or configuration are reported before any work, as [`TrainError`].
@@ -39,93 +48,24 @@ use crate::loss::{photometric_loss, psnr, ssim, ImageShape, LossError, LossOutpu
 use crate::model::{GaussianModel, Param, ParamSet};
 use crate::optim::{Adam, ExponentialSchedule, GroupRates, OptimError};
 use crate::raster::{
-    render, render_backward, GaussianGrads, GaussianView, PixelGrads, RasterError, RasterSettings,
-    RenderOutput,
+    render, render_backward, GaussianView, PixelGrads, RasterError, RasterSettings,
 };
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward, ShError};
 
-/// Where the rasterizer's forward and backward passes run. Nothing else moves: one model,
-/// one optimiser, on the CPU.
+/// Where a training step's arithmetic runs. The loop, its schedules, the loss and
+/// densification are the same code either way (see [`Trainer`]).
 #[derive(Clone, Debug, Default)]
 pub enum Backend {
-    /// The CPU rasterizer (`crate::raster`), the reference.
+    /// Everything on the CPU (`crate::raster`, `crate::sh`, `crate::optim`), the reference.
     #[default]
     Cpu,
-    /// The wgpu rasterizer (`crate::gpu`); a missing adapter is an error when it is built
-    /// ([`crate::gpu::GpuContext::new`]), never a silent fallback.
+    /// The plain trainer keeps its parameters, gradients, Adam moments and densification
+    /// statistics on the device ([`crate::gpu::ResidentModel`]): SH colour, rasterizer
+    /// forward and backward, gradient assembly and Adam run as kernels there. A missing
+    /// adapter is an error when the rasterizer is built ([`crate::gpu::GpuContext::new`]),
+    /// never a silent fallback. (The Sun-aware trainer uses only the rasterizer.)
     #[cfg(feature = "wgpu")]
     Wgpu(std::sync::Arc<crate::gpu::GpuRasterizer>),
-}
-
-/// A forward pass from either backend.
-enum Rendered {
-    Cpu(RenderOutput),
-    #[cfg(feature = "wgpu")]
-    Gpu(crate::gpu::GpuRenderOutput),
-}
-
-impl Rendered {
-    fn color(&self) -> &[f32] {
-        match self {
-            Rendered::Cpu(r) => &r.color,
-            #[cfg(feature = "wgpu")]
-            Rendered::Gpu(r) => &r.color,
-        }
-    }
-
-    fn visible(&self) -> &[bool] {
-        match self {
-            Rendered::Cpu(r) => &r.visible,
-            #[cfg(feature = "wgpu")]
-            Rendered::Gpu(r) => &r.visible,
-        }
-    }
-
-    fn radii_px(&self) -> &[f32] {
-        match self {
-            Rendered::Cpu(r) => &r.radii_px,
-            #[cfg(feature = "wgpu")]
-            Rendered::Gpu(r) => &r.radii_px,
-        }
-    }
-}
-
-impl Backend {
-    fn render(
-        &self,
-        camera: &Camera,
-        gaussians: &GaussianView,
-        settings: &RasterSettings,
-    ) -> Result<Rendered, TrainError> {
-        match self {
-            Backend::Cpu => Ok(Rendered::Cpu(render(camera, gaussians, settings)?)),
-            #[cfg(feature = "wgpu")]
-            Backend::Wgpu(gpu) => Ok(Rendered::Gpu(gpu.render(camera, gaussians, settings)?)),
-        }
-    }
-
-    fn render_backward(
-        &self,
-        camera: &Camera,
-        gaussians: &GaussianView,
-        settings: &RasterSettings,
-        forward: &Rendered,
-        grads: &PixelGrads,
-    ) -> Result<GaussianGrads, TrainError> {
-        match (self, forward) {
-            (Backend::Cpu, Rendered::Cpu(f)) => {
-                Ok(render_backward(camera, gaussians, settings, f, grads)?)
-            }
-            #[cfg(feature = "wgpu")]
-            (Backend::Wgpu(gpu), Rendered::Gpu(f)) => {
-                Ok(gpu.render_backward(camera, settings, f, grads)?)
-            }
-            #[cfg(feature = "wgpu")]
-            _ => Err(TrainError::Raster(RasterError::ForwardMismatch(
-                "forward pass came from another backend",
-            ))),
-        }
-    }
 }
 
 /// Per-group learning rates (3DGS defaults).
@@ -506,11 +446,42 @@ fn gather_grads(params: &ParamSet, g: &crate::raster::GaussianGrads) -> ParamSet
     out
 }
 
+/// The loss of a render against the view (on its mask); `None` when the render, the
+/// loss or its gradient is not finite (a model gone numerically wild: the step is
+/// counted and skipped rather than handed to the backward, which rejects it).
+fn score(
+    color: &[f32],
+    view: &TrainView,
+    lambda_dssim: f32,
+) -> Result<Option<LossOutput>, TrainError> {
+    if !color.iter().all(|v| v.is_finite()) {
+        return Ok(None);
+    }
+    let loss = photometric_loss(
+        color,
+        &view.image,
+        view.mask.as_deref(),
+        image_shape(&view.camera),
+        lambda_dssim,
+    )?;
+    let finite = loss.loss.is_finite() && loss.d_rendered.iter().all(|v| v.is_finite());
+    Ok(finite.then_some(loss))
+}
+
+fn nan_loss() -> LossOutput {
+    LossOutput {
+        loss: f32::NAN,
+        l1: f32::NAN,
+        ssim: f32::NAN,
+        d_rendered: Vec::new(),
+    }
+}
+
 /// Stepwise trainer: the model, its optimiser and densification state, and the 3DGS
 /// schedules keyed on its own iteration counter. [`train`] drives it over a fixed view
 /// set; an online scheduler can call [`Trainer::step`] with whatever view it picks and
 /// override the position learning rate (e.g. a per-round sawtooth).
-#[derive(Clone, Debug)]
+#[derive(Debug)]
 pub struct Trainer {
     model: GaussianModel,
     adam: Adam,
@@ -525,6 +496,23 @@ pub struct Trainer {
     skipped_steps: usize,
     raster_dropped: usize,
     densify_reports: Vec<(usize, DensifyReport)>,
+    /// The device copy of `model`, `adam` and `stats` on the wgpu backend (made at the
+    /// first step).
+    #[cfg(feature = "wgpu")]
+    resident: Option<crate::gpu::ResidentModel>,
+    /// False while the device holds a newer state than `model`, `adam` and `stats`.
+    host_current: bool,
+}
+
+/// What the backend-specific part of a step did.
+struct StepArithmetic {
+    loss: LossOutput,
+    /// Gradients non-finite (or the render or loss): nothing was applied.
+    skipped: bool,
+    dropped_nonfinite: usize,
+    forward_ms: f64,
+    loss_ms: f64,
+    backward_ms: f64,
 }
 
 /// Seed offset so the densification samples do not reuse the view-shuffle stream.
@@ -576,26 +564,70 @@ impl Trainer {
             skipped_steps: 0,
             raster_dropped: 0,
             densify_reports: Vec::new(),
+            #[cfg(feature = "wgpu")]
+            resident: None,
+            host_current: true,
             model,
         })
     }
 
-    /// The same trainer with its rasterizer on `backend`.
-    pub fn with_backend(mut self, backend: Backend) -> Self {
+    /// The same trainer with its step's arithmetic on `backend`. A device state from an
+    /// earlier wgpu backend is brought to the host first (a readback that can fail).
+    pub fn with_backend(mut self, backend: Backend) -> Result<Self, TrainError> {
+        self.sync_to_host()?;
+        #[cfg(feature = "wgpu")]
+        {
+            self.resident = None;
+        }
         self.backend = backend;
-        self
+        Ok(self)
     }
 
     pub fn backend(&self) -> &Backend {
         &self.backend
     }
 
+    /// The host copy of the model: current on the CPU backend; on wgpu as of the last
+    /// [`Trainer::sync_to_host`] (every densification step, [`Trainer::sync_model`],
+    /// [`Trainer::try_finish`]).
     pub fn model(&self) -> &GaussianModel {
         &self.model
     }
 
+    /// The host copy of the optimiser (see [`Trainer::model`] for when it is current).
     pub fn optimiser(&self) -> &Adam {
         &self.adam
+    }
+
+    /// Whether [`Trainer::model`] and [`Trainer::optimiser`] hold the current state.
+    pub fn host_is_current(&self) -> bool {
+        self.host_current
+    }
+
+    /// Brings the model, the optimiser and the densification statistics from the device
+    /// to the host (nothing to do on the CPU backend or when already current).
+    pub fn sync_to_host(&mut self) -> Result<(), TrainError> {
+        #[cfg(feature = "wgpu")]
+        if let (Some(r), false) = (&self.resident, self.host_current) {
+            r.download(&mut self.model.params, &mut self.adam, &mut self.stats)?;
+        }
+        self.host_current = true;
+        Ok(())
+    }
+
+    /// The current model, brought to the host first where needed.
+    pub fn sync_model(&mut self) -> Result<&GaussianModel, TrainError> {
+        self.sync_to_host()?;
+        Ok(&self.model)
+    }
+
+    /// Puts the host's state back on the device after the host edited it.
+    fn sync_to_device(&mut self) -> Result<(), TrainError> {
+        #[cfg(feature = "wgpu")]
+        if let Some(r) = &mut self.resident {
+            r.upload(&self.model.params, &self.adam, &self.stats)?;
+        }
+        Ok(())
     }
 
     /// Iterations taken so far.
@@ -631,86 +663,44 @@ impl Trainer {
                 "position learning rate {position_lr} is not finite and non-negative"
             )));
         }
-        let config = &self.config;
         let iteration = self.iteration + 1;
-        let camera = &view.camera;
         let degree = active_sh_degree(
             iteration,
-            config.sh_degree_interval,
+            self.config.sh_degree_interval,
             self.model.layout().sh_degree,
         );
-
-        let t0 = Instant::now();
-        let colours = sh_to_rgb(&self.model.params, degree, camera.position())?;
-        let gview = GaussianView::from_model(&self.model, &colours, 3);
-        let forward = self.backend.render(camera, &gview, &self.settings)?;
-        let shape = image_shape(camera);
-        let t_loss = Instant::now();
-        // A non-finite render (values overflowing f32) cannot be scored: count and skip.
-        let loss = if forward.color().iter().all(|v| v.is_finite()) {
-            photometric_loss(
-                forward.color(),
-                &view.image,
-                view.mask.as_deref(),
-                shape,
-                config.lambda_dssim,
-            )?
-        } else {
-            LossOutput {
-                loss: f32::NAN,
-                l1: f32::NAN,
-                ssim: f32::NAN,
-                d_rendered: Vec::new(),
+        let rates = group_rates(&self.config.lr, position_lr);
+        let accumulate_stats = iteration < self.config.densify_until_iter;
+        // The one place the backend matters: where this step's colour, render, backward,
+        // Adam update and statistics are computed. Both arms score with `score`.
+        let arithmetic = match self.backend.clone() {
+            Backend::Cpu => self.cpu_arithmetic(view, degree, &rates, accumulate_stats)?,
+            #[cfg(feature = "wgpu")]
+            Backend::Wgpu(gpu) => {
+                self.resident_arithmetic(&gpu, view, degree, &rates, accumulate_stats)?
             }
         };
-        let t1 = Instant::now();
-        // A non-finite loss gradient (a model gone numerically wild) is counted and
-        // skipped rather than handed to the rasterizer, which rejects it.
-        let loss_finite = loss.loss.is_finite() && loss.d_rendered.iter().all(|v| v.is_finite());
-        let backward = if loss_finite {
-            let pixel_grads = PixelGrads {
-                d_color: &loss.d_rendered,
-                d_alpha: None,
-                d_depth: None,
-            };
-            let g = self.backend.render_backward(
-                camera,
-                &gview,
-                &self.settings,
-                &forward,
-                &pixel_grads,
-            )?;
-            self.raster_dropped += g.dropped_nonfinite;
-            let mut grads = gather_grads(&self.model.params, &g);
-            sh_to_rgb_backward(
-                &self.model.params,
-                degree,
-                camera.position(),
-                &g.d_channels,
-                &mut grads,
-            )?;
-            Adam::first_non_finite(&grads)
-                .is_none()
-                .then_some((g, grads))
-        } else {
-            None
-        };
         let t2 = Instant::now();
+        self.raster_dropped += arithmetic.dropped_nonfinite;
 
-        let skipped = backward.is_none();
+        let config = &self.config;
+        let skipped = arithmetic.skipped;
         let mut densified = None;
         let mut opacity_reset = false;
-        if let Some((g, grads)) = backward {
-            self.adam.step(
-                &mut self.model.params,
-                &grads,
-                &group_rates(&config.lr, position_lr),
-            )?;
-            if iteration < config.densify_until_iter {
-                self.stats
-                    .accumulate(&g.mean2d_grad_ndc, forward.visible(), forward.radii_px())?;
-                if iteration > config.densify_from_iter && iteration % config.densify_interval == 0
-                {
+        if !skipped && accumulate_stats {
+            let densify_now =
+                iteration > config.densify_from_iter && iteration % config.densify_interval == 0;
+            // 3DGS also resets once at `densify_from_iter` on a white background.
+            let white_reset =
+                config.background == [1.0; 3] && iteration == config.densify_from_iter;
+            let periodic_reset =
+                config.opacity_reset_interval > 0 && iteration % config.opacity_reset_interval == 0;
+            let reset_now = periodic_reset || white_reset;
+            if densify_now || reset_now {
+                // Densification and resets edit the host's copy (a no-op sync on the CPU).
+                self.sync_to_host()?;
+                let config = &self.config;
+                if densify_now {
                     let screen_limit = iteration > config.opacity_reset_interval
                         && config.opacity_reset_interval > 0;
                     let report = densify_and_prune(
@@ -725,17 +715,14 @@ impl Trainer {
                     self.densify_reports.push((iteration, report));
                     densified = Some(report);
                 }
-                // 3DGS also resets once at `densify_from_iter` on a white background.
-                let white_reset =
-                    config.background == [1.0; 3] && iteration == config.densify_from_iter;
-                let periodic_reset = config.opacity_reset_interval > 0
-                    && iteration % config.opacity_reset_interval == 0;
-                if periodic_reset || white_reset {
+                if reset_now {
                     reset_opacity(&mut self.model, &mut self.adam, config.opacity_reset_value);
                     opacity_reset = true;
                 }
+                self.sync_to_device()?;
             }
-        } else {
+        }
+        if skipped {
             self.skipped_steps += 1;
         }
         self.iteration = iteration;
@@ -743,23 +730,132 @@ impl Trainer {
         Ok(IterationStats {
             iteration,
             view_index,
-            loss: loss.loss,
-            l1: loss.l1,
-            ssim: loss.ssim,
+            loss: arithmetic.loss.loss,
+            l1: arithmetic.loss.l1,
+            ssim: arithmetic.loss.ssim,
             gaussians: self.model.len(),
             active_sh_degree: degree,
             position_lr,
             skipped,
             densified,
             opacity_reset,
-            forward_ms: (t_loss - t0).as_secs_f64() * 1e3,
-            loss_ms: (t1 - t_loss).as_secs_f64() * 1e3,
-            backward_ms: (t2 - t1).as_secs_f64() * 1e3,
+            forward_ms: arithmetic.forward_ms,
+            loss_ms: arithmetic.loss_ms,
+            backward_ms: arithmetic.backward_ms,
             step_ms: (t3 - t2).as_secs_f64() * 1e3,
         })
     }
 
+    /// The step's arithmetic on the CPU: SH colour, render, loss, backward, Adam, stats.
+    fn cpu_arithmetic(
+        &mut self,
+        view: &TrainView,
+        degree: u32,
+        rates: &GroupRates,
+        accumulate_stats: bool,
+    ) -> Result<StepArithmetic, TrainError> {
+        let camera = &view.camera;
+        let t0 = Instant::now();
+        let colours = sh_to_rgb(&self.model.params, degree, camera.position())?;
+        let gview = GaussianView::from_model(&self.model, &colours, 3);
+        let forward = render(camera, &gview, &self.settings)?;
+        let t_loss = Instant::now();
+        let loss = score(&forward.color, view, self.config.lambda_dssim)?;
+        let t1 = Instant::now();
+        let mut dropped_nonfinite = 0;
+        let backward = match &loss {
+            Some(loss) => {
+                let pixel_grads = PixelGrads {
+                    d_color: &loss.d_rendered,
+                    d_alpha: None,
+                    d_depth: None,
+                };
+                let g = render_backward(camera, &gview, &self.settings, &forward, &pixel_grads)?;
+                dropped_nonfinite = g.dropped_nonfinite;
+                let mut grads = gather_grads(&self.model.params, &g);
+                sh_to_rgb_backward(
+                    &self.model.params,
+                    degree,
+                    camera.position(),
+                    &g.d_channels,
+                    &mut grads,
+                )?;
+                Adam::first_non_finite(&grads)
+                    .is_none()
+                    .then_some((g, grads))
+            }
+            None => None,
+        };
+        let skipped = backward.is_none();
+        if let Some((g, grads)) = backward {
+            self.adam.step(&mut self.model.params, &grads, rates)?;
+            if accumulate_stats {
+                self.stats
+                    .accumulate(&g.mean2d_grad_ndc, &forward.visible, &forward.radii_px)?;
+            }
+        }
+        Ok(StepArithmetic {
+            loss: loss.unwrap_or_else(nan_loss),
+            skipped,
+            dropped_nonfinite,
+            forward_ms: (t_loss - t0).as_secs_f64() * 1e3,
+            loss_ms: (t1 - t_loss).as_secs_f64() * 1e3,
+            backward_ms: t1.elapsed().as_secs_f64() * 1e3,
+        })
+    }
+
+    /// The step's arithmetic on the device: the same stages as [`Self::cpu_arithmetic`]
+    /// on the resident buffers; the rendered image comes back for the loss (on the CPU)
+    /// and its gradient goes down.
+    #[cfg(feature = "wgpu")]
+    fn resident_arithmetic(
+        &mut self,
+        gpu: &std::sync::Arc<crate::gpu::GpuRasterizer>,
+        view: &TrainView,
+        degree: u32,
+        rates: &GroupRates,
+        accumulate_stats: bool,
+    ) -> Result<StepArithmetic, TrainError> {
+        if self.resident.is_none() {
+            self.resident = Some(crate::gpu::ResidentModel::new(
+                gpu.clone(),
+                &self.model.params,
+                &self.adam,
+                &self.stats,
+            )?);
+        }
+        let resident = self.resident.as_mut().expect("created above");
+        let t0 = Instant::now();
+        let forward = resident.forward(&view.camera, &self.settings, degree, accumulate_stats)?;
+        let t_loss = Instant::now();
+        let loss = score(&forward.color, view, self.config.lambda_dssim)?;
+        let t1 = Instant::now();
+        let report = match &loss {
+            Some(loss) => Some(resident.backward_and_step(forward, &loss.d_rendered, rates)?),
+            None => None,
+        };
+        let skipped = report.is_none_or(|r| r.refused);
+        if !skipped {
+            self.host_current = false;
+        }
+        Ok(StepArithmetic {
+            loss: loss.unwrap_or_else(nan_loss),
+            skipped,
+            dropped_nonfinite: report.map_or(0, |r| r.dropped_nonfinite),
+            forward_ms: (t_loss - t0).as_secs_f64() * 1e3,
+            loss_ms: (t1 - t_loss).as_secs_f64() * 1e3,
+            backward_ms: t1.elapsed().as_secs_f64() * 1e3,
+        })
+    }
+
+    /// [`Trainer::finish`] after bringing the device state to the host.
+    pub fn try_finish(mut self, losses: Vec<f32>) -> Result<TrainResult, TrainError> {
+        self.sync_to_host()?;
+        Ok(self.finish(losses))
+    }
+
     /// The trained model and the run's counters; `losses` is the caller's loss history.
+    /// The host copy (see [`Trainer::model`]): on wgpu use [`Trainer::try_finish`].
     pub fn finish(self, losses: Vec<f32>) -> TrainResult {
         TrainResult {
             model: self.model,
@@ -800,7 +896,7 @@ pub fn train_with_backend(
         Some(e) => e,
         None => camera_extent(&views.iter().map(|v| v.camera).collect::<Vec<_>>()),
     };
-    let mut trainer = Trainer::new(model, config, scene_extent)?.with_backend(backend);
+    let mut trainer = Trainer::new(model, config, scene_extent)?.with_backend(backend)?;
     let mut shuffle = SplitMix64::new(config.seed);
     let mut order: Vec<usize> = Vec::new();
     let mut losses = Vec::with_capacity(config.iterations);
@@ -814,5 +910,5 @@ pub fn train_with_backend(
         losses.push(stats.loss);
         progress(&stats);
     }
-    Ok(trainer.finish(losses))
+    trainer.try_finish(losses)
 }

@@ -21,12 +21,14 @@
 
 pub mod gemm;
 pub mod raster;
+pub mod resident;
 pub mod shadow;
 
 use std::sync::Arc;
 
 pub use gemm::{GemmOp, GpuGemm};
 pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
+pub use resident::{ResidentForward, ResidentModel, ResidentStepReport};
 pub use shadow::GpuShadow;
 
 /// GPU backend error.

@@ -118,20 +118,44 @@ pub struct GpuForwardTimings {
 }
 
 /// Device state of one forward pass, for its backward.
-struct ForwardState {
-    camera: Camera,
-    settings: RasterSettings,
-    n: usize,
-    nc: usize,
-    frame: wgpu::Buffer,
-    gauss: wgpu::Buffer,
-    chans: wgpu::Buffer,
-    splats: wgpu::Buffer,
-    keys: wgpu::Buffer,
-    ranges: wgpu::Buffer,
-    px_state: wgpu::Buffer,
-    pipelines: Arc<ChannelPipelines>,
-    grid: TileGrid,
+pub(super) struct ForwardState {
+    pub(super) camera: Camera,
+    pub(super) settings: RasterSettings,
+    pub(super) n: usize,
+    pub(super) nc: usize,
+    pub(super) frame: wgpu::Buffer,
+    pub(super) gauss: wgpu::Buffer,
+    pub(super) chans: wgpu::Buffer,
+    pub(super) splats: wgpu::Buffer,
+    pub(super) keys: wgpu::Buffer,
+    pub(super) ranges: wgpu::Buffer,
+    pub(super) px_state: wgpu::Buffer,
+    pub(super) pipelines: Arc<ChannelPipelines>,
+    pub(super) grid: TileGrid,
+}
+
+/// Device inputs of a forward pass: the rasterizer rows (`GSTRIDE` floats per Gaussian)
+/// and `nc` channels per Gaussian, already on the device.
+pub(super) struct DeviceInputs<'a> {
+    pub camera: &'a Camera,
+    pub settings: &'a RasterSettings,
+    pub n: usize,
+    pub nc: usize,
+    pub background: &'a [f32],
+    pub gauss: wgpu::Buffer,
+    pub chans: wgpu::Buffer,
+}
+
+/// A forward pass recorded on the device (see [`GpuRasterizer::forward_device`]).
+pub(super) struct DeviceForward {
+    pub state: ForwardState,
+    /// `H * W * nc` colour, written by the recorded blend.
+    pub color: wgpu::Buffer,
+    /// Sort and blend, recorded and not yet submitted.
+    pub encoder: wgpu::CommandEncoder,
+    pub tile_entries: usize,
+    /// Uniforms the recorded sort reads, held until the caller submits.
+    pub _sort_uniforms: Vec<wgpu::Buffer>,
 }
 
 /// A GPU render: the same images and per-Gaussian data as [`crate::raster::RenderOutput`].
@@ -369,6 +393,136 @@ impl GpuRasterizer {
         }
     }
 
+    /// Projection, prefix sum (and the 4-byte entry-count readback), key generation,
+    /// sort, tile ranges and blending of `inputs`' device buffers. `encoder` may already
+    /// hold work that fills them (it is submitted first). Returns the forward's device
+    /// state and an encoder with the sort and blend recorded but not submitted, so the
+    /// caller appends its own readbacks or kernels.
+    pub(super) fn forward_device(
+        &self,
+        inputs: DeviceInputs,
+        mut encoder: wgpu::CommandEncoder,
+    ) -> Result<DeviceForward, GpuError> {
+        let DeviceInputs {
+            camera,
+            settings,
+            n,
+            nc,
+            background,
+            gauss,
+            chans,
+        } = inputs;
+        let frame = camera_frame(camera, settings.near_m)?;
+        let mode = AlphaMode {
+            smooth: settings.smooth_cutoff,
+        };
+        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+        let grid = TileGrid::new(width, height);
+        let pipelines = self.channel_pipelines(nc)?;
+        let ctx = &self.ctx;
+        let frame0 = ctx.uniform_init(
+            "frame",
+            &frame_bytes(
+                &frame,
+                mode.cutoff(),
+                &grid,
+                n as u32,
+                mode.smooth,
+                0,
+                0,
+                background,
+            ),
+        );
+        let splats = ctx.storage("splats", (n * SSTRIDE * 4) as u64)?;
+        // One extra zero at the end: its exclusive prefix sum is the entry count.
+        let counts = ctx.storage("tile counts", (n as u64 + 1) * 4)?;
+        let mut keep = Vec::new();
+        encoder.clear_buffer(&counts, 0, None);
+        {
+            let bind = ctx.bind_group(
+                &pipelines.project,
+                &[&frame0, &gauss, &chans, &splats, &counts],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &pipelines.project, &bind, n as u64);
+        }
+        self.encode_scan(&mut encoder, &counts, n as u64 + 1, &mut keep)?;
+        // Copy the total to a small buffer so the readback needs no offset.
+        let total_buf = ctx.storage("entry count", 4)?;
+        encoder.copy_buffer_to_buffer(&counts, 4 * n as u64, &total_buf, 0, 4);
+        let total = bytes_u32(&ctx.read_back(encoder, &[(&total_buf, 4)])?[0])[0] as u64;
+        drop(keep);
+
+        let n_sort = total.next_power_of_two().max(SORT_BLOCK);
+        if n_sort > u32::MAX as u64 / 2 {
+            return Err(GpuError::TooLarge(format!("{total} tile entries")));
+        }
+        let keys = ctx.storage("keys", n_sort * 16)?;
+        let frame = ctx.uniform_init(
+            "frame",
+            &frame_bytes(
+                &frame,
+                mode.cutoff(),
+                &grid,
+                n as u32,
+                mode.smooth,
+                total as u32,
+                n_sort as u32,
+                background,
+            ),
+        );
+        let ranges = ctx.storage("tile ranges", grid.n_tiles() as u64 * 8)?;
+        let pixels = width as u64 * height as u64;
+        let color = ctx.storage("colour", pixels * nc as u64 * 4)?;
+        let px_state = ctx.storage("pixel state", pixels * 16)?;
+        let mut encoder = ctx.encoder("forward: sort and blend");
+        {
+            let bind = ctx.bind_group(&pipelines.keygen, &[&frame, &splats, &counts, &keys]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &pipelines.keygen, &bind, n_sort.max(n as u64));
+        }
+        // The sort's uniforms must outlive the submission: the state keeps them.
+        let mut sort_uniforms = Vec::new();
+        self.encode_sort(&mut encoder, &keys, n_sort, &mut sort_uniforms);
+        encoder.clear_buffer(&ranges, 0, None);
+        {
+            let bind = ctx.bind_group(&pipelines.ranges, &[&frame, &keys, &ranges]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &pipelines.ranges, &bind, total);
+        }
+        {
+            let bind = ctx.bind_group(
+                &pipelines.blend,
+                &[&frame, &keys, &ranges, &splats, &chans, &color, &px_state],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&pipelines.blend);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(grid.tiles_x, grid.tiles_y, 1);
+        }
+        Ok(DeviceForward {
+            state: ForwardState {
+                camera: *camera,
+                settings: settings.clone(),
+                n,
+                nc,
+                frame,
+                gauss,
+                chans,
+                splats,
+                keys,
+                ranges,
+                px_state,
+                pipelines,
+                grid,
+            },
+            color,
+            encoder,
+            tile_entries: total as usize,
+            _sort_uniforms: sort_uniforms,
+        })
+    }
+
     /// Renders `gaussians` from `camera` (same inputs, checks and outputs as
     /// [`crate::raster::render`]).
     pub fn render(
@@ -377,7 +531,7 @@ impl GpuRasterizer {
         gaussians: &GaussianView,
         settings: &RasterSettings,
     ) -> Result<GpuRenderOutput, GpuError> {
-        let frame = camera_frame(camera, settings.near_m)?;
+        camera_frame(camera, settings.near_m)?;
         let n = gaussians.len();
         let nc = gaussians.n_channels;
         check_len("means (3 per Gaussian)", 3 * n, gaussians.means.len())?;
@@ -417,12 +571,7 @@ impl GpuRasterizer {
             }
             settings.background.clone()
         };
-        let mode = AlphaMode {
-            smooth: settings.smooth_cutoff,
-        };
         let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-        let grid = TileGrid::new(width, height);
-        let pipelines = self.channel_pipelines(nc)?;
         let ctx = &self.ctx;
 
         let t0 = Instant::now();
@@ -435,99 +584,29 @@ impl GpuRasterizer {
         }
         let gauss = ctx.storage_init("gaussians", &f32_bytes(&packed));
         let chans = ctx.storage_init("channels", &f32_bytes(gaussians.channels));
-        let frame0 = ctx.uniform_init(
-            "frame",
-            &frame_bytes(
-                &frame,
-                mode.cutoff(),
-                &grid,
-                n as u32,
-                mode.smooth,
-                0,
-                0,
-                &background,
-            ),
-        );
-        let splats = ctx.storage("splats", (n * SSTRIDE * 4) as u64)?;
-        // One extra zero at the end: its exclusive prefix sum is the entry count.
-        let counts = ctx.storage("tile counts", (n as u64 + 1) * 4)?;
-        let mut keep = Vec::new();
-        let mut encoder = ctx.encoder("forward: project");
-        encoder.clear_buffer(&counts, 0, None);
-        {
-            let bind = ctx.bind_group(
-                &pipelines.project,
-                &[&frame0, &gauss, &chans, &splats, &counts],
-            );
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, &pipelines.project, &bind, n as u64);
-        }
-        self.encode_scan(&mut encoder, &counts, n as u64 + 1, &mut keep)?;
-        // Copy the total to a small buffer so the readback needs no offset.
-        let total_buf = ctx.storage("entry count", 4)?;
-        encoder.copy_buffer_to_buffer(&counts, 4 * n as u64, &total_buf, 0, 4);
-        let total = bytes_u32(&ctx.read_back(encoder, &[(&total_buf, 4)])?[0])[0] as u64;
-        drop(keep);
+        let inputs = DeviceInputs {
+            camera,
+            settings,
+            n,
+            nc,
+            background: &background,
+            gauss,
+            chans,
+        };
+        let fwd = self.forward_device(inputs, ctx.encoder("forward: project"))?;
         let project_scan_ms = ms_since(t0);
-
         let t1 = Instant::now();
-        let n_sort = total.next_power_of_two().max(SORT_BLOCK);
-        if n_sort > u32::MAX as u64 / 2 {
-            return Err(GpuError::TooLarge(format!("{total} tile entries")));
-        }
-        let keys = ctx.storage("keys", n_sort * 16)?;
-        let frame = ctx.uniform_init(
-            "frame",
-            &frame_bytes(
-                &frame,
-                mode.cutoff(),
-                &grid,
-                n as u32,
-                mode.smooth,
-                total as u32,
-                n_sort as u32,
-                &background,
-            ),
-        );
-        let ranges = ctx.storage("tile ranges", grid.n_tiles() as u64 * 8)?;
         let pixels = width as u64 * height as u64;
-        let out_color = ctx.storage("colour", pixels * nc as u64 * 4)?;
-        let px_state = ctx.storage("pixel state", pixels * 16)?;
-        let mut keep = Vec::new();
-        let mut encoder = ctx.encoder("forward: sort and blend");
-        {
-            let bind = ctx.bind_group(&pipelines.keygen, &[&frame, &splats, &counts, &keys]);
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, &pipelines.keygen, &bind, n_sort.max(n as u64));
-        }
-        self.encode_sort(&mut encoder, &keys, n_sort, &mut keep);
-        encoder.clear_buffer(&ranges, 0, None);
-        {
-            let bind = ctx.bind_group(&pipelines.ranges, &[&frame, &keys, &ranges]);
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, &pipelines.ranges, &bind, total);
-        }
-        {
-            let bind = ctx.bind_group(
-                &pipelines.blend,
-                &[
-                    &frame, &keys, &ranges, &splats, &chans, &out_color, &px_state,
-                ],
-            );
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&pipelines.blend);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(grid.tiles_x, grid.tiles_y, 1);
-        }
         let back = ctx.read_back(
-            encoder,
+            fwd.encoder,
             &[
-                (&out_color, pixels * nc as u64 * 4),
-                (&px_state, pixels * 16),
-                (&splats, (n * SSTRIDE * 4) as u64),
+                (&fwd.color, pixels * nc as u64 * 4),
+                (&fwd.state.px_state, pixels * 16),
+                (&fwd.state.splats, (n * SSTRIDE * 4) as u64),
             ],
         )?;
-        drop(keep);
+        let total = fwd.tile_entries;
+        let state = fwd.state;
         let color = bytes_f32(&back[0]);
         let px = bytes_f32(&back[1]);
         let alpha = px.chunks_exact(4).map(|p| p[0]).collect();
@@ -549,26 +628,12 @@ impl GpuRasterizer {
             depth,
             radii_px,
             visible,
-            tile_entries: total as usize,
+            tile_entries: total,
             timings: GpuForwardTimings {
                 project_scan_ms,
                 sort_blend_ms,
             },
-            state: ForwardState {
-                camera: *camera,
-                settings: settings.clone(),
-                n,
-                nc,
-                frame,
-                gauss,
-                chans,
-                splats,
-                keys,
-                ranges,
-                px_state,
-                pipelines,
-                grid,
-            },
+            state,
         })
     }
 
@@ -620,60 +685,9 @@ impl GpuRasterizer {
         }
         let ctx = &self.ctx;
         let px_grad = ctx.storage_init("pixel grads", &f32_bytes(&px_grad));
-        let rec = REC_CHANNELS + nc;
-        let acc = ctx.storage("grad accumulators", (n * rec * 4) as u64)?;
         let ostride = OUT_FIXED + nc;
-        let out = ctx.storage("gaussian grads", (n * ostride * 4) as u64)?;
-        let p = &st.pipelines;
-        // Deterministic mode: the blend kernel writes per-entry records, summed into `acc`
-        // by the gather kernel.
-        let records = match p.gather {
-            Some(_) => Some(ctx.storage(
-                "grad records",
-                (forward.tile_entries.max(1) * rec * 4) as u64,
-            )?),
-            None => None,
-        };
         let mut encoder = ctx.encoder("backward");
-        encoder.clear_buffer(&acc, 0, None);
-        if let Some(r) = &records {
-            encoder.clear_buffer(r, 0, None);
-        }
-        {
-            let bind = ctx.bind_group(
-                &p.blend_backward,
-                &[
-                    &st.frame,
-                    &st.keys,
-                    &st.ranges,
-                    &st.splats,
-                    &st.chans,
-                    &st.px_state,
-                    &px_grad,
-                    records.as_ref().unwrap_or(&acc),
-                ],
-            );
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&p.blend_backward);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(st.grid.tiles_x, st.grid.tiles_y, 1);
-        }
-        if let (Some(gather), Some(records)) = (&p.gather, &records) {
-            let bind = ctx.bind_group(
-                gather,
-                &[&st.frame, &st.splats, &st.keys, &st.ranges, records, &acc],
-            );
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, gather, &bind, n as u64);
-        }
-        {
-            let bind = ctx.bind_group(
-                &p.project_backward,
-                &[&st.frame, &st.gauss, &st.splats, &acc, &out],
-            );
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, &p.project_backward, &bind, n as u64);
-        }
+        let out = self.encode_backward(st, forward.tile_entries, &px_grad, &mut encoder)?;
         let back = ctx.read_back(encoder, &[(&out, (n * ostride * 4) as u64)])?;
         let rows = bytes_f32(&back[0]);
         let mut g = GaussianGrads {
@@ -704,6 +718,72 @@ impl GpuRasterizer {
             reduce_project_ms: 0.0,
         };
         Ok(g)
+    }
+
+    /// Records the backward of a forward's device state: per-tile blending backward
+    /// (and, in deterministic mode, the gather) and the projection backward, reading
+    /// per-pixel gradients `[d_color (nc), d_alpha, d_depth]` from `px_grad`. Returns
+    /// the per-Gaussian output rows (`13 + nc` floats, see project_backward.wgsl).
+    pub(super) fn encode_backward(
+        &self,
+        st: &ForwardState,
+        tile_entries: usize,
+        px_grad: &wgpu::Buffer,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let (n, nc) = (st.n, st.nc);
+        let ctx = &self.ctx;
+        let rec = REC_CHANNELS + nc;
+        let acc = ctx.storage("grad accumulators", (n * rec * 4) as u64)?;
+        let ostride = OUT_FIXED + nc;
+        let out = ctx.storage("gaussian grads", (n * ostride * 4) as u64)?;
+        let p = &st.pipelines;
+        // Deterministic mode: the blend kernel writes per-entry records, summed into `acc`
+        // by the gather kernel.
+        let records = match p.gather {
+            Some(_) => Some(ctx.storage("grad records", (tile_entries.max(1) * rec * 4) as u64)?),
+            None => None,
+        };
+        encoder.clear_buffer(&acc, 0, None);
+        if let Some(r) = &records {
+            encoder.clear_buffer(r, 0, None);
+        }
+        {
+            let bind = ctx.bind_group(
+                &p.blend_backward,
+                &[
+                    &st.frame,
+                    &st.keys,
+                    &st.ranges,
+                    &st.splats,
+                    &st.chans,
+                    &st.px_state,
+                    px_grad,
+                    records.as_ref().unwrap_or(&acc),
+                ],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&p.blend_backward);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(st.grid.tiles_x, st.grid.tiles_y, 1);
+        }
+        if let (Some(gather), Some(records)) = (&p.gather, &records) {
+            let bind = ctx.bind_group(
+                gather,
+                &[&st.frame, &st.splats, &st.keys, &st.ranges, records, &acc],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, gather, &bind, n as u64);
+        }
+        {
+            let bind = ctx.bind_group(
+                &p.project_backward,
+                &[&st.frame, &st.gauss, &st.splats, &acc, &out],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &p.project_backward, &bind, n as u64);
+        }
+        Ok(out)
     }
 }
 

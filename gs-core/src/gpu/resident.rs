@@ -1,0 +1,596 @@
+//! Device-resident training state for the plain 3DGS trainer: parameters, gradients,
+//! Adam moments and densification statistics live in device buffers across iterations,
+//! and a step's SH colour, rasterizer forward and backward, gradient assembly,
+//! statistics and Adam update run as kernels on them ([`ResidentModel`]).
+//!
+//! Layout: every per-Gaussian buffer (parameters, gradients, both moments) is one packed,
+//! group-major array in [`Param`] order: group `g` holds its `n * dim(g)` values,
+//! row-major, starting at `offsets[g]` (a [`ParamSet`]'s groups laid end to end). The
+//! statistics buffer holds `grad_accum`, `visible_count` and `max_radius_px`, `n` each.
+//!
+//! Per step the host uploads a 240-byte uniform set and the image gradient, and reads
+//! back the rendered image (the loss runs on the CPU) and two counters (step refused,
+//! rasterizer rows dropped). Parameters, moments and statistics come back only when the
+//! caller asks ([`ResidentModel::download`]: densification, checkpoints, the end of a
+//! run); after the host edits them, [`ResidentModel::upload`] puts them back (buffers
+//! grow with head room, so densification reallocates rarely).
+//!
+//! Invariants:
+//! - the same arithmetic as the CPU path: `sh.rs` colour and its backward, `optim.rs`'s
+//!   Adam (torch formulation, eps from the host, step sizes and bias corrections computed
+//!   in f64 on the host), `densify.rs` statistics; checked in `tests/gpu_resident.rs`;
+//! - a step with any non-finite gradient changes nothing (parameters, moments,
+//!   statistics, step count), as on the CPU;
+//! - the host's Adam step counter mirrors the device's (it is what bias correction reads).
+
+use std::sync::Arc;
+
+use super::raster::{DeviceForward, DeviceInputs, GpuRasterizer};
+use super::{bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError};
+use crate::camera::Camera;
+use crate::densify::DensifyStats;
+use crate::model::{Param, ParamSet};
+use crate::optim::{Adam, GroupRates};
+use crate::raster::RasterSettings;
+
+const RESIDENT_COMMON: &str = include_str!("shaders/resident_common.wgsl");
+const RESIDENT_COLOUR: &str = include_str!("shaders/resident_colour.wgsl");
+const RESIDENT_PACK: &str = include_str!("shaders/resident_pack.wgsl");
+const RESIDENT_GRADS: &str = include_str!("shaders/resident_grads.wgsl");
+const RESIDENT_STATS: &str = include_str!("shaders/resident_stats.wgsl");
+const ADAM: &str = include_str!("shaders/adam.wgsl");
+
+/// Channels of the plain trainer's render (RGB).
+const CHANNELS: usize = 3;
+/// Floats per rasterizer gradient row with RGB (project_backward.wgsl: 13 + channels).
+const OSTRIDE: u32 = 13 + CHANNELS as u32;
+/// Floats per rasterizer input row (mean 3, log-scale 3, quaternion 4, opacity logit 1).
+const GSTRIDE: u64 = 11;
+
+/// Compiled kernels of the resident path.
+struct ResidentPipelines {
+    pack: wgpu::ComputePipeline,
+    grads: wgpu::ComputePipeline,
+    stats: wgpu::ComputePipeline,
+    adam: wgpu::ComputePipeline,
+}
+
+/// Device buffers sized for `capacity` Gaussians.
+struct Buffers {
+    capacity: usize,
+    params: wgpu::Buffer,
+    grads: wgpu::Buffer,
+    m: wgpu::Buffer,
+    v: wgpu::Buffer,
+    stats: wgpu::Buffer,
+    /// `[refused, dropped]` counters of the last step.
+    flags: wgpu::Buffer,
+}
+
+/// A forward pass of [`ResidentModel::forward`], for its backward.
+pub struct ResidentForward {
+    device: DeviceForward,
+    step: wgpu::Buffer,
+    /// `H * W * 3` rendered RGB.
+    pub color: Vec<f32>,
+    pub tile_entries: usize,
+}
+
+/// What a resident step's backward did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ResidentStepReport {
+    /// A gradient was NaN or infinite: nothing was changed.
+    pub refused: bool,
+    /// Gaussians whose rasterizer gradient came out non-finite and was zeroed.
+    pub dropped_nonfinite: usize,
+}
+
+/// Parameters, gradients, Adam moments and densification statistics on the device.
+pub struct ResidentModel {
+    raster: Arc<GpuRasterizer>,
+    pipelines: ResidentPipelines,
+    dims: [usize; Param::COUNT],
+    n: usize,
+    buffers: Buffers,
+    /// Adam steps taken (bias correction), mirrored to the host's `Adam::step`.
+    adam_step: u64,
+    beta1: f32,
+    beta2: f32,
+    eps: f32,
+}
+
+impl std::fmt::Debug for ResidentModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "ResidentModel({} Gaussians, capacity {}, {} Adam steps)",
+            self.n, self.buffers.capacity, self.adam_step
+        )
+    }
+}
+
+fn row_width(dims: &[usize; Param::COUNT]) -> usize {
+    dims.iter().sum()
+}
+
+/// Start of each group in the packed layout for `n` rows, and the total.
+fn offsets(dims: &[usize; Param::COUNT], n: usize) -> Result<[u32; Param::COUNT + 1], GpuError> {
+    let mut out = [0u32; Param::COUNT + 1];
+    let mut at = 0u64;
+    for (g, d) in dims.iter().enumerate() {
+        out[g] = u32::try_from(at)
+            .map_err(|_| GpuError::TooLarge(format!("{n} Gaussians of {dims:?} values")))?;
+        at += (*d as u64) * n as u64;
+    }
+    out[Param::COUNT] = u32::try_from(at)
+        .map_err(|_| GpuError::TooLarge(format!("{n} Gaussians of {dims:?} values")))?;
+    Ok(out)
+}
+
+/// A [`ParamSet`]'s groups end to end.
+fn pack(set: &ParamSet) -> Vec<f32> {
+    let mut out = Vec::with_capacity(set.len() * row_width(&set.dims()));
+    for p in Param::ALL {
+        out.extend_from_slice(set.get(p));
+    }
+    out
+}
+
+/// Packed values back into `set` (same dims and rows).
+fn unpack(values: &[f32], set: &mut ParamSet) {
+    let mut at = 0;
+    for p in Param::ALL {
+        let dst = set.get_mut(p);
+        let len = dst.len();
+        dst.copy_from_slice(&values[at..at + len]);
+        at += len;
+    }
+}
+
+impl ResidentModel {
+    /// Compiles the kernels and uploads `params`, the optimiser state and the statistics.
+    pub fn new(
+        raster: Arc<GpuRasterizer>,
+        params: &ParamSet,
+        adam: &Adam,
+        stats: &DensifyStats,
+    ) -> Result<Self, GpuError> {
+        let ctx = raster.context();
+        let common = format!("{RESIDENT_COMMON}\n");
+        let pipelines = ResidentPipelines {
+            pack: ctx.pipeline(
+                "resident_pack",
+                &format!("{common}{RESIDENT_COLOUR}\n{RESIDENT_PACK}"),
+            )?,
+            grads: ctx.pipeline(
+                "resident_grads",
+                &format!("{common}{RESIDENT_COLOUR}\n{RESIDENT_GRADS}"),
+            )?,
+            stats: ctx.pipeline("resident_stats", &format!("{common}{RESIDENT_STATS}"))?,
+            adam: ctx.pipeline("adam", ADAM)?,
+        };
+        let buffers = Self::allocate(ctx, &params.dims(), params.len().max(1))?;
+        let mut out = Self {
+            raster,
+            pipelines,
+            dims: params.dims(),
+            n: 0,
+            buffers,
+            adam_step: 0,
+            beta1: adam.beta1,
+            beta2: adam.beta2,
+            eps: adam.eps,
+        };
+        out.upload(params, adam, stats)?;
+        Ok(out)
+    }
+
+    fn allocate(
+        ctx: &GpuContext,
+        dims: &[usize; Param::COUNT],
+        capacity: usize,
+    ) -> Result<Buffers, GpuError> {
+        let values = (row_width(dims) * capacity) as u64 * 4;
+        Ok(Buffers {
+            capacity,
+            params: ctx.storage("resident params", values)?,
+            grads: ctx.storage("resident grads", values)?,
+            m: ctx.storage("resident adam m", values)?,
+            v: ctx.storage("resident adam v", values)?,
+            stats: ctx.storage("resident densify stats", capacity as u64 * 12)?,
+            flags: ctx.storage("resident step flags", 8)?,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// Gaussians the buffers hold without reallocating.
+    pub fn capacity(&self) -> usize {
+        self.buffers.capacity
+    }
+
+    /// Adam steps taken on the device.
+    pub fn adam_step(&self) -> u64 {
+        self.adam_step
+    }
+
+    fn check_shapes(
+        &self,
+        params: &ParamSet,
+        adam: &Adam,
+        stats: &DensifyStats,
+    ) -> Result<(), GpuError> {
+        let same = |a: &ParamSet| a.dims() == self.dims && a.len() == params.len();
+        if params.dims() != self.dims || !same(&adam.m) || !same(&adam.v) {
+            return Err(GpuError::Invalid(format!(
+                "parameter set ({} rows, widths {:?}) and moments ({} and {} rows) differ \
+                 from each other or from the resident layout (widths {:?})",
+                params.len(),
+                params.dims(),
+                adam.m.len(),
+                adam.v.len(),
+                self.dims
+            )));
+        }
+        if stats.len() != params.len() {
+            return Err(GpuError::Invalid(format!(
+                "densification statistics have {} rows, the parameters {}",
+                stats.len(),
+                params.len()
+            )));
+        }
+        Ok(())
+    }
+
+    /// Replaces the device state with the host's (after densification, an opacity reset,
+    /// a checkpoint load). Grows the buffers, with 50% head room, when they are too small.
+    pub fn upload(
+        &mut self,
+        params: &ParamSet,
+        adam: &Adam,
+        stats: &DensifyStats,
+    ) -> Result<(), GpuError> {
+        self.check_shapes(params, adam, stats)?;
+        let n = params.len();
+        offsets(&self.dims, n)?;
+        let ctx = self.raster.context();
+        if n > self.buffers.capacity {
+            let capacity = n.saturating_add(n / 2);
+            self.buffers = Self::allocate(ctx, &self.dims, capacity)?;
+        }
+        let q = &ctx.queue;
+        q.write_buffer(&self.buffers.params, 0, &pad4(f32_bytes(&pack(params))));
+        q.write_buffer(&self.buffers.m, 0, &pad4(f32_bytes(&pack(&adam.m))));
+        q.write_buffer(&self.buffers.v, 0, &pad4(f32_bytes(&pack(&adam.v))));
+        let mut words: Vec<u32> = stats.grad_accum.iter().map(|v| v.to_bits()).collect();
+        words.extend_from_slice(&stats.visible_count);
+        words.extend(stats.max_radius_px.iter().map(|v| v.to_bits()));
+        q.write_buffer(&self.buffers.stats, 0, &pad4(u32_bytes(&words)));
+        self.n = n;
+        self.adam_step = adam.step;
+        (self.beta1, self.beta2, self.eps) = (adam.beta1, adam.beta2, adam.eps);
+        Ok(())
+    }
+
+    /// Copies the device state into the host's parameters, optimiser and statistics,
+    /// which must have the resident row count and widths.
+    pub fn download(
+        &self,
+        params: &mut ParamSet,
+        adam: &mut Adam,
+        stats: &mut DensifyStats,
+    ) -> Result<(), GpuError> {
+        if params.len() != self.n {
+            return Err(GpuError::Invalid(format!(
+                "host parameter set has {} rows, the device {}",
+                params.len(),
+                self.n
+            )));
+        }
+        self.check_shapes(params, adam, stats)?;
+        let values = (row_width(&self.dims) * self.n) as u64 * 4;
+        let ctx = self.raster.context();
+        let b = &self.buffers;
+        let back = ctx.read_back(
+            ctx.encoder("resident download"),
+            &[
+                (&b.params, values),
+                (&b.m, values),
+                (&b.v, values),
+                (&b.stats, self.n as u64 * 12),
+            ],
+        )?;
+        unpack(&bytes_f32(&back[0]), params);
+        unpack(&bytes_f32(&back[1]), &mut adam.m);
+        unpack(&bytes_f32(&back[2]), &mut adam.v);
+        let words = bytes_u32(&back[3]);
+        let n = self.n;
+        stats.grad_accum = words[..n].iter().map(|w| f32::from_bits(*w)).collect();
+        stats.visible_count = words[n..2 * n].to_vec();
+        stats.max_radius_px = words[2 * n..3 * n]
+            .iter()
+            .map(|w| f32::from_bits(*w))
+            .collect();
+        adam.step = self.adam_step;
+        Ok(())
+    }
+
+    /// The gradient buffer as a parameter set (tests, diagnostics).
+    pub fn download_grads(&self) -> Result<ParamSet, GpuError> {
+        let mut out = ParamSet::new(self.dims);
+        out.push_zeros(self.n);
+        let values = (row_width(&self.dims) * self.n) as u64 * 4;
+        let ctx = self.raster.context();
+        let back = ctx.read_back(
+            ctx.encoder("resident grads"),
+            &[(&self.buffers.grads, values)],
+        )?;
+        unpack(&bytes_f32(&back[0]), &mut out);
+        Ok(out)
+    }
+
+    /// Overwrites the gradient buffer (tests of the Adam kernel on its own).
+    pub fn upload_grads(&self, grads: &ParamSet) -> Result<(), GpuError> {
+        if grads.dims() != self.dims || grads.len() != self.n {
+            return Err(GpuError::Invalid(format!(
+                "gradient set ({} rows, widths {:?}) differs from the resident layout \
+                 ({} rows, widths {:?})",
+                grads.len(),
+                grads.dims(),
+                self.n,
+                self.dims
+            )));
+        }
+        self.raster.context().queue.write_buffer(
+            &self.buffers.grads,
+            0,
+            &pad4(f32_bytes(&pack(grads))),
+        );
+        Ok(())
+    }
+
+    /// One Adam step on the gradient buffer as it stands, refused (nothing changes) when
+    /// any gradient is non-finite. Returns whether it was applied.
+    pub fn adam_step_on_grads(&mut self, rates: &GroupRates) -> Result<bool, GpuError> {
+        let ctx = self.raster.context();
+        let mut encoder = ctx.encoder("resident adam");
+        encoder.clear_buffer(&self.buffers.flags, 0, None);
+        // The finiteness check of a plain Adam step: the grads kernel's flag, here from
+        // the host (the buffer is small next to the kernels' work only in tests).
+        let grads_back = ctx.read_back(
+            ctx.encoder("resident grads check"),
+            &[(
+                &self.buffers.grads,
+                (row_width(&self.dims) * self.n) as u64 * 4,
+            )],
+        )?;
+        if bytes_f32(&grads_back[0]).iter().any(|g| !g.is_finite()) {
+            return Ok(false);
+        }
+        let keep = self.encode_adam(&mut encoder, rates)?;
+        ctx.queue.submit(Some(encoder.finish()));
+        drop(keep);
+        self.adam_step += 1;
+        Ok(true)
+    }
+
+    /// Records the Adam kernel for step `adam_step + 1` (guarded by the refused flag).
+    fn encode_adam(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        rates: &GroupRates,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let off = offsets(&self.dims, self.n)?;
+        let t = (self.adam_step + 1) as i32;
+        let bias1 = 1.0 - (self.beta1 as f64).powi(t);
+        let bias2 = 1.0 - (self.beta2 as f64).powi(t);
+        let mut words = [0u32; 28];
+        words[..9].copy_from_slice(&off);
+        let mut active = 0u32;
+        for p in Param::ALL {
+            let lr = rates[p.index()];
+            if !(lr.is_finite() && lr >= 0.0) {
+                return Err(GpuError::Invalid(format!(
+                    "learning rate of {} is {lr}",
+                    p.name()
+                )));
+            }
+            if lr != 0.0 && self.dims[p.index()] != 0 {
+                active |= 1 << p.index();
+            }
+            words[12 + p.index()] = ((lr as f64 / bias1) as f32).to_bits();
+        }
+        words[20] = active;
+        words[21] = self.beta1.to_bits();
+        words[22] = self.beta2.to_bits();
+        words[23] = self.eps.to_bits();
+        words[24] = ((1.0 / bias2.sqrt()) as f32).to_bits();
+        let ctx = self.raster.context();
+        let uniform = ctx.uniform_init("adam", &u32_bytes(&words));
+        let b = &self.buffers;
+        let bind = ctx.bind_group(
+            &self.pipelines.adam,
+            &[&uniform, &b.params, &b.grads, &b.m, &b.v, &b.flags],
+        );
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        dispatch_1d(&mut pass, &self.pipelines.adam, &bind, off[8] as u64);
+        drop(pass);
+        Ok(uniform)
+    }
+
+    fn step_uniform(&self, camera: &Camera, degree: u32, accumulate_stats: bool) -> Vec<u8> {
+        let off = offsets(&self.dims, self.n).unwrap_or([0; Param::COUNT + 1]);
+        let mut w = [0u32; 20];
+        w[..8].copy_from_slice(&off[..8]);
+        w[8] = self.n as u32;
+        w[9] = self.dims[Param::ShRest.index()] as u32;
+        w[10] = (degree + 1) * (degree + 1);
+        w[11] = degree;
+        let c = camera.position();
+        w[12] = c.x.to_bits();
+        w[13] = c.y.to_bits();
+        w[14] = c.z.to_bits();
+        w[16] = accumulate_stats as u32;
+        w[17] = OSTRIDE;
+        w[18] = self.dims[Param::Feature.index()] as u32;
+        w[19] = self.dims[Param::ShadowLatent.index()] as u32;
+        u32_bytes(&w)
+    }
+
+    /// SH colour at `degree` from the camera centre and the rasterizer forward, on the
+    /// device; reads back only the rendered RGB image.
+    pub fn forward(
+        &self,
+        camera: &Camera,
+        settings: &RasterSettings,
+        degree: u32,
+        accumulate_stats: bool,
+    ) -> Result<ResidentForward, GpuError> {
+        let rest = self.dims[Param::ShRest.index()];
+        let stored = match rest / 3 {
+            0 => 0,
+            3 => 1,
+            8 => 2,
+            _ => 3,
+        };
+        if degree > stored || self.dims[Param::ShDc.index()] != 3 {
+            return Err(GpuError::Invalid(format!(
+                "SH degree {degree} requested; the model stores degree {stored} \
+                 (DC width {})",
+                self.dims[Param::ShDc.index()]
+            )));
+        }
+        let background = if settings.background.is_empty() {
+            vec![0.0; CHANNELS]
+        } else if settings.background.len() == CHANNELS
+            && settings.background.iter().all(|v| v.is_finite())
+        {
+            settings.background.clone()
+        } else {
+            return Err(GpuError::Invalid(
+                "background must be 3 finite values".into(),
+            ));
+        };
+        let ctx = self.raster.context();
+        let n = self.n;
+        let step = ctx.uniform_init(
+            "resident step",
+            &self.step_uniform(camera, degree, accumulate_stats),
+        );
+        let gauss = ctx.storage("gaussians", n as u64 * GSTRIDE * 4)?;
+        let chans = ctx.storage("channels", (n * CHANNELS) as u64 * 4)?;
+        let mut encoder = ctx.encoder("resident forward");
+        {
+            let bind = ctx.bind_group(
+                &self.pipelines.pack,
+                &[&step, &self.buffers.params, &gauss, &chans],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.pack, &bind, n as u64);
+        }
+        let inputs = DeviceInputs {
+            camera,
+            settings,
+            n,
+            nc: CHANNELS,
+            background: &background,
+            gauss,
+            chans,
+        };
+        let mut device = self.raster.forward_device(inputs, encoder)?;
+        let pixels = camera.intrinsics.width as u64 * camera.intrinsics.height as u64;
+        let encoder = std::mem::replace(&mut device.encoder, ctx.encoder("unused"));
+        let back = ctx.read_back(encoder, &[(&device.color, pixels * CHANNELS as u64 * 4)])?;
+        Ok(ResidentForward {
+            tile_entries: device.tile_entries,
+            device,
+            step,
+            color: bytes_f32(&back[0]),
+        })
+    }
+
+    /// Backward of `forward` from the image gradient `d_color` (`H * W * 3`), the
+    /// gradients assembled into the resident buffer, the statistics accumulated (when
+    /// the forward asked) and one Adam step with `rates`, all on the device; reads back
+    /// two counters.
+    pub fn backward_and_step(
+        &mut self,
+        forward: ResidentForward,
+        d_color: &[f32],
+        rates: &GroupRates,
+    ) -> Result<ResidentStepReport, GpuError> {
+        let st = &forward.device.state;
+        let pixels = st.grid.width as usize * st.grid.height as usize;
+        if d_color.len() != pixels * CHANNELS {
+            return Err(GpuError::Invalid(format!(
+                "d_color: expected {} values, got {}",
+                pixels * CHANNELS,
+                d_color.len()
+            )));
+        }
+        if st.n != self.n {
+            return Err(GpuError::Invalid(
+                "the resident model changed between forward and backward".into(),
+            ));
+        }
+        if !d_color.iter().all(|v| v.is_finite()) {
+            return Err(GpuError::Invalid("d_color contains NaN or Inf".into()));
+        }
+        let pgs = CHANNELS + 2;
+        let mut px_grad = vec![0.0f32; pixels * pgs];
+        for (row, d) in px_grad
+            .chunks_exact_mut(pgs)
+            .zip(d_color.chunks_exact(CHANNELS))
+        {
+            row[..CHANNELS].copy_from_slice(d);
+        }
+        let ctx = self.raster.context();
+        let px_grad = ctx.storage_init("pixel grads", &f32_bytes(&px_grad));
+        let mut encoder = ctx.encoder("resident backward");
+        let rows =
+            self.raster
+                .encode_backward(st, forward.device.tile_entries, &px_grad, &mut encoder)?;
+        let b = &self.buffers;
+        encoder.clear_buffer(&b.flags, 0, None);
+        {
+            let bind = ctx.bind_group(
+                &self.pipelines.grads,
+                &[&forward.step, &b.params, &rows, &b.grads, &b.flags],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.grads, &bind, self.n as u64);
+        }
+        {
+            let bind = ctx.bind_group(
+                &self.pipelines.stats,
+                &[&forward.step, &rows, &st.splats, &b.flags, &b.stats],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.stats, &bind, self.n as u64);
+        }
+        let adam_uniform = self.encode_adam(&mut encoder, rates)?;
+        let back = ctx.read_back(encoder, &[(&b.flags, 8)])?;
+        drop(adam_uniform);
+        let flags = bytes_u32(&back[0]);
+        let refused = flags[0] != 0;
+        if !refused {
+            self.adam_step += 1;
+        }
+        Ok(ResidentStepReport {
+            refused,
+            dropped_nonfinite: flags[1] as usize,
+        })
+    }
+}
+
+/// Pads to a multiple of 4 bytes, at least 4 (`write_buffer` needs both).
+fn pad4(mut bytes: Vec<u8>) -> Vec<u8> {
+    bytes.resize(bytes.len().max(4).next_multiple_of(4), 0);
+    bytes
+}
