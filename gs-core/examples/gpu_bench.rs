@@ -5,7 +5,8 @@
 //! [--width W --height H] [--gaussians N] [--cas] [--reduce] [--deterministic] [--train]`
 //! (`--cas`: force the compare-and-swap gradient accumulation; `--reduce`: per-tile
 //! workgroup reductions; `--deterministic`: the fixed-order backward; `--train`: also
-//! time one `train::Trainer` step (SH colour, render, loss, backward, Adam) per backend)
+//! time `train::Trainer` steps (SH colour, render, loss, backward, Adam) per backend, as
+//! steps per second; on wgpu the device-resident path, `gpu::ResidentModel`)
 //!
 //! On Mesa's software Vulkan driver (lavapipe) the "wgpu" column measures a CPU
 //! emulation of a GPU, not a GPU: compare columns only on a machine with a real one.
@@ -103,8 +104,17 @@ fn cloud_model(c: &Cloud) -> GaussianModel {
     m
 }
 
-/// Median wall time (ms) of `runs` training steps after one warm-up, on a grey target.
-fn step_ms(model: &GaussianModel, camera: &Camera, backend: Backend, runs: usize) -> f64 {
+/// Medians of `runs` training steps after one warm-up, on a grey target.
+struct StepTimes {
+    wall_ms: f64,
+    forward_ms: f64,
+    loss_ms: f64,
+    backward_ms: f64,
+    /// This process's CPU time per step (all threads), ms.
+    cpu_ms: f64,
+}
+
+fn step_times(model: &GaussianModel, camera: &Camera, backend: Backend, runs: usize) -> StepTimes {
     let config = TrainConfig {
         densify_until_iter: 0,
         opacity_reset_interval: 0,
@@ -119,15 +129,29 @@ fn step_ms(model: &GaussianModel, camera: &Camera, backend: Backend, runs: usize
         image: vec![0.5; camera.intrinsics.pixel_count() * 3],
         mask: None,
     };
-    let mut times = Vec::new();
+    let (mut wall, mut fwd, mut loss, mut bwd) = (vec![], vec![], vec![], vec![]);
+    let mut cpu0 = 0.0;
     for r in 0..=runs {
+        if r == 1 {
+            cpu0 = process_cpu_s();
+        }
         let t = Instant::now();
-        trainer.step(&view, 0).expect("step");
+        let st = trainer.step(&view, 0).expect("step");
         if r > 0 {
-            times.push(t.elapsed().as_secs_f64() * 1e3);
+            wall.push(t.elapsed().as_secs_f64() * 1e3);
+            fwd.push(st.forward_ms);
+            loss.push(st.loss_ms);
+            bwd.push(st.backward_ms);
         }
     }
-    median(times)
+    let cpu_ms = (process_cpu_s() - cpu0) * 1e3 / runs as f64;
+    StepTimes {
+        wall_ms: median(wall),
+        forward_ms: median(fwd),
+        loss_ms: median(loss),
+        backward_ms: median(bwd),
+        cpu_ms,
+    }
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -268,9 +292,22 @@ fn main() {
         );
         if train {
             let model = cloud_model(&c);
-            let cpu_step = step_ms(&model, &camera, Backend::Cpu, runs);
-            let gpu_step = step_ms(&model, &camera, Backend::Wgpu(gpu.clone()), runs);
-            println!("{n:>8} training step: cpu {cpu_step:.1} ms, wgpu {gpu_step:.1} ms");
+            for (name, backend) in [
+                ("cpu", Backend::Cpu),
+                ("wgpu resident", Backend::Wgpu(gpu.clone())),
+            ] {
+                let t = step_times(&model, &camera, backend, runs);
+                println!(
+                    "{n:>8} training step, {name}: {:.1} ms = {:.2} steps/s (forward {:.1}, \
+                     loss {:.1}, backward + Adam {:.1}); process CPU {:.1} ms/step",
+                    t.wall_ms,
+                    1e3 / t.wall_ms,
+                    t.forward_ms,
+                    t.loss_ms,
+                    t.backward_ms,
+                    t.cpu_ms
+                );
+            }
         }
     }
 }
