@@ -14,10 +14,9 @@
 //! schedules (learning rates, SH degree, densification and reset intervals), the loss
 //! and densification are one code path. `Trainer::step_with_position_lr` has a single
 //! `match` on the backend, choosing between `cpu_arithmetic` (SH colour, render, backward,
-//! Adam and statistics on the host) and `resident_arithmetic` (the same stages as kernels
-//! on [`crate::gpu::ResidentModel`]'s device buffers, wgpu feature); both score the render
-//! with the same CPU loss. On wgpu the parameters, moments and statistics stay on the
-//! device: the host copy is refreshed only where the host needs it (densification and
+//! Adam and statistics on the host) and `resident_arithmetic` (the same stages, the loss
+//! included, as kernels on [`crate::gpu::ResidentModel`]'s device buffers, wgpu feature).
+//! On wgpu the parameters, moments and statistics stay on the device: the host copy is refreshed only where the host needs it (densification and
 //! opacity resets, which run on the CPU and re-upload; [`Trainer::sync_model`];
 //! [`Trainer::try_finish`]).
 //!
@@ -804,9 +803,11 @@ impl Trainer {
         })
     }
 
-    /// The step's arithmetic on the device: the same stages as [`Self::cpu_arithmetic`]
-    /// on the resident buffers; the rendered image comes back for the loss (on the CPU)
-    /// and its gradient goes down.
+    /// The step's arithmetic on the device: the same stages as [`Self::cpu_arithmetic`],
+    /// the loss included, as kernels on the resident buffers; the target image goes down
+    /// and the loss's totals and two counters come back. Timings: `forward_ms` is the part
+    /// up to the entry-count readback (SH colour, projection, prefix sum); sort, blend,
+    /// loss, backward and Adam are one submission, counted in `backward_ms`.
     #[cfg(feature = "wgpu")]
     fn resident_arithmetic(
         &mut self,
@@ -825,26 +826,36 @@ impl Trainer {
             )?);
         }
         let resident = self.resident.as_mut().expect("created above");
-        let t0 = Instant::now();
-        let forward = resident.forward(&view.camera, &self.settings, degree, accumulate_stats)?;
-        let t_loss = Instant::now();
-        let loss = score(&forward.color, view, self.config.lambda_dssim)?;
-        let t1 = Instant::now();
-        let report = match &loss {
-            Some(loss) => Some(resident.backward_and_step(forward, &loss.d_rendered, rates)?),
-            None => None,
-        };
-        let skipped = report.is_none_or(|r| r.refused);
-        if !skipped {
+        let report = resident.step(&crate::gpu::ResidentStepInput {
+            camera: &view.camera,
+            settings: &self.settings,
+            degree,
+            accumulate_stats,
+            target: &view.image,
+            mask: view.mask.as_deref(),
+            lambda_dssim: self.config.lambda_dssim,
+            rates,
+        })?;
+        if !report.refused {
             self.host_current = false;
         }
+        let loss = if report.refused {
+            nan_loss()
+        } else {
+            LossOutput {
+                loss: report.loss,
+                l1: report.l1,
+                ssim: report.ssim,
+                d_rendered: Vec::new(),
+            }
+        };
         Ok(StepArithmetic {
-            loss: loss.unwrap_or_else(nan_loss),
-            skipped,
-            dropped_nonfinite: report.map_or(0, |r| r.dropped_nonfinite),
-            forward_ms: (t_loss - t0).as_secs_f64() * 1e3,
-            loss_ms: (t1 - t_loss).as_secs_f64() * 1e3,
-            backward_ms: t1.elapsed().as_secs_f64() * 1e3,
+            loss,
+            skipped: report.refused,
+            dropped_nonfinite: report.dropped_nonfinite,
+            forward_ms: report.project_ms,
+            loss_ms: 0.0,
+            backward_ms: report.rest_ms,
         })
     }
 

@@ -164,6 +164,74 @@ fn adam_kernel_matches_optim_rs() {
     assert_eq!(again_adam, got_adam);
 }
 
+/// The loss kernels against loss.rs `photometric_loss` on random images (values in
+/// [0, 1], a quarter of them equal to the target so the L1 sign's zero is exercised), with
+/// and without a soft mask, at lambda 0.2 and 1.
+///
+/// Tolerance: SSIM sums over up to 121 taps twice and the totals over every pixel in
+/// another order; in f32 that is ~1e-6 relative on the totals (asserted: `1e-5` of the
+/// value plus `1e-6`) and on each gradient value `1e-3 |g| + 1e-4 max|g|` (the SSIM
+/// derivative's terms cancel, so the relative error of small values is larger).
+#[test]
+fn loss_kernels_match_the_cpu_loss() {
+    use gs_core::gpu::GpuLoss;
+    use gs_core::loss::{photometric_loss, ImageShape};
+    let Some(gpu) = gpu() else {
+        return;
+    };
+    let ctx = gpu.context();
+    let kernels = GpuLoss::new(ctx, 3).unwrap();
+    let shape = ImageShape::new(37, 29, 3);
+    let mut rng = SplitMix64::new(12);
+    let target: Vec<f32> = (0..shape.values()).map(|_| rng.next_f32()).collect();
+    let rendered: Vec<f32> = target
+        .iter()
+        .map(|&t| {
+            if rng.next_f32() < 0.25 {
+                t
+            } else {
+                rng.next_f32()
+            }
+        })
+        .collect();
+    let mask: Vec<f32> = (0..shape.pixels())
+        .map(|_| (rng.next_f32() * 1.5).min(1.0))
+        .collect();
+    for (mask, lambda) in [(None, 0.2), (Some(&mask[..]), 0.2), (Some(&mask[..]), 1.0)] {
+        let cpu = photometric_loss(&rendered, &target, mask, shape, lambda).unwrap();
+        let got = kernels
+            .evaluate(ctx, &rendered, &target, mask, shape, lambda)
+            .unwrap()
+            .expect("finite");
+        for (what, a, b) in [
+            ("loss", cpu.loss, got.loss),
+            ("l1", cpu.l1, got.l1),
+            ("ssim", cpu.ssim, got.ssim),
+        ] {
+            assert!(
+                (a - b).abs() <= 1e-5 * a.abs() + 1e-6,
+                "{what}: cpu {a} gpu {b} (mask {}, lambda {lambda})",
+                mask.is_some()
+            );
+        }
+        let max_g = cpu.d_rendered.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        for (i, (a, b)) in cpu.d_rendered.iter().zip(&got.d_rendered).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-3 * a.abs() + 1e-4 * max_g,
+                "d_rendered[{i}]: cpu {a} gpu {b} (mask {}, lambda {lambda})",
+                mask.is_some()
+            );
+        }
+    }
+    // A non-finite render is refused, as the trainer refuses it on the CPU.
+    let mut bad = rendered.clone();
+    bad[40] = f32::INFINITY;
+    assert!(kernels
+        .evaluate(ctx, &bad, &target, None, shape, 0.2)
+        .unwrap()
+        .is_none());
+}
+
 /// A small scene: a ground-truth model, `n_views` views around it at `size` pixels.
 fn scene(n_views: usize, size: u32) -> (GaussianModel, Vec<TrainView>) {
     let mut rng = SplitMix64::new(8);

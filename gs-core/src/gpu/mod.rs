@@ -20,6 +20,7 @@
 //!   where the caller needs them (images, gradients, a 4-byte entry count).
 
 pub mod gemm;
+pub mod loss;
 pub mod raster;
 pub mod resident;
 pub mod shadow;
@@ -27,8 +28,9 @@ pub mod shadow;
 use std::sync::Arc;
 
 pub use gemm::{GemmOp, GpuGemm};
+pub use loss::GpuLoss;
 pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
-pub use resident::{ResidentForward, ResidentModel, ResidentStepReport};
+pub use resident::{ResidentModel, ResidentStepInput, ResidentStepReport};
 pub use shadow::GpuShadow;
 
 /// GPU backend error.

@@ -1,19 +1,22 @@
 //! Device-resident training state for the plain 3DGS trainer: parameters, gradients,
 //! Adam moments and densification statistics live in device buffers across iterations,
-//! and a step's SH colour, rasterizer forward and backward, gradient assembly,
-//! statistics and Adam update run as kernels on them ([`ResidentModel`]).
+//! and a step's SH colour, rasterizer forward, loss (L1 + SSIM, `super::loss`), loss
+//! gradient, rasterizer backward, gradient assembly, statistics and Adam update run as
+//! kernels on them ([`ResidentModel::step`]).
 //!
 //! Layout: every per-Gaussian buffer (parameters, gradients, both moments) is one packed,
 //! group-major array in [`Param`] order: group `g` holds its `n * dim(g)` values,
 //! row-major, starting at `offsets[g]` (a [`ParamSet`]'s groups laid end to end). The
 //! statistics buffer holds `grad_accum`, `visible_count` and `max_radius_px`, `n` each.
 //!
-//! Per step the host uploads a 240-byte uniform set and the image gradient, and reads
-//! back the rendered image (the loss runs on the CPU) and two counters (step refused,
-//! rasterizer rows dropped). Parameters, moments and statistics come back only when the
-//! caller asks ([`ResidentModel::download`]: densification, checkpoints, the end of a
-//! run); after the host edits them, [`ResidentModel::upload`] puts them back (buffers
-//! grow with head room, so densification reallocates rarely).
+//! Per step the host uploads the target image and the pixel weights (into persistent
+//! buffers) and a few small uniforms, and reads back 4 bytes (the entry count that sizes
+//! the sort) and 16 bytes at the end (step refused, rows dropped, SSIM and L1 totals).
+//! Parameters, moments and statistics come back only when the caller asks
+//! ([`ResidentModel::download`]: densification, checkpoints, the end of a run); after the
+//! host edits them, [`ResidentModel::upload`] puts them back (buffers grow with 50% head
+//! room, so densification reallocates rarely). Per-step scratch buffers of the rasterizer
+//! (splats, keys, tile ranges, accumulators) are still allocated per step.
 //!
 //! Invariants:
 //! - the same arithmetic as the CPU path: `sh.rs` colour and its backward, `optim.rs`'s
@@ -25,10 +28,12 @@
 
 use std::sync::Arc;
 
-use super::raster::{DeviceForward, DeviceInputs, GpuRasterizer};
+use super::loss::{combine, pixel_weights, GpuLoss};
+use super::raster::{DeviceInputs, GpuRasterizer};
 use super::{bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError};
 use crate::camera::Camera;
 use crate::densify::DensifyStats;
+use crate::loss::ImageShape;
 use crate::model::{Param, ParamSet};
 use crate::optim::{Adam, GroupRates};
 use crate::raster::RasterSettings;
@@ -53,6 +58,7 @@ struct ResidentPipelines {
     grads: wgpu::ComputePipeline,
     stats: wgpu::ComputePipeline,
     adam: wgpu::ComputePipeline,
+    loss: GpuLoss,
 }
 
 /// Device buffers sized for `capacity` Gaussians.
@@ -67,22 +73,48 @@ struct Buffers {
     flags: wgpu::Buffer,
 }
 
-/// A forward pass of [`ResidentModel::forward`], for its backward.
-pub struct ResidentForward {
-    device: DeviceForward,
-    step: wgpu::Buffer,
-    /// `H * W * 3` rendered RGB.
-    pub color: Vec<f32>,
-    pub tile_entries: usize,
+/// One step's inputs (see [`ResidentModel::step`]).
+#[derive(Clone, Copy, Debug)]
+pub struct ResidentStepInput<'a> {
+    pub camera: &'a Camera,
+    pub settings: &'a RasterSettings,
+    /// Active SH degree.
+    pub degree: u32,
+    /// Add this step's screen-space gradients and radii to the densification statistics.
+    pub accumulate_stats: bool,
+    /// `H * W * 3` RGB.
+    pub target: &'a [f32],
+    /// Optional `H * W` foreground weights in [0, 1] (loss.rs's mask).
+    pub mask: Option<&'a [f32]>,
+    pub lambda_dssim: f32,
+    pub rates: &'a GroupRates,
 }
 
-/// What a resident step's backward did.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Persistent per-image buffers (reallocated when the image size changes).
+struct ImageBuffers {
+    pixels: usize,
+    target: wgpu::Buffer,
+    weights: wgpu::Buffer,
+    px_grad: wgpu::Buffer,
+}
+
+/// What a resident step did.
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ResidentStepReport {
-    /// A gradient was NaN or infinite: nothing was changed.
+    /// The render or a gradient was NaN or infinite: nothing was changed.
     pub refused: bool,
     /// Gaussians whose rasterizer gradient came out non-finite and was zeroed.
     pub dropped_nonfinite: usize,
+    /// `(1 - lambda) l1 + lambda (1 - ssim)`, and its parts (masked means).
+    pub loss: f32,
+    pub l1: f32,
+    pub ssim: f32,
+    /// (tile, Gaussian) pairs blended.
+    pub tile_entries: usize,
+    /// Wall time up to the entry-count readback (SH colour, projection, prefix sum), ms.
+    pub project_ms: f64,
+    /// Wall time of the rest (sort, blend, loss, backward, Adam, final readback), ms.
+    pub rest_ms: f64,
 }
 
 /// Parameters, gradients, Adam moments and densification statistics on the device.
@@ -92,6 +124,7 @@ pub struct ResidentModel {
     dims: [usize; Param::COUNT],
     n: usize,
     buffers: Buffers,
+    images: Option<ImageBuffers>,
     /// Adam steps taken (bias correction), mirrored to the host's `Adam::step`.
     adam_step: u64,
     beta1: f32,
@@ -168,6 +201,7 @@ impl ResidentModel {
             )?,
             stats: ctx.pipeline("resident_stats", &format!("{common}{RESIDENT_STATS}"))?,
             adam: ctx.pipeline("adam", ADAM)?,
+            loss: GpuLoss::new(ctx, CHANNELS)?,
         };
         let buffers = Self::allocate(ctx, &params.dims(), params.len().max(1))?;
         let mut out = Self {
@@ -176,6 +210,7 @@ impl ResidentModel {
             dims: params.dims(),
             n: 0,
             buffers,
+            images: None,
             adam_step: 0,
             beta1: adam.beta1,
             beta2: adam.beta2,
@@ -443,15 +478,23 @@ impl ResidentModel {
         u32_bytes(&w)
     }
 
-    /// SH colour at `degree` from the camera centre and the rasterizer forward, on the
-    /// device; reads back only the rendered RGB image.
-    pub fn forward(
-        &self,
-        camera: &Camera,
-        settings: &RasterSettings,
-        degree: u32,
-        accumulate_stats: bool,
-    ) -> Result<ResidentForward, GpuError> {
+    /// One training step on the device: SH colour at `degree` from the camera centre,
+    /// the rasterizer forward, the loss against `target` (uploaded into a persistent
+    /// buffer), its gradient, the rasterizer backward, gradient assembly, statistics (when
+    /// `accumulate_stats`) and one Adam step with `rates`. Two waits on the device: the
+    /// 4-byte entry count that sizes the sort, and 16 bytes at the end (refusal flag,
+    /// dropped-row count, SSIM and L1 totals).
+    pub fn step(&mut self, input: &ResidentStepInput) -> Result<ResidentStepReport, GpuError> {
+        let ResidentStepInput {
+            camera,
+            settings,
+            degree,
+            accumulate_stats,
+            target,
+            mask,
+            lambda_dssim,
+            rates,
+        } = *input;
         let rest = self.dims[Param::ShRest.index()];
         let stored = match rest / 3 {
             0 => 0,
@@ -477,7 +520,30 @@ impl ResidentModel {
                 "background must be 3 finite values".into(),
             ));
         };
+        let shape = ImageShape::new(
+            camera.intrinsics.width as usize,
+            camera.intrinsics.height as usize,
+            CHANNELS,
+        );
+        if target.len() != shape.values() || shape.values() == 0 {
+            return Err(GpuError::Invalid(format!(
+                "target image: expected {} values (H * W * 3), got {}",
+                shape.values(),
+                target.len()
+            )));
+        }
+        if !target.iter().all(|v| v.is_finite()) {
+            return Err(GpuError::Invalid("target image is not finite".into()));
+        }
+        let weights = pixel_weights(mask, shape)?;
+        self.ensure_image_buffers(shape.pixels())?;
+        let t0 = std::time::Instant::now();
         let ctx = self.raster.context();
+        let images = self.images.as_ref().expect("allocated above");
+        ctx.queue
+            .write_buffer(&images.target, 0, &pad4(f32_bytes(target)));
+        ctx.queue
+            .write_buffer(&images.weights, 0, &pad4(f32_bytes(&weights)));
         let n = self.n;
         let step = ctx.uniform_init(
             "resident step",
@@ -503,89 +569,80 @@ impl ResidentModel {
             gauss,
             chans,
         };
-        let mut device = self.raster.forward_device(inputs, encoder)?;
-        let pixels = camera.intrinsics.width as u64 * camera.intrinsics.height as u64;
-        let encoder = std::mem::replace(&mut device.encoder, ctx.encoder("unused"));
-        let back = ctx.read_back(encoder, &[(&device.color, pixels * CHANNELS as u64 * 4)])?;
-        Ok(ResidentForward {
-            tile_entries: device.tile_entries,
-            device,
-            step,
-            color: bytes_f32(&back[0]),
-        })
-    }
-
-    /// Backward of `forward` from the image gradient `d_color` (`H * W * 3`), the
-    /// gradients assembled into the resident buffer, the statistics accumulated (when
-    /// the forward asked) and one Adam step with `rates`, all on the device; reads back
-    /// two counters.
-    pub fn backward_and_step(
-        &mut self,
-        forward: ResidentForward,
-        d_color: &[f32],
-        rates: &GroupRates,
-    ) -> Result<ResidentStepReport, GpuError> {
-        let st = &forward.device.state;
-        let pixels = st.grid.width as usize * st.grid.height as usize;
-        if d_color.len() != pixels * CHANNELS {
-            return Err(GpuError::Invalid(format!(
-                "d_color: expected {} values, got {}",
-                pixels * CHANNELS,
-                d_color.len()
-            )));
-        }
-        if st.n != self.n {
-            return Err(GpuError::Invalid(
-                "the resident model changed between forward and backward".into(),
-            ));
-        }
-        if !d_color.iter().all(|v| v.is_finite()) {
-            return Err(GpuError::Invalid("d_color contains NaN or Inf".into()));
-        }
-        let pgs = CHANNELS + 2;
-        let mut px_grad = vec![0.0f32; pixels * pgs];
-        for (row, d) in px_grad
-            .chunks_exact_mut(pgs)
-            .zip(d_color.chunks_exact(CHANNELS))
-        {
-            row[..CHANNELS].copy_from_slice(d);
-        }
-        let ctx = self.raster.context();
-        let px_grad = ctx.storage_init("pixel grads", &f32_bytes(&px_grad));
-        let mut encoder = ctx.encoder("resident backward");
-        let rows =
-            self.raster
-                .encode_backward(st, forward.device.tile_entries, &px_grad, &mut encoder)?;
+        let device = self.raster.forward_device(inputs, encoder)?;
+        let project_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let t1 = std::time::Instant::now();
+        let mut encoder = device.encoder;
+        let st = &device.state;
         let b = &self.buffers;
         encoder.clear_buffer(&b.flags, 0, None);
+        encoder.clear_buffer(&images.px_grad, 0, None);
+        let loss_buffers = self.pipelines.loss.encode(
+            ctx,
+            &mut encoder,
+            shape,
+            lambda_dssim,
+            &device.color,
+            &images.target,
+            &images.weights,
+            &images.px_grad,
+            &b.flags,
+        )?;
+        let rows =
+            self.raster
+                .encode_backward(st, device.tile_entries, &images.px_grad, &mut encoder)?;
         {
             let bind = ctx.bind_group(
                 &self.pipelines.grads,
-                &[&forward.step, &b.params, &rows, &b.grads, &b.flags],
+                &[&step, &b.params, &rows, &b.grads, &b.flags],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, &self.pipelines.grads, &bind, self.n as u64);
+            dispatch_1d(&mut pass, &self.pipelines.grads, &bind, n as u64);
         }
         {
             let bind = ctx.bind_group(
                 &self.pipelines.stats,
-                &[&forward.step, &rows, &st.splats, &b.flags, &b.stats],
+                &[&step, &rows, &st.splats, &b.flags, &b.stats],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, &self.pipelines.stats, &bind, self.n as u64);
+            dispatch_1d(&mut pass, &self.pipelines.stats, &bind, n as u64);
         }
         let adam_uniform = self.encode_adam(&mut encoder, rates)?;
-        let back = ctx.read_back(encoder, &[(&b.flags, 8)])?;
-        drop(adam_uniform);
+        let back = ctx.read_back(encoder, &[(&b.flags, 8), (&loss_buffers.totals, 8)])?;
+        drop((adam_uniform, loss_buffers));
         let flags = bytes_u32(&back[0]);
+        let totals = bytes_f32(&back[1]);
         let refused = flags[0] != 0;
         if !refused {
             self.adam_step += 1;
         }
+        let loss = combine(totals[0], totals[1], lambda_dssim, Vec::new());
         Ok(ResidentStepReport {
             refused,
             dropped_nonfinite: flags[1] as usize,
+            loss: loss.loss,
+            l1: loss.l1,
+            ssim: loss.ssim,
+            tile_entries: device.tile_entries,
+            project_ms,
+            rest_ms: t1.elapsed().as_secs_f64() * 1e3,
         })
+    }
+
+    /// Persistent target, weight and pixel-gradient buffers for `pixels` pixels.
+    fn ensure_image_buffers(&mut self, pixels: usize) -> Result<(), GpuError> {
+        if self.images.as_ref().is_some_and(|i| i.pixels == pixels) {
+            return Ok(());
+        }
+        let ctx = self.raster.context();
+        let p = pixels as u64;
+        self.images = Some(ImageBuffers {
+            pixels,
+            target: ctx.storage("resident target", p * CHANNELS as u64 * 4)?,
+            weights: ctx.storage("resident weights", p * 4)?,
+            px_grad: ctx.storage("resident pixel grads", p * (CHANNELS as u64 + 2) * 4)?,
+        });
+        Ok(())
     }
 }
 
