@@ -11,6 +11,11 @@
 //! frame the trainer has not seen by then. K defaults to the window size W. The carving box
 //! is the cube around the target's bounding sphere (a size prior, not the model); colours are
 //! sampled from the keyframe images (the view that sees each point most frontally), or grey.
+//! Variants (`hull` with suffixes `-grey`, `-volume`, `-recarve`): points filling the
+//! hull's voxels rather than its surface; and [`HullPruner`], which carves a persistent
+//! volume with every keyframe as the window takes it and prunes the Gaussians whose centres
+//! fall outside it (more than one voxel from any occupied voxel). Both use only the masks
+//! and poses of frames the trainer has been offered by then, never an evaluation view.
 //!
 //! Invariants: every number written comes from a run in this process; runs go one after
 //! another, targets in order, initialisations in the order asked; the CSV and Markdown are
@@ -28,9 +33,13 @@ use crate::dataset::files;
 use crate::dataset::plots::{Canvas, Rgb};
 use crate::scenario::Scenario;
 use fsw_component::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
+use fsw_component::online::OnlineTrainer;
 use fsw_component::online::{Initialisation, OnlineError};
 use glam::Vec3;
-use gs_core::hull::{carve, sample_colours, ColourView, HullGrid, HullOptions, HullView};
+use gs_core::hull::{
+    carve, sample_colours, CarvedVolume, ColourView, HullGrid, HullOptions, HullSampling, HullView,
+};
+use gs_core::model::Param;
 use gs_core::sunaware::Variant;
 use serde::Serialize;
 use std::fmt::Write as _;
@@ -54,6 +63,8 @@ pub struct HullReport {
     /// Mean distance from each hull point to the nearest true surface sample, metres (a
     /// diagnostic only: the hull itself never reads the model).
     pub mean_distance_to_surface_m: f64,
+    /// Fraction of the points farther than [`far_distance_m`] from the true surface.
+    pub far_fraction: f64,
     pub carve_s: f64,
 }
 
@@ -128,6 +139,11 @@ pub fn hull_initialisation(
         margin_px: 1,
         min_views: 1,
         seed: preset.seed ^ 0x4855_4C4C,
+        sampling: if preset.hull_volume {
+            HullSampling::Volume
+        } else {
+            HullSampling::Shell
+        },
     };
     let hull = carve(&views, grid, options)
         .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
@@ -147,7 +163,8 @@ pub fn hull_initialisation(
             .collect();
         sample_colours(&hull.points, &hull.normals, &colour_views, GREY)
     };
-    let mean_distance_to_surface_m = mean_nearest_distance(&hull.points, scene);
+    let (mean_distance_to_surface_m, far_fraction) =
+        distance_summary(&hull.points, scene, far_distance_m(scene, preset));
     let report = HullReport {
         frames: frames.iter().map(|&i| scene.frames[i].index).collect(),
         voxel_m: hull.voxel_m,
@@ -156,6 +173,7 @@ pub fn hull_initialisation(
         points: hull.points.len(),
         uncoloured_points: uncoloured,
         mean_distance_to_surface_m,
+        far_fraction,
         carve_s: started.elapsed().as_secs_f64(),
     };
     // Normals are left out, as for the surface samples, so the two differ only in where
@@ -171,11 +189,21 @@ pub fn hull_initialisation(
 /// Mean over `points` of the distance to the nearest surface sample (brute force over a
 /// few thousand samples; diagnostic only).
 pub fn mean_nearest_distance(points: &[Vec3], scene: &SceneData) -> f64 {
-    use rayon::prelude::*;
-    if points.is_empty() || scene.surface.is_empty() {
+    let distances = nearest_distances(points, scene);
+    if distances.is_empty() {
         return f64::NAN;
     }
-    let total: f64 = points
+    distances.iter().sum::<f64>() / distances.len() as f64
+}
+
+/// Distance from each point to the nearest surface sample, metres, in point order (brute
+/// force; empty when there are no points or no samples; diagnostic only).
+pub fn nearest_distances(points: &[Vec3], scene: &SceneData) -> Vec<f64> {
+    use rayon::prelude::*;
+    if scene.surface.is_empty() {
+        return Vec::new();
+    }
+    points
         .par_iter()
         .map(|p| {
             scene
@@ -185,10 +213,24 @@ pub fn mean_nearest_distance(points: &[Vec3], scene: &SceneData) -> f64 {
                 .fold(f32::INFINITY, f32::min)
                 .sqrt() as f64
         })
-        .collect::<Vec<f64>>()
-        .iter()
-        .sum();
-    total / points.len() as f64
+        .collect()
+}
+
+/// The "far from the surface" distance for the diagnostics: two voxels of the hull grid
+/// (`2 * 2R / hull_resolution`), the same for every start of a target.
+pub fn far_distance_m(scene: &SceneData, preset: &Preset) -> f64 {
+    4.0 * scene.bounding_radius_m.max(0.1) as f64 / preset.hull_resolution.max(1) as f64
+}
+
+/// Mean nearest-sample distance and the fraction farther than `far_m` (NaN, NaN when empty).
+pub fn distance_summary(points: &[Vec3], scene: &SceneData, far_m: f64) -> (f64, f64) {
+    let d = nearest_distances(points, scene);
+    if d.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    let n = d.len() as f64;
+    let far = d.iter().filter(|&&x| x > far_m).count() as f64;
+    (d.iter().sum::<f64>() / n, far / n)
 }
 
 /// This process's CPU time (user + system, all threads) from `/proc/self/stat`, seconds;
@@ -214,17 +256,170 @@ pub fn init_name(kind: InitKind, grey: bool) -> &'static str {
     }
 }
 
-/// Parses `surface`, `random`, `hull` or `hull-grey`.
-pub fn parse_init(name: &str) -> Result<(InitKind, bool), ExperimentError> {
+/// A hull start's options beyond the kind (each a `hull` name suffix).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct HullVariant {
+    /// `-grey`: grey initial colours.
+    pub grey: bool,
+    /// `-volume`: points fill the hull's voxels.
+    pub volume: bool,
+    /// `-recarve`: carve with every keyframe and prune Gaussians outside ([`HullPruner`]).
+    pub recarve: bool,
+}
+
+/// Parses `surface`, `random`, or `hull` followed by any of `-grey`, `-volume`, `-recarve`
+/// (each at most once, any order).
+pub fn parse_init_variant(name: &str) -> Result<(InitKind, HullVariant), ExperimentError> {
+    let unknown = || {
+        ExperimentError::Invalid(format!(
+            "unknown initialisation {name:?} (surface, random, or hull with any of the \
+             suffixes -grey, -volume, -recarve)"
+        ))
+    };
     match name {
-        "surface" => Ok((InitKind::Surface, false)),
-        "random" => Ok((InitKind::Random, false)),
-        "hull" => Ok((InitKind::Hull, false)),
-        "hull-grey" => Ok((InitKind::Hull, true)),
-        other => Err(ExperimentError::Invalid(format!(
-            "unknown initialisation {other:?} (surface, random, hull or hull-grey)"
-        ))),
+        "surface" => return Ok((InitKind::Surface, HullVariant::default())),
+        "random" => return Ok((InitKind::Random, HullVariant::default())),
+        _ => {}
     }
+    let rest = name.strip_prefix("hull").ok_or_else(unknown)?;
+    let mut variant = HullVariant::default();
+    if rest.is_empty() {
+        return Ok((InitKind::Hull, variant));
+    }
+    let suffixes = rest.strip_prefix('-').ok_or_else(unknown)?;
+    for suffix in suffixes.split('-') {
+        let flag = match suffix {
+            "grey" => &mut variant.grey,
+            "volume" => &mut variant.volume,
+            "recarve" => &mut variant.recarve,
+            _ => return Err(unknown()),
+        };
+        if *flag {
+            return Err(unknown());
+        }
+        *flag = true;
+    }
+    Ok((InitKind::Hull, variant))
+}
+
+/// Parses an initialisation name (see [`parse_init_variant`]) into its kind and whether
+/// its colours are grey.
+pub fn parse_init(name: &str) -> Result<(InitKind, bool), ExperimentError> {
+    parse_init_variant(name).map(|(kind, v)| (kind, v.grey))
+}
+
+/// Online re-carving for a hull start: a persistent [`CarvedVolume`] over the same grid as
+/// the initial hull, carved with each keyframe's mask and pose as the window takes it; after
+/// each carve the Gaussians whose centres lie more than one voxel from every occupied voxel
+/// are pruned (with their optimiser moments and densification statistics). It never reads
+/// a frame the trainer has not been offered, nor an evaluation view.
+pub struct HullPruner {
+    volume: CarvedVolume,
+    /// Keyframes carved with.
+    pub keyframes: usize,
+    /// Gaussians pruned so far.
+    pub pruned: usize,
+    /// Prunes refused because they would have left no Gaussian.
+    pub refused: usize,
+}
+
+impl HullPruner {
+    /// Voxels of slack around the occupied ones before a Gaussian counts as outside.
+    pub const DILATE_VOXELS: u32 = 1;
+
+    /// `Some` when `preset` starts from a hull and asks for re-carving.
+    pub fn for_preset(scene: &SceneData, preset: &Preset) -> Result<Option<Self>, OnlineError> {
+        if preset.init != InitKind::Hull || !preset.hull_recarve {
+            return Ok(None);
+        }
+        let radius_m = scene.bounding_radius_m.max(0.1);
+        let grid = HullGrid::around_sphere(Vec3::ZERO, radius_m, preset.hull_resolution);
+        let volume = CarvedVolume::new(grid)
+            .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
+        Ok(Some(HullPruner {
+            volume,
+            keyframes: 0,
+            pruned: 0,
+            refused: 0,
+        }))
+    }
+
+    /// Occupied voxels now.
+    pub fn occupied_voxels(&self) -> usize {
+        self.volume.occupied()
+    }
+
+    /// The carved volume so far.
+    pub fn volume(&self) -> &CarvedVolume {
+        &self.volume
+    }
+
+    /// Carves with sequence frame `frame` of `scene` (just taken into the window) and
+    /// prunes the trainer's Gaussians outside the hull; returns how many it pruned.
+    pub fn keyframe_added(
+        &mut self,
+        trainer: &mut OnlineTrainer,
+        scene: &SceneData,
+        frame: usize,
+    ) -> Result<usize, OnlineError> {
+        let view = scene.frames.get(frame).ok_or_else(|| {
+            OnlineError::Config(format!("{}: no frame {frame} to carve", scene.name))
+        })?;
+        let camera = camera_of(&scene.intrinsics, view);
+        self.volume
+            .carve(
+                &HullView {
+                    camera,
+                    mask: &view.mask8,
+                },
+                1,
+            )
+            .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
+        self.keyframes += 1;
+        let t = trainer.trainer_mut();
+        let params = &t.model.gaussians.params;
+        let keep: Vec<bool> = (0..params.len())
+            .map(|i| {
+                let m = params.row(Param::Mean, i);
+                self.volume
+                    .contains(Vec3::new(m[0], m[1], m[2]), Self::DILATE_VOXELS)
+            })
+            .collect();
+        let kept = keep.iter().filter(|&&k| k).count();
+        let pruned = keep.len() - kept;
+        if pruned == 0 {
+            return Ok(0);
+        }
+        if kept == 0 {
+            self.refused += 1;
+            return Ok(0);
+        }
+        let model_error = |e: gs_core::model::ModelError| {
+            OnlineError::Config(format!("{}: hull pruning: {e:?}", scene.name))
+        };
+        t.model
+            .gaussians
+            .params
+            .retain(&keep)
+            .map_err(model_error)?;
+        t.adam.m.retain(&keep).map_err(model_error)?;
+        t.adam.v.retain(&keep).map_err(model_error)?;
+        let stats = &mut t.densify_stats;
+        if stats.len() == keep.len() {
+            retain_by(&mut stats.grad_accum, &keep);
+            retain_by(&mut stats.visible_count, &keep);
+            retain_by(&mut stats.max_radius_px, &keep);
+        } else {
+            *stats = gs_core::densify::DensifyStats::new(kept);
+        }
+        self.pruned += pruned;
+        Ok(pruned)
+    }
+}
+
+fn retain_by<T: Copy>(values: &mut Vec<T>, keep: &[bool]) {
+    let mut k = keep.iter();
+    values.retain(|_| *k.next().unwrap_or(&true));
 }
 
 /// One run of the ablation.
@@ -237,6 +432,10 @@ pub struct InitRun {
     /// Wall time over the whole run, seconds.
     pub wall_s: f64,
     pub hull: Option<HullReport>,
+    /// The final Gaussians' centres: mean distance to the nearest true surface sample, m.
+    pub final_mean_distance_m: f64,
+    /// ... and the fraction farther than [`far_distance_m`] (phantom Gaussians).
+    pub final_far_fraction: f64,
     pub run: RunOutcome,
 }
 
@@ -272,7 +471,7 @@ fn write_text(path: &Path, text: &str) -> Result<(), ExperimentError> {
 }
 
 /// CSV header of `init.csv`.
-pub const CSV_HEADER: &str = "target,init,psnr,ssim,masked_psnr,masked_ssim,seen_psnr,black_psnr,initial_gaussians,final_gaussians,rounds,steps,train_s,step_ms,run_wall_s,run_cpu_s,hull_frames,hull_points,hull_voxel_m,hull_mean_dist_m,hull_carve_s";
+pub const CSV_HEADER: &str = "target,init,psnr,ssim,masked_psnr,masked_ssim,seen_psnr,black_psnr,initial_gaussians,final_gaussians,rounds,steps,train_s,step_ms,run_wall_s,run_cpu_s,hull_frames,hull_points,hull_voxel_m,hull_mean_dist_m,hull_carve_s,hull_far_fraction,final_mean_dist_m,final_far_fraction";
 
 /// One line per run.
 pub fn to_csv(runs: &[InitRun]) -> String {
@@ -290,9 +489,13 @@ pub fn to_csv(runs: &[InitRun]) -> String {
             ),
             None => ",,,,".into(),
         };
+        let hull_far = r
+            .hull
+            .as_ref()
+            .map_or(String::new(), |h| format!("{:.4}", h.far_fraction));
         let _ = writeln!(
             out,
-            "{},{},{:.2},{:.4},{:.2},{:.4},{:.2},{:.2},{},{},{},{},{:.1},{:.1},{:.1},{:.1},{}",
+            "{},{},{:.2},{:.4},{:.2},{:.4},{:.2},{:.2},{},{},{},{},{:.1},{:.1},{:.1},{:.1},{},{},{:.4},{:.4}",
             o.target,
             r.init,
             o.eval.psnr_db,
@@ -309,7 +512,10 @@ pub fn to_csv(runs: &[InitRun]) -> String {
             o.step_ms,
             r.wall_s,
             r.cpu_s,
-            hull
+            hull,
+            hull_far,
+            r.final_mean_distance_m,
+            r.final_far_fraction
         );
     }
     out
@@ -370,19 +576,34 @@ pub fn to_markdown(runs: &[InitRun]) -> String {
             out.push('\n');
         }
     }
+    out.push_str(
+        "\nThe final Gaussians' centres against the true surface (nearest surface sample; far: \
+         more than two hull voxels away):\n\n\
+         | Target | Init. | mean dist. m | far |\n|---|---|---:|---:|\n",
+    );
+    for r in runs {
+        let _ = writeln!(
+            out,
+            "| {} | {} | {:.3} | {:.1} % |",
+            target_label(&r.run.target),
+            r.init,
+            r.final_mean_distance_m,
+            100.0 * r.final_far_fraction
+        );
+    }
     let hulls: Vec<&InitRun> = runs.iter().filter(|r| r.hull.is_some()).collect();
     if !hulls.is_empty() {
         out.push_str(
             "\nVisual hulls (carved from the first keyframes' masks and poses):\n\n\
-             | Target | Init. | frames | voxel m | occupied voxels | surface voxels | points | uncoloured | mean dist. to true surface m | carve s |\n\
-             |---|---|---|---:|---:|---:|---:|---:|---:|---:|\n",
+             | Target | Init. | frames | voxel m | occupied voxels | surface voxels | points | uncoloured | mean dist. to true surface m | far | carve s |\n\
+             |---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
         );
         for r in hulls {
             let Some(h) = &r.hull else { continue };
             let frames: Vec<String> = h.frames.iter().map(|f| f.to_string()).collect();
             let _ = writeln!(
                 out,
-                "| {} | {} | {} | {:.3} | {} | {} | {} | {} | {:.3} | {:.2} |",
+                "| {} | {} | {} | {:.3} | {} | {} | {} | {} | {:.3} | {:.1} % | {:.2} |",
                 target_label(&r.run.target),
                 r.init,
                 frames.join(" "),
@@ -392,6 +613,7 @@ pub fn to_markdown(runs: &[InitRun]) -> String {
                 h.points,
                 h.uncoloured_points,
                 h.mean_distance_to_surface_m,
+                100.0 * h.far_fraction,
                 h.carve_s
             );
         }
@@ -800,20 +1022,17 @@ pub fn run_init_ablation(
     let cpu_started = process_cpu_s();
     let out = &job.out_dir;
     std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
-    let inits: Vec<(InitKind, bool)> = job
+    let inits: Vec<(InitKind, HullVariant)> = job
         .inits
         .iter()
-        .map(|n| parse_init(n))
+        .map(|n| parse_init_variant(n))
         .collect::<Result<_, _>>()?;
     if inits.is_empty() {
         return Err(ExperimentError::Invalid(
             "no initialisation to compare".into(),
         ));
     }
-    let names: Vec<String> = inits
-        .iter()
-        .map(|&(k, g)| init_name(k, g).to_string())
-        .collect();
+    let names: Vec<String> = job.inits.clone();
     let mut runs = Vec::new();
     let mut render_s = 0.0;
     for scenario in &job.scenarios {
@@ -825,12 +1044,14 @@ pub fn run_init_ablation(
             progress,
         )?;
         render_s += scene.render_s;
-        for (&(kind, grey), name) in inits.iter().zip(&names) {
+        for (&(kind, variant), name) in inits.iter().zip(&names) {
             let run_started = Instant::now();
             let cpu_before = process_cpu_s();
             let preset = Preset {
                 init: kind,
-                hull_grey_colours: grey,
+                hull_grey_colours: variant.grey,
+                hull_volume: variant.volume,
+                hull_recarve: variant.recarve,
                 configs: vec!["d".into()],
                 ..job.preset.clone()
             };
@@ -850,7 +1071,21 @@ pub fn run_init_ablation(
             } else {
                 None
             };
-            let (run, _) = run_config(&scene, &preset, Variant::D, 0, progress)?;
+            let (run, trainer) = run_config(&scene, &preset, Variant::D, 0, progress)?;
+            let params = &trainer.trainer().model.gaussians.params;
+            let centres: Vec<Vec3> = (0..params.len())
+                .map(|i| Vec3::from_slice(params.row(Param::Mean, i)))
+                .collect();
+            let far_m = far_distance_m(&scene, &preset);
+            let (final_mean_distance_m, final_far_fraction) =
+                distance_summary(&centres, &scene, far_m);
+            progress(&format!(
+                "{}/{name}: final Gaussians {:.3} m from the true surface on average, {:.1} % farther than {:.2} m",
+                scene.name,
+                final_mean_distance_m,
+                100.0 * final_far_fraction,
+                far_m
+            ));
             let initial_gaussians = match (&hull, kind) {
                 (Some(h), _) => h.points,
                 (None, InitKind::Surface) => scene.surface.len().min(preset.init_points as usize),
@@ -866,6 +1101,8 @@ pub fn run_init_ablation(
                 cpu_s,
                 wall_s: run_started.elapsed().as_secs_f64(),
                 hull,
+                final_mean_distance_m,
+                final_far_fraction,
                 run,
             });
             write_text(&out.join("init.csv"), &to_csv(&runs))?;
@@ -900,4 +1137,133 @@ pub fn run_init_ablation(
         total_s: started.elapsed().as_secs_f64(),
         total_cpu_s,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::experiment::data::render_scene;
+    use crate::experiment::runner::{online_config, scene_box};
+    use gs_core::rng::SplitMix64;
+    use std::path::Path;
+
+    #[test]
+    fn hull_names_parse_with_their_suffixes_once_each() {
+        assert_eq!(
+            parse_init_variant("surface").unwrap(),
+            (InitKind::Surface, HullVariant::default())
+        );
+        let (kind, v) = parse_init_variant("hull-recarve-volume").unwrap();
+        assert_eq!(kind, InitKind::Hull);
+        assert!(v.recarve && v.volume && !v.grey);
+        assert_eq!(parse_init("hull-grey").unwrap(), (InitKind::Hull, true));
+        for bad in [
+            "hull-",
+            "hull-grey-grey",
+            "hullgrey",
+            "hull-shell",
+            "random-grey",
+            "",
+        ] {
+            let e = parse_init_variant(bad).unwrap_err().to_string();
+            assert!(e.contains(&format!("{bad:?}")), "{bad}: {e}");
+        }
+    }
+
+    /// Gaussians on the true surface and Gaussians spread through the bounding ball: carving
+    /// with the frames as they arrive removes exactly the ones outside the (dilated) hull,
+    /// never one on the surface, and keeps every kept row's moments and statistics.
+    #[test]
+    fn the_pruner_removes_exactly_the_gaussians_outside_the_hull() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/scenarios/quick.toml");
+        let preset = Preset {
+            name: "tiny".into(),
+            downsample: 20,
+            cadence_s: 10.0,
+            frames: Some(6),
+            eval_views: 1,
+            figure_views: 1,
+            samples_per_pixel: 1,
+            window: 3,
+            init_points: 300,
+            max_gaussians: 1000,
+            light_resolution_px: 32,
+            hull_resolution: 40,
+            init: InitKind::Hull,
+            hull_recarve: true,
+            ..Preset::default()
+        };
+        let scenario = preset.apply(&Scenario::load(&path).unwrap()).unwrap();
+        let scene = render_scene(&scenario, 300, &mut |_| {}).unwrap();
+        let surface: Vec<Vec3> = scene.surface.iter().map(|s| s.position_m).collect();
+        let radius = scene.bounding_radius_m;
+        let mut rng = SplitMix64::new(3);
+        let mut ball = Vec::new();
+        while ball.len() < 300 {
+            let p = Vec3::new(
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+            );
+            if p.length() <= 1.0 {
+                ball.push(p * radius);
+            }
+        }
+        let points: Vec<Vec3> = surface.iter().chain(&ball).copied().collect();
+        let init = Initialisation::SurfaceSamples {
+            points: points.clone(),
+            normals: None,
+            colours: None,
+        };
+        let mut trainer = OnlineTrainer::new(
+            online_config(&preset, Variant::D),
+            &init,
+            scene_box(&scene).unwrap(),
+        )
+        .unwrap();
+        // Tag each row's moments and statistics with its index, to follow them.
+        {
+            let t = trainer.trainer_mut();
+            for i in 0..points.len() {
+                t.adam.m.row_mut(Param::Mean, i)[0] = i as f32;
+                t.adam.v.row_mut(Param::Mean, i)[0] = i as f32;
+            }
+            t.densify_stats.visible_count = (0..points.len() as u32).collect();
+        }
+        let mut pruner = HullPruner::for_preset(&scene, &preset).unwrap().unwrap();
+        let mut total = 0;
+        for frame in 0..scene.frames.len() {
+            total += pruner.keyframe_added(&mut trainer, &scene, frame).unwrap();
+        }
+        assert_eq!(pruner.keyframes, scene.frames.len());
+        assert_eq!(pruner.pruned, total);
+        let volume = pruner.volume();
+        let expected: Vec<usize> = (0..points.len())
+            .filter(|&i| volume.contains(points[i], HullPruner::DILATE_VOXELS))
+            .collect();
+        // Every surface sample survives (carving is conservative); many ball points go.
+        assert!(expected[..surface.len()]
+            .iter()
+            .enumerate()
+            .all(|(k, &i)| k == i));
+        assert!(total > 100, "only {total} of 300 ball points pruned");
+        assert_eq!(points.len() - expected.len(), total);
+        let t = trainer.trainer();
+        let params = &t.model.gaussians.params;
+        assert_eq!(params.len(), expected.len());
+        assert_eq!(t.adam.m.len(), expected.len());
+        assert_eq!(t.densify_stats.len(), expected.len());
+        for (row, &i) in expected.iter().enumerate() {
+            assert_eq!(Vec3::from_slice(params.row(Param::Mean, row)), points[i]);
+            assert_eq!(t.adam.m.row(Param::Mean, row)[0], i as f32);
+            assert_eq!(t.adam.v.row(Param::Mean, row)[0], i as f32);
+            assert_eq!(t.densify_stats.visible_count[row], i as u32);
+        }
+        // A preset without re-carving gives no pruner.
+        let plain = Preset {
+            hull_recarve: false,
+            ..preset
+        };
+        assert!(HullPruner::for_preset(&scene, &plain).unwrap().is_none());
+    }
 }

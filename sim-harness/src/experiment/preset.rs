@@ -102,6 +102,11 @@ pub struct Preset {
     pub hull_resolution: u32,
     /// `init = "hull"`: grey points instead of colours sampled from the keyframes.
     pub hull_grey_colours: bool,
+    /// `init = "hull"`: points fill the hull's voxels instead of lying on its surface.
+    pub hull_volume: bool,
+    /// `init = "hull"`: carve again with every new keyframe and prune the Gaussians whose
+    /// centres the carving leaves outside the hull (only masks and poses seen so far).
+    pub hull_recarve: bool,
     /// Width of the appearance feature f_i, Phi's per-Gaussian input (paper: 72).
     pub feature_dim: usize,
     /// L of the positional encoding of the Sun and view vectors (DESIGN.md: 4).
@@ -164,6 +169,8 @@ impl Default for Preset {
             hull_views: 0,
             hull_resolution: 96,
             hull_grey_colours: false,
+            hull_volume: false,
+            hull_recarve: false,
             feature_dim: 72,
             encoding_frequencies: 4,
             passes_per_round: 1,

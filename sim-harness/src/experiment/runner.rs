@@ -234,9 +234,22 @@ pub fn run_config(
     let mut train_cpu_s = 0.0;
     let report_every = (scene.frames.len() / 10).max(1);
     let rounds_per_change = preset.rounds_per_window_change.max(1);
+    // `init = "hull"` with `hull_recarve`: carve with each new keyframe, prune outside.
+    let mut hull_pruner = super::ablation_init::HullPruner::for_preset(scene, preset)?;
     for i in 0..scene.frames.len() {
         let generation_before = trainer.window().generation();
         trainer.offer(training_frame_with_mask(scene, i, preset.masked_loss))?;
+        if let Some(pruner) = hull_pruner.as_mut() {
+            if trainer.window().generation() != generation_before {
+                let pruned = pruner.keyframe_added(&mut trainer, scene, i)?;
+                if pruned > 0 {
+                    progress(&format!(
+                        "{label}: keyframe {i}: hull re-carved ({} voxels left), {pruned} Gaussians pruned outside it",
+                        pruner.occupied_voxels()
+                    ));
+                }
+            }
+        }
         // The paper: one round per window change (a round is only ever due right after a
         // change). `rounds_per_window_change` > 1 trains the changed window that many times
         // (more iterations per frame on a sparse frame subset).
