@@ -6,8 +6,10 @@
 //! gradient reduction, finiteness checks) shows.
 //!
 //! Run: `cargo run --release -p gs-core --example mlp_bench -- [--json] [--quick] [--reps N]
-//! [--mlp-only] [--net phi|psi]`. `--mlp-only` skips the GEMM table; `--net` keeps one
-//! network; `--json` prints one JSON object per line instead of the tables.
+//! [--mlp-only] [--net phi|psi] [--precision f32|bf16] [--width N]`. `--mlp-only` skips the
+//! GEMM table; `--net` keeps one network; `--precision` picks the products (both the
+//! networks' and the floor's; bf16 needs AVX-512 BF16); `--width` sets Phi's hidden width
+//! (default 256); `--json` prints one JSON object per line instead of the tables.
 //!
 //! Times are minima over repetitions (the machine is shared; the minimum is the least
 //! disturbed run). Floor and MLP are measured alternately within each repetition, so a
@@ -15,9 +17,10 @@
 
 use std::time::Instant;
 
-use gs_core::nn::matmul::{matmul, matmul_a_bt, matmul_at_b};
 use gs_core::nn::mlp::BLOCK_ROWS;
-use gs_core::nn::{AppearanceNet, Mlp, PositionalEncoding, ShadowNet, TapeMode};
+use gs_core::nn::{
+    AppearanceNet, MatmulPrecision, Mlp, PositionalEncoding, Products, ShadowNet, TapeMode,
+};
 use rayon::prelude::*;
 
 fn values(len: usize, seed: u64) -> Vec<f32> {
@@ -93,7 +96,7 @@ impl LayerOperands {
     }
 
     /// Runs one product, blocked over `BLOCK_ROWS` rows in parallel as the MLP does.
-    fn run(&mut self, product: Product) {
+    fn run(&mut self, product: Product, products: Products) {
         let (rows, k, n) = (self.rows, self.k, self.n);
         let (x, w, dz) = (&self.x, &self.w, &self.dz);
         match product {
@@ -104,7 +107,7 @@ impl LayerOperands {
                     .for_each(|(b, out)| {
                         let r = out.len() / n;
                         let s = b * BLOCK_ROWS;
-                        matmul(&x[s * k..(s + r) * k], w, out, r, k, n, false);
+                        products.matmul(&x[s * k..(s + r) * k], w, out, r, k, n, false);
                     })
             }
             Product::InputGrad => {
@@ -114,7 +117,7 @@ impl LayerOperands {
                     .for_each(|(b, out)| {
                         let r = out.len() / k;
                         let s = b * BLOCK_ROWS;
-                        matmul_a_bt(&dz[s * n..(s + r) * n], w, out, r, n, k, false);
+                        products.matmul_a_bt(&dz[s * n..(s + r) * n], w, out, r, n, k, false);
                     })
             }
             Product::WeightGrad => {
@@ -125,7 +128,7 @@ impl LayerOperands {
                         let r = BLOCK_ROWS.min(rows - s);
                         let mut p = vec![0.0f32; k * n];
                         let (xs, dzs) = (&x[s * k..(s + r) * k], &dz[s * n..(s + r) * n]);
-                        matmul_at_b(xs, dzs, &mut p, r, k, n, false);
+                        products.matmul_at_b(xs, dzs, &mut p, r, k, n, false);
                         p
                     })
                     .collect();
@@ -160,6 +163,24 @@ fn main() {
         .unwrap_or(if quick { 1 } else { 3 })
         .max(1);
     let net_filter = arg_value(&args, "--net");
+    let precision = match arg_value(&args, "--precision").unwrap_or("f32") {
+        "f32" => MatmulPrecision::F32,
+        "bf16" => MatmulPrecision::Bf16,
+        other => {
+            eprintln!("mlp_bench: --precision {other:?}: expected f32 or bf16");
+            std::process::exit(2);
+        }
+    };
+    let products = match Products::new(precision) {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("mlp_bench: {e}");
+            std::process::exit(2);
+        }
+    };
+    let phi_width = arg_value(&args, "--width")
+        .and_then(|v| v.parse::<usize>().ok())
+        .unwrap_or(256);
     let row_counts: &[usize] = if quick {
         &[10_000]
     } else {
@@ -168,16 +189,22 @@ fn main() {
     let encoding = PositionalEncoding::default();
     let nets: Vec<Net> = [
         Net {
-            name: "phi(256)",
-            mlp: AppearanceNet::new(72, encoding, 1).unwrap().mlp,
+            name: "phi",
+            mlp: AppearanceNet::with_hidden_width(72, phi_width, encoding, 1)
+                .unwrap()
+                .mlp,
         },
         Net {
-            name: "psi(32)",
+            name: "psi",
             mlp: ShadowNet::new(6, encoding, 2).unwrap().mlp,
         },
     ]
     .into_iter()
     .filter(|n| net_filter.is_none_or(|f| n.name.starts_with(f)))
+    .map(|mut n| {
+        n.mlp.set_precision(precision).expect("checked above");
+        n
+    })
     .collect();
     let pools: Vec<(usize, rayon::ThreadPool)> = [1usize, 2]
         .iter()
@@ -210,9 +237,9 @@ fn main() {
             for product in Product::ALL {
                 let mut rates = Vec::new();
                 for (threads, pool) in &pools {
-                    ops.run(product);
+                    ops.run(product, products);
                     let t = (0..reps)
-                        .map(|_| pool.install(|| seconds(|| ops.run(product))))
+                        .map(|_| pool.install(|| seconds(|| ops.run(product, products))))
                         .fold(f64::INFINITY, f64::min);
                     let gflops = ops.flops() / t / 1e9;
                     rates.push(gflops);
@@ -282,7 +309,7 @@ fn main() {
                     for _ in 0..reps {
                         let floor_fwd: f64 = layers
                             .iter_mut()
-                            .map(|l| seconds(|| l.run(Product::Forward)))
+                            .map(|l| seconds(|| l.run(Product::Forward, products)))
                             .sum();
                         let t_fwd = seconds(|| {
                             mlp.forward_train_into(&input, rows, TapeMode::Cache, &mut reused)
@@ -294,8 +321,8 @@ fn main() {
                         let floor_bwd: f64 = layers
                             .iter_mut()
                             .map(|l| {
-                                seconds(|| l.run(Product::WeightGrad))
-                                    + seconds(|| l.run(Product::InputGrad))
+                                seconds(|| l.run(Product::WeightGrad, products))
+                                    + seconds(|| l.run(Product::InputGrad, products))
                             })
                             .sum();
                         let t_bwd = seconds(|| {

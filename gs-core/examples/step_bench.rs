@@ -27,7 +27,7 @@
 //!
 //! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
 //! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]
-//! [--set SWITCH=on|off,...] [--ab SWITCH] [--backend cpu,wgpu]`
+//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu]`
 //!
 //! `--backend cpu,wgpu` measures each configuration on each listed backend (default `cpu`;
 //! `wgpu` needs `--features wgpu` and a Vulkan adapter): the camera pass's rasterizer and
@@ -35,7 +35,8 @@
 //! Vulkan driver (Mesa's lavapipe) the wgpu rows are CPU timings of the GPU kernels, not
 //! GPU timings; the adapter is printed with the results.
 //!
-//! `--set` changes speed switches of `SunAwareConfig` (defaults otherwise); `--ab SWITCH`
+//! `--set` changes settings of `SunAwareConfig` (defaults otherwise): the speed switches
+//! (`NAME=on|off`), `mlp_precision=f32|bf16` and `appearance_hidden_width=N`; `--ab SWITCH`
 //! measures every size and image twice in the same run, the switch off then on, so a
 //! change's before/after sits side by side under the same machine load.
 //!
@@ -48,9 +49,8 @@ use std::time::Instant;
 
 use glam::{Quat, Vec3};
 use gs_core::model::{GaussianModel, Param};
-use gs_core::nn::matmul::{matmul, matmul_a_bt, matmul_at_b};
 use gs_core::nn::mlp::BLOCK_ROWS;
-use gs_core::nn::{Mlp, SceneBox};
+use gs_core::nn::{MatmulPrecision, Mlp, Products, SceneBox};
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::{
     BackendKind, Observation, StepTimings, SunAwareConfig, SunAwareModel, SunAwareTrainer, Variant,
@@ -230,7 +230,7 @@ impl LayerOperands {
     }
 
     /// `Y = X W`, blocked over `BLOCK_ROWS` rows in parallel as the MLP runs it.
-    fn forward(&mut self) {
+    fn forward(&mut self, products: Products) {
         let (k, n) = (self.k, self.n);
         let (x, w) = (&self.x, &self.w);
         self.y
@@ -239,12 +239,12 @@ impl LayerOperands {
             .for_each(|(b, out)| {
                 let r = out.len() / n;
                 let s = b * BLOCK_ROWS;
-                matmul(&x[s * k..(s + r) * k], w, out, r, k, n, false);
+                products.matmul(&x[s * k..(s + r) * k], w, out, r, k, n, false);
             });
     }
 
     /// `dW = X^T dZ` (per-block partials summed in block order) and `dX = dZ W^T`.
-    fn backward(&mut self) {
+    fn backward(&mut self, products: Products) {
         let (rows, k, n) = (self.rows, self.k, self.n);
         let (x, w, dz) = (&self.x, &self.w, &self.dz);
         let partials: Vec<Vec<f32>> = (0..rows.div_ceil(BLOCK_ROWS))
@@ -253,7 +253,7 @@ impl LayerOperands {
                 let s = b * BLOCK_ROWS;
                 let r = BLOCK_ROWS.min(rows - s);
                 let mut p = vec![0.0f32; k * n];
-                matmul_at_b(
+                products.matmul_at_b(
                     &x[s * k..(s + r) * k],
                     &dz[s * n..(s + r) * n],
                     &mut p,
@@ -278,13 +278,15 @@ impl LayerOperands {
             .for_each(|(b, out)| {
                 let r = out.len() / k;
                 let s = b * BLOCK_ROWS;
-                matmul_a_bt(&dz[s * n..(s + r) * n], w, out, r, n, k, false);
+                products.matmul_a_bt(&dz[s * n..(s + r) * n], w, out, r, n, k, false);
             });
     }
 }
 
-/// GEMM floor of one network over `rows` rows: (forward ms, backward ms), medians.
+/// GEMM floor of one network over `rows` rows: (forward ms, backward ms), medians, on the
+/// network's own products (f32 or bf16, as configured).
 fn gemm_floor_ms(mlp: &Mlp, rows: usize, repeats: usize) -> (f64, f64) {
+    let products = mlp.products();
     if rows == 0 {
         return (0.0, 0.0);
     }
@@ -296,13 +298,23 @@ fn gemm_floor_ms(mlp: &Mlp, rows: usize, repeats: usize) -> (f64, f64) {
         .collect();
     // One untimed pass: first-touch page faults are not GEMM time.
     for l in &mut layers {
-        l.forward();
-        l.backward();
+        l.forward(products);
+        l.backward(products);
     }
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
     for _ in 0..repeats {
-        fwd.push(layers.iter_mut().map(|l| seconds_ms(|| l.forward())).sum());
-        bwd.push(layers.iter_mut().map(|l| seconds_ms(|| l.backward())).sum());
+        fwd.push(
+            layers
+                .iter_mut()
+                .map(|l| seconds_ms(|| l.forward(products)))
+                .sum(),
+        );
+        bwd.push(
+            layers
+                .iter_mut()
+                .map(|l| seconds_ms(|| l.backward(products)))
+                .sum(),
+        );
     }
     (median(fwd), median(bwd))
 }
@@ -340,6 +352,8 @@ struct Measured {
     cpu_ms: f64,
     peak_rss_mb: f64,
     nets: Vec<NetStage>,
+    /// Precision of the networks' products (and of their floor).
+    precision: MatmulPrecision,
 }
 
 fn measure(
@@ -354,7 +368,8 @@ fn measure(
     let gaussians = scene(n, kind, config, 7);
     let h = BOX_HALF_M;
     let scene_box = SceneBox::new([-h[0], -h[1], -h[2]], h).expect("box");
-    let model = SunAwareModel::new(gaussians, scene_box, config.clone()).expect("model");
+    let model = SunAwareModel::new(gaussians, scene_box, config.clone())
+        .map_err(|e| format!("model: {e}"))?;
     let mut trainer = SunAwareTrainer::new(model);
     let opened = backend.open().map_err(|e| e.to_string())?;
     if let Some(adapter) = adapter_of(&opened) {
@@ -462,6 +477,7 @@ fn measure(
         cpu_ms: median(cpu),
         peak_rss_mb: peak,
         nets,
+        precision: config.mlp_precision,
     })
 }
 
@@ -474,15 +490,40 @@ fn adapter_of(backend: &gs_core::train::Backend) -> Option<String> {
     }
 }
 
-/// The speed switches of [`SunAwareConfig`] this bench can set by name.
+/// The speed switches of [`SunAwareConfig`] this bench can set by name. `mlp_precision`
+/// counts as a switch: off is f32, on is bf16.
 fn set_switch(config: &mut SunAwareConfig, name: &str, on: bool) -> Result<(), String> {
     match name {
         "skip_noncontributing_in_mlp" => config.skip_noncontributing_in_mlp = on,
         "mlp_recompute_activations" => config.mlp_recompute_activations = on,
         "reuse_step_buffers" => config.reuse_step_buffers = on,
+        "mlp_precision" => {
+            config.mlp_precision = if on {
+                MatmulPrecision::Bf16
+            } else {
+                MatmulPrecision::F32
+            }
+        }
         _ => return Err(format!("unknown switch {name:?}")),
     }
     Ok(())
+}
+
+/// One `--set NAME=VALUE`: a switch (on/off/true/false), `mlp_precision=f32|bf16`, or
+/// `appearance_hidden_width=N`.
+fn set_value(config: &mut SunAwareConfig, name: &str, value: &str) -> Result<(), String> {
+    let bad = || format!("--set {name}={value}: bad value");
+    match (name, value) {
+        ("mlp_precision", "f32") => set_switch(config, name, false),
+        ("mlp_precision", "bf16") => set_switch(config, name, true),
+        ("appearance_hidden_width", v) => {
+            config.appearance_hidden_width = v.parse().map_err(|_| bad())?;
+            Ok(())
+        }
+        (_, "on" | "true") => set_switch(config, name, true),
+        (_, "off" | "false") => set_switch(config, name, false),
+        _ => Err(bad()),
+    }
 }
 
 fn print_step(m: &Measured, json: bool, scene_name: &str, threads: usize, repeats: usize) {
@@ -500,8 +541,8 @@ fn print_step(m: &Measured, json: bool, scene_name: &str, threads: usize, repeat
         );
         for net in &m.nets {
             println!(
-                "{{\"kind\":\"mlp_stage\",\"settings\":\"{}\",\"gaussians\":{},\"width\":{},\"height\":{},\"stage\":\"{}\",\"rows\":{},\"gflop\":{:.4},\"stage_ms\":{:.3},\"floor_ms\":{:.3},\"gemm_gflops\":{:.2},\"ratio\":{:.3}}}",
-                m.label, m.gaussians, m.width, m.height, net.name, net.rows, net.gflop,
+                "{{\"kind\":\"mlp_stage\",\"settings\":\"{}\",\"gaussians\":{},\"width\":{},\"height\":{},\"stage\":\"{}\",\"precision\":\"{}\",\"rows\":{},\"gflop\":{:.4},\"stage_ms\":{:.3},\"floor_ms\":{:.3},\"gemm_gflops\":{:.2},\"ratio\":{:.3}}}",
+                m.label, m.gaussians, m.width, m.height, net.name, precision_name(m.precision), net.rows, net.gflop,
                 net.stage_ms, net.floor_ms, net.gemm_gflops(), net.ratio()
             );
         }
@@ -609,6 +650,7 @@ impl Measured {
                 v.push(format!("{x:e}"));
             }
         }
+        v.push(u8::from(self.precision == MatmulPrecision::Bf16).to_string());
         v.join(" ")
     }
 
@@ -620,7 +662,7 @@ impl Measured {
                     .map_err(|e| format!("child result {s:?}: {e}"))
             })
             .collect::<Result<_, _>>()?;
-        if f.len() != 5 + 13 + 4 + 4 * 4 {
+        if f.len() != 5 + 13 + 4 + 4 * 4 + 1 {
             return Err(format!("child result has {} numbers", f.len()));
         }
         let st = &f[5..18];
@@ -666,6 +708,11 @@ impl Measured {
             cpu_ms: f[20],
             peak_rss_mb: f[21],
             nets,
+            precision: if f[38] == 1.0 {
+                MatmulPrecision::Bf16
+            } else {
+                MatmulPrecision::F32
+            },
         })
     }
 }
@@ -679,6 +726,13 @@ fn parse_list<T>(text: &str, parse: impl Fn(&str) -> Option<T>) -> Result<Vec<T>
     text.split(',')
         .map(|s| parse(s.trim()).ok_or_else(|| format!("cannot parse {s:?}")))
         .collect()
+}
+
+fn precision_name(p: MatmulPrecision) -> &'static str {
+    match p {
+        MatmulPrecision::F32 => "f32",
+        MatmulPrecision::Bf16 => "bf16",
+    }
 }
 
 fn pass_miss(ok: bool) -> &'static str {
@@ -740,13 +794,8 @@ fn run(args: &[String]) -> Result<(), String> {
         for item in v.split(',') {
             let (name, value) = item
                 .split_once('=')
-                .ok_or_else(|| format!("--set {item:?}: expected NAME=on|off"))?;
-            let on = match value {
-                "on" | "true" => true,
-                "off" | "false" => false,
-                _ => return Err(format!("--set {item:?}: expected on or off")),
-            };
-            set_switch(&mut config, name, on)?;
+                .ok_or_else(|| format!("--set {item:?}: expected NAME=VALUE"))?;
+            set_value(&mut config, name, value)?;
         }
     }
     // Each measured configuration: a label and its settings. With `--ab NAME` every size
@@ -827,12 +876,13 @@ fn run(args: &[String]) -> Result<(), String> {
 
     if !json {
         println!();
-        println!("network stages against the GEMM floor (same shapes, same run; target ratio <= {TARGET_MLP_RATIO})");
+        println!("network stages against the GEMM floor (same shapes, same run, the networks' own precision; target ratio <= {TARGET_MLP_RATIO})");
         println!(
-            "{:>7} {:>8} {:>13} {:>7} {:>7} {:>8} {:>8} {:>7} {:>6} {:>5} settings",
+            "{:>7} {:>8} {:>13} {:>5} {:>7} {:>7} {:>8} {:>8} {:>7} {:>6} {:>5} settings",
             "gauss",
             "image",
             "stage",
+            "prec",
             "rows",
             "GFLOP",
             "stage ms",
@@ -844,10 +894,11 @@ fn run(args: &[String]) -> Result<(), String> {
         for m in &results {
             for net in &m.nets {
                 println!(
-                    "{:>7} {:>8} {:>13} {:>7} {:>7.2} {:>8.1} {:>8.1} {:>7.1} {:>6.2} {:>5} {}",
+                    "{:>7} {:>8} {:>13} {:>5} {:>7} {:>7.2} {:>8.1} {:>8.1} {:>7.1} {:>6.2} {:>5} {}",
                     m.gaussians,
                     format!("{}x{}", m.width, m.height),
                     net.name,
+                    precision_name(m.precision),
                     net.rows,
                     net.gflop,
                     net.stage_ms,

@@ -305,3 +305,45 @@ fn narrow_appearance_network_trains_and_checkpoints_bit_exactly() {
     run(&mut resumed, &train, 3, None);
     assert_eq!(bits(&resumed), bits(&t));
 }
+
+#[test]
+fn bf16_products_train_to_within_a_small_margin_of_f32() {
+    use gs_core::nn::MatmulPrecision;
+    let scene = SyntheticScene::plate_and_ball(12, 60).unwrap();
+    if let Err(e) = MatmulPrecision::Bf16.check_supported() {
+        // Without AVX-512 BF16 the choice is refused when the model is configured.
+        eprintln!("skipping the bf16 training comparison: {e}");
+        let config = SunAwareConfig {
+            mlp_precision: MatmulPrecision::Bf16,
+            ..SunAwareConfig::for_variant(Variant::D)
+        };
+        let (points, _normals, colours) = scene.surface_samples(0.02, 3);
+        let init = from_points(&points, Some(&colours), config.layout()).unwrap();
+        let err = SunAwareModel::new(init.model, scene.scene_box, config).unwrap_err();
+        assert!(err.to_string().contains("avx512bf16"), "{err}");
+        return;
+    }
+    let train = frames(&scene, 8, 0.0);
+    let held_out = frames(&scene, 3, 0.5);
+    let psnr_after = |precision: MatmulPrecision| {
+        let mut t = trainer_with(&scene, |c| c.mlp_precision = precision);
+        assert_eq!(
+            t.model.appearance.as_ref().unwrap().mlp.precision(),
+            precision
+        );
+        assert_eq!(t.model.shadow.as_ref().unwrap().mlp.precision(), precision);
+        run(&mut t, &train, 80, Some(40));
+        assert_eq!(t.skipped_nonfinite, 0);
+        (mean_psnr(&t, &held_out), bits(&t))
+    };
+    let (f32_db, f32_bits) = psnr_after(MatmulPrecision::F32);
+    let (bf16_db, bf16_bits) = psnr_after(MatmulPrecision::Bf16);
+    eprintln!("held-out PSNR after 80 steps: f32 {f32_db:.3} dB, bf16 {bf16_db:.3} dB");
+    // The bf16 path really runs (different bits) and loses little: measured 14.766 dB
+    // (f32) against 14.755 dB (bf16); a kernel that drops one reduction pair loses 0.63 dB.
+    assert_ne!(f32_bits, bf16_bits);
+    assert!(
+        (bf16_db - f32_db).abs() < 0.1,
+        "f32 {f32_db} vs bf16 {bf16_db}"
+    );
+}

@@ -1,4 +1,5 @@
-//! Single-threaded row-major f32 matrix products on the `gemm` crate.
+//! Single-threaded row-major f32 matrix products on the `gemm` crate, and [`Products`]: the
+//! networks' choice between these and the bfloat16 kernels of `bf16.rs`.
 //!
 //! Invariants: every matrix is a dense row-major slice whose length is checked against its
 //! shape before the unsafe call (a mismatch is a bug in this crate, so it panics here rather
@@ -13,6 +14,9 @@
 
 use gemm::Parallelism;
 
+use super::bf16::Bf16Kernels;
+use super::error::NnError;
+
 /// Arithmetic of the networks' matrix products.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum MatmulPrecision {
@@ -21,6 +25,95 @@ pub enum MatmulPrecision {
     F32,
     /// Inputs rounded to bfloat16, f32 accumulation (AVX-512 BF16 where the CPU has it).
     Bf16,
+}
+
+impl MatmulPrecision {
+    /// `Ok` when this CPU runs products of this precision; for `Bf16` without AVX-512 BF16
+    /// a configuration error naming the missing feature (never a silent fallback).
+    pub fn check_supported(self) -> Result<(), NnError> {
+        Products::new(self).map(|_| ())
+    }
+}
+
+/// The matrix products of one precision, checked against the CPU when chosen: the three
+/// layouts the MLP uses, each single-threaded and deterministic.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Products {
+    /// `Some` for bfloat16 products (its existence proves the CPU runs them).
+    bf16: Option<Bf16Kernels>,
+}
+
+impl Products {
+    /// Products of `precision`, or an error when the CPU lacks what it needs.
+    pub fn new(precision: MatmulPrecision) -> Result<Self, NnError> {
+        Ok(Self {
+            bf16: match precision {
+                MatmulPrecision::F32 => None,
+                MatmulPrecision::Bf16 => Some(Bf16Kernels::detect()?),
+            },
+        })
+    }
+
+    pub fn precision(self) -> MatmulPrecision {
+        match self.bf16 {
+            None => MatmulPrecision::F32,
+            Some(_) => MatmulPrecision::Bf16,
+        }
+    }
+
+    /// [`matmul`] in this precision.
+    #[allow(clippy::too_many_arguments)]
+    pub fn matmul(
+        self,
+        a: &[f32],
+        b: &[f32],
+        c: &mut [f32],
+        m: usize,
+        k: usize,
+        n: usize,
+        accumulate: bool,
+    ) {
+        match self.bf16 {
+            None => matmul(a, b, c, m, k, n, accumulate),
+            Some(kernels) => kernels.matmul(a, b, c, m, k, n, accumulate),
+        }
+    }
+
+    /// [`matmul_at_b`] in this precision.
+    #[allow(clippy::too_many_arguments)]
+    pub fn matmul_at_b(
+        self,
+        a: &[f32],
+        b: &[f32],
+        c: &mut [f32],
+        k: usize,
+        m: usize,
+        n: usize,
+        accumulate: bool,
+    ) {
+        match self.bf16 {
+            None => matmul_at_b(a, b, c, k, m, n, accumulate),
+            Some(kernels) => kernels.matmul_at_b(a, b, c, k, m, n, accumulate),
+        }
+    }
+
+    /// [`matmul_a_bt`] in this precision.
+    #[allow(clippy::too_many_arguments)]
+    pub fn matmul_a_bt(
+        self,
+        a: &[f32],
+        b: &[f32],
+        c: &mut [f32],
+        m: usize,
+        k: usize,
+        n: usize,
+        accumulate: bool,
+    ) {
+        match self.bf16 {
+            None => matmul_a_bt(a, b, c, m, k, n, accumulate),
+            Some(kernels) => kernels.matmul_a_bt(a, b, c, m, k, n, accumulate),
+        }
+    }
 }
 
 /// Row-major stride pair `(column stride, row stride)` of a dense `rows x cols` matrix.

@@ -20,6 +20,10 @@
 //! recomputes a block's hidden activations inside backward (one extra forward, but peak
 //! memory is a few blocks instead of the whole batch).
 //!
+//! Precision: f32 products by default; [`Mlp::set_precision`] switches every product of
+//! forward and backward to bfloat16 inputs with f32 accumulation (`bf16.rs`), checked
+//! against the CPU when set. Bias, activations and the block-order sums stay f32.
+//!
 //! Errors instead of panics: every size is checked, inputs, parameters and upstream
 //! gradients must be finite, and a non-finite result is reported, never returned.
 
@@ -28,7 +32,7 @@ use std::ops::Range;
 use rayon::prelude::*;
 
 use super::error::{check_finite, check_len, NnError};
-use super::matmul::{matmul, matmul_a_bt, matmul_at_b};
+use super::matmul::{MatmulPrecision, Products};
 use crate::rng::SplitMix64;
 
 /// Negative-side slope of LeakyReLU (PyTorch's default; the paper does not give one).
@@ -142,6 +146,8 @@ pub struct Mlp {
     params: Vec<f32>,
     /// Start of each layer's weight matrix in `params`; one extra entry for the total.
     layer_starts: Vec<usize>,
+    /// Arithmetic of every matrix product (f32 unless [`Mlp::set_precision`] says else).
+    products: Products,
 }
 
 fn layer_starts_for(widths: &[usize]) -> Vec<usize> {
@@ -214,6 +220,7 @@ impl Mlp {
             hidden,
             params,
             layer_starts,
+            products: Products::default(),
         })
     }
 
@@ -236,7 +243,24 @@ impl Mlp {
             hidden,
             params,
             layer_starts,
+            products: Products::default(),
         })
+    }
+
+    /// Runs every later product in `precision`. An error (and no change) when this CPU
+    /// cannot: `Bf16` needs AVX-512 BF16.
+    pub fn set_precision(&mut self, precision: MatmulPrecision) -> Result<(), NnError> {
+        self.products = Products::new(precision)?;
+        Ok(())
+    }
+
+    pub fn precision(&self) -> MatmulPrecision {
+        self.products.precision()
+    }
+
+    /// The products this network runs (benchmarks time the same kernels on its shapes).
+    pub fn products(&self) -> Products {
+        self.products
     }
 
     pub fn widths(&self) -> &[usize] {
@@ -322,7 +346,8 @@ impl Mlp {
                     (input, &mut rest[..rows * n_out])
                 }
             };
-            matmul(input, w, dst, rows, n_in, n_out, false);
+            self.products
+                .matmul(input, w, dst, rows, n_in, n_out, false);
             // Bias and activation fused in one pass over the GEMM result.
             if l + 1 == layers {
                 for row in dst.chunks_exact_mut(n_out) {
@@ -453,7 +478,7 @@ impl Mlp {
             };
             let w_range = self.weight_range(l);
             let b_range = self.bias_range(l);
-            matmul_at_b(
+            self.products.matmul_at_b(
                 layer_input,
                 &d_z,
                 &mut d_params[w_range.clone()],
@@ -471,7 +496,8 @@ impl Mlp {
             let w = &self.params[w_range];
             if l > 0 {
                 let mut d_prev = vec![0.0f32; rows * n_in];
-                matmul_a_bt(&d_z, w, &mut d_prev, rows, n_out, n_in, false);
+                self.products
+                    .matmul_a_bt(&d_z, w, &mut d_prev, rows, n_out, n_in, false);
                 let act = self.hidden;
                 for (g, &a) in d_prev.iter_mut().zip(layer_input) {
                     *g *= act.slope_from_output(a);
@@ -479,7 +505,8 @@ impl Mlp {
                 d_z = d_prev;
                 hidden_end -= rows * n_in;
             } else if let Some(d_x) = d_x.take() {
-                matmul_a_bt(&d_z, w, d_x, rows, n_out, n_in, false);
+                self.products
+                    .matmul_a_bt(&d_z, w, d_x, rows, n_out, n_in, false);
             }
         }
     }

@@ -395,7 +395,9 @@ impl SunAwareModel {
         let mut gaussians = gaussians;
         let encoding = PositionalEncoding::new(config.encoding_frequencies)?;
         let v = config.variant;
-        let appearance = if v.uses_appearance_mlp() {
+        // A precision this CPU cannot run fails here, at configuration, not mid-training.
+        config.mlp_precision.check_supported()?;
+        let mut appearance = if v.uses_appearance_mlp() {
             let mut rng = SplitMix64::new(config.seed ^ 0xFEA7_0000);
             for f in gaussians.params.get_mut(Param::Feature) {
                 *f = rng.normal() * config.feature_init_std;
@@ -409,7 +411,7 @@ impl SunAwareModel {
         } else {
             None
         };
-        let shadow = if v.uses_shadow() {
+        let mut shadow = if v.uses_shadow() {
             gaussians.params.get_mut(Param::ShadowLatent).fill(1.0);
             Some(ShadowNet::new(
                 config.shadow_latent_dim,
@@ -419,6 +421,12 @@ impl SunAwareModel {
         } else {
             None
         };
+        for net in appearance.iter_mut().map(|n| &mut n.mlp) {
+            net.set_precision(config.mlp_precision)?;
+        }
+        for net in shadow.iter_mut().map(|n| &mut n.mlp) {
+            net.set_precision(config.mlp_precision)?;
+        }
         Ok(Self {
             gaussians,
             appearance,

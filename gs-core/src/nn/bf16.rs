@@ -1,0 +1,655 @@
+//! bfloat16 matrix products with f32 accumulation on AVX-512 BF16 (`vdpbf16ps`).
+//!
+//! Arithmetic: both operands are rounded to bfloat16 (round to nearest, ties to even, by
+//! [`bf16_bits`]; finite inputs only), every product of two bfloat16 values is exact in f32,
+//! and the products are summed in f32 along the reduction index in a fixed order (pairs of
+//! reduction indices per instruction, pairs in increasing order), starting from zero, or
+//! from the value in `C` when accumulating. The instruction flushes
+//! f32 denormals to zero. So for `c = sum_t a_t b_t` over `k` terms the error against exact
+//! arithmetic is at most `(2^-7 + 2^-16 + (k + 2) 2^-24) * sum_t |a_t b_t|` plus a few
+//! `2^-126` (rounding of the inputs, at most `2^-8` relative each with bfloat16's 8
+//! significant bits, so `2 * 2^-8 + 2^-16` per product; then the f32 sums).
+//!
+//! Invariants: the kernels run only behind a [`Bf16Kernels`] value, which exists only when
+//! the running CPU reports `avx512bf16` and `avx512f` ([`Bf16Kernels::detect`]); every
+//! slice length is checked against its shape before any unsafe code (a mismatch is a bug
+//! in this crate and panics, like `matmul.rs`). Each call runs on the calling thread with
+//! a fixed blocking (8 rows x 32 columns per micro-tile, the reduction in chunks of 256
+//! whose partial sums pass through `C` unchanged, so the chunking does not change the
+//! bits), so results are bit-reproducible for fixed shapes; callers parallelise over fixed
+//! row blocks. Operands are packed into
+//! thread-local scratch on every call (the weight matrix too: measured, it is a few percent
+//! of a 2048-row block's product).
+
+use super::error::NnError;
+
+/// The bfloat16 bits of `x`, rounded to nearest with ties to even (the upper half of the
+/// f32 after rounding). Finite inputs whose magnitude rounds past bfloat16's largest value
+/// become infinities, as in hardware; NaN is not expected (the networks reject it).
+#[inline]
+pub fn bf16_bits(x: f32) -> u16 {
+    let bits = x.to_bits();
+    let rounding = 0x7FFF + ((bits >> 16) & 1);
+    (bits.wrapping_add(rounding) >> 16) as u16
+}
+
+/// `x` rounded to the nearest bfloat16 (ties to even), as an f32.
+#[inline]
+pub fn round_to_bf16(x: f32) -> f32 {
+    f32::from_bits((bf16_bits(x) as u32) << 16)
+}
+
+/// Proof that the running CPU has AVX-512 BF16: the only way to reach the kernels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Bf16Kernels {
+    _detected: (),
+}
+
+impl Bf16Kernels {
+    /// The kernels, or a configuration error naming the missing CPU feature.
+    pub fn detect() -> Result<Self, NnError> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx512bf16")
+                && std::arch::is_x86_feature_detected!("avx512f")
+            {
+                return Ok(Self { _detected: () });
+            }
+        }
+        Err(NnError::Config(
+            "bf16 matrix products need a CPU with AVX-512 BF16 (avx512bf16), which this one \
+             lacks: use the F32 precision"
+                .into(),
+        ))
+    }
+
+    /// `C (m x n) = A (m x k) * B (k x n)` (row-major), or `C += ...` when `accumulate`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn matmul(
+        self,
+        a: &[f32],
+        b: &[f32],
+        c: &mut [f32],
+        m: usize,
+        k: usize,
+        n: usize,
+        accumulate: bool,
+    ) {
+        assert_eq!((a.len(), b.len(), c.len()), (m * k, k * n, m * n));
+        self.product(m, k, n, (a, k, 1), (b, n, 1), c, accumulate);
+    }
+
+    /// `C (m x n) = A^T * B` with `A` stored `k x m`, `B` stored `k x n`, or `C += ...`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn matmul_at_b(
+        self,
+        a: &[f32],
+        b: &[f32],
+        c: &mut [f32],
+        k: usize,
+        m: usize,
+        n: usize,
+        accumulate: bool,
+    ) {
+        assert_eq!((a.len(), b.len(), c.len()), (k * m, k * n, m * n));
+        self.product(m, k, n, (a, 1, m), (b, n, 1), c, accumulate);
+    }
+
+    /// `C (m x n) = A (m x k) * B^T` with `B` stored `n x k`, or `C += ...`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn matmul_a_bt(
+        self,
+        a: &[f32],
+        b: &[f32],
+        c: &mut [f32],
+        m: usize,
+        k: usize,
+        n: usize,
+        accumulate: bool,
+    ) {
+        assert_eq!((a.len(), b.len(), c.len()), (m * k, n * k, m * n));
+        self.product(m, k, n, (a, k, 1), (b, 1, k), c, accumulate);
+    }
+
+    /// `C = A B` with `A(i, t) = a[i * a.1 + t * a.2]` and `B(t, j) = b[t * b.1 + j * b.2]`.
+    #[allow(clippy::too_many_arguments)]
+    fn product(
+        self,
+        m: usize,
+        k: usize,
+        n: usize,
+        a: (&[f32], usize, usize),
+        b: (&[f32], usize, usize),
+        c: &mut [f32],
+        accumulate: bool,
+    ) {
+        if m == 0 || n == 0 {
+            return;
+        }
+        if k == 0 {
+            if !accumulate {
+                c.fill(0.0);
+            }
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        {
+            // SAFETY: `self` exists only when the CPU has avx512bf16 and avx512f
+            // (`detect`); the public entry points checked every slice against its shape.
+            unsafe { x86::product(m, k, n, a, b, c, accumulate) }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (a, b, c, accumulate);
+            unreachable!("Bf16Kernels cannot be constructed off x86_64");
+        }
+    }
+}
+
+// The AVX-512 intrinsics are stable from Rust 1.89, past the workspace's declared 1.86:
+// building this module needs 1.89 (the toolchain here is 1.95).
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::incompatible_msrv)]
+mod x86 {
+    use std::arch::x86_64::*;
+    use std::cell::RefCell;
+
+    use super::bf16_bits;
+
+    /// f32 lanes of one vector.
+    const LANES: usize = 16;
+    /// Columns of one packed panel of B (two vectors).
+    const PANEL_COLS: usize = 2 * LANES;
+    /// Rows of one micro-tile.
+    const TILE_ROWS: usize = 8;
+    /// Reduction pairs per chunk: a chunk of a B panel (16 KB) stays in L1 across the row
+    /// tiles (without chunks the weight-gradient product, 1024 pairs, streamed from L2).
+    const CHUNK_PAIRS: usize = 128;
+
+    thread_local! {
+        /// Packed A and B of the last call on this thread (reused: no allocation per call).
+        static SCRATCH: RefCell<(Vec<u32>, Vec<u32>)> = const { RefCell::new((Vec::new(), Vec::new())) };
+    }
+
+    #[inline]
+    fn pair(lo: f32, hi: f32) -> u32 {
+        bf16_bits(lo) as u32 | (bf16_bits(hi) as u32) << 16
+    }
+
+    /// Packed A: the word of row `i` and reduction pair `p` is at
+    /// `i * row_stride + p * pair_stride`; it holds `A(i, 2p)` low, `A(i, 2p + 1)` high.
+    struct PackedA {
+        row_stride: usize,
+        pair_stride: usize,
+    }
+
+    /// Packs A (`A(i, t) = a[i * is + t * ts]`) into `out`; rows stay contiguous when A is
+    /// row-major, pairs stay contiguous otherwise, so reading `a` is sequential either way.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    fn pack_a(
+        m: usize,
+        k: usize,
+        (a, is, ts): (&[f32], usize, usize),
+        out: &mut Vec<u32>,
+    ) -> PackedA {
+        let pairs = k.div_ceil(2);
+        out.clear();
+        out.resize(m * pairs, 0);
+        if ts == 1 {
+            for (i, words) in out.chunks_exact_mut(pairs).enumerate() {
+                let row = &a[i * is..i * is + k];
+                let full = k / 2;
+                for (w, two) in words.iter_mut().zip(row.chunks_exact(2)) {
+                    *w = pair(two[0], two[1]);
+                }
+                if k % 2 == 1 {
+                    words[full] = pair(row[k - 1], 0.0);
+                }
+            }
+            PackedA {
+                row_stride: pairs,
+                pair_stride: 1,
+            }
+        } else {
+            // A(i, t) = a[t * ts + i] (is == 1): rows 2p and 2p + 1 of the stored matrix
+            // interleave.
+            debug_assert_eq!(is, 1);
+            for (p, words) in out.chunks_exact_mut(m).enumerate() {
+                let lo = &a[2 * p * ts..2 * p * ts + m];
+                if 2 * p + 1 < k {
+                    let hi = &a[(2 * p + 1) * ts..(2 * p + 1) * ts + m];
+                    for ((w, &l), &h) in words.iter_mut().zip(lo).zip(hi) {
+                        *w = pair(l, h);
+                    }
+                } else {
+                    for (w, &l) in words.iter_mut().zip(lo) {
+                        *w = pair(l, 0.0);
+                    }
+                }
+            }
+            PackedA {
+                row_stride: 1,
+                pair_stride: m,
+            }
+        }
+    }
+
+    /// Packs B (`B(t, j) = b[t * ts + j * js]`) into panels of `PANEL_COLS` columns: the
+    /// word of pair `p`, column `j` is at `panel(j) * pairs * PANEL_COLS + p * PANEL_COLS +
+    /// j % PANEL_COLS`. Columns past `n` are zero.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    fn pack_b(k: usize, n: usize, (b, ts, js): (&[f32], usize, usize), out: &mut Vec<u32>) {
+        let pairs = k.div_ceil(2);
+        let panels = n.div_ceil(PANEL_COLS);
+        out.clear();
+        out.resize(panels * pairs * PANEL_COLS, 0);
+        let at = |t: usize, j: usize| if t < k { b[t * ts + j * js] } else { 0.0 };
+        for (panel, words) in out.chunks_exact_mut(pairs * PANEL_COLS).enumerate() {
+            let j0 = panel * PANEL_COLS;
+            let cols = PANEL_COLS.min(n - j0);
+            for (p, row) in words.chunks_exact_mut(PANEL_COLS).enumerate() {
+                if js == 1 && 2 * p + 1 < k {
+                    let lo = &b[2 * p * ts + j0..2 * p * ts + j0 + cols];
+                    let hi = &b[(2 * p + 1) * ts + j0..(2 * p + 1) * ts + j0 + cols];
+                    for ((w, &l), &h) in row.iter_mut().zip(lo).zip(hi) {
+                        *w = pair(l, h);
+                    }
+                } else {
+                    for (jj, w) in row[..cols].iter_mut().enumerate() {
+                        *w = pair(at(2 * p, j0 + jj), at(2 * p + 1, j0 + jj));
+                    }
+                }
+            }
+        }
+    }
+
+    /// One micro-tile: `R` rows by `V` vectors of columns (`cols` of them valid), over
+    /// `pairs` reduction pairs, into `c` (row stride `ldc`), starting from the values in
+    /// `c` when `from_c`, else from zero.
+    ///
+    /// # Safety
+    /// The CPU has avx512bf16 and avx512f; `a` addresses `R` rows of `pairs` words through
+    /// the strides, `b` one panel of `pairs * PANEL_COLS` words, `c` `R` rows of `ldc`
+    /// floats with `cols <= V * LANES` valid columns from its start.
+    #[target_feature(enable = "avx512bf16,avx512f")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile<const R: usize, const V: usize>(
+        a: *const u32,
+        a_row_stride: usize,
+        a_pair_stride: usize,
+        b: *const u32,
+        pairs: usize,
+        c: *mut f32,
+        ldc: usize,
+        cols: usize,
+        from_c: bool,
+    ) {
+        let mask_of = |v: usize| -> __mmask16 {
+            let valid = cols.saturating_sub(v * LANES).min(LANES);
+            ((1u32 << valid) - 1) as u16
+        };
+        let mut acc = [[_mm512_setzero_ps(); V]; R];
+        if from_c {
+            for (r, acc_row) in acc.iter_mut().enumerate() {
+                for (v, acc_v) in acc_row.iter_mut().enumerate() {
+                    *acc_v = _mm512_maskz_loadu_ps(mask_of(v), c.add(r * ldc + v * LANES));
+                }
+            }
+        }
+        for p in 0..pairs {
+            let bp = b.add(p * PANEL_COLS);
+            let bv: [__m512bh; V] = std::array::from_fn(|v| {
+                std::mem::transmute::<__m512i, __m512bh>(_mm512_loadu_si512(
+                    bp.add(v * LANES) as *const __m512i
+                ))
+            });
+            let ap = a.add(p * a_pair_stride);
+            for (r, acc_row) in acc.iter_mut().enumerate() {
+                let word = *ap.add(r * a_row_stride);
+                let av = std::mem::transmute::<__m512i, __m512bh>(_mm512_set1_epi32(word as i32));
+                for (acc_v, &bv_v) in acc_row.iter_mut().zip(&bv) {
+                    *acc_v = _mm512_dpbf16_ps(*acc_v, av, bv_v);
+                }
+            }
+        }
+        for (r, acc_row) in acc.iter().enumerate() {
+            for (v, &sum) in acc_row.iter().enumerate() {
+                _mm512_mask_storeu_ps(c.add(r * ldc + v * LANES), mask_of(v), sum);
+            }
+        }
+    }
+
+    /// # Safety
+    /// As [`tile`], with `1 <= rows <= TILE_ROWS`.
+    #[target_feature(enable = "avx512bf16,avx512f")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile_dispatch(
+        rows: usize,
+        wide: bool,
+        a: *const u32,
+        rs: usize,
+        ps: usize,
+        b: *const u32,
+        pairs: usize,
+        c: *mut f32,
+        ldc: usize,
+        cols: usize,
+        acc: bool,
+    ) {
+        macro_rules! go {
+            ($r:literal) => {
+                if wide {
+                    tile::<$r, 2>(a, rs, ps, b, pairs, c, ldc, cols, acc)
+                } else {
+                    tile::<$r, 1>(a, rs, ps, b, pairs, c, ldc, cols, acc)
+                }
+            };
+        }
+        match rows {
+            8 => go!(8),
+            7 => go!(7),
+            6 => go!(6),
+            5 => go!(5),
+            4 => go!(4),
+            3 => go!(3),
+            2 => go!(2),
+            _ => go!(1),
+        }
+    }
+
+    /// # Safety
+    /// The CPU has avx512bf16 and avx512f; `a` holds `A(i, t) = a.0[i * a.1 + t * a.2]` for
+    /// `i < m, t < k`, `b` holds `B(t, j) = b.0[t * b.1 + j * b.2]` for `t < k, j < n`, and
+    /// `c` is `m x n` row-major; `m, n, k >= 1`.
+    #[target_feature(enable = "avx512bf16,avx512f,avx512bw")]
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn product(
+        m: usize,
+        k: usize,
+        n: usize,
+        a: (&[f32], usize, usize),
+        b: (&[f32], usize, usize),
+        c: &mut [f32],
+        accumulate: bool,
+    ) {
+        SCRATCH.with(|scratch| {
+            let mut scratch = scratch.borrow_mut();
+            let (packed_a, packed_b) = &mut *scratch;
+            let layout = pack_a(m, k, a, packed_a);
+            pack_b(k, n, b, packed_b);
+            let pairs = k.div_ceil(2);
+            let panels = n.div_ceil(PANEL_COLS);
+            let (a_ptr, b_ptr, c_ptr) = (packed_a.as_ptr(), packed_b.as_ptr(), c.as_mut_ptr());
+            for p0 in (0..pairs).step_by(CHUNK_PAIRS) {
+                let chunk = CHUNK_PAIRS.min(pairs - p0);
+                let from_c = accumulate || p0 > 0;
+                for i0 in (0..m).step_by(TILE_ROWS) {
+                    let rows = TILE_ROWS.min(m - i0);
+                    for panel in 0..panels {
+                        let j0 = panel * PANEL_COLS;
+                        let cols = PANEL_COLS.min(n - j0);
+                        tile_dispatch(
+                            rows,
+                            cols > LANES,
+                            a_ptr.add(i0 * layout.row_stride + p0 * layout.pair_stride),
+                            layout.row_stride,
+                            layout.pair_stride,
+                            b_ptr.add((panel * pairs + p0) * PANEL_COLS),
+                            chunk,
+                            c_ptr.add(i0 * n + j0),
+                            n,
+                            cols,
+                            from_c,
+                        );
+                    }
+                }
+            }
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::SplitMix64;
+
+    fn kernels() -> Option<Bf16Kernels> {
+        match Bf16Kernels::detect() {
+            Ok(k) => Some(k),
+            Err(e) => {
+                eprintln!("skipping the bf16 kernel test: {e}");
+                None
+            }
+        }
+    }
+
+    #[test]
+    fn rounding_is_to_nearest_with_ties_to_even() {
+        let up = |x: f32| f32::from_bits(x.to_bits() + 1);
+        let step = 2f32.powi(-7); // bf16 spacing in [1, 2)
+        assert_eq!(round_to_bf16(1.0), 1.0);
+        assert_eq!(round_to_bf16(1.0 + step), 1.0 + step);
+        // Halfway: ties go to the even neighbour.
+        assert_eq!(round_to_bf16(1.0 + step / 2.0), 1.0);
+        assert_eq!(round_to_bf16(1.0 + 1.5 * step), 1.0 + 2.0 * step);
+        // Just past halfway rounds up; just below rounds down.
+        assert_eq!(round_to_bf16(up(1.0 + step / 2.0)), 1.0 + step);
+        assert_eq!(round_to_bf16(-(1.0 + 0.49 * step)), -1.0);
+        assert_eq!(round_to_bf16(0.0).to_bits(), 0);
+        assert_eq!(round_to_bf16(-0.0).to_bits(), (-0.0f32).to_bits());
+        // Carry into the exponent, and overflow to infinity past the largest bf16.
+        assert_eq!(round_to_bf16(2.0 - step / 4.0), 2.0);
+        assert_eq!(round_to_bf16(f32::MAX), f32::INFINITY);
+        // Relative error at most 2^-8 (8 significant bits) over many magnitudes.
+        let mut rng = SplitMix64::new(3);
+        for _ in 0..10_000 {
+            let x = rng.uniform(-1.0, 1.0) * 2f32.powi(rng.below(60) as i32 - 30);
+            let r = round_to_bf16(x);
+            assert!((r - x).abs() <= x.abs() * 2f32.powi(-8), "{x} -> {r}");
+        }
+    }
+
+    /// `A (m x k)`, `B (k x n)`: per element of `C`, the exact f64 product, the product of
+    /// the bf16-rounded inputs in f64, and `sum |a b|`.
+    fn references(
+        a: &[f32],
+        b: &[f32],
+        (m, k, n): (usize, usize, usize),
+    ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let mut exact = vec![0.0; m * n];
+        let mut rounded = vec![0.0; m * n];
+        let mut magnitude = vec![0.0; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                for t in 0..k {
+                    let (x, y) = (a[i * k + t], b[t * n + j]);
+                    exact[i * n + j] += x as f64 * y as f64;
+                    rounded[i * n + j] += round_to_bf16(x) as f64 * round_to_bf16(y) as f64;
+                    magnitude[i * n + j] += (x as f64 * y as f64).abs();
+                }
+            }
+        }
+        (exact, rounded, magnitude)
+    }
+
+    fn transpose(x: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+        let mut t = vec![0.0; x.len()];
+        for i in 0..rows {
+            for j in 0..cols {
+                t[j * rows + i] = x[i * cols + j];
+            }
+        }
+        t
+    }
+
+    /// Values over several binades, signed, with exact zeros.
+    fn operand(len: usize, rng: &mut SplitMix64) -> Vec<f32> {
+        (0..len)
+            .map(|_| {
+                if rng.below(17) == 0 {
+                    0.0
+                } else {
+                    rng.uniform(-1.0, 1.0) * 2f32.powi(rng.below(8) as i32 - 4)
+                }
+            })
+            .collect()
+    }
+
+    /// Checks `got` against both references: the stated bf16 bound against exact arithmetic,
+    /// and the f32-accumulation bound against the product of the rounded inputs (which a
+    /// kernel that skipped or truncated the rounding would miss).
+    fn check(got: &[f32], refs: &(Vec<f64>, Vec<f64>, Vec<f64>), k: usize, what: &str) {
+        let u = 2f64.powi(-24);
+        let tiny = 1e-30;
+        for (e, ((&g, (&exact, &rounded)), &mag)) in got
+            .iter()
+            .zip(refs.0.iter().zip(&refs.1))
+            .zip(&refs.2)
+            .enumerate()
+        {
+            let g = g as f64;
+            let bound = (2f64.powi(-7) + 2f64.powi(-16) + (k as f64 + 2.0) * u) * mag + tiny;
+            assert!(
+                (g - exact).abs() <= bound,
+                "{what}: element {e}: {g} vs exact {exact} (bound {bound})"
+            );
+            let accumulation = (k as f64 + 2.0) * u * 1.01 * mag + tiny;
+            assert!(
+                (g - rounded).abs() <= accumulation,
+                "{what}: element {e}: {g} vs bf16-rounded {rounded} (bound {accumulation})"
+            );
+        }
+    }
+
+    #[test]
+    fn products_match_references_in_all_three_layouts_and_odd_shapes() {
+        let Some(kernels) = kernels() else { return };
+        let mut rng = SplitMix64::new(17);
+        // k odd and not a multiple of 32, m off the 8-row tile, n off the 16/32 columns.
+        let shapes = [
+            (1, 1, 1),
+            (1, 2, 17),
+            (3, 5, 3),
+            (8, 32, 32),
+            (9, 33, 16),
+            (17, 63, 33),
+            (37, 19, 55),
+            (20, 96, 64),
+            (11, 256, 3),
+            (64, 257, 1),
+        ];
+        for (m, k, n) in shapes {
+            let a = operand(m * k, &mut rng);
+            let b = operand(k * n, &mut rng);
+            let refs = references(&a, &b, (m, k, n));
+            let shape = format!("{m}x{k}x{n}");
+
+            let mut c = vec![f32::NAN; m * n];
+            kernels.matmul(&a, &b, &mut c, m, k, n, false);
+            check(&c, &refs, k, &format!("matmul {shape}"));
+
+            let mut c2 = vec![f32::NAN; m * n];
+            kernels.matmul_at_b(&transpose(&a, m, k), &b, &mut c2, k, m, n, false);
+            check(&c2, &refs, k, &format!("matmul_at_b {shape}"));
+
+            let mut c3 = vec![f32::NAN; m * n];
+            kernels.matmul_a_bt(&a, &transpose(&b, k, n), &mut c3, m, k, n, false);
+            check(&c3, &refs, k, &format!("matmul_a_bt {shape}"));
+
+            // Accumulation adds the product to what is there (here: the product again).
+            kernels.matmul(&a, &b, &mut c, m, k, n, true);
+            let doubled = (
+                refs.0.iter().map(|v| 2.0 * v).collect(),
+                refs.1.iter().map(|v| 2.0 * v).collect(),
+                refs.2.iter().map(|v| 2.0 * v).collect(),
+            );
+            check(&c, &doubled, k, &format!("accumulated matmul {shape}"));
+        }
+    }
+
+    #[test]
+    fn rows_do_not_depend_on_their_neighbours_and_repeat_bit_for_bit() {
+        let Some(kernels) = kernels() else { return };
+        let mut rng = SplitMix64::new(5);
+        let (m, k, n) = (21, 75, 40);
+        let a = operand(m * k, &mut rng);
+        let b = operand(k * n, &mut rng);
+        let mut whole = vec![0.0; m * n];
+        kernels.matmul(&a, &b, &mut whole, m, k, n, false);
+        let mut again = vec![0.0; m * n];
+        kernels.matmul(&a, &b, &mut again, m, k, n, false);
+        assert_eq!(whole, again);
+        // Blocks of any row count give the same bits (callers split rows freely).
+        for split in [1, 5, 8, 13] {
+            let mut pieces = vec![0.0; m * n];
+            for (rows_a, rows_c) in a.chunks(split * k).zip(pieces.chunks_mut(split * n)) {
+                kernels.matmul(rows_a, &b, rows_c, rows_c.len() / n, k, n, false);
+            }
+            assert_eq!(
+                whole.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                pieces.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                "split {split}"
+            );
+        }
+    }
+
+    #[test]
+    fn accumulating_continues_the_sum_so_splitting_the_reduction_keeps_the_bits() {
+        let Some(kernels) = kernels() else { return };
+        let mut rng = SplitMix64::new(9);
+        let (m, k, n) = (10, 600, 19);
+        let a = operand(m * k, &mut rng);
+        let b = operand(k * n, &mut rng);
+        let mut whole = vec![0.0; m * n];
+        kernels.matmul(&a, &b, &mut whole, m, k, n, false);
+        // The same sum in two calls split at an even reduction index: the second call
+        // starts from the first one's partial sums.
+        let split = 256;
+        let a_cols = |lo: usize, hi: usize| -> Vec<f32> {
+            (0..m)
+                .flat_map(|i| a[i * k + lo..i * k + hi].to_vec())
+                .collect()
+        };
+        let mut parts = vec![0.0; m * n];
+        kernels.matmul(
+            &a_cols(0, split),
+            &b[..split * n],
+            &mut parts,
+            m,
+            split,
+            n,
+            false,
+        );
+        let rest = k - split;
+        kernels.matmul(
+            &a_cols(split, k),
+            &b[split * n..],
+            &mut parts,
+            m,
+            rest,
+            n,
+            true,
+        );
+        assert_eq!(
+            whole.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            parts.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        );
+    }
+
+    #[test]
+    fn empty_shapes_and_missing_cpu_feature() {
+        match Bf16Kernels::detect() {
+            Ok(kernels) => {
+                let mut c = vec![5.0; 6];
+                kernels.matmul(&[], &[], &mut c, 2, 0, 3, true);
+                assert_eq!(c, vec![5.0; 6]);
+                kernels.matmul(&[], &[], &mut c, 2, 0, 3, false);
+                assert_eq!(c, vec![0.0; 6]);
+            }
+            Err(e) => {
+                let msg = e.to_string();
+                assert!(msg.contains("avx512bf16"), "{msg}");
+            }
+        }
+    }
+}
