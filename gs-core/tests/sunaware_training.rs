@@ -334,10 +334,22 @@ fn bf16_products_train_to_within_a_small_margin_of_f32() {
         assert_eq!(t.model.shadow.as_ref().unwrap().mlp.precision(), precision);
         run(&mut t, &train, 80, Some(40));
         assert_eq!(t.skipped_nonfinite, 0);
-        (mean_psnr(&t, &held_out), bits(&t))
+        (mean_psnr(&t, &held_out), bits(&t), t)
     };
-    let (f32_db, f32_bits) = psnr_after(MatmulPrecision::F32);
-    let (bf16_db, bf16_bits) = psnr_after(MatmulPrecision::Bf16);
+    let (f32_db, f32_bits, _) = psnr_after(MatmulPrecision::F32);
+    let (bf16_db, bf16_bits, mut straight) = psnr_after(MatmulPrecision::Bf16);
+    // The precision is not stored: a checkpoint loads as f32, and switching it back to bf16
+    // resumes bit-exactly.
+    let mut resumed = checkpoint::from_bytes(&bf16_bits).unwrap();
+    assert_eq!(resumed.model.config.mlp_precision, MatmulPrecision::F32);
+    resumed
+        .model
+        .set_mlp_precision(MatmulPrecision::Bf16)
+        .unwrap();
+    assert_eq!(resumed, straight);
+    run(&mut straight, &train, 3, None);
+    run(&mut resumed, &train, 3, None);
+    assert_eq!(bits(&resumed), bits(&straight));
     eprintln!("held-out PSNR after 80 steps: f32 {f32_db:.3} dB, bf16 {bf16_db:.3} dB");
     // The bf16 path really runs (different bits) and loses little: measured 14.766 dB
     // (f32) against 14.755 dB (bf16); a kernel that drops one reduction pair loses 0.63 dB.

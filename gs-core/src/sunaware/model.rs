@@ -470,6 +470,23 @@ impl SunAwareModel {
         crate::train::Backend::Cpu
     }
 
+    /// Switches the networks' matrix products (and `config.mlp_precision`) to `precision`;
+    /// an error, and no change, when this CPU cannot run it.
+    pub fn set_mlp_precision(
+        &mut self,
+        precision: crate::nn::MatmulPrecision,
+    ) -> Result<(), SunAwareError> {
+        precision.check_supported()?;
+        for net in self.appearance.iter_mut().map(|n| &mut n.mlp) {
+            net.set_precision(precision)?;
+        }
+        for net in self.shadow.iter_mut().map(|n| &mut n.mlp) {
+            net.set_precision(precision)?;
+        }
+        self.config.mlp_precision = precision;
+        Ok(())
+    }
+
     pub fn len(&self) -> usize {
         self.gaussians.len()
     }
