@@ -359,11 +359,11 @@ fn one_resident_step_matches_the_cpu_step() {
                 mc.len()
             );
         }
-        for i in 0..mc.len() {
+        for (i, &m_i) in mc.iter().enumerate() {
             values += 1;
             let (x_cpu, x_gpu) = (cpu.model().params.get(p)[i], got.params.get(p)[i]);
-            let gradient_tol = 1e-4 * max_m + 1e-3 * mc[i].abs();
-            if (m_gpu.get(p)[i] - mc[i]).abs() > gradient_tol {
+            let gradient_tol = 1e-4 * max_m + 1e-3 * m_i.abs();
+            if (m_gpu.get(p)[i] - m_i).abs() > gradient_tol {
                 m_beyond += 1;
             }
             if (x_gpu - x_cpu).abs() <= eps * (x_cpu.abs() + lr) {
@@ -371,10 +371,9 @@ fn one_resident_step_matches_the_cpu_step() {
             }
             flipped += 1;
             assert!(
-                mc[i].abs() <= gradient_tol && (x_gpu - x_cpu).abs() <= 2.0 * lr * (1.0 + eps),
-                "{}[{i}]: cpu {x_cpu} gpu {x_gpu} (m cpu {} gpu {})",
+                m_i.abs() <= gradient_tol && (x_gpu - x_cpu).abs() <= 2.0 * lr * (1.0 + eps),
+                "{}[{i}]: cpu {x_cpu} gpu {x_gpu} (m cpu {m_i} gpu {})",
                 p.name(),
-                mc[i],
                 m_gpu.get(p)[i]
             );
         }

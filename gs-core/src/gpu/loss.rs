@@ -16,7 +16,10 @@
 //! - the same formulas as loss.rs in f32; sums in a different (fixed) order, so totals and
 //!   gradients agree with the CPU to rounding (`tests/gpu_resident.rs`).
 
-use super::{bytes_f32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError};
+use super::{
+    bytes_f32, dispatch_1d, f32_bytes, storage_in, u32_bytes, uniform_in, GpuContext, GpuError,
+    Scratch,
+};
 use crate::loss::{ssim_window, ImageShape, LossOutput, SSIM_C1, SSIM_C2};
 
 const LOSS_COMMON: &str = include_str!("shaders/loss_common.wgsl");
@@ -117,6 +120,7 @@ impl GpuLoss {
         weights: &wgpu::Buffer,
         px_grad: &wgpu::Buffer,
         flags: &wgpu::Buffer,
+        scratch: Option<&Scratch>,
     ) -> Result<LossBuffers, GpuError> {
         if shape.channels != self.channels {
             return Err(GpuError::Invalid(format!(
@@ -141,13 +145,13 @@ impl GpuLoss {
         for (k, t) in taps.iter().enumerate() {
             words[8 + k] = (*t as f32).to_bits();
         }
-        let uniform = ctx.uniform_init("loss", &u32_bytes(&words));
+        let uniform = uniform_in(ctx, scratch, "loss", &u32_bytes(&words))?;
         let values = n * nc as u64;
-        let moments = ctx.storage("loss moments", values * 5 * 4)?;
-        let grads = ctx.storage("loss ssim derivatives", values * 3 * 4)?;
-        let grads_h = ctx.storage("loss ssim derivatives (rows)", values * 3 * 4)?;
-        let maps = ctx.storage("loss weighted maps", values * 2 * 4)?;
-        let totals = ctx.storage("loss totals", 8)?;
+        let moments = storage_in(ctx, scratch, "loss moments", values * 5 * 4)?;
+        let grads = storage_in(ctx, scratch, "loss ssim derivatives", values * 3 * 4)?;
+        let grads_h = storage_in(ctx, scratch, "loss ssim derivatives (rows)", values * 3 * 4)?;
+        let maps = storage_in(ctx, scratch, "loss weighted maps", values * 2 * 4)?;
+        let totals = storage_in(ctx, scratch, "loss totals", 8)?;
         let mut run = |pipeline: &wgpu::ComputePipeline, buffers: &[&wgpu::Buffer]| {
             let bind = ctx.bind_group(pipeline, buffers);
             let mut pass = encoder.begin_compute_pass(&Default::default());
@@ -222,6 +226,7 @@ impl GpuLoss {
             &weights_buf,
             &px_grad,
             &flags,
+            None,
         )?;
         let back = ctx.read_back(
             encoder,

@@ -1,10 +1,12 @@
 //! wgpu compute backend (feature `wgpu`): the rasterizer's forward and backward passes
 //! ([`GpuRasterizer`]), the shadow pass's per-pixel visibility ([`GpuShadow`]) and a tiled
 //! GEMM for the MLP products ([`GpuGemm`]) as WGSL compute kernels (`shaders/`), checked
-//! against the CPU path (`tests/gpu_parity.rs`). `crate::train::Backend::Wgpu` moves the
-//! plain 3DGS trainer's rasterizer here, and through
-//! `crate::sunaware::SunAwareModel::set_backend` the Sun-aware trainer's camera pass and
-//! shadow pass (`tests/gpu_sunaware.rs`); the networks and every optimiser stay on the CPU.
+//! against the CPU path (`tests/gpu_parity.rs`). `crate::train::Backend::Wgpu` trains the
+//! plain 3DGS model device-resident ([`ResidentModel`]: parameters, gradients, Adam
+//! moments, statistics, SH colour, the loss ([`GpuLoss`]) and Adam on the device,
+//! `tests/gpu_resident.rs`); through `crate::sunaware::SunAwareModel::set_backend` the
+//! Sun-aware trainer moves its camera pass and shadow pass here (`tests/gpu_sunaware.rs`),
+//! its networks and optimiser staying on the CPU.
 //!
 //! [`GpuContext::new`] opens a Vulkan adapter (the only backend compiled in, so wgpu can
 //! never fall back to OpenGL) and reports its name, backend and whether it has
@@ -17,7 +19,8 @@
 //! - bad input is a [`GpuError`] before any GPU work; validation errors raised by wgpu
 //!   while building pipelines are caught and returned, not panicked on;
 //! - every wait on the device is bounded by wgpu's own poll; results are read back only
-//!   where the caller needs them (images, gradients, a 4-byte entry count).
+//!   where the caller needs them (images, gradients, a 4-byte entry count; on the
+//!   resident path a 16-byte step report).
 
 pub mod gemm;
 pub mod loss;
@@ -367,6 +370,101 @@ impl GpuContext {
             layout: &pipeline.get_bind_group_layout(0),
             entries: &entries,
         })
+    }
+}
+
+/// Device buffers reused across steps, keyed by role (the resident path's per-step
+/// scratch: splats, keys, tile ranges, images, accumulators, uniforms). A storage buffer
+/// grows, with 50% head room, when a step needs more; kernels read only the extent they
+/// are told (uniform counts), and every buffer a kernel does not overwrite entirely is
+/// cleared in the command stream, as a fresh zeroed buffer would be.
+#[derive(Debug, Default)]
+pub(crate) struct Scratch {
+    buffers: std::sync::Mutex<std::collections::HashMap<String, wgpu::Buffer>>,
+}
+
+impl Scratch {
+    fn lock(
+        &self,
+    ) -> Result<std::sync::MutexGuard<'_, std::collections::HashMap<String, wgpu::Buffer>>, GpuError>
+    {
+        self.buffers
+            .lock()
+            .map_err(|_| GpuError::Device("scratch buffer pool lock poisoned".into()))
+    }
+
+    /// A storage buffer of at least `bytes` for `label` (contents unspecified).
+    pub(crate) fn storage(
+        &self,
+        ctx: &GpuContext,
+        label: &str,
+        bytes: u64,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let size = bytes.max(16).next_multiple_of(4);
+        let mut map = self.lock()?;
+        if let Some(b) = map.get(label) {
+            if b.size() >= size {
+                return Ok(b.clone());
+            }
+        }
+        let limit =
+            (ctx.limits.max_storage_buffer_binding_size as u64).min(ctx.limits.max_buffer_size);
+        let grown = (size + size / 2).min(limit.max(size)) / 4 * 4;
+        let b = ctx.storage(label, grown.max(size))?;
+        map.insert(label.to_string(), b.clone());
+        Ok(b)
+    }
+
+    /// A uniform buffer for `label` holding `data` (written through the queue, so it
+    /// takes effect at the next submission).
+    pub(crate) fn uniform(
+        &self,
+        ctx: &GpuContext,
+        label: &str,
+        data: &[u8],
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let mut map = self.lock()?;
+        let b = match map.get(label) {
+            Some(b) if b.size() == data.len() as u64 => b.clone(),
+            _ => {
+                let b = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size: data.len() as u64,
+                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                });
+                map.insert(label.to_string(), b.clone());
+                b
+            }
+        };
+        ctx.queue.write_buffer(&b, 0, data);
+        Ok(b)
+    }
+}
+
+/// A storage buffer from `scratch` when given, else a fresh zeroed one.
+pub(crate) fn storage_in(
+    ctx: &GpuContext,
+    scratch: Option<&Scratch>,
+    label: &str,
+    bytes: u64,
+) -> Result<wgpu::Buffer, GpuError> {
+    match scratch {
+        Some(s) => s.storage(ctx, label, bytes),
+        None => ctx.storage(label, bytes),
+    }
+}
+
+/// A uniform buffer from `scratch` when given, else a fresh one.
+pub(crate) fn uniform_in(
+    ctx: &GpuContext,
+    scratch: Option<&Scratch>,
+    label: &str,
+    data: &[u8],
+) -> Result<wgpu::Buffer, GpuError> {
+    match scratch {
+        Some(s) => s.uniform(ctx, label, data),
+        None => Ok(ctx.uniform_init(label, data)),
     }
 }
 

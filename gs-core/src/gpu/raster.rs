@@ -24,7 +24,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use super::{
-    bytes_f32, bytes_u32, dispatch_1d, f32_bytes, groups_1d, u32_bytes, GpuContext, GpuError,
+    bytes_f32, bytes_u32, dispatch_1d, f32_bytes, groups_1d, storage_in, u32_bytes, uniform_in,
+    GpuContext, GpuError, Scratch,
 };
 use crate::camera::Camera;
 use crate::raster::bin::{TileGrid, TILE_PX};
@@ -323,12 +324,33 @@ impl GpuRasterizer {
         len: u64,
         keep: &mut Vec<wgpu::Buffer>,
     ) -> Result<(), GpuError> {
+        self.encode_scan_in(encoder, data, len, keep, None, 0)
+    }
+
+    /// [`Self::encode_scan`] with its temporaries from `scratch` (one set per recursion
+    /// `level`).
+    pub(super) fn encode_scan_in(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        data: &wgpu::Buffer,
+        len: u64,
+        keep: &mut Vec<wgpu::Buffer>,
+        scratch: Option<&Scratch>,
+        level: u32,
+    ) -> Result<(), GpuError> {
         let blocks = len.div_ceil(256).max(1);
-        let sums = self.ctx.storage("scan sums", blocks * 4)?;
-        let params = self.ctx.uniform_init(
-            "scan params",
+        let sums = storage_in(
+            &self.ctx,
+            scratch,
+            &format!("scan sums {level}"),
+            blocks * 4,
+        )?;
+        let params = uniform_in(
+            &self.ctx,
+            scratch,
+            &format!("scan params {level}"),
             &u32_bytes(&[len as u32, blocks as u32, 0, 0]),
-        );
+        )?;
         {
             let bind = self
                 .ctx
@@ -337,7 +359,7 @@ impl GpuRasterizer {
             dispatch_1d(&mut pass, &self.scan_block, &bind, len);
         }
         if blocks > 1 {
-            self.encode_scan(encoder, &sums, blocks, keep)?;
+            self.encode_scan_in(encoder, &sums, blocks, keep, scratch, level + 1)?;
             let bind = self.ctx.bind_group(&self.scan_add, &[&params, data, &sums]);
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.scan_add, &bind, len);
@@ -355,11 +377,28 @@ impl GpuRasterizer {
         n_sort: u64,
         keep: &mut Vec<wgpu::Buffer>,
     ) {
-        let mut stage = |k: u64, j: u64, local: bool, full: bool| {
-            let params = self.ctx.uniform_init(
-                "sort stage",
+        // Without a scratch pool the uniforms are fresh buffers: nothing can fail.
+        let _ = self.encode_sort_in(encoder, keys, n_sort, keep, None);
+    }
+
+    /// [`Self::encode_sort`] with its per-stage uniforms from `scratch`.
+    pub(super) fn encode_sort_in(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: &wgpu::Buffer,
+        n_sort: u64,
+        keep: &mut Vec<wgpu::Buffer>,
+        scratch: Option<&Scratch>,
+    ) -> Result<(), GpuError> {
+        let mut index = 0u32;
+        let mut stage = |k: u64, j: u64, local: bool, full: bool| -> Result<(), GpuError> {
+            let params = uniform_in(
+                &self.ctx,
+                scratch,
+                &format!("sort stage {index}"),
                 &u32_bytes(&[k as u32, j as u32, n_sort as u32, full as u32]),
-            );
+            )?;
+            index += 1;
             let pipeline = if local {
                 &self.sort_local
             } else {
@@ -379,18 +418,20 @@ impl GpuRasterizer {
             }
             drop(pass);
             keep.push(params);
+            Ok(())
         };
-        stage(0, 0, true, true);
+        stage(0, 0, true, true)?;
         let mut k = 2 * SORT_BLOCK;
         while k <= n_sort {
             let mut j = k / 2;
             while j >= SORT_BLOCK {
-                stage(k, j, false, false);
+                stage(k, j, false, false)?;
                 j /= 2;
             }
-            stage(k, 0, true, false);
+            stage(k, 0, true, false)?;
             k *= 2;
         }
+        Ok(())
     }
 
     /// Projection, prefix sum (and the 4-byte entry-count readback), key generation,
@@ -402,6 +443,7 @@ impl GpuRasterizer {
         &self,
         inputs: DeviceInputs,
         mut encoder: wgpu::CommandEncoder,
+        scratch: Option<&Scratch>,
     ) -> Result<DeviceForward, GpuError> {
         let DeviceInputs {
             camera,
@@ -420,8 +462,10 @@ impl GpuRasterizer {
         let grid = TileGrid::new(width, height);
         let pipelines = self.channel_pipelines(nc)?;
         let ctx = &self.ctx;
-        let frame0 = ctx.uniform_init(
-            "frame",
+        let frame0 = uniform_in(
+            ctx,
+            scratch,
+            "frame (projection)",
             &frame_bytes(
                 &frame,
                 mode.cutoff(),
@@ -432,10 +476,10 @@ impl GpuRasterizer {
                 0,
                 background,
             ),
-        );
-        let splats = ctx.storage("splats", (n * SSTRIDE * 4) as u64)?;
+        )?;
+        let splats = storage_in(ctx, scratch, "splats", (n * SSTRIDE * 4) as u64)?;
         // One extra zero at the end: its exclusive prefix sum is the entry count.
-        let counts = ctx.storage("tile counts", (n as u64 + 1) * 4)?;
+        let counts = storage_in(ctx, scratch, "tile counts", (n as u64 + 1) * 4)?;
         let mut keep = Vec::new();
         encoder.clear_buffer(&counts, 0, None);
         {
@@ -446,9 +490,9 @@ impl GpuRasterizer {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &pipelines.project, &bind, n as u64);
         }
-        self.encode_scan(&mut encoder, &counts, n as u64 + 1, &mut keep)?;
+        self.encode_scan_in(&mut encoder, &counts, n as u64 + 1, &mut keep, scratch, 0)?;
         // Copy the total to a small buffer so the readback needs no offset.
-        let total_buf = ctx.storage("entry count", 4)?;
+        let total_buf = storage_in(ctx, scratch, "entry count", 4)?;
         encoder.copy_buffer_to_buffer(&counts, 4 * n as u64, &total_buf, 0, 4);
         let total = bytes_u32(&ctx.read_back(encoder, &[(&total_buf, 4)])?[0])[0] as u64;
         drop(keep);
@@ -457,8 +501,10 @@ impl GpuRasterizer {
         if n_sort > u32::MAX as u64 / 2 {
             return Err(GpuError::TooLarge(format!("{total} tile entries")));
         }
-        let keys = ctx.storage("keys", n_sort * 16)?;
-        let frame = ctx.uniform_init(
+        let keys = storage_in(ctx, scratch, "keys", n_sort * 16)?;
+        let frame = uniform_in(
+            ctx,
+            scratch,
             "frame",
             &frame_bytes(
                 &frame,
@@ -470,11 +516,11 @@ impl GpuRasterizer {
                 n_sort as u32,
                 background,
             ),
-        );
-        let ranges = ctx.storage("tile ranges", grid.n_tiles() as u64 * 8)?;
+        )?;
+        let ranges = storage_in(ctx, scratch, "tile ranges", grid.n_tiles() as u64 * 8)?;
         let pixels = width as u64 * height as u64;
-        let color = ctx.storage("colour", pixels * nc as u64 * 4)?;
-        let px_state = ctx.storage("pixel state", pixels * 16)?;
+        let color = storage_in(ctx, scratch, "colour", pixels * nc as u64 * 4)?;
+        let px_state = storage_in(ctx, scratch, "pixel state", pixels * 16)?;
         let mut encoder = ctx.encoder("forward: sort and blend");
         {
             let bind = ctx.bind_group(&pipelines.keygen, &[&frame, &splats, &counts, &keys]);
@@ -483,7 +529,7 @@ impl GpuRasterizer {
         }
         // The sort's uniforms must outlive the submission: the state keeps them.
         let mut sort_uniforms = Vec::new();
-        self.encode_sort(&mut encoder, &keys, n_sort, &mut sort_uniforms);
+        self.encode_sort_in(&mut encoder, &keys, n_sort, &mut sort_uniforms, scratch)?;
         encoder.clear_buffer(&ranges, 0, None);
         {
             let bind = ctx.bind_group(&pipelines.ranges, &[&frame, &keys, &ranges]);
@@ -593,7 +639,7 @@ impl GpuRasterizer {
             gauss,
             chans,
         };
-        let fwd = self.forward_device(inputs, ctx.encoder("forward: project"))?;
+        let fwd = self.forward_device(inputs, ctx.encoder("forward: project"), None)?;
         let project_scan_ms = ms_since(t0);
         let t1 = Instant::now();
         let pixels = width as u64 * height as u64;
@@ -687,7 +733,7 @@ impl GpuRasterizer {
         let px_grad = ctx.storage_init("pixel grads", &f32_bytes(&px_grad));
         let ostride = OUT_FIXED + nc;
         let mut encoder = ctx.encoder("backward");
-        let out = self.encode_backward(st, forward.tile_entries, &px_grad, &mut encoder)?;
+        let out = self.encode_backward(st, forward.tile_entries, &px_grad, &mut encoder, None)?;
         let back = ctx.read_back(encoder, &[(&out, (n * ostride * 4) as u64)])?;
         let rows = bytes_f32(&back[0]);
         let mut g = GaussianGrads {
@@ -730,21 +776,29 @@ impl GpuRasterizer {
         tile_entries: usize,
         px_grad: &wgpu::Buffer,
         encoder: &mut wgpu::CommandEncoder,
+        scratch: Option<&Scratch>,
     ) -> Result<wgpu::Buffer, GpuError> {
         let (n, nc) = (st.n, st.nc);
         let ctx = &self.ctx;
         let rec = REC_CHANNELS + nc;
-        let acc = ctx.storage("grad accumulators", (n * rec * 4) as u64)?;
+        let acc = storage_in(ctx, scratch, "grad accumulators", (n * rec * 4) as u64)?;
         let ostride = OUT_FIXED + nc;
-        let out = ctx.storage("gaussian grads", (n * ostride * 4) as u64)?;
+        let out = storage_in(ctx, scratch, "gaussian grads", (n * ostride * 4) as u64)?;
         let p = &st.pipelines;
         // Deterministic mode: the blend kernel writes per-entry records, summed into `acc`
         // by the gather kernel.
         let records = match p.gather {
-            Some(_) => Some(ctx.storage("grad records", (tile_entries.max(1) * rec * 4) as u64)?),
+            Some(_) => Some(storage_in(
+                ctx,
+                scratch,
+                "grad records",
+                (tile_entries.max(1) * rec * 4) as u64,
+            )?),
             None => None,
         };
         encoder.clear_buffer(&acc, 0, None);
+        // Rows of culled or dropped Gaussians are left as zeros by the kernel.
+        encoder.clear_buffer(&out, 0, None);
         if let Some(r) = &records {
             encoder.clear_buffer(r, 0, None);
         }

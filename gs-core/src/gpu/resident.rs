@@ -15,8 +15,10 @@
 //! Parameters, moments and statistics come back only when the caller asks
 //! ([`ResidentModel::download`]: densification, checkpoints, the end of a run); after the
 //! host edits them, [`ResidentModel::upload`] puts them back (buffers grow with 50% head
-//! room, so densification reallocates rarely). Per-step scratch buffers of the rasterizer
-//! (splats, keys, tile ranges, accumulators) are still allocated per step.
+//! room, so densification reallocates rarely). The per-step scratch of the rasterizer and
+//! the loss (splats, keys, tile ranges, images, accumulators, the sort's uniforms) comes
+//! from a pool that keeps each buffer across steps and grows it when needed
+//! (`super::Scratch`): a steady-state step allocates no device memory.
 //!
 //! Invariants:
 //! - the same arithmetic as the CPU path: `sh.rs` colour and its backward, `optim.rs`'s
@@ -30,7 +32,9 @@ use std::sync::Arc;
 
 use super::loss::{combine, pixel_weights, GpuLoss};
 use super::raster::{DeviceInputs, GpuRasterizer};
-use super::{bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError};
+use super::{
+    bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError, Scratch,
+};
 use crate::camera::Camera;
 use crate::densify::DensifyStats;
 use crate::loss::ImageShape;
@@ -125,6 +129,8 @@ pub struct ResidentModel {
     n: usize,
     buffers: Buffers,
     images: Option<ImageBuffers>,
+    /// Per-step scratch of the rasterizer, the loss and the kernels' uniforms, reused.
+    scratch: Scratch,
     /// Adam steps taken (bias correction), mirrored to the host's `Adam::step`.
     adam_step: u64,
     beta1: f32,
@@ -211,6 +217,7 @@ impl ResidentModel {
             n: 0,
             buffers,
             images: None,
+            scratch: Scratch::default(),
             adam_step: 0,
             beta1: adam.beta1,
             beta2: adam.beta2,
@@ -447,7 +454,7 @@ impl ResidentModel {
         words[23] = self.eps.to_bits();
         words[24] = ((1.0 / bias2.sqrt()) as f32).to_bits();
         let ctx = self.raster.context();
-        let uniform = ctx.uniform_init("adam", &u32_bytes(&words));
+        let uniform = self.scratch.uniform(ctx, "adam", &u32_bytes(&words))?;
         let b = &self.buffers;
         let bind = ctx.bind_group(
             &self.pipelines.adam,
@@ -545,12 +552,17 @@ impl ResidentModel {
         ctx.queue
             .write_buffer(&images.weights, 0, &pad4(f32_bytes(&weights)));
         let n = self.n;
-        let step = ctx.uniform_init(
+        let step = self.scratch.uniform(
+            ctx,
             "resident step",
             &self.step_uniform(camera, degree, accumulate_stats),
-        );
-        let gauss = ctx.storage("gaussians", n as u64 * GSTRIDE * 4)?;
-        let chans = ctx.storage("channels", (n * CHANNELS) as u64 * 4)?;
+        )?;
+        let gauss = self
+            .scratch
+            .storage(ctx, "gaussians", n as u64 * GSTRIDE * 4)?;
+        let chans = self
+            .scratch
+            .storage(ctx, "channels", (n * CHANNELS) as u64 * 4)?;
         let mut encoder = ctx.encoder("resident forward");
         {
             let bind = ctx.bind_group(
@@ -569,7 +581,9 @@ impl ResidentModel {
             gauss,
             chans,
         };
-        let device = self.raster.forward_device(inputs, encoder)?;
+        let device = self
+            .raster
+            .forward_device(inputs, encoder, Some(&self.scratch))?;
         let project_ms = t0.elapsed().as_secs_f64() * 1e3;
         let t1 = std::time::Instant::now();
         let mut encoder = device.encoder;
@@ -587,10 +601,15 @@ impl ResidentModel {
             &images.weights,
             &images.px_grad,
             &b.flags,
+            Some(&self.scratch),
         )?;
-        let rows =
-            self.raster
-                .encode_backward(st, device.tile_entries, &images.px_grad, &mut encoder)?;
+        let rows = self.raster.encode_backward(
+            st,
+            device.tile_entries,
+            &images.px_grad,
+            &mut encoder,
+            Some(&self.scratch),
+        )?;
         {
             let bind = ctx.bind_group(
                 &self.pipelines.grads,
