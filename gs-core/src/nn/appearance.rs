@@ -206,6 +206,61 @@ impl AppearanceNet {
         d_features: &mut [f32],
         d_means: &mut [f32],
     ) -> Result<(), NnError> {
+        self.scatter(
+            gaussians,
+            None,
+            means,
+            camera_centre,
+            d_input,
+            d_features,
+            d_means,
+        )
+    }
+
+    /// [`AppearanceNet::scatter_input_grad`] reading the view-direction encoding from
+    /// `input`, this network's [`AppearanceNet::assemble_input`] output for the same
+    /// `gaussians`, means and camera, instead of recomputing its sines and cosines: the
+    /// same bits, cheaper. An input that was not assembled so gives a wrong gradient, not
+    /// an error.
+    #[allow(clippy::too_many_arguments)]
+    pub fn scatter_input_grad_from_input(
+        &self,
+        gaussians: &[u32],
+        input: &[f32],
+        means: &[f32],
+        camera_centre: [f32; 3],
+        d_input: &[f32],
+        d_features: &mut [f32],
+        d_means: &mut [f32],
+    ) -> Result<(), NnError> {
+        check_len(
+            "appearance input",
+            input.len(),
+            gaussians.len() * self.input_width(),
+        )?;
+        self.scatter(
+            gaussians,
+            Some(input),
+            means,
+            camera_centre,
+            d_input,
+            d_features,
+            d_means,
+        )
+    }
+
+    /// The scatter; `input` (when given) supplies the view encoding's sines and cosines.
+    #[allow(clippy::too_many_arguments)]
+    fn scatter(
+        &self,
+        gaussians: &[u32],
+        input: Option<&[f32]>,
+        means: &[f32],
+        camera_centre: [f32; 3],
+        d_input: &[f32],
+        d_features: &mut [f32],
+        d_means: &mut [f32],
+    ) -> Result<(), NnError> {
         let count = rows_of("appearance feature gradient", d_features, self.feature_dim)?;
         check_len("Gaussian means", means.len(), count * 3)?;
         check_len("Gaussian mean gradient", d_means.len(), count * 3)?;
@@ -226,18 +281,26 @@ impl AppearanceNet {
         let d_mean_rows: Vec<[f32; 3]> = d_input
             .par_chunks(width)
             .zip(gaussians.par_iter())
-            .map(|(row, &g)| {
+            .enumerate()
+            .map(|(r, (row, &g))| {
                 let g = g as usize;
-                let (view, r) = view_direction(&means[g * 3..g * 3 + 3], camera_centre);
+                let (view, r_m) = view_direction(&means[g * 3..g * 3 + 3], camera_centre);
                 let mut d_view = [0.0f32; 3];
-                self.encoding
-                    .backward_unchecked(&view, &row[view_start..], &mut d_view);
+                let d_code = &row[view_start..];
+                match input {
+                    Some(input) => self.encoding.backward_from_code(
+                        &input[r * width + view_start..(r + 1) * width],
+                        d_code,
+                        &mut d_view,
+                    ),
+                    None => self.encoding.backward_unchecked(&view, d_code, &mut d_view),
+                }
                 // d view / d mean = -(I - v v^T) / r.
                 let along = d_view[0] * view[0] + d_view[1] * view[1] + d_view[2] * view[2];
                 [
-                    -(d_view[0] - along * view[0]) / r,
-                    -(d_view[1] - along * view[1]) / r,
-                    -(d_view[2] - along * view[2]) / r,
+                    -(d_view[0] - along * view[0]) / r_m,
+                    -(d_view[1] - along * view[1]) / r_m,
+                    -(d_view[2] - along * view[2]) / r_m,
                 ]
             })
             .collect();
@@ -252,5 +315,63 @@ impl AppearanceNet {
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::SplitMix64;
+
+    #[test]
+    fn scatter_from_the_assembled_input_gives_the_same_bits() {
+        let net =
+            AppearanceNet::with_hidden_width(8, 16, PositionalEncoding::default(), 3).unwrap();
+        let mut rng = SplitMix64::new(22);
+        let count = 300;
+        let means: Vec<f32> = (0..count * 3).map(|_| rng.uniform(-1.5, 1.5)).collect();
+        let features: Vec<f32> = (0..count * 8).map(|_| rng.normal()).collect();
+        let gaussians: Vec<u32> = (0..500).map(|_| rng.below(count) as u32).collect();
+        let (sun, camera) = ([0.3, 0.4, -0.8], [0.5, -1.0, 6.0]);
+        let mut input = Vec::new();
+        net.assemble_input(&gaussians, &features, &means, sun, camera, &mut input)
+            .unwrap();
+        let d_input: Vec<f32> = (0..input.len()).map(|_| rng.normal()).collect();
+        let mut d_feat_a = vec![0.5f32; count * 8];
+        let mut d_mean_a = vec![-0.25f32; count * 3];
+        let (mut d_feat_b, mut d_mean_b) = (d_feat_a.clone(), d_mean_a.clone());
+        net.scatter_input_grad(
+            &gaussians,
+            &means,
+            camera,
+            &d_input,
+            &mut d_feat_a,
+            &mut d_mean_a,
+        )
+        .unwrap();
+        net.scatter_input_grad_from_input(
+            &gaussians,
+            &input,
+            &means,
+            camera,
+            &d_input,
+            &mut d_feat_b,
+            &mut d_mean_b,
+        )
+        .unwrap();
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&d_feat_a), bits(&d_feat_b));
+        assert_eq!(bits(&d_mean_a), bits(&d_mean_b));
+        assert!(d_mean_a.iter().any(|&v| v != -0.25));
+        let err = net.scatter_input_grad_from_input(
+            &gaussians,
+            &input[..input.len() - 1],
+            &means,
+            camera,
+            &d_input,
+            &mut d_feat_b,
+            &mut d_mean_b,
+        );
+        assert!(matches!(err, Err(NnError::Shape { .. })));
     }
 }

@@ -93,6 +93,24 @@ impl PositionalEncoding {
         }
     }
 
+    /// [`Self::backward_unchecked`] with the sines and cosines read from `code`, the output
+    /// of [`Self::encode_unchecked`] for the same `p` (the input assembly keeps it). Same
+    /// bits as recomputing them: the same arithmetic on the same values.
+    pub(crate) fn backward_from_code(&self, code: &[f32], d_out: &[f32], d_p: &mut [f32]) {
+        let two_l = 2 * self.num_frequencies;
+        for (c, dpc) in d_p.iter_mut().enumerate() {
+            let row = &d_out[c * two_l..(c + 1) * two_l];
+            let sin_cos = &code[c * two_l..(c + 1) * two_l];
+            let mut acc = 0.0f32;
+            for k in 0..self.num_frequencies {
+                let w = Self::omega(k);
+                let (s, co) = (sin_cos[2 * k], sin_cos[2 * k + 1]);
+                acc += w * (co * row[2 * k] - s * row[2 * k + 1]);
+            }
+            *dpc += acc;
+        }
+    }
+
     /// Adds the encoding's vector-Jacobian product to `d_p`, checking sizes and finiteness.
     pub fn backward(&self, p: &[f32], d_out: &[f32], d_p: &mut [f32]) -> Result<(), NnError> {
         check_len("encoding gradient output", d_out.len(), self.width(p.len()))?;

@@ -200,6 +200,56 @@ impl ShadowNet {
     ) -> Result<(), NnError> {
         let count = rows_of("shadow latent gradient", d_latents, self.latent_dim)?;
         check_len("Gaussian means", means.len(), count * 3)?;
+        check_indices(gaussians, count)?;
+        check_rows_finite("Gaussian mean", means, 3, gaussians)?;
+        self.scatter(
+            gaussians,
+            Codes::FromMeans(means, scene_box),
+            scene_box,
+            d_input,
+            d_latents,
+            d_means,
+        )
+    }
+
+    /// [`ShadowNet::scatter_input_grad`] reading the position encoding from `input`, this
+    /// network's [`ShadowNet::assemble_input`] output for the same `gaussians` and means,
+    /// instead of recomputing its sines and cosines: the same bits, cheaper. An input that
+    /// was not assembled so gives a wrong gradient, not an error.
+    pub fn scatter_input_grad_from_input(
+        &self,
+        gaussians: &[u32],
+        input: &[f32],
+        scene_box: &SceneBox,
+        d_input: &[f32],
+        d_latents: &mut [f32],
+        d_means: &mut [f32],
+    ) -> Result<(), NnError> {
+        check_len(
+            "shadow input",
+            input.len(),
+            gaussians.len() * self.input_width(),
+        )?;
+        self.scatter(
+            gaussians,
+            Codes::FromInput(input),
+            scene_box,
+            d_input,
+            d_latents,
+            d_means,
+        )
+    }
+
+    fn scatter(
+        &self,
+        gaussians: &[u32],
+        codes: Codes,
+        scene_box: &SceneBox,
+        d_input: &[f32],
+        d_latents: &mut [f32],
+        d_means: &mut [f32],
+    ) -> Result<(), NnError> {
+        let count = rows_of("shadow latent gradient", d_latents, self.latent_dim)?;
         check_len("Gaussian mean gradient", d_means.len(), count * 3)?;
         let width = self.input_width();
         check_len(
@@ -209,23 +259,30 @@ impl ShadowNet {
         )?;
         check_indices(gaussians, count)?;
         check_finite("shadow input gradient", d_input)?;
-        check_rows_finite("Gaussian mean", means, 3, gaussians)?;
 
         let enc_width = self.encoding.width(3);
+        let code_range = 1 + enc_width..1 + 2 * enc_width;
         let latent_dim = self.latent_dim;
         let inverse_extent = scene_box.inverse_extent();
         let d_mean_rows: Vec<[f32; 3]> = d_input
             .par_chunks(width)
             .zip(gaussians.par_iter())
-            .map(|(row, &g)| {
-                let g = g as usize;
-                let p = scene_box.normalise(&means[g * 3..g * 3 + 3]);
+            .enumerate()
+            .map(|(r, (row, &g))| {
                 let mut d_p = [0.0f32; 3];
-                self.encoding.backward_unchecked(
-                    &p,
-                    &row[1 + enc_width..1 + 2 * enc_width],
-                    &mut d_p,
-                );
+                let d_code = &row[code_range.clone()];
+                match codes {
+                    Codes::FromInput(input) => self.encoding.backward_from_code(
+                        &input[r * width..(r + 1) * width][code_range.clone()],
+                        d_code,
+                        &mut d_p,
+                    ),
+                    Codes::FromMeans(means, scene_box) => {
+                        let g = g as usize;
+                        let p = scene_box.normalise(&means[g * 3..g * 3 + 3]);
+                        self.encoding.backward_unchecked(&p, d_code, &mut d_p);
+                    }
+                }
                 std::array::from_fn(|a| d_p[a] * inverse_extent[a])
             })
             .collect();
@@ -243,5 +300,88 @@ impl ShadowNet {
             }
         }
         Ok(())
+    }
+}
+
+/// Where the scatter gets the position encoding's sines and cosines.
+#[derive(Clone, Copy)]
+enum Codes<'a> {
+    /// Recomputed from the means (count x 3) and the box.
+    FromMeans(&'a [f32], &'a SceneBox),
+    /// Read from the assembled input (rows x input width).
+    FromInput(&'a [f32]),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::SplitMix64;
+
+    #[test]
+    fn scatter_from_the_assembled_input_gives_the_same_bits() {
+        let net = ShadowNet::new(6, PositionalEncoding::default(), 3).unwrap();
+        let scene_box = SceneBox::new([-1.5, -0.8, -0.7], [1.4, 0.9, 0.6]).unwrap();
+        let mut rng = SplitMix64::new(21);
+        let count = 300;
+        let means: Vec<f32> = (0..count * 3).map(|_| rng.uniform(-1.6, 1.6)).collect();
+        let latents: Vec<f32> = (0..count * 6).map(|_| rng.normal()).collect();
+        let visibility: Vec<f32> = (0..count).map(|_| rng.next_f32()).collect();
+        // Any order, with repeats.
+        let gaussians: Vec<u32> = (0..500).map(|_| rng.below(count) as u32).collect();
+        let mut input = Vec::new();
+        let sun = [0.2, -0.5, 0.8];
+        net.assemble_input(
+            &gaussians,
+            &visibility,
+            &latents,
+            &means,
+            sun,
+            &scene_box,
+            &mut input,
+        )
+        .unwrap();
+        let d_input: Vec<f32> = (0..input.len()).map(|_| rng.normal()).collect();
+        let seed_grads = |rng: &mut SplitMix64| -> (Vec<f32>, Vec<f32>) {
+            (
+                (0..count * 6).map(|_| rng.normal()).collect(),
+                (0..count * 3).map(|_| rng.normal()).collect(),
+            )
+        };
+        let (mut d_lat_a, mut d_mean_a) = seed_grads(&mut SplitMix64::new(1));
+        let (mut d_lat_b, mut d_mean_b) = seed_grads(&mut SplitMix64::new(1));
+        net.scatter_input_grad(
+            &gaussians,
+            &means,
+            &scene_box,
+            &d_input,
+            &mut d_lat_a,
+            &mut d_mean_a,
+        )
+        .unwrap();
+        net.scatter_input_grad_from_input(
+            &gaussians,
+            &input,
+            &scene_box,
+            &d_input,
+            &mut d_lat_b,
+            &mut d_mean_b,
+        )
+        .unwrap();
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&d_lat_a), bits(&d_lat_b));
+        assert_eq!(bits(&d_mean_a), bits(&d_mean_b));
+        assert_ne!(d_mean_a, seed_grads(&mut SplitMix64::new(1)).1);
+        // A short input is a shape error, nothing written.
+        let before = d_mean_b.clone();
+        let err = net.scatter_input_grad_from_input(
+            &gaussians,
+            &input[1..],
+            &scene_box,
+            &d_input,
+            &mut d_lat_b,
+            &mut d_mean_b,
+        );
+        assert!(matches!(err, Err(NnError::Shape { .. })));
+        assert_eq!(d_mean_b, before);
     }
 }

@@ -951,8 +951,10 @@ impl SunAwareModel {
                 // The rasterizer gives features no gradient: the group is still zeros, so
                 // the scatter adds straight into it (as into a fresh zero buffer).
                 let mut d_means = vec![0.0f32; n * 3];
-                net.scatter_input_grad(
+                // The view encoding comes from the assembled input (same bits, no sin/cos).
+                net.scatter_input_grad_from_input(
                     &pass.network_list,
+                    &phi.input,
                     p.get(Param::Mean),
                     cam_pos.to_array(),
                     &d_input,
@@ -999,9 +1001,9 @@ impl SunAwareModel {
             )?;
             let mut d_latents = vec![0.0f32; p.get(Param::ShadowLatent).len()];
             let mut d_means = vec![0.0f32; n * 3];
-            net.scatter_input_grad(
+            net.scatter_input_grad_from_input(
                 &pass.network_list,
-                p.get(Param::Mean),
+                &psi.input,
                 &self.scene_box,
                 &d_input,
                 &mut d_latents,
