@@ -385,15 +385,33 @@ fn one_resident_step_matches_the_cpu_step() {
     assert!(m_beyond * 1000 <= values, "{m_beyond} of {values}");
 }
 
-/// A short run with densification inside it, on each backend from the same start, scored
-/// on the CPU: both learn and end within 0.1 dB. Densification runs on the host from the
-/// device's statistics (read back at the interval) and re-uploads the grown model.
+/// A short run with densification and an opacity reset inside it, masked views, on each
+/// backend from the same start, scored on the CPU: both learn and end within 0.1 dB.
+/// Densification and the reset run on the host from the device's state and statistics
+/// (read back at those steps) and re-upload the edited model.
 #[test]
 fn resident_training_with_densification_reaches_the_same_psnr() {
     let Some(gpu) = gpu() else {
         return;
     };
-    let (_, views) = scene(6, 64);
+    let (_, mut views) = scene(6, 64);
+    // A soft mask (full weight in the middle, 0.3 at the rim) so the loss kernels' pixel
+    // weights are exercised through the trainer.
+    for v in &mut views {
+        let (w, h) = (64, 64);
+        v.mask = Some(
+            (0..w * h)
+                .map(|p| {
+                    let (x, y) = (p % w, p / w);
+                    if x < 8 || y < 8 || x >= w - 8 || y >= h - 8 {
+                        0.3
+                    } else {
+                        1.0
+                    }
+                })
+                .collect(),
+        );
+    }
     let start = random_in_sphere(200, Vec3::ZERO, 1.0, ModelLayout::sh(0), 5)
         .unwrap()
         .model;
@@ -402,7 +420,8 @@ fn resident_training_with_densification_reaches_the_same_psnr() {
         densify_from_iter: 30,
         densify_until_iter: 130,
         densify_interval: 50,
-        opacity_reset_interval: 0,
+        // An opacity reset at 70 edits the host copy too (synced, reset, re-uploaded).
+        opacity_reset_interval: 70,
         seed: 3,
         ..TrainConfig::default()
     };
@@ -414,8 +433,11 @@ fn resident_training_with_densification_reaches_the_same_psnr() {
     let cpu = train_with_backend(start.clone(), &views, &config, Backend::Cpu, |_| {}).unwrap();
     let cpu_s = t.elapsed().as_secs_f64();
     let t = std::time::Instant::now();
-    let wgpu =
-        train_with_backend(start.clone(), &views, &config, Backend::Wgpu(gpu), |_| {}).unwrap();
+    let mut resets = 0;
+    let wgpu = train_with_backend(start.clone(), &views, &config, Backend::Wgpu(gpu), |s| {
+        resets += s.opacity_reset as usize;
+    })
+    .unwrap();
     let gpu_s = t.elapsed().as_secs_f64();
     let (p0, pc, pg) = (psnr(&start), psnr(&cpu.model), psnr(&wgpu.model));
     let sizes = |r: &gs_core::train::TrainResult| {
@@ -434,6 +456,7 @@ fn resident_training_with_densification_reaches_the_same_psnr() {
     );
     assert_eq!(wgpu.skipped_non_finite_steps, 0);
     assert_eq!(wgpu.densify_reports.len(), 2);
+    assert_eq!(resets, 1, "the opacity reset did not happen on wgpu");
     assert_eq!(cpu.densify_reports.len(), 2);
     assert!(
         wgpu.model.len() != start.len(),
