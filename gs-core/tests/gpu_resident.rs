@@ -465,3 +465,33 @@ fn resident_training_with_densification_reaches_the_same_psnr() {
     assert!(pc > p0 + 3.0, "the run did not learn: {p0} -> {pc}");
     assert!((pc - pg).abs() <= 0.1, "cpu {pc} dB vs wgpu {pg} dB");
 }
+
+/// An empty model (everything pruned) steps on the device as on the CPU: the loss is the
+/// background's, nothing is refused, and the host copy syncs to zero rows.
+#[test]
+fn an_empty_model_steps_like_the_cpu() {
+    let Some(gpu) = gpu() else {
+        return;
+    };
+    let (_, views) = scene(1, 32);
+    let empty = GaussianModel::new(ModelLayout::sh(1)).unwrap();
+    let config = TrainConfig::default();
+    let mut cpu = Trainer::new(empty.clone(), &config, 3.0).unwrap();
+    let mut wgpu = Trainer::new(empty, &config, 3.0)
+        .unwrap()
+        .with_backend(Backend::Wgpu(gpu))
+        .unwrap();
+    for _ in 0..2 {
+        let a = cpu.step(&views[0], 0).unwrap();
+        let b = wgpu.step(&views[0], 0).unwrap();
+        assert!(!a.skipped && !b.skipped);
+        assert!(
+            (a.loss - b.loss).abs() <= 1e-5 * a.loss,
+            "{} vs {}",
+            a.loss,
+            b.loss
+        );
+    }
+    assert_eq!(wgpu.sync_model().unwrap().len(), 0);
+    assert_eq!(wgpu.optimiser().step, cpu.optimiser().step);
+}
