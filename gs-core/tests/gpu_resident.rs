@@ -164,7 +164,7 @@ fn adam_kernel_matches_optim_rs() {
     assert_eq!(again_adam, got_adam);
 }
 
-/// The loss kernels against loss.rs `photometric_loss` on random images (values in
+/// The loss kernels against loss.rs `photometric_loss` on random 37x29 and 130x70 images (values in
 /// [0, 1], a quarter of them equal to the target so the L1 sign's zero is exercised), with
 /// and without a soft mask, at lambda 0.2 and 1.
 ///
@@ -175,13 +175,35 @@ fn adam_kernel_matches_optim_rs() {
 #[test]
 fn loss_kernels_match_the_cpu_loss() {
     use gs_core::gpu::GpuLoss;
-    use gs_core::loss::{photometric_loss, ImageShape};
+    use gs_core::loss::ImageShape;
     let Some(gpu) = gpu() else {
         return;
     };
     let ctx = gpu.context();
     let kernels = GpuLoss::new(ctx, 3).unwrap();
+    // 130x70 spans three chunks of the totals' first stage (4,096 pixels each).
+    for (width, height) in [(37, 29), (130, 70)] {
+        check_loss_kernels(&kernels, ctx, ImageShape::new(width, height, 3));
+    }
     let shape = ImageShape::new(37, 29, 3);
+    let mut rng = SplitMix64::new(12);
+    let target: Vec<f32> = (0..shape.values()).map(|_| rng.next_f32()).collect();
+    // A non-finite render is refused, as the trainer refuses it on the CPU.
+    let mut bad = target.clone();
+    bad[40] = f32::INFINITY;
+    assert!(kernels
+        .evaluate(ctx, &bad, &target, None, shape, 0.2)
+        .unwrap()
+        .is_none());
+}
+
+/// One shape of [`loss_kernels_match_the_cpu_loss`]: three mask/lambda cases.
+fn check_loss_kernels(
+    kernels: &gs_core::gpu::GpuLoss,
+    ctx: &GpuContext,
+    shape: gs_core::loss::ImageShape,
+) {
+    use gs_core::loss::photometric_loss;
     let mut rng = SplitMix64::new(12);
     let target: Vec<f32> = (0..shape.values()).map(|_| rng.next_f32()).collect();
     let rendered: Vec<f32> = target
@@ -210,7 +232,7 @@ fn loss_kernels_match_the_cpu_loss() {
         ] {
             assert!(
                 (a - b).abs() <= 1e-5 * a.abs() + 1e-6,
-                "{what}: cpu {a} gpu {b} (mask {}, lambda {lambda})",
+                "{what}: cpu {a} gpu {b} (mask {}, lambda {lambda}, {shape:?})",
                 mask.is_some()
             );
         }
@@ -218,18 +240,11 @@ fn loss_kernels_match_the_cpu_loss() {
         for (i, (a, b)) in cpu.d_rendered.iter().zip(&got.d_rendered).enumerate() {
             assert!(
                 (a - b).abs() <= 1e-3 * a.abs() + 1e-4 * max_g,
-                "d_rendered[{i}]: cpu {a} gpu {b} (mask {}, lambda {lambda})",
+                "d_rendered[{i}]: cpu {a} gpu {b} (mask {}, lambda {lambda}, {shape:?})",
                 mask.is_some()
             );
         }
     }
-    // A non-finite render is refused, as the trainer refuses it on the CPU.
-    let mut bad = rendered.clone();
-    bad[40] = f32::INFINITY;
-    assert!(kernels
-        .evaluate(ctx, &bad, &target, None, shape, 0.2)
-        .unwrap()
-        .is_none());
 }
 
 /// A small scene: a ground-truth model, `n_views` views around it at `size` pixels.

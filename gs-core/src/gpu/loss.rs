@@ -3,10 +3,11 @@
 //! straight into the rasterizer backward's pixel-gradient rows, and the two totals
 //! (weighted SSIM and L1 sums) as the only values meant to come back ([`GpuLoss`]).
 //!
-//! Five kernels (shaders/loss_*.wgsl), the same passes as loss.rs `weighted_ssim`: moments
+//! Six kernels (shaders/loss_*.wgsl), the same passes as loss.rs `weighted_ssim`: moments
 //! filtered along rows; along columns into the SSIM map and its derivatives; those along
-//! rows; along columns and combined with the L1 sign into `dL/dx`; and a one-workgroup,
-//! fixed-order sum of the per-pixel weighted values.
+//! rows; along columns and combined with the L1 sign into `dL/dx`; and a two-stage,
+//! fixed-order sum of the per-pixel weighted values (partial sums over chunks of at least
+//! 4,096 pixels, at most 1,024 of them, then one workgroup over the partials).
 //!
 //! Invariants:
 //! - the weights are loss.rs's `m_p / (C sum m)` (1 / (C N) without a mask), computed on
@@ -27,7 +28,10 @@ const LOSS_MOMENTS: &str = include_str!("shaders/loss_moments.wgsl");
 const LOSS_MAP: &str = include_str!("shaders/loss_map.wgsl");
 const LOSS_GRAD_H: &str = include_str!("shaders/loss_grad_h.wgsl");
 const LOSS_GRAD: &str = include_str!("shaders/loss_grad.wgsl");
+const LOSS_PARTIAL: &str = include_str!("shaders/loss_partial.wgsl");
 const LOSS_SUM: &str = include_str!("shaders/loss_sum.wgsl");
+/// Pixels per workgroup of the totals' first stage (at most 1024 workgroups).
+const SUM_CHUNK_MIN: usize = 4096;
 
 /// Compiled loss kernels for one channel count.
 pub struct GpuLoss {
@@ -36,6 +40,7 @@ pub struct GpuLoss {
     map: wgpu::ComputePipeline,
     grad_h: wgpu::ComputePipeline,
     grad: wgpu::ComputePipeline,
+    partial: wgpu::ComputePipeline,
     sum: wgpu::ComputePipeline,
 }
 
@@ -97,6 +102,7 @@ impl GpuLoss {
             map: build("loss_map", LOSS_MAP)?,
             grad_h: build("loss_grad_h", LOSS_GRAD_H)?,
             grad: build("loss_grad", LOSS_GRAD)?,
+            partial: build("loss_partial", LOSS_PARTIAL)?,
             sum: build("loss_sum", LOSS_SUM)?,
         })
     }
@@ -136,7 +142,11 @@ impl GpuLoss {
         let (w, h, nc) = (shape.width, shape.height, shape.channels);
         let n = (w * h) as u64;
         let taps = ssim_window();
+        let chunk = (w * h).div_ceil(1024).max(SUM_CHUNK_MIN);
+        let groups = (w * h).div_ceil(chunk).max(1);
         let mut words = [0u32; 20];
+        words[5] = groups as u32;
+        words[6] = chunk as u32;
         words[0] = w as u32;
         words[1] = h as u32;
         words[2] = lambda_dssim.to_bits();
@@ -151,6 +161,12 @@ impl GpuLoss {
         let grads = storage_in(ctx, scratch, "loss ssim derivatives", values * 3 * 4)?;
         let grads_h = storage_in(ctx, scratch, "loss ssim derivatives (rows)", values * 3 * 4)?;
         let maps = storage_in(ctx, scratch, "loss weighted maps", values * 2 * 4)?;
+        let partials = storage_in(
+            ctx,
+            scratch,
+            "loss partial sums",
+            (groups * 2 * nc * 4) as u64,
+        )?;
         let totals = storage_in(ctx, scratch, "loss totals", 8)?;
         let mut run = |pipeline: &wgpu::ComputePipeline, buffers: &[&wgpu::Buffer]| {
             let bind = ctx.bind_group(pipeline, buffers);
@@ -172,7 +188,14 @@ impl GpuLoss {
             ],
         );
         {
-            let bind = ctx.bind_group(&self.sum, &[&uniform, &maps, &totals]);
+            let bind = ctx.bind_group(&self.partial, &[&uniform, &maps, &partials]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.partial);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(groups as u32, 1, 1);
+        }
+        {
+            let bind = ctx.bind_group(&self.sum, &[&uniform, &partials, &totals]);
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.sum);
             pass.set_bind_group(0, &bind, &[]);
@@ -180,7 +203,7 @@ impl GpuLoss {
         }
         Ok(LossBuffers {
             totals,
-            _temporaries: vec![uniform, moments, grads, grads_h, maps],
+            _temporaries: vec![uniform, moments, grads, grads_h, maps, partials],
         })
     }
 

@@ -13,9 +13,10 @@ struct LossUniform {
     lambda: f32,
     c1: f32,
     c2: f32,
+    // Totals: workgroups of the partial-sum pass and the pixels each one sums.
+    sum_groups: u32,
+    sum_chunk: u32,
     pad0: u32,
-    pad1: u32,
-    pad2: u32,
     taps0: vec4<f32>,
     taps1: vec4<f32>,
     taps2: vec4<f32>,

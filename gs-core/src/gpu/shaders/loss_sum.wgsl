@@ -1,23 +1,22 @@
-// Totals: one workgroup sums each of the 2 NC planes of `maps` (weighted SSIM per
-// channel, then weighted |x - y| per channel) in a fixed order (thread-strided partial
-// sums, then a tree), so the result is the same bits on every run. totals[0]: SSIM,
-// totals[1]: L1 (channel totals added in channel order, as loss.rs does).
+// Totals, stage 2: one workgroup sums each plane's partial sums (loss_partial.wgsl) in a
+// fixed order (thread-strided, then a tree), so the result is the same bits on every
+// run. totals[0]: SSIM, totals[1]: L1 (channel totals added in channel order, as loss.rs
+// does).
 
 @group(0) @binding(0) var<uniform> lu: LossUniform;
-@group(0) @binding(1) var<storage, read> maps: array<f32>;
+@group(0) @binding(1) var<storage, read> partials: array<f32>;
 @group(0) @binding(2) var<storage, read_write> totals: array<f32>;
 
 var<workgroup> partial: array<f32, 256>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(local_invocation_index) li: u32) {
-    let n = lu.width * lu.height;
     var ssim_total = 0.0;
     var l1_total = 0.0;
     for (var plane = 0u; plane < 2u * NC; plane++) {
         var acc = 0.0;
-        for (var p = li; p < n; p += 256u) {
-            acc += maps[plane * n + p];
+        for (var j = li; j < lu.sum_groups; j += 256u) {
+            acc += partials[plane * lu.sum_groups + j];
         }
         partial[li] = acc;
         workgroupBarrier();
