@@ -954,15 +954,25 @@ fn hull_figure_row(scene: &SceneData, preset: &Preset) -> Result<FigureRow, Expe
 }
 
 /// Writes `OUT/hull.png` (true surface samples beside the hull of each scenario) without
-/// training; returns the hull reports.
+/// training; returns the hull reports. The hull is drawn as the first hull start in
+/// `job.inits` makes it (surface or volume points; plain `hull` when there is none).
 pub fn write_hull_figure(
     job: &InitAblationJob,
     progress: &mut dyn FnMut(&str),
 ) -> Result<Vec<(String, HullReport)>, ExperimentError> {
     let out = &job.out_dir;
     std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    let mut variant = HullVariant::default();
+    for name in &job.inits {
+        if let (InitKind::Hull, v) = parse_init_variant(name)? {
+            variant = v;
+            break;
+        }
+    }
     let preset = Preset {
         init: InitKind::Hull,
+        hull_grey_colours: job.preset.hull_grey_colours || variant.grey,
+        hull_volume: job.preset.hull_volume || variant.volume,
         ..job.preset.clone()
     };
     let mut data = Vec::new();
@@ -977,8 +987,16 @@ pub fn write_hull_figure(
         )?;
         let (_, report) = hull_initialisation(&scene, &preset)?;
         progress(&format!(
-            "{}: hull from frames {:?}, {} points, mean {:.3} m from the true surface",
-            scene.name, report.frames, report.points, report.mean_distance_to_surface_m
+            "{}: hull from frames {:?}, {} points ({} occupied, {} surface voxels of {:.3} m), mean {:.3} m from the true surface, {:.1} % farther than {:.2} m",
+            scene.name,
+            report.frames,
+            report.points,
+            report.occupied_voxels,
+            report.surface_voxels,
+            report.voxel_m,
+            report.mean_distance_to_surface_m,
+            100.0 * report.far_fraction,
+            far_distance_m(&scene, &preset)
         ));
         reports.push((scene.name.clone(), report));
         data.push(hull_figure_row(&scene, &preset)?);
