@@ -193,17 +193,24 @@ mod x86 {
         out: &mut Vec<u32>,
     ) -> PackedA {
         let pairs = k.div_ceil(2);
-        out.clear();
+        // Every word is written below, so no zeroing.
         out.resize(m * pairs, 0);
         if ts == 1 {
             for (i, words) in out.chunks_exact_mut(pairs).enumerate() {
                 let row = &a[i * is..i * is + k];
-                let full = k / 2;
-                for (w, two) in words.iter_mut().zip(row.chunks_exact(2)) {
-                    *w = pair(two[0], two[1]);
+                // A row-major row's pairs are its elements in order: convert element by
+                // element into the words' halves (little-endian: low half first), a loop
+                // that vectorises, unlike assembling each word from two elements.
+                // SAFETY: `u16` has no stricter alignment than `u32`, the view covers the
+                // same `2 * pairs` halves of `words`, which it borrows exclusively.
+                let halves = unsafe {
+                    std::slice::from_raw_parts_mut(words.as_mut_ptr() as *mut u16, 2 * pairs)
+                };
+                for (h, &v) in halves.iter_mut().zip(row) {
+                    *h = bf16_bits(v);
                 }
                 if k % 2 == 1 {
-                    words[full] = pair(row[k - 1], 0.0);
+                    halves[k] = 0;
                 }
             }
             PackedA {
@@ -241,7 +248,7 @@ mod x86 {
     fn pack_b(k: usize, n: usize, (b, ts, js): (&[f32], usize, usize), out: &mut Vec<u32>) {
         let pairs = k.div_ceil(2);
         let panels = n.div_ceil(PANEL_COLS);
-        out.clear();
+        // Every word is written below (padding columns with zeros), so no zeroing.
         out.resize(panels * pairs * PANEL_COLS, 0);
         let at = |t: usize, j: usize| if t < k { b[t * ts + j * js] } else { 0.0 };
         for (panel, words) in out.chunks_exact_mut(pairs * PANEL_COLS).enumerate() {
@@ -259,6 +266,7 @@ mod x86 {
                         *w = pair(at(2 * p, j0 + jj), at(2 * p + 1, j0 + jj));
                     }
                 }
+                row[cols..].fill(0);
             }
         }
     }
