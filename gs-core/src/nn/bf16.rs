@@ -17,20 +17,27 @@
 //! a fixed blocking (8 rows x 32 columns per micro-tile, the reduction in chunks of 256
 //! whose partial sums pass through `C` unchanged, so the chunking does not change the
 //! bits), so results are bit-reproducible for fixed shapes; callers parallelise over fixed
-//! row blocks. Operands are packed into
-//! thread-local scratch on every call (the weight matrix too: measured, it is a few percent
-//! of a 2048-row block's product).
+//! row blocks. Operands are packed into thread-local scratch on every call (the weight
+//! matrix too: 10 us of a 2048 x 256 x 256 product's ~1250 us). The intrinsics are stable
+//! from Rust 1.89.
 
 use super::error::NnError;
 
 /// The bfloat16 bits of `x`, rounded to nearest with ties to even (the upper half of the
 /// f32 after rounding). Finite inputs whose magnitude rounds past bfloat16's largest value
-/// become infinities, as in hardware; NaN is not expected (the networks reject it).
+/// become infinities, as in hardware; infinities stay infinities and NaN stays a (quiet)
+/// NaN, so the networks' finiteness checks still see a non-finite value downstream.
 #[inline]
 pub fn bf16_bits(x: f32) -> u16 {
     let bits = x.to_bits();
     let rounding = 0x7FFF + ((bits >> 16) & 1);
-    (bits.wrapping_add(rounding) >> 16) as u16
+    let rounded = (bits.wrapping_add(rounding) >> 16) as u16;
+    // Rounding a NaN's payload could carry into the sign and give a number.
+    if x.is_nan() {
+        (bits >> 16) as u16 | 0x0040
+    } else {
+        rounded
+    }
 }
 
 /// `x` rounded to the nearest bfloat16 (ties to even), as an f32.
@@ -448,6 +455,11 @@ mod tests {
         // Carry into the exponent, and overflow to infinity past the largest bf16.
         assert_eq!(round_to_bf16(2.0 - step / 4.0), 2.0);
         assert_eq!(round_to_bf16(f32::MAX), f32::INFINITY);
+        assert_eq!(round_to_bf16(f32::NEG_INFINITY), f32::NEG_INFINITY);
+        // NaN stays NaN, even with a payload whose rounding would carry into the sign.
+        assert!(round_to_bf16(f32::NAN).is_nan());
+        assert!(round_to_bf16(f32::from_bits(0x7FFF_FFFF)).is_nan());
+        assert!(round_to_bf16(f32::from_bits(0xFFFF_FFFF)).is_nan());
         // Relative error at most 2^-8 (8 significant bits) over many magnitudes.
         let mut rng = SplitMix64::new(3);
         for _ in 0..10_000 {
