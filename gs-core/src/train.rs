@@ -805,9 +805,9 @@ impl Trainer {
 
     /// The step's arithmetic on the device: the same stages as [`Self::cpu_arithmetic`],
     /// the loss included, as kernels on the resident buffers; the target image goes down
-    /// and the loss's totals and two counters come back. Timings: `forward_ms` is the part
-    /// up to the entry-count readback (SH colour, projection, prefix sum); sort, blend,
-    /// loss, backward and Adam are one submission, counted in `backward_ms`.
+    /// and the loss's totals and a few counters come back. Timings: `forward_ms` is the
+    /// host's recording (and, on a first step, the entry-count readback); the device work
+    /// of the whole step, one submission, is counted in `backward_ms`.
     #[cfg(feature = "wgpu")]
     fn resident_arithmetic(
         &mut self,

@@ -510,3 +510,82 @@ fn an_empty_model_steps_like_the_cpu() {
     assert_eq!(wgpu.sync_model().unwrap().len(), 0);
     assert_eq!(wgpu.optimiser().step, cpu.optimiser().step);
 }
+
+/// The resident step sizes its sort from the previous step's entry count (no mid-step
+/// readback). A view with many more (tile, Gaussian) pairs than the last overflows that
+/// capacity: the attempt must change nothing and be redone. Model A steps on a far view
+/// (all learning rates 0, no statistics: its state stays the start's) and then on a near
+/// one (overflow, redone); model B steps on the near view first (exact count read back).
+/// The forward is deterministic, so both near steps must give the same loss bits, entry
+/// count, visibility counts and radii, and A must have counted two Adam steps, not three.
+#[test]
+fn a_sort_overflow_is_redone_without_applying_anything() {
+    use gs_core::gpu::{ResidentStepInput, ResidentStepReport};
+    use gs_core::raster::RasterSettings;
+    let Some(gpu) = gpu() else {
+        return;
+    };
+    let start = random_in_sphere(400, Vec3::ZERO, 1.0, ModelLayout::sh(0), 5)
+        .unwrap()
+        .model;
+    let k = Intrinsics::from_fov_x(45f32.to_radians(), 128, 128);
+    let far = Camera::look_at(k, Vec3::new(12.0, 0.0, 0.0), Vec3::ZERO, Vec3::Z);
+    let near = Camera::look_at(k, Vec3::new(2.5, 0.0, 0.0), Vec3::ZERO, Vec3::Z);
+    let target = vec![0.3f32; 128 * 128 * 3];
+    let settings = RasterSettings {
+        background: vec![0.0; 3],
+        ..RasterSettings::default()
+    };
+    let frozen = [0.0f32; Param::COUNT];
+    let mut rates = [0.0f32; Param::COUNT];
+    rates[Param::OpacityLogit.index()] = 0.025;
+    rates[Param::ShDc.index()] = 2.5e-3;
+    let adam = Adam::new(&start.params);
+    let stats = DensifyStats::new(start.len());
+    let new_model = || ResidentModel::new(gpu.clone(), &start.params, &adam, &stats).unwrap();
+    let step = |m: &mut ResidentModel, camera: &Camera, rates: &[f32; Param::COUNT]| {
+        m.step(&ResidentStepInput {
+            camera,
+            settings: &settings,
+            degree: 0,
+            accumulate_stats: rates.iter().any(|&r| r > 0.0),
+            target: &target,
+            mask: None,
+            lambda_dssim: 0.2,
+            rates,
+        })
+        .unwrap()
+    };
+    let (mut a, mut b) = (new_model(), new_model());
+    let a_far: ResidentStepReport = step(&mut a, &far, &frozen);
+    let a_near = step(&mut a, &near, &rates);
+    let b_near = step(&mut b, &near, &rates);
+    eprintln!(
+        "tile entries: far {}, near {}",
+        a_far.tile_entries, a_near.tile_entries
+    );
+    assert_eq!(a_far.sort_retries, 0);
+    assert_eq!(a_near.sort_retries, 1, "the near view did not overflow");
+    assert_eq!(b_near.sort_retries, 0);
+    for r in [&a_far, &a_near, &b_near] {
+        assert!(!r.refused && !r.sort_overflow, "{r:?}");
+    }
+    assert_eq!(a_near.tile_entries, b_near.tile_entries);
+    assert_eq!(a_near.loss.to_bits(), b_near.loss.to_bits());
+    let download = |m: &ResidentModel| {
+        let mut params = start.params.clone();
+        let mut adam = Adam::new(&params);
+        let mut stats = DensifyStats::new(start.len());
+        m.download(&mut params, &mut adam, &mut stats).unwrap();
+        (adam.step, stats)
+    };
+    let ((steps_a, stats_a), (steps_b, stats_b)) = (download(&a), download(&b));
+    assert_eq!(
+        (steps_a, steps_b),
+        (2, 1),
+        "an overflowed attempt was applied"
+    );
+    assert_eq!(stats_a.visible_count, stats_b.visible_count);
+    assert_eq!(stats_a.max_radius_px, stats_b.max_radius_px);
+    assert!(stats_a.visible_count.iter().any(|&c| c == 1));
+}

@@ -154,7 +154,12 @@ pub(super) struct DeviceForward {
     pub color: wgpu::Buffer,
     /// Sort and blend, recorded and not yet submitted.
     pub encoder: wgpu::CommandEncoder,
-    pub tile_entries: usize,
+    /// The entry count, when it was read back (no `capacity`).
+    pub tile_entries: Option<usize>,
+    /// Keys the sort ran over (a power of two).
+    pub n_sort: u64,
+    /// Scanned tile counts: `counts[n]` is the entry count.
+    pub counts: wgpu::Buffer,
     /// Uniforms the recorded sort reads, held until the caller submits.
     pub _sort_uniforms: Vec<wgpu::Buffer>,
 }
@@ -204,6 +209,9 @@ fn check_len(what: &str, expected: usize, got: usize) -> Result<(), GpuError> {
         )))
     }
 }
+
+/// `Frame::n_entries` when the entry count stays on the device (common.wgsl).
+const ENTRIES_ON_DEVICE: u32 = u32::MAX;
 
 /// The frame uniform (layout of `Frame` in common.wgsl, 144 bytes).
 #[allow(clippy::too_many_arguments)]
@@ -439,11 +447,17 @@ impl GpuRasterizer {
     /// hold work that fills them (it is submitted first). Returns the forward's device
     /// state and an encoder with the sort and blend recorded but not submitted, so the
     /// caller appends its own readbacks or kernels.
+    ///
+    /// With `capacity` the entry count is not read back: the sort runs over
+    /// `capacity.next_power_of_two()` keys in the same encoder, and the caller checks the
+    /// scanned total (`DeviceForward::counts[n]`) against `n_sort` after the fact (keys
+    /// beyond it were dropped).
     pub(super) fn forward_device(
         &self,
         inputs: DeviceInputs,
         mut encoder: wgpu::CommandEncoder,
         scratch: Option<&Scratch>,
+        capacity: Option<u64>,
     ) -> Result<DeviceForward, GpuError> {
         let DeviceInputs {
             camera,
@@ -491,15 +505,20 @@ impl GpuRasterizer {
             dispatch_1d(&mut pass, &pipelines.project, &bind, n as u64);
         }
         self.encode_scan_in(&mut encoder, &counts, n as u64 + 1, &mut keep, scratch, 0)?;
-        // Copy the total to a small buffer so the readback needs no offset.
-        let total_buf = storage_in(ctx, scratch, "entry count", 4)?;
-        encoder.copy_buffer_to_buffer(&counts, 4 * n as u64, &total_buf, 0, 4);
-        let total = bytes_u32(&ctx.read_back(encoder, &[(&total_buf, 4)])?[0])[0] as u64;
-        drop(keep);
-
-        let n_sort = total.next_power_of_two().max(SORT_BLOCK);
+        let (total, n_sort, mut encoder) = match capacity {
+            None => {
+                // Copy the total to a small buffer so the readback needs no offset.
+                let total_buf = storage_in(ctx, scratch, "entry count", 4)?;
+                encoder.copy_buffer_to_buffer(&counts, 4 * n as u64, &total_buf, 0, 4);
+                let total = bytes_u32(&ctx.read_back(encoder, &[(&total_buf, 4)])?[0])[0] as u64;
+                keep.clear();
+                let n_sort = total.next_power_of_two().max(SORT_BLOCK);
+                (Some(total), n_sort, ctx.encoder("forward: sort and blend"))
+            }
+            Some(cap) => (None, cap.next_power_of_two().max(SORT_BLOCK), encoder),
+        };
         if n_sort > u32::MAX as u64 / 2 {
-            return Err(GpuError::TooLarge(format!("{total} tile entries")));
+            return Err(GpuError::TooLarge(format!("{n_sort} tile entries")));
         }
         let keys = storage_in(ctx, scratch, "keys", n_sort * 16)?;
         let frame = uniform_in(
@@ -512,7 +531,7 @@ impl GpuRasterizer {
                 &grid,
                 n as u32,
                 mode.smooth,
-                total as u32,
+                total.map_or(ENTRIES_ON_DEVICE, |t| t as u32),
                 n_sort as u32,
                 background,
             ),
@@ -521,20 +540,20 @@ impl GpuRasterizer {
         let pixels = width as u64 * height as u64;
         let color = storage_in(ctx, scratch, "colour", pixels * nc as u64 * 4)?;
         let px_state = storage_in(ctx, scratch, "pixel state", pixels * 16)?;
-        let mut encoder = ctx.encoder("forward: sort and blend");
         {
             let bind = ctx.bind_group(&pipelines.keygen, &[&frame, &splats, &counts, &keys]);
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &pipelines.keygen, &bind, n_sort.max(n as u64));
         }
-        // The sort's uniforms must outlive the submission: the state keeps them.
-        let mut sort_uniforms = Vec::new();
+        // The sort's uniforms (and, without a readback, the scan's temporaries) must
+        // outlive the submission: the state keeps them.
+        let mut sort_uniforms = keep;
         self.encode_sort_in(&mut encoder, &keys, n_sort, &mut sort_uniforms, scratch)?;
         encoder.clear_buffer(&ranges, 0, None);
         {
             let bind = ctx.bind_group(&pipelines.ranges, &[&frame, &keys, &ranges]);
             let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, &pipelines.ranges, &bind, total);
+            dispatch_1d(&mut pass, &pipelines.ranges, &bind, n_sort);
         }
         {
             let bind = ctx.bind_group(
@@ -564,7 +583,9 @@ impl GpuRasterizer {
             },
             color,
             encoder,
-            tile_entries: total as usize,
+            tile_entries: total.map(|t| t as usize),
+            n_sort,
+            counts,
             _sort_uniforms: sort_uniforms,
         })
     }
@@ -639,7 +660,7 @@ impl GpuRasterizer {
             gauss,
             chans,
         };
-        let fwd = self.forward_device(inputs, ctx.encoder("forward: project"), None)?;
+        let fwd = self.forward_device(inputs, ctx.encoder("forward: project"), None, None)?;
         let project_scan_ms = ms_since(t0);
         let t1 = Instant::now();
         let pixels = width as u64 * height as u64;
@@ -651,7 +672,7 @@ impl GpuRasterizer {
                 (&fwd.state.splats, (n * SSTRIDE * 4) as u64),
             ],
         )?;
-        let total = fwd.tile_entries;
+        let total = fwd.tile_entries.unwrap_or(0);
         let state = fwd.state;
         let color = bytes_f32(&back[0]);
         let px = bytes_f32(&back[1]);

@@ -10,8 +10,11 @@
 //! statistics buffer holds `grad_accum`, `visible_count` and `max_radius_px`, `n` each.
 //!
 //! Per step the host uploads the target image and the pixel weights (into persistent
-//! buffers) and a few small uniforms, and reads back 4 bytes (the entry count that sizes
-//! the sort) and 16 bytes at the end (step refused, rows dropped, SSIM and L1 totals).
+//! buffers) and a few small uniforms, submits the whole step as one command buffer and
+//! waits once, for 20 bytes (refusal flags, rows dropped, SSIM and L1 totals, the entry
+//! count). The sort is sized from the previous step's entry count with head room; a step
+//! whose count outgrows it is refused by the device (nothing applied) and redone with the
+//! exact count (the first step reads the count back before sorting).
 //! Parameters, moments and statistics come back only when the caller asks
 //! ([`ResidentModel::download`]: densification, checkpoints, the end of a run); after the
 //! host edits them, [`ResidentModel::upload`] puts them back (buffers grow with 50% head
@@ -48,6 +51,11 @@ const RESIDENT_PACK: &str = include_str!("shaders/resident_pack.wgsl");
 const RESIDENT_GRADS: &str = include_str!("shaders/resident_grads.wgsl");
 const RESIDENT_STATS: &str = include_str!("shaders/resident_stats.wgsl");
 const ADAM: &str = include_str!("shaders/adam.wgsl");
+const RESIDENT_OVERFLOW: &str = include_str!("shaders/resident_overflow.wgsl");
+/// Refusal bits of `flags[0]`: a non-finite render or gradient; the sort's capacity was
+/// too small (the step is redone).
+const REFUSED_NONFINITE: u32 = 1;
+const REFUSED_OVERFLOW: u32 = 2;
 
 /// Channels of the plain trainer's render (RGB).
 const CHANNELS: usize = 3;
@@ -62,6 +70,7 @@ struct ResidentPipelines {
     grads: wgpu::ComputePipeline,
     stats: wgpu::ComputePipeline,
     adam: wgpu::ComputePipeline,
+    overflow: wgpu::ComputePipeline,
     loss: GpuLoss,
 }
 
@@ -107,6 +116,12 @@ struct ImageBuffers {
 pub struct ResidentStepReport {
     /// The render or a gradient was NaN or infinite: nothing was changed.
     pub refused: bool,
+    /// The sort's capacity (from the last step's count) was too small: nothing was
+    /// changed. [`ResidentModel::step`] then redoes the step, so its report has `false`
+    /// here and `sort_retries == 1`.
+    pub sort_overflow: bool,
+    /// Steps redone for a sort overflow (0 or 1).
+    pub sort_retries: usize,
     /// Gaussians whose rasterizer gradient came out non-finite and was zeroed.
     pub dropped_nonfinite: usize,
     /// `(1 - lambda) l1 + lambda (1 - ssim)`, and its parts (masked means).
@@ -115,9 +130,10 @@ pub struct ResidentStepReport {
     pub ssim: f32,
     /// (tile, Gaussian) pairs blended.
     pub tile_entries: usize,
-    /// Wall time up to the entry-count readback (SH colour, projection, prefix sum), ms.
+    /// Wall time of recording and, on the first step (no count to size the sort from),
+    /// the entry-count readback, ms.
     pub project_ms: f64,
-    /// Wall time of the rest (sort, blend, loss, backward, Adam, final readback), ms.
+    /// Wall time of the rest (the whole step's device work and the final readback), ms.
     pub rest_ms: f64,
 }
 
@@ -131,6 +147,8 @@ pub struct ResidentModel {
     images: Option<ImageBuffers>,
     /// Per-step scratch of the rasterizer, the loss and the kernels' uniforms, reused.
     scratch: Scratch,
+    /// Entry count of the last step: sizes the next step's sort without a readback.
+    last_entries: Option<u64>,
     /// Adam steps taken (bias correction), mirrored to the host's `Adam::step`.
     adam_step: u64,
     beta1: f32,
@@ -207,6 +225,7 @@ impl ResidentModel {
             )?,
             stats: ctx.pipeline("resident_stats", &format!("{common}{RESIDENT_STATS}"))?,
             adam: ctx.pipeline("adam", ADAM)?,
+            overflow: ctx.pipeline("resident_overflow", RESIDENT_OVERFLOW)?,
             loss: GpuLoss::new(ctx, CHANNELS)?,
         };
         let buffers = Self::allocate(ctx, &params.dims(), params.len().max(1))?;
@@ -218,6 +237,7 @@ impl ResidentModel {
             buffers,
             images: None,
             scratch: Scratch::default(),
+            last_entries: None,
             adam_step: 0,
             beta1: adam.beta1,
             beta2: adam.beta2,
@@ -488,10 +508,28 @@ impl ResidentModel {
     /// One training step on the device: SH colour at `degree` from the camera centre,
     /// the rasterizer forward, the loss against `target` (uploaded into a persistent
     /// buffer), its gradient, the rasterizer backward, gradient assembly, statistics (when
-    /// `accumulate_stats`) and one Adam step with `rates`. Two waits on the device: the
-    /// 4-byte entry count that sizes the sort, and 16 bytes at the end (refusal flag,
-    /// dropped-row count, SSIM and L1 totals).
+    /// `accumulate_stats`) and one Adam step with `rates`, in one submission with one
+    /// 20-byte readback (the first step, and a step redone after a sort overflow, also
+    /// wait for the entry count before sorting).
     pub fn step(&mut self, input: &ResidentStepInput) -> Result<ResidentStepReport, GpuError> {
+        // The sort is sized from the last step's entry count with head room, so the step
+        // needs no mid-step readback; a step that outgrows it is redone at the exact count
+        // (nothing was applied: the overflow refuses it).
+        let capacity = self.last_entries.map(|e| e + e / 4 + 1024);
+        let report = self.step_with_capacity(input, capacity)?;
+        if report.sort_overflow {
+            let mut again = self.step_with_capacity(input, Some(report.tile_entries as u64))?;
+            again.sort_retries = 1;
+            return Ok(again);
+        }
+        Ok(report)
+    }
+
+    fn step_with_capacity(
+        &mut self,
+        input: &ResidentStepInput,
+        capacity: Option<u64>,
+    ) -> Result<ResidentStepReport, GpuError> {
         let ResidentStepInput {
             camera,
             settings,
@@ -583,7 +621,7 @@ impl ResidentModel {
         };
         let device = self
             .raster
-            .forward_device(inputs, encoder, Some(&self.scratch))?;
+            .forward_device(inputs, encoder, Some(&self.scratch), capacity)?;
         let project_ms = t0.elapsed().as_secs_f64() * 1e3;
         let t1 = std::time::Instant::now();
         let mut encoder = device.encoder;
@@ -591,6 +629,18 @@ impl ResidentModel {
         let b = &self.buffers;
         encoder.clear_buffer(&b.flags, 0, None);
         encoder.clear_buffer(&images.px_grad, 0, None);
+        let cap = self.scratch.uniform(
+            ctx,
+            "sort capacity",
+            &u32_bytes(&[n as u32, device.n_sort as u32, 0, 0]),
+        )?;
+        {
+            let bind = ctx.bind_group(&self.pipelines.overflow, &[&cap, &device.counts, &b.flags]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipelines.overflow);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(1, 1, 1);
+        }
         let loss_buffers = self.pipelines.loss.encode(
             ctx,
             &mut encoder,
@@ -605,7 +655,7 @@ impl ResidentModel {
         )?;
         let rows = self.raster.encode_backward(
             st,
-            device.tile_entries,
+            device.tile_entries.unwrap_or(device.n_sort as usize),
             &images.px_grad,
             &mut encoder,
             Some(&self.scratch),
@@ -627,22 +677,31 @@ impl ResidentModel {
             dispatch_1d(&mut pass, &self.pipelines.stats, &bind, n as u64);
         }
         let adam_uniform = self.encode_adam(&mut encoder, rates)?;
-        let back = ctx.read_back(encoder, &[(&b.flags, 8), (&loss_buffers.totals, 8)])?;
-        drop((adam_uniform, loss_buffers));
+        let entry_count = self.scratch.storage(ctx, "entry count", 4)?;
+        encoder.copy_buffer_to_buffer(&device.counts, 4 * n as u64, &entry_count, 0, 4);
+        let back = ctx.read_back(
+            encoder,
+            &[(&b.flags, 8), (&loss_buffers.totals, 8), (&entry_count, 4)],
+        )?;
+        drop((adam_uniform, loss_buffers, cap));
         let flags = bytes_u32(&back[0]);
         let totals = bytes_f32(&back[1]);
+        let entries = bytes_u32(&back[2])[0] as u64;
+        self.last_entries = Some(entries);
         let refused = flags[0] != 0;
         if !refused {
             self.adam_step += 1;
         }
         let loss = combine(totals[0], totals[1], lambda_dssim, Vec::new());
         Ok(ResidentStepReport {
-            refused,
+            refused: flags[0] & REFUSED_NONFINITE != 0,
+            sort_overflow: flags[0] & REFUSED_OVERFLOW != 0,
+            sort_retries: 0,
             dropped_nonfinite: flags[1] as usize,
             loss: loss.loss,
             l1: loss.l1,
             ssim: loss.ssim,
-            tile_entries: device.tile_entries,
+            tile_entries: entries as usize,
             project_ms,
             rest_ms: t1.elapsed().as_secs_f64() * 1e3,
         })

@@ -29,6 +29,8 @@ struct Frame {
 }
 
 const TILE: u32 = 16u;
+// `Frame::n_entries` when the entry count stays on the device (see keygen.wgsl).
+const ENTRIES_ON_DEVICE: u32 = 0xffffffffu;
 const COV2D_DILATION: f32 = 0.3;
 const MIN_QUAT_NORM2: f32 = 1e-6;
 const ALPHA_MAX: f32 = 0.99;

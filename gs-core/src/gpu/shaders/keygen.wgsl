@@ -2,6 +2,9 @@
 // tile its rectangle touches, at its scanned offset, in tile row-major order. Threads
 // past the Gaussians fill the padding of the sort buffer with keys that sort last.
 // Depths are >= near > 0, so their bit patterns order like the values.
+// `fr.n_entries == ENTRIES_ON_DEVICE`: the entry count was not read back; it is the
+// scanned total at offsets[fr.n], and keys past the sort's capacity (`fr.n_sort`) are
+// dropped (the caller sees the overflow and redoes the pass with a larger capacity).
 
 @group(0) @binding(0) var<uniform> fr: Frame;
 @group(0) @binding(1) var<storage, read> splats: array<f32>;
@@ -11,7 +14,11 @@
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = gid.x + gid.y * nwg.x * 256u;
-    if i >= fr.n_entries && i < fr.n_sort {
+    var total = fr.n_entries;
+    if total == ENTRIES_ON_DEVICE {
+        total = offsets[fr.n];
+    }
+    if i >= total && i < fr.n_sort {
         keys[i] = vec4<u32>(0xffffffffu, 0xffffffffu, 0xffffffffu, 0u);
     }
     if i >= fr.n {
@@ -29,7 +36,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     var at = offsets[i];
     for (var ty = y0 / TILE; ty < (y1 + TILE - 1u) / TILE; ty++) {
         for (var tx = x0 / TILE; tx < (x1 + TILE - 1u) / TILE; tx++) {
-            keys[at] = vec4<u32>(ty * fr.tiles_x + tx, depth_bits, i, 0u);
+            if at < fr.n_sort {
+                keys[at] = vec4<u32>(ty * fr.tiles_x + tx, depth_bits, i, 0u);
+            }
             at++;
         }
     }
