@@ -56,6 +56,8 @@ const RESIDENT_OVERFLOW: &str = include_str!("shaders/resident_overflow.wgsl");
 /// too small (the step is redone).
 const REFUSED_NONFINITE: u32 = 1;
 const REFUSED_OVERFLOW: u32 = 2;
+/// Steps whose entry counts size the sort (a few passes over a training view set).
+const RECENT_STEPS: usize = 32;
 
 /// Channels of the plain trainer's render (RGB).
 const CHANNELS: usize = 3;
@@ -147,8 +149,9 @@ pub struct ResidentModel {
     images: Option<ImageBuffers>,
     /// Per-step scratch of the rasterizer, the loss and the kernels' uniforms, reused.
     scratch: Scratch,
-    /// Entry count of the last step: sizes the next step's sort without a readback.
-    last_entries: Option<u64>,
+    /// Entry counts of the last steps (at most [`RECENT_STEPS`]): their maximum sizes the
+    /// next step's sort without a readback.
+    recent_entries: std::collections::VecDeque<u64>,
     /// Adam steps taken (bias correction), mirrored to the host's `Adam::step`.
     adam_step: u64,
     beta1: f32,
@@ -237,7 +240,7 @@ impl ResidentModel {
             buffers,
             images: None,
             scratch: Scratch::default(),
-            last_entries: None,
+            recent_entries: std::collections::VecDeque::new(),
             adam_step: 0,
             beta1: adam.beta1,
             beta2: adam.beta2,
@@ -512,10 +515,11 @@ impl ResidentModel {
     /// 20-byte readback (the first step, and a step redone after a sort overflow, also
     /// wait for the entry count before sorting).
     pub fn step(&mut self, input: &ResidentStepInput) -> Result<ResidentStepReport, GpuError> {
-        // The sort is sized from the last step's entry count with head room, so the step
-        // needs no mid-step readback; a step that outgrows it is redone at the exact count
-        // (nothing was applied: the overflow refuses it).
-        let capacity = self.last_entries.map(|e| e + e / 4 + 1024);
+        // The sort is sized from the recent steps' largest entry count with a little head
+        // room (it runs over the next power of two, so more head room can double its
+        // work), so the step needs no mid-step readback; a step that outgrows it is redone
+        // at the exact count (nothing was applied: the overflow refuses it).
+        let capacity = self.recent_entries.iter().max().map(|&e| e + e / 16 + 256);
         let report = self.step_with_capacity(input, capacity)?;
         if report.sort_overflow {
             let mut again = self.step_with_capacity(input, Some(report.tile_entries as u64))?;
@@ -687,7 +691,10 @@ impl ResidentModel {
         let flags = bytes_u32(&back[0]);
         let totals = bytes_f32(&back[1]);
         let entries = bytes_u32(&back[2])[0] as u64;
-        self.last_entries = Some(entries);
+        if self.recent_entries.len() == RECENT_STEPS {
+            self.recent_entries.pop_front();
+        }
+        self.recent_entries.push_back(entries);
         let refused = flags[0] != 0;
         if !refused {
             self.adam_step += 1;
