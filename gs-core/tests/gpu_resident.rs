@@ -587,5 +587,5 @@ fn a_sort_overflow_is_redone_without_applying_anything() {
     );
     assert_eq!(stats_a.visible_count, stats_b.visible_count);
     assert_eq!(stats_a.max_radius_px, stats_b.max_radius_px);
-    assert!(stats_a.visible_count.iter().any(|&c| c == 1));
+    assert!(stats_a.visible_count.contains(&1));
 }
