@@ -27,6 +27,7 @@
 //! Errors instead of panics: every size is checked, inputs, parameters and upstream
 //! gradients must be finite, and a non-finite result is reported, never returned.
 
+use std::cell::RefCell;
 use std::ops::Range;
 
 use rayon::prelude::*;
@@ -43,6 +44,14 @@ pub const BLOCK_ROWS: usize = 2048;
 
 /// Blocks whose weight-gradient partials are held at once in backward.
 const BLOCKS_PER_WAVE: usize = 8;
+
+thread_local! {
+    /// Output-gradient buffers of `Mlp::backward_block` (this layer's dZ and the previous
+    /// one's), kept per thread: fresh ones cost page faults on every block (~10 % of a
+    /// backward). Contents never carry over (each value is written before it is read).
+    static GRADIENT_SCRATCH: RefCell<(Vec<f32>, Vec<f32>)> =
+        const { RefCell::new((Vec::new(), Vec::new())) };
+}
 
 /// Activation after every hidden layer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -460,13 +469,31 @@ impl Mlp {
         d_params: &mut [f32],
         d_x: Option<&mut [f32]>,
     ) {
+        GRADIENT_SCRATCH.with(|scratch| {
+            let (d_z, d_prev) = &mut *scratch.borrow_mut();
+            self.backward_block_in(x, rows, hidden, y, d_y, d_params, d_x, d_z, d_prev);
+        });
+    }
+
+    /// [`Mlp::backward_block`] with the layers' output gradients in `d_z` and `d_prev`
+    /// (any contents; every value read is written first).
+    #[allow(clippy::too_many_arguments)]
+    fn backward_block_in(
+        &self,
+        x: &[f32],
+        rows: usize,
+        hidden: &[f32],
+        y: &[f32],
+        d_y: &[f32],
+        d_params: &mut [f32],
+        d_x: Option<&mut [f32]>,
+        d_z: &mut Vec<f32>,
+        d_prev: &mut Vec<f32>,
+    ) {
         let layers = self.num_layers();
         // dZ of the output layer through the sigmoid: y (1 - y) dY.
-        let mut d_z: Vec<f32> = y
-            .iter()
-            .zip(d_y)
-            .map(|(&v, &g)| v * (1.0 - v) * g)
-            .collect();
+        d_z.clear();
+        d_z.extend(y.iter().zip(d_y).map(|(&v, &g)| v * (1.0 - v) * g));
         let mut hidden_end = hidden.len();
         let mut d_x = d_x;
         for l in (0..layers).rev() {
@@ -480,7 +507,7 @@ impl Mlp {
             let b_range = self.bias_range(l);
             self.products.matmul_at_b(
                 layer_input,
-                &d_z,
+                d_z,
                 &mut d_params[w_range.clone()],
                 rows,
                 n_in,
@@ -495,18 +522,19 @@ impl Mlp {
             }
             let w = &self.params[w_range];
             if l > 0 {
-                let mut d_prev = vec![0.0f32; rows * n_in];
+                // Overwritten by the product (no accumulation), so stale values are fine.
+                d_prev.resize(rows * n_in, 0.0);
                 self.products
-                    .matmul_a_bt(&d_z, w, &mut d_prev, rows, n_out, n_in, false);
+                    .matmul_a_bt(d_z, w, d_prev, rows, n_out, n_in, false);
                 let act = self.hidden;
                 for (g, &a) in d_prev.iter_mut().zip(layer_input) {
                     *g *= act.slope_from_output(a);
                 }
-                d_z = d_prev;
+                std::mem::swap(d_z, d_prev);
                 hidden_end -= rows * n_in;
             } else if let Some(d_x) = d_x.take() {
                 self.products
-                    .matmul_a_bt(&d_z, w, d_x, rows, n_out, n_in, false);
+                    .matmul_a_bt(d_z, w, d_x, rows, n_out, n_in, false);
             }
         }
     }
