@@ -460,18 +460,28 @@ fn forward_body<const FIXED: usize>(
     }
 }
 
-/// Which entries of one tile's list the forward blend reads: `flags[j]` is set when
-/// splat `list[j]` is blended into at least one pixel of the tile (its alpha passes the
-/// cutoff there before the pixel's transmittance stops). The walk, the alpha and the
-/// transmittance are those of [`blend_tile_forward`] operation for operation, so the
-/// forward and backward passes never read the channels of an entry left unflagged.
+/// `tile_contributions` flag: the entry is blended into at least one pixel of its tile.
+pub const ENTRY_BLENDS: u8 = 1;
+/// `tile_contributions` flag: the entry stops at least one pixel of its tile (its alpha
+/// passes the cutoff there but would take the transmittance below the stop), without
+/// necessarily being blended anywhere.
+pub const ENTRY_STOPS: u8 = 2;
+
+/// What each entry of one tile's list does in the forward blend: `flags[j]` has
+/// [`ENTRY_BLENDS`] when splat `list[j]` is blended into at least one pixel of the tile
+/// (its alpha passes the cutoff there before the pixel's transmittance stops) and
+/// [`ENTRY_STOPS`] when it ends the blend of at least one pixel; 0 when it changes no pixel
+/// of the tile at all. The walk, the alpha and the transmittance are those of
+/// [`blend_tile_forward`] operation for operation, so the forward and backward passes
+/// never read the channels of an entry without [`ENTRY_BLENDS`], and blending the list
+/// without its zero-flag entries gives every pixel the same sequence of operations.
 pub fn tile_contributions(
     tile: &PixelRect,
     list: &[u32],
     splats: &[Splat],
     mode: AlphaMode,
     early_termination: bool,
-    flags: &mut [bool],
+    flags: &mut [u8],
 ) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
@@ -490,7 +500,7 @@ unsafe fn contributions_avx2(
     splats: &[Splat],
     mode: AlphaMode,
     early_termination: bool,
-    flags: &mut [bool],
+    flags: &mut [u8],
 ) {
     contributions_body(tile, list, splats, mode, early_termination, flags);
 }
@@ -503,9 +513,9 @@ fn contributions_body(
     splats: &[Splat],
     mode: AlphaMode,
     early_termination: bool,
-    flags: &mut [bool],
+    flags: &mut [u8],
 ) {
-    flags.fill(false);
+    flags.fill(0);
     let mut transmittance = [1.0f32; TILE_PIXELS];
     let full = column_mask(
         &PixelRect {
@@ -553,10 +563,11 @@ fn contributions_body(
                 if t_next < stop {
                     row_active[ly] &= !(1u16 << lx);
                     n_active -= 1;
+                    flags[j] |= ENTRY_STOPS;
                     continue;
                 }
                 transmittance[p] = t_next;
-                flags[j] = true;
+                flags[j] |= ENTRY_BLENDS;
             }
         }
     }
@@ -1193,5 +1204,82 @@ mod tests {
         assert!(trans[inside] >= TRANSMITTANCE_FLOOR && trans[inside] < 1e-30);
         assert!(last[inside] > 20 && last[inside] < 40);
         check_backward_against_finite_differences(&splats, &channels, false);
+    }
+
+    /// Renders `list` (a subset of the splats' indices, in order) over the test tile.
+    fn render_list(list: &[u32], splats: &[Splat], channels: &[f32]) -> TileImages {
+        let mut color = vec![0.0; TILE_PIXELS * NC];
+        let mut depth = vec![0.0; TILE_PIXELS];
+        let mut trans = vec![0.0; TILE_PIXELS];
+        let mut last = vec![0; TILE_PIXELS];
+        blend_tile_forward(
+            &tile(),
+            list,
+            splats,
+            channels,
+            NC,
+            &[0.25, 0.75],
+            AlphaMode { smooth: false },
+            true,
+            TileForwardOut {
+                color: &mut color,
+                depth: &mut depth,
+                transmittance: &mut trans,
+                last: &mut last,
+            },
+        );
+        (color, depth, trans, last)
+    }
+
+    /// Four tile-wide layers: raw alpha 0.99, 0.98 (T = 2e-4), 0.9 (would take every pixel
+    /// to 2e-5 < 1e-4: it stops them all and is blended nowhere), 0.3; and a faint splat
+    /// below the cutoff everywhere. The flags name the stopper, the list without the
+    /// zero-flag entries renders the same bits, and without the stopper too the last
+    /// layer would be blended (so stoppers must stay in a compacted list).
+    #[test]
+    fn contribution_flags_keep_stoppers_and_drop_only_silent_entries() {
+        let wide = |o: f32, z: f32| Splat {
+            mean_px: [24.0, 40.0],
+            conic: [1e-6, 0.0, 1e-6],
+            opacity: o,
+            depth: z,
+            rect: tile(),
+        };
+        let splats = vec![
+            wide(1.0, 1.0),
+            wide(0.003, 1.5),
+            wide(0.98, 2.0),
+            wide(0.9, 3.0),
+            wide(0.3, 4.0),
+        ];
+        let channels: Vec<f32> = (0..splats.len() * NC).map(|i| 0.1 * i as f32).collect();
+        let all: Vec<u32> = (0..splats.len() as u32).collect();
+        let mut flags = vec![0u8; all.len()];
+        tile_contributions(
+            &tile(),
+            &all,
+            &splats,
+            AlphaMode { smooth: false },
+            true,
+            &mut flags,
+        );
+        assert_eq!(flags, [ENTRY_BLENDS, 0, ENTRY_BLENDS, ENTRY_STOPS, 0]);
+        let kept: Vec<u32> = all
+            .iter()
+            .copied()
+            .filter(|&j| flags[j as usize] != 0)
+            .collect();
+        let (c_all, d_all, t_all, l_all) = render_list(&all, &splats, &channels);
+        let (c_kept, d_kept, t_kept, l_kept) = render_list(&kept, &splats, &channels);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&c_all), bits(&c_kept));
+        assert_eq!(bits(&d_all), bits(&d_kept));
+        assert_eq!(bits(&t_all), bits(&t_kept));
+        // `last` counts list positions: entry 2 of the full list is entry 1 of the kept one.
+        assert!(l_all.iter().all(|&l| l == 3));
+        assert!(l_kept.iter().all(|&l| l == 2));
+        let blenders: Vec<u32> = vec![0, 2, 4];
+        let (c_wrong, ..) = render_list(&blenders, &splats, &channels);
+        assert_ne!(bits(&c_all), bits(&c_wrong));
     }
 }

@@ -28,6 +28,7 @@ pub mod bin;
 pub mod blend;
 pub mod project;
 
+use std::sync::OnceLock;
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -249,7 +250,11 @@ struct ForwardState {
     splats: Vec<Splat>,
     splat_channels: Vec<f32>,
     gaussian_of_rank: Vec<u32>,
+    /// The tile lists the forward blended: the compacted ones when the view's
+    /// [`PreparedView::contributing`] ran, else the full bins. One gradient record per entry.
     bins: TileBins,
+    /// Entries of the full bins (before any compaction).
+    n_tile_entries: usize,
     /// Tile-major final transmittance and last-blended index per pixel.
     tile_transmittance: Vec<f32>,
     tile_last: Vec<u32>,
@@ -277,8 +282,16 @@ pub struct RenderOutput {
 }
 
 impl RenderOutput {
-    /// Number of (tile, Gaussian) pairs blended: the rasterizer's work measure.
+    /// Number of (tile, Gaussian) pairs binned: the rasterizer's work measure (before any
+    /// compaction by [`PreparedView::contributing`]).
     pub fn tile_entry_count(&self) -> usize {
+        self.state.n_tile_entries
+    }
+
+    /// Number of (tile, Gaussian) pairs the blend and its backward walked: the compacted
+    /// lists' entries when the view's [`PreparedView::contributing`] ran, else
+    /// [`RenderOutput::tile_entry_count`].
+    pub fn blended_entry_count(&self) -> usize {
         self.state.bins.tile_ranks.len()
     }
 }
@@ -563,8 +576,25 @@ pub struct PreparedView {
     bins: TileBins,
     /// Per Gaussian, from the projection (0 when culled).
     radii_px: Vec<f32>,
+    /// Filled by the first [`PreparedView::contributing`]; the blend then walks these lists.
+    compact: OnceLock<CompactLists>,
     /// Projection and sort/bin times (`blend_ms` is 0 here).
     pub timings: ForwardTimings,
+}
+
+/// The tile lists without the entries that change no pixel of their tile, found by the
+/// alpha-only pass ([`blend::tile_contributions`]): an entry is kept when it is blended into
+/// a pixel of its tile or ends a pixel's blend there. Every pixel meets the same kept
+/// entries in the same order, with the same transmittance before each, so the forward
+/// blend over these lists is the same operations as over the full ones, and the backward
+/// (which walks a list back to front, changing a pixel only at entries blended into it)
+/// writes records that differ only by the records of the dropped entries, which are all
+/// zero: the per-Gaussian sums, which start at +0.0, are the same bits without them.
+#[derive(Clone, Debug)]
+struct CompactLists {
+    bins: TileBins,
+    /// Per rank: blended into at least one pixel (the flag [`blend::ENTRY_BLENDS`]).
+    blended_rank: Vec<bool>,
 }
 
 /// Projection, depth sort and binning of `gaussians` (channels in the view, if any, are
@@ -623,6 +653,7 @@ fn prepare(
         gaussian_of_rank,
         bins,
         radii_px: projected.radii_px,
+        compact: OnceLock::new(),
         timings: ForwardTimings {
             project_ms,
             sort_bin_ms,
@@ -671,13 +702,30 @@ impl PreparedView {
     /// rayon). The blend and its backward read the channels of these Gaussians only:
     /// channels of the others may hold anything finite without changing a single bit of
     /// the image or of any gradient.
+    ///
+    /// The first call also keeps the compacted tile lists (only the entries that change
+    /// some pixel of their tile, see `CompactLists`): [`render_prepared`] then blends those
+    /// and the backward walks them, with the same bits as the full lists.
     pub fn contributing(&self) -> Vec<bool> {
+        let compact = self.compact.get_or_init(|| self.compact_lists());
+        let mut out = vec![false; self.n_gaussians];
+        for (&g, &blended) in self.gaussian_of_rank.iter().zip(&compact.blended_rank) {
+            out[g as usize] = blended;
+        }
+        out
+    }
+
+    /// The alpha-only pass over every tile (rayon) and the lists without the entries that
+    /// change no pixel (serial, in tile order, so each rank's entries stay in tile order
+    /// as in [`bin::bin_tiles`]).
+    fn compact_lists(&self) -> CompactLists {
         let grid = &self.grid;
         let bins = &self.bins;
-        let mut entry_flags = vec![false; bins.tile_ranks.len()];
-        let mut per_tile: Vec<&mut [bool]> = Vec::with_capacity(grid.n_tiles());
-        let mut rest: &mut [bool] = &mut entry_flags;
-        for t in 0..grid.n_tiles() {
+        let n_tiles = grid.n_tiles();
+        let mut entry_flags = vec![0u8; bins.tile_ranks.len()];
+        let mut per_tile: Vec<&mut [u8]> = Vec::with_capacity(n_tiles);
+        let mut rest: &mut [u8] = &mut entry_flags;
+        for t in 0..n_tiles {
             let (head, tail) = rest.split_at_mut(bins.tile_offsets[t + 1] - bins.tile_offsets[t]);
             per_tile.push(head);
             rest = tail;
@@ -693,12 +741,48 @@ impl PreparedView {
                 flags,
             );
         });
-        let mut out = vec![false; self.n_gaussians];
-        for (rank, &g) in self.gaussian_of_rank.iter().enumerate() {
-            let entries = &bins.entry_of_rank[bins.rank_offsets[rank]..bins.rank_offsets[rank + 1]];
-            out[g as usize] = entries.iter().any(|&e| entry_flags[e as usize]);
+        let n_ranks = self.splats.len();
+        let mut blended_rank = vec![false; n_ranks];
+        let mut rank_counts = vec![0usize; n_ranks];
+        let mut tile_offsets = Vec::with_capacity(n_tiles + 1);
+        let mut tile_ranks = Vec::new();
+        tile_offsets.push(0);
+        for t in 0..n_tiles {
+            let entries = bins.tile_offsets[t]..bins.tile_offsets[t + 1];
+            for (&flag, &rank) in entry_flags[entries.clone()]
+                .iter()
+                .zip(&bins.tile_ranks[entries])
+            {
+                if flag != 0 {
+                    tile_ranks.push(rank);
+                    rank_counts[rank as usize] += 1;
+                    blended_rank[rank as usize] |= flag & blend::ENTRY_BLENDS != 0;
+                }
+            }
+            tile_offsets.push(tile_ranks.len());
         }
-        out
+        let mut rank_offsets = Vec::with_capacity(n_ranks + 1);
+        let mut sum = 0usize;
+        rank_offsets.push(0);
+        for &c in &rank_counts {
+            sum += c;
+            rank_offsets.push(sum);
+        }
+        let mut cursor = rank_offsets[..n_ranks].to_vec();
+        let mut entry_of_rank = vec![0u32; tile_ranks.len()];
+        for (entry, &rank) in tile_ranks.iter().enumerate() {
+            entry_of_rank[cursor[rank as usize]] = entry as u32;
+            cursor[rank as usize] += 1;
+        }
+        CompactLists {
+            bins: TileBins {
+                tile_offsets,
+                tile_ranks,
+                rank_offsets,
+                entry_of_rank,
+            },
+            blended_rank,
+        }
     }
 }
 
@@ -723,6 +807,7 @@ pub fn render_prepared(
         gaussian_of_rank,
         bins,
         radii_px,
+        compact,
         timings,
     } = prepared;
     let nc = n_channels;
@@ -752,6 +837,19 @@ pub fn render_prepared(
         sort_bin_ms,
         ..
     } = timings;
+
+    // Visibility from the full bins (touched a tile), before they give way to the
+    // compacted lists.
+    let mut visible = vec![false; n];
+    for w in bins.rank_offsets.windows(2).zip(&gaussian_of_rank) {
+        let ((start, end), &g) = ((w.0[0], w.0[1]), w.1);
+        visible[g as usize] = end > start;
+    }
+    let n_tile_entries = bins.tile_ranks.len();
+    let bins = match compact.into_inner() {
+        Some(compact) => compact.bins,
+        None => bins,
+    };
 
     let t2 = Instant::now();
     let n_tiles = grid.n_tiles();
@@ -841,11 +939,6 @@ pub fn render_prepared(
     let blend_ms = ms_since(t2);
 
     let mut radii_px = radii_px;
-    let mut visible = vec![false; n];
-    for w in bins.rank_offsets.windows(2).zip(&gaussian_of_rank) {
-        let ((start, end), &g) = ((w.0[0], w.0[1]), w.1);
-        visible[g as usize] = end > start;
-    }
     for (r, v) in radii_px.iter_mut().zip(&visible) {
         if !v {
             *r = 0.0;
@@ -876,6 +969,7 @@ pub fn render_prepared(
             splat_channels,
             gaussian_of_rank,
             bins,
+            n_tile_entries,
             tile_transmittance,
             tile_last,
         },
