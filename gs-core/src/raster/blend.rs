@@ -602,6 +602,37 @@ pub fn blend_tile_backward(
     grads: &PixelGradsView,
     records: &mut [f32],
 ) {
+    backward_entry(
+        tile,
+        list,
+        splats,
+        splat_channels,
+        n_channels,
+        background,
+        mode,
+        state,
+        grads,
+        records,
+        true,
+    );
+}
+
+/// [`blend_tile_backward`]; `skip_unreached` false evaluates every lane group the splat's
+/// rectangle meets (the reference the tests compare the skip with).
+#[allow(clippy::too_many_arguments)]
+fn backward_entry(
+    tile: &PixelRect,
+    list: &[u32],
+    splats: &[Splat],
+    splat_channels: &[f32],
+    n_channels: usize,
+    background: &[f32],
+    mode: AlphaMode,
+    state: TileForwardState,
+    grads: &PixelGradsView,
+    records: &mut [f32],
+    skip_unreached: bool,
+) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
@@ -617,6 +648,7 @@ pub fn blend_tile_backward(
                 state,
                 grads,
                 records,
+                skip_unreached,
             )
         };
         return;
@@ -632,6 +664,7 @@ pub fn blend_tile_backward(
         state,
         grads,
         records,
+        skip_unreached,
     );
 }
 
@@ -649,6 +682,7 @@ unsafe fn backward_avx2(
     state: TileForwardState,
     grads: &PixelGradsView,
     records: &mut [f32],
+    skip_unreached: bool,
 ) {
     backward_dispatch(
         tile,
@@ -661,6 +695,7 @@ unsafe fn backward_avx2(
         state,
         grads,
         records,
+        skip_unreached,
     );
 }
 
@@ -678,6 +713,7 @@ fn backward_dispatch(
     state: TileForwardState,
     grads: &PixelGradsView,
     records: &mut [f32],
+    skip_unreached: bool,
 ) {
     macro_rules! go {
         ($n:literal) => {
@@ -692,6 +728,7 @@ fn backward_dispatch(
                 state,
                 grads,
                 records,
+                skip_unreached,
             )
         };
     }
@@ -717,6 +754,7 @@ fn backward_body<const FIXED: usize>(
     state: TileForwardState,
     grads: &PixelGradsView,
     records: &mut [f32],
+    skip_unreached: bool,
 ) {
     if mode.smooth {
         backward_lanes::<FIXED, true>(
@@ -729,6 +767,7 @@ fn backward_body<const FIXED: usize>(
             state,
             grads,
             records,
+            skip_unreached,
         )
     } else {
         backward_lanes::<FIXED, false>(
@@ -741,6 +780,7 @@ fn backward_body<const FIXED: usize>(
             state,
             grads,
             records,
+            skip_unreached,
         )
     }
 }
@@ -802,6 +842,7 @@ fn backward_lanes<const FIXED: usize, const SMOOTH: bool>(
     state: TileForwardState,
     grads: &PixelGradsView,
     records: &mut [f32],
+    skip_unreached: bool,
 ) {
     const T: usize = TILE_PX as usize;
     const TP: usize = TILE_PIXELS;
@@ -870,8 +911,24 @@ fn backward_lanes<const FIXED: usize, const SMOOTH: bool>(
             if j_u32 >= row_max_last[ly] {
                 continue;
             }
+            // Only the pixels that blended something at or behind this entry can have
+            // blended it: a lane group without one changes nothing (every lane would add
+            // a zero), so it is not evaluated at all.
+            let last_row: &[u32; T] = last[ly * T..(ly + 1) * T].try_into().expect("one tile row");
+            let mut reach = 0u32;
+            for (lx, &l) in last_row.iter().enumerate() {
+                reach |= u32::from(j_u32 < l) << lx;
+            }
+            let live = if skip_unreached {
+                cols & reach as u16
+            } else {
+                cols
+            };
+            if live == 0 {
+                continue;
+            }
             let py = y as f32 + 0.5;
-            let bits = cols & row_gauss(s, py, tile.x0, cutoff, cols, &mut gauss);
+            let bits = live & row_gauss(s, py, tile.x0, cutoff, live, &mut gauss);
             let dy = s.mean_px[1] - py;
             for gi in 0..T / LANE_GROUP {
                 let group_bits = (bits >> (gi * LANE_GROUP)) & 0xff;
@@ -1281,5 +1338,118 @@ mod tests {
         let blenders: Vec<u32> = vec![0, 2, 4];
         let (c_wrong, ..) = render_list(&blenders, &splats, &channels);
         assert_ne!(bits(&c_all), bits(&c_wrong));
+    }
+    /// Random splats over the test tile (some clipped by the tile's edge, some tiny,
+    /// faint or near-opaque), in a random depth order.
+    fn random_splats(seed: u64, count: usize, nc: usize) -> (Vec<Splat>, Vec<f32>) {
+        let mut rng = crate::rng::SplitMix64::new(seed);
+        let t = tile();
+        let splats: Vec<Splat> = (0..count)
+            .map(|_| {
+                let mx = rng.uniform(t.x0 as f32 - 6.0, t.x1 as f32 + 6.0);
+                let my = rng.uniform(t.y0 as f32 - 6.0, t.y1 as f32 + 6.0);
+                let sx = rng.uniform(0.3, 8.0);
+                let sy = rng.uniform(0.3, 8.0);
+                let rho = rng.uniform(-0.8, 0.8);
+                // Conic of a covariance with these sigmas and correlation.
+                let det = sx * sx * sy * sy * (1.0 - rho * rho);
+                let conic = [sy * sy / det, -rho * sx * sy / det, sx * sx / det];
+                let ext_x = 3.5 * sx;
+                let ext_y = 3.5 * sy;
+                let clip = |v: f32| v.clamp(0.0, 64.0) as u32;
+                let opacity = match rng.uniform(0.0, 1.0) {
+                    u if u < 0.15 => rng.uniform(0.002, 0.01),
+                    u if u < 0.4 => rng.uniform(0.95, 1.0),
+                    _ => rng.uniform(0.05, 0.95),
+                };
+                Splat {
+                    mean_px: [mx, my],
+                    conic,
+                    opacity,
+                    depth: rng.uniform(0.5, 9.0),
+                    rect: PixelRect {
+                        x0: clip((mx - ext_x).floor()),
+                        y0: clip((my - ext_y).floor()),
+                        x1: clip((mx + ext_x).ceil() + 1.0),
+                        y1: clip((my + ext_y).ceil() + 1.0),
+                    },
+                }
+            })
+            .collect();
+        let channels = (0..count * nc).map(|_| rng.uniform(-0.5, 1.5)).collect();
+        (splats, channels)
+    }
+
+    /// The backward's skip of lane groups no pixel of which blended anything at or behind
+    /// an entry writes the same records, bit for bit, as evaluating every group the
+    /// splat's rectangle meets (random tiles: clipped, tiny, faint and near-opaque splats;
+    /// early termination on and off, smooth mode, a partial tile).
+    #[test]
+    fn skipping_unreached_lane_groups_writes_the_same_records() {
+        let mut partial = tile();
+        partial.x1 = partial.x0 + 11;
+        partial.y1 = partial.y0 + 5;
+        let (wc, wa, wd) = weights();
+        let mut skipped_somewhere = false;
+        for seed in 0..12u64 {
+            for (smooth, early_termination) in [(false, true), (false, false), (true, true)] {
+                for t in [tile(), partial] {
+                    let count = 20 + 37 * (seed as usize % 4);
+                    let (splats, channels) = random_splats(seed * 31 + 7, count, NC);
+                    let list: Vec<u32> = (0..count as u32).collect();
+                    let mode = AlphaMode { smooth };
+                    let mut color = vec![0.0; TILE_PIXELS * NC];
+                    let mut depth = vec![0.0; TILE_PIXELS];
+                    let mut trans = vec![0.0; TILE_PIXELS];
+                    let mut last = vec![0; TILE_PIXELS];
+                    blend_tile_forward(
+                        &t,
+                        &list,
+                        &splats,
+                        &channels,
+                        NC,
+                        &[0.25, 0.75],
+                        mode,
+                        early_termination,
+                        TileForwardOut {
+                            color: &mut color,
+                            depth: &mut depth,
+                            transmittance: &mut trans,
+                            last: &mut last,
+                        },
+                    );
+                    let grads = PixelGradsView {
+                        width: 48,
+                        d_color: &wc,
+                        d_alpha: Some(&wa),
+                        d_depth: Some(&wd),
+                    };
+                    let run = |skip: bool| {
+                        let mut records = vec![f32::NAN; count * (REC_CHANNELS + NC)];
+                        backward_entry(
+                            &t,
+                            &list,
+                            &splats,
+                            &channels,
+                            NC,
+                            &[0.25, 0.75],
+                            mode,
+                            TileForwardState {
+                                transmittance: &trans,
+                                last: &last,
+                            },
+                            &grads,
+                            &mut records,
+                            skip,
+                        );
+                        records.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+                    };
+                    assert_eq!(run(true), run(false), "seed {seed}, smooth {smooth}");
+                    // Some pixel stopped in front of a splat that still reaches it.
+                    skipped_somewhere |= last.iter().any(|&l| l > 0 && (l as usize) < count / 2);
+                }
+            }
+        }
+        assert!(skipped_somewhere);
     }
 }
