@@ -4,7 +4,10 @@
 //! [`prepare_view`] projects, sorts and bins the geometry alone, [`PreparedView::contributing`]
 //! tells which Gaussians the blend will read (an alpha-only walk of the tiles), and
 //! [`render_prepared`] blends channels computed afterwards (e.g. by a network, for those
-//! Gaussians only) without projecting again. Both give the same bits.
+//! Gaussians only) without projecting again. Both give the same bits. The alpha-only walk
+//! also compacts the tile lists to the entries that change some pixel of their tile
+//! (blended there, or ending a pixel's blend); after it the blend and the backward walk
+//! only those (about a fifth of the entries on a dense 100K-Gaussian scene), same bits.
 //!
 //! Stages (each a reusable function, so a shadow pass from a light camera is an
 //! addition): [`project_splats`] (per Gaussian, rayon), depth sort + [`bin::bin_tiles`]
