@@ -2,8 +2,9 @@
 //! one step's gradients per group, the shadow pass through the model, and short training
 //! runs of configurations c and d reaching the same evaluation PSNR within 0.1 dB.
 //!
-//! Only the camera pass's rasterizer and the shadow pass move to the GPU; Phi, Psi and the
-//! Adam states run on the CPU on both backends.
+//! The camera pass's rasterizer, the shadow pass and Phi's and Psi's forward and backward
+//! (`gpu::GpuMlp`) move to the GPU; the networks' input assembly and the Adam states run
+//! on the CPU on both backends.
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1` (CI), where
 //! a missing adapter fails. Scenes are small (about 1,000 Gaussians, 96x64 images) so that
@@ -47,12 +48,26 @@ type View = (Camera, Vec3, Vec<f32>, Vec<f32>);
 /// of `variant` initialised from jittered surface samples, and `count` observations
 /// (orbit cameras at 96x64 with Suns at varying azimuth).
 fn setup(variant: Variant, count: usize) -> (SunAwareModel, Vec<View>) {
+    setup_with_width(
+        variant,
+        count,
+        SunAwareConfig::default().appearance_hidden_width,
+    )
+}
+
+/// [`setup`] with Phi's hidden layers `appearance_hidden_width` wide.
+fn setup_with_width(
+    variant: Variant,
+    count: usize,
+    appearance_hidden_width: usize,
+) -> (SunAwareModel, Vec<View>) {
     let scene = SyntheticScene::plate_and_ball(24, 400).unwrap();
     let config = SunAwareConfig {
         light: LightConfig {
             resolution_px: 96,
             ..LightConfig::default()
         },
+        appearance_hidden_width,
         ..SunAwareConfig::for_variant(variant)
     };
     let (points, _, colours) = scene.surface_samples(0.02, 5);
@@ -215,12 +230,15 @@ fn sunaware_visibility_matches_cpu() {
 }
 
 /// `steps` training steps of `variant` from the same start on each backend; both trained
-/// models are scored on the CPU backend over the training views (masked PSNR).
+/// models are scored on the CPU backend over the training views (masked PSNR). Phi's
+/// hidden layers are 32 wide here (256 by default): the networks' products run on the
+/// device, and a software driver takes about 10 s per step for three 256-wide layers
+/// (`sunaware_step_gradients_match_cpu` and `gpu_networks` check the 256-wide products).
 fn training_parity(variant: Variant, steps: usize) {
     let Some(backend) = gpu_backend() else {
         return;
     };
-    let (start, obs) = setup(variant, 6);
+    let (start, obs) = setup_with_width(variant, 6, 32);
     let observations: Vec<Observation> = obs
         .iter()
         .map(|(camera, sun, image, mask)| Observation {
@@ -242,6 +260,13 @@ fn training_parity(variant: Variant, steps: usize) {
     let run = |backend: &Backend| -> (SunAwareTrainer, f64) {
         let mut trainer = SunAwareTrainer::new(start.clone());
         trainer.set_backend(backend).unwrap();
+        // The networks run where the backend says.
+        let on_cpu = matches!(backend, Backend::Cpu);
+        let model = &trainer.model;
+        let nets = model.appearance.iter().map(|n| &n.mlp);
+        let nets: Vec<_> = nets.chain(model.shadow.iter().map(|n| &n.mlp)).collect();
+        assert!(!nets.is_empty());
+        assert!(nets.iter().all(|n| n.device().is_cpu() == on_cpu));
         let t = std::time::Instant::now();
         for s in 0..steps {
             let o = &observations[s % observations.len()];

@@ -6,7 +6,8 @@
 //! moments, statistics, SH colour, the loss ([`GpuLoss`]) and Adam on the device,
 //! `tests/gpu_resident.rs`); through `crate::sunaware::SunAwareModel::set_backend` the
 //! Sun-aware trainer moves its camera pass and shadow pass here (`tests/gpu_sunaware.rs`),
-//! its networks and optimiser staying on the CPU.
+//! and, through [`GpuMlp`], the matrix products of its networks (Phi, Psi); their input
+//! assembly and every optimiser stay on the CPU.
 //!
 //! [`GpuContext::new`] opens a Vulkan adapter (the only backend compiled in, so wgpu can
 //! never fall back to OpenGL) and reports its name, backend and whether it has
@@ -24,6 +25,7 @@
 
 pub mod gemm;
 pub mod loss;
+pub mod mlp;
 pub mod raster;
 pub mod resident;
 pub mod shadow;
@@ -32,6 +34,7 @@ use std::sync::Arc;
 
 pub use gemm::{GemmOp, GpuGemm};
 pub use loss::GpuLoss;
+pub use mlp::{GpuMlp, MlpGradients, MlpTape};
 pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
 pub use resident::{ResidentModel, ResidentStepInput, ResidentStepReport};
 pub use shadow::GpuShadow;

@@ -30,7 +30,9 @@
 //! [`crate::gpu::GpuShadow::sun_visibility`]. The visible list then comes from the CPU
 //! projection alone ([`crate::raster::project_splats`], no sort or binning), the networks
 //! run on every visible Gaussian (`skip_noncontributing_in_mlp` needs the CPU's prepared
-//! view, so it has no effect there), and Phi, Psi, SH colour and Adam stay on the CPU.
+//! view, so it has no effect there), Phi's and Psi's forward and backward run in
+//! [`crate::gpu::GpuMlp`] (`nn::Mlp::set_device`; their input assembly and output
+//! scatter stay here), and SH colour and Adam stay on the CPU.
 //! The CPU backend is the reference and its results are unchanged by this switch.
 //!
 //! Invariants: the visible list, the channel layout and every network batch are fixed by
@@ -438,18 +440,24 @@ impl SunAwareModel {
         })
     }
 
-    /// Moves the camera pass's rasterizer and the shadow pass to `backend` (the networks,
-    /// SH colour and every optimiser stay on the CPU). For `Wgpu` this compiles the shadow
+    /// Moves the camera pass's rasterizer, the shadow pass and the networks' forward and
+    /// backward (Phi, Psi: `gpu::GpuMlp`) to `backend` (the networks' input assembly, SH
+    /// colour and every optimiser stay on the CPU). For `Wgpu` this compiles the shadow
     /// pipelines on the rasterizer's device (an error if they fail, never a fallback).
     pub fn set_backend(&mut self, backend: &crate::train::Backend) -> Result<(), SunAwareError> {
         match backend {
             crate::train::Backend::Cpu => {
                 self.backend = BackendSlot::default();
+                #[cfg(feature = "wgpu")]
+                self.set_network_device(None);
                 Ok(())
             }
             #[cfg(feature = "wgpu")]
             crate::train::Backend::Wgpu(raster) => {
                 let shadow = crate::gpu::GpuShadow::new(raster.clone()).map_err(from_gpu)?;
+                let networks =
+                    crate::gpu::GpuMlp::new(raster.context().clone()).map_err(from_gpu)?;
+                self.set_network_device(Some(Arc::new(networks)));
                 self.backend = BackendSlot {
                     gpu: Some(GpuPair {
                         raster: raster.clone(),
@@ -458,6 +466,18 @@ impl SunAwareModel {
                 };
                 Ok(())
             }
+        }
+    }
+
+    /// Runs Phi's and Psi's forward and backward on `gpu` (`None`: the CPU). One place
+    /// for the choice: the step's code is the same either way (`nn::Mlp::set_device`).
+    #[cfg(feature = "wgpu")]
+    fn set_network_device(&mut self, gpu: Option<Arc<crate::gpu::GpuMlp>>) {
+        for net in self.appearance.iter_mut().map(|n| &mut n.mlp) {
+            net.set_device(gpu.clone());
+        }
+        for net in self.shadow.iter_mut().map(|n| &mut n.mlp) {
+            net.set_device(gpu.clone());
         }
     }
 

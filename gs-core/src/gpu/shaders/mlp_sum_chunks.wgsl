@@ -1,0 +1,26 @@
+// Split-K reduction of the device MLP (gpu/mlp.rs): dst[i] = sum over chunks z of
+// src[z * count + i], in chunk order (deterministic), one thread per output value.
+
+struct SumChunks {
+    count: u32,
+    chunks: u32,
+    pad0: u32,
+    pad1: u32,
+}
+
+@group(0) @binding(0) var<uniform> u: SumChunks;
+@group(0) @binding(1) var<storage, read> src: array<f32>;
+@group(0) @binding(2) var<storage, read_write> dst: array<f32>;
+
+@compute @workgroup_size(256)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = gid.x + gid.y * nwg.x * 256u;
+    if i >= u.count {
+        return;
+    }
+    var sum = 0.0;
+    for (var z = 0u; z < u.chunks; z++) {
+        sum += src[z * u.count + i];
+    }
+    dst[i] = sum;
+}
