@@ -390,6 +390,7 @@ fn tile_visibility(
     // needed, so rounding never drops one; the exact test below decides).
     let reach = footprint_radius_px.ceil() as i64 + 1;
     let mut next_occluder = 0;
+    let mut saturated = 0usize;
     for &k in &receivers {
         let rank = list[k] as usize;
         let s = &ranked[rank];
@@ -398,6 +399,11 @@ fn tile_visibility(
         }
         let limit = limit_of_rank[rank];
         while next_occluder < list.len() && ranked[list[next_occluder] as usize].depth < limit {
+            if saturated == trans.len() {
+                // Every pixel of the tile is opaque: no occluder can change anything.
+                next_occluder = list.len();
+                break;
+            }
             let o_rank = list[next_occluder] as usize;
             let o = &ranked[o_rank];
             let floor = power_floor_of_rank[o_rank];
@@ -414,6 +420,9 @@ fn tile_visibility(
                     let alpha = occluder_alpha(o, fx, fy);
                     if alpha >= ALPHA_MIN {
                         *t *= 1.0 - alpha;
+                        if *t < TRANSMITTANCE_STOP {
+                            saturated += 1;
+                        }
                     }
                 }
             }
@@ -612,6 +621,21 @@ mod tests {
                         }
                     })
                     .collect();
+                if count == 300 {
+                    // Four near-opaque walls in front of everything: the whole tile
+                    // saturates and the walk can stop.
+                    for wall in ranked.iter_mut().take(4) {
+                        wall.conic = [1e-4, 0.0, 1e-4];
+                        wall.opacity = 0.99;
+                        wall.depth = -1.0;
+                        wall.rect = PixelRect {
+                            x0: 0,
+                            y0: 0,
+                            x1: 64,
+                            y1: 64,
+                        };
+                    }
+                }
                 if count > 3 {
                     ranked[2].mean_px[0] = f32::NAN;
                     ranked[3].mean_px = [1e9, -1e9];
