@@ -1,8 +1,10 @@
 //! The MLP's forward and backward on the device ([`GpuMlp`]): the same network, parameter
 //! layout and arithmetic as `crate::nn::mlp` (`Y = X W + b`, hidden ReLU or LeakyReLU,
-//! sigmoid output), with every matrix product a tiled GEMM (`shaders/gemm.wgsl`), bias and
-//! activation (and their backward) a pointwise kernel (`shaders/mlp_pointwise.wgsl`) and
-//! the bias gradient a column sum (`shaders/mlp_colsum.wgsl`).
+//! sigmoid output), with every matrix product `shaders/mlp_gemm.wgsl` (one invocation per
+//! output; the weight gradient's reduction over rows split into
+//! [`WEIGHT_GRADIENT_CHUNK_ROWS`]-row chunks, added in order by `mlp_sum_chunks.wgsl`),
+//! bias and activation (and their backward) a pointwise kernel (`mlp_pointwise.wgsl`) and
+//! the bias gradient a column sum (`mlp_colsum.wgsl`).
 //!
 //! Invariants:
 //! - forward uploads the input and the weights once (one buffer per layer's `W` and `b`)
@@ -11,8 +13,9 @@
 //!   output gradient and reads back the parameter gradient (in `nn::mlp`'s flat layout)
 //!   and, when asked, the input gradient;
 //! - each forward and each backward is one command buffer and one wait;
-//! - every output value is one thread's in-order sum (GEMM over the reduction dimension,
-//!   the bias gradient over rows), so results are deterministic run to run;
+//! - every output value is one thread's in-order sum (GEMM over the reduction dimension or
+//!   one chunk of it, the chunks in chunk order, the bias gradient over rows), so results
+//!   are deterministic run to run;
 //! - products are f32 whatever `Mlp::precision` says (no bf16 kernels on the device);
 //! - bad shapes are [`GpuError::Invalid`], sizes past the dispatch or buffer limits
 //!   [`GpuError::TooLarge`], before any device work. Finiteness is checked by the caller

@@ -1,7 +1,9 @@
 //! wgpu compute backend (feature `wgpu`): the rasterizer's forward and backward passes
-//! ([`GpuRasterizer`]), the shadow pass's per-pixel visibility ([`GpuShadow`]) and a tiled
-//! GEMM for the MLP products ([`GpuGemm`]) as WGSL compute kernels (`shaders/`), checked
-//! against the CPU path (`tests/gpu_parity.rs`). `crate::train::Backend::Wgpu` trains the
+//! ([`GpuRasterizer`]), the shadow pass's per-pixel visibility ([`GpuShadow`]), the MLPs'
+//! forward and backward ([`GpuMlp`]) and a tiled GEMM ([`GpuGemm`], unused by the MLPs,
+//! whose products are faster on software drivers without tiles) as WGSL compute kernels
+//! (`shaders/`), checked against the CPU path (`tests/gpu_parity.rs`,
+//! `tests/gpu_networks.rs`). `crate::train::Backend::Wgpu` trains the
 //! plain 3DGS model device-resident ([`ResidentModel`]: parameters, gradients, Adam
 //! moments, statistics, SH colour, the loss ([`GpuLoss`]) and Adam on the device,
 //! `tests/gpu_resident.rs`); through `crate::sunaware::SunAwareModel::set_backend` the
