@@ -22,6 +22,7 @@ cargo clippy -p gs-core --features wgpu --all-targets -- -D warnings
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_parity
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_sunaware
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_resident
+GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_networks
 
 step "python test environment"
 python=$(bash tests/setup_venv.sh)
