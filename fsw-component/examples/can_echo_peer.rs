@@ -27,7 +27,7 @@ fn burst_frame(index: usize) -> Result<RawCanFrame, TransportError> {
     let id = BURST_REPLY_BASE_ID + index as u32;
     let data_of =
         |len: usize| -> Vec<u8> { (0..len).map(|k| (37 * index + 11 * k + 5) as u8).collect() };
-    if index % 2 == 0 {
+    if index.is_multiple_of(2) {
         RawCanFrame::classic(id, &data_of(index % 9))
     } else {
         RawCanFrame::fd(id, &data_of(fd_lengths[(index / 2) % fd_lengths.len()]))

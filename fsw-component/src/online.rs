@@ -478,7 +478,7 @@ impl OnlineTrainer {
         }
         self.rounds += 1;
         self.last_trained_generation = Some(self.window.generation());
-        let densified = if self.rounds % self.config.densify_every_rounds == 0 {
+        let densified = if self.rounds.is_multiple_of(self.config.densify_every_rounds) {
             Some(self.trainer.densify_and_prune()?)
         } else {
             None

@@ -91,7 +91,7 @@ impl IsotropicLoss {
         log_scales: &[f32],
         d_log_scales: &mut [f32],
     ) -> Result<f32, RegularizerError> {
-        if log_scales.len() % 3 != 0 {
+        if !log_scales.len().is_multiple_of(3) {
             return Err(RegularizerError::Shape {
                 what: "log-scales (3 per Gaussian)",
                 expected: log_scales.len() / 3 * 3,

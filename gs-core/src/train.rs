@@ -687,13 +687,13 @@ impl Trainer {
         let mut densified = None;
         let mut opacity_reset = false;
         if !skipped && accumulate_stats {
-            let densify_now =
-                iteration > config.densify_from_iter && iteration % config.densify_interval == 0;
+            let densify_now = iteration > config.densify_from_iter
+                && iteration.is_multiple_of(config.densify_interval);
             // 3DGS also resets once at `densify_from_iter` on a white background.
             let white_reset =
                 config.background == [1.0; 3] && iteration == config.densify_from_iter;
-            let periodic_reset =
-                config.opacity_reset_interval > 0 && iteration % config.opacity_reset_interval == 0;
+            let periodic_reset = config.opacity_reset_interval > 0
+                && iteration.is_multiple_of(config.opacity_reset_interval);
             let reset_now = periodic_reset || white_reset;
             if densify_now || reset_now {
                 // Densification and resets edit the host's copy (a no-op sync on the CPU).

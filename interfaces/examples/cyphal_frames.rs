@@ -19,7 +19,7 @@ use std::io::{self, BufRead, Write};
 use std::process::ExitCode;
 
 fn hex_decode(text: &str) -> Result<Vec<u8>, String> {
-    if text.len() % 2 != 0 {
+    if !text.len().is_multiple_of(2) {
         return Err(format!("odd number of hex digits in {text:?}"));
     }
     (0..text.len())

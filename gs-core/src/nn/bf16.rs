@@ -153,10 +153,8 @@ impl Bf16Kernels {
     }
 }
 
-// The AVX-512 intrinsics are stable from Rust 1.89, past the workspace's declared 1.86:
-// building this module needs 1.89 (the toolchain here is 1.95).
+// The AVX-512 intrinsics are stable from Rust 1.89 (the workspace's `rust-version`).
 #[cfg(target_arch = "x86_64")]
-#[allow(clippy::incompatible_msrv)]
 mod x86 {
     use std::arch::x86_64::*;
     use std::cell::RefCell;

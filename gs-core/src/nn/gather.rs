@@ -8,7 +8,7 @@ use super::error::{check_finite, NnError};
 
 /// Number of Gaussians in a flat `count x width` array, or a shape error.
 pub(crate) fn rows_of(what: &'static str, values: &[f32], width: usize) -> Result<usize, NnError> {
-    if width == 0 || values.len() % width != 0 {
+    if width == 0 || !values.len().is_multiple_of(width) {
         return Err(NnError::Shape {
             what,
             expected: width * (values.len() / width.max(1)),

@@ -139,7 +139,7 @@ impl Iterator for TransferFrames<'_> {
         let tail = TailByte {
             start_of_transfer: first,
             end_of_transfer: last,
-            toggle: self.frame_index % 2 == 0,
+            toggle: self.frame_index.is_multiple_of(2),
             transfer_id: self.transfer_id,
         };
         let _ = data.push(tail.to_byte());
