@@ -259,6 +259,19 @@ fn column_mask(r: &PixelRect, tile: &PixelRect) -> u16 {
     (((1u32 << hi) - 1) & !((1u32 << lo) - 1)) as u16
 }
 
+/// One tile's blending inputs, bundled so that the multiversioning layers below
+/// (`*_avx2` -> `*_dispatch` -> `*_body`) each forward one reference.
+#[derive(Clone, Copy)]
+struct TileInputs<'a> {
+    tile: &'a PixelRect,
+    list: &'a [u32],
+    splats: &'a [Splat],
+    splat_channels: &'a [f32],
+    n_channels: usize,
+    background: &'a [f32],
+    mode: AlphaMode,
+}
+
 /// Blends one tile front to back. `list` holds splat ranks in depth order.
 ///
 /// On x86_64 with AVX2 the same code is compiled for 8-wide registers. Rust never fuses
@@ -275,25 +288,7 @@ pub fn blend_tile_forward(
     early_termination: bool,
     out: TileForwardOut,
 ) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        unsafe {
-            forward_avx2(
-                tile,
-                list,
-                splats,
-                splat_channels,
-                n_channels,
-                background,
-                mode,
-                early_termination,
-                out,
-            )
-        };
-        return;
-    }
-    forward_dispatch(
+    let inp = TileInputs {
         tile,
         list,
         splats,
@@ -301,89 +296,49 @@ pub fn blend_tile_forward(
         n_channels,
         background,
         mode,
-        early_termination,
-        out,
-    );
+    };
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { forward_avx2(&inp, early_termination, out) };
+        return;
+    }
+    forward_dispatch(&inp, early_termination, out);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn forward_avx2(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
-    early_termination: bool,
-    out: TileForwardOut,
-) {
-    forward_dispatch(
-        tile,
-        list,
-        splats,
-        splat_channels,
-        n_channels,
-        background,
-        mode,
-        early_termination,
-        out,
-    );
+unsafe fn forward_avx2(inp: &TileInputs, early_termination: bool, out: TileForwardOut) {
+    forward_dispatch(inp, early_termination, out);
 }
 
 /// Picks a build with the channel count fixed at compile time for the common counts.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn forward_dispatch(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
-    early_termination: bool,
-    out: TileForwardOut,
-) {
-    macro_rules! go {
-        ($n:literal) => {
-            forward_body::<$n>(
-                tile,
-                list,
-                splats,
-                splat_channels,
-                n_channels,
-                background,
-                mode,
-                early_termination,
-                out,
-            )
-        };
-    }
-    match n_channels {
-        1 => go!(1),
-        3 => go!(3),
-        4 => go!(4),
-        _ => go!(0),
+fn forward_dispatch(inp: &TileInputs, early_termination: bool, out: TileForwardOut) {
+    match inp.n_channels {
+        1 => forward_body::<1>(inp, early_termination, out),
+        3 => forward_body::<3>(inp, early_termination, out),
+        4 => forward_body::<4>(inp, early_termination, out),
+        _ => forward_body::<0>(inp, early_termination, out),
     }
 }
 
 /// `FIXED > 0`: the channel count is `FIXED` (loops unroll); 0: `n_channels`.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn forward_body<const FIXED: usize>(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
+    inp: &TileInputs,
     early_termination: bool,
     out: TileForwardOut,
 ) {
+    let TileInputs {
+        tile,
+        list,
+        splats,
+        splat_channels,
+        n_channels,
+        background,
+        mode,
+    } = *inp;
     let nc = if FIXED > 0 { FIXED } else { n_channels };
     out.color.fill(0.0);
     out.depth.fill(0.0);
@@ -483,38 +438,41 @@ pub fn tile_contributions(
     early_termination: bool,
     flags: &mut [u8],
 ) {
+    // The alpha-only walk reads no channels and no background.
+    let inp = TileInputs {
+        tile,
+        list,
+        splats,
+        splat_channels: &[],
+        n_channels: 0,
+        background: &[],
+        mode,
+    };
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
-        unsafe { contributions_avx2(tile, list, splats, mode, early_termination, flags) };
+        unsafe { contributions_avx2(&inp, early_termination, flags) };
         return;
     }
-    contributions_body(tile, list, splats, mode, early_termination, flags);
+    contributions_body(&inp, early_termination, flags);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn contributions_avx2(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    mode: AlphaMode,
-    early_termination: bool,
-    flags: &mut [u8],
-) {
-    contributions_body(tile, list, splats, mode, early_termination, flags);
+unsafe fn contributions_avx2(inp: &TileInputs, early_termination: bool, flags: &mut [u8]) {
+    contributions_body(inp, early_termination, flags);
 }
 
 /// [`forward_body`] without channels or depth: only the transmittance and the flags.
 #[inline(always)]
-fn contributions_body(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    mode: AlphaMode,
-    early_termination: bool,
-    flags: &mut [u8],
-) {
+fn contributions_body(inp: &TileInputs, early_termination: bool, flags: &mut [u8]) {
+    let TileInputs {
+        tile,
+        list,
+        splats,
+        mode,
+        ..
+    } = *inp;
     flags.fill(0);
     let mut transmittance = [1.0f32; TILE_PIXELS];
     let full = column_mask(
@@ -587,6 +545,16 @@ pub struct TileForwardState<'a> {
     pub last: &'a [u32],
 }
 
+/// The backward pass's own inputs and output, beside the shared [`TileInputs`].
+struct BackwardPass<'a> {
+    state: TileForwardState<'a>,
+    grads: &'a PixelGradsView<'a>,
+    records: &'a mut [f32],
+    /// False evaluates every lane group the splat's rectangle meets (the reference the
+    /// tests compare the skip with).
+    skip_unreached: bool,
+}
+
 /// Backward of one tile: writes one gradient record (`REC_CHANNELS + n_channels` values)
 /// per list entry into `records` (which holds exactly this tile's entries).
 #[allow(clippy::too_many_arguments)]
@@ -602,7 +570,7 @@ pub fn blend_tile_backward(
     grads: &PixelGradsView,
     records: &mut [f32],
 ) {
-    backward_entry(
+    let inp = TileInputs {
         tile,
         list,
         splats,
@@ -610,178 +578,53 @@ pub fn blend_tile_backward(
         n_channels,
         background,
         mode,
-        state,
-        grads,
-        records,
-        true,
+    };
+    backward_entry(
+        &inp,
+        BackwardPass {
+            state,
+            grads,
+            records,
+            skip_unreached: true,
+        },
     );
 }
 
-/// [`blend_tile_backward`]; `skip_unreached` false evaluates every lane group the splat's
-/// rectangle meets (the reference the tests compare the skip with).
-#[allow(clippy::too_many_arguments)]
-fn backward_entry(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
-    state: TileForwardState,
-    grads: &PixelGradsView,
-    records: &mut [f32],
-    skip_unreached: bool,
-) {
+/// [`blend_tile_backward`] with the lane-group skip selectable.
+fn backward_entry(inp: &TileInputs, pass: BackwardPass) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
-        unsafe {
-            backward_avx2(
-                tile,
-                list,
-                splats,
-                splat_channels,
-                n_channels,
-                background,
-                mode,
-                state,
-                grads,
-                records,
-                skip_unreached,
-            )
-        };
+        unsafe { backward_avx2(inp, pass) };
         return;
     }
-    backward_dispatch(
-        tile,
-        list,
-        splats,
-        splat_channels,
-        n_channels,
-        background,
-        mode,
-        state,
-        grads,
-        records,
-        skip_unreached,
-    );
+    backward_dispatch(inp, pass);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn backward_avx2(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
-    state: TileForwardState,
-    grads: &PixelGradsView,
-    records: &mut [f32],
-    skip_unreached: bool,
-) {
-    backward_dispatch(
-        tile,
-        list,
-        splats,
-        splat_channels,
-        n_channels,
-        background,
-        mode,
-        state,
-        grads,
-        records,
-        skip_unreached,
-    );
+unsafe fn backward_avx2(inp: &TileInputs, pass: BackwardPass) {
+    backward_dispatch(inp, pass);
 }
 
-/// Picks a build with the channel count fixed at compile time for the common counts.
+/// Picks a build with the channel count fixed at compile time for the common counts,
+/// and the alpha mode.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn backward_dispatch(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
-    state: TileForwardState,
-    grads: &PixelGradsView,
-    records: &mut [f32],
-    skip_unreached: bool,
-) {
+fn backward_dispatch(inp: &TileInputs, pass: BackwardPass) {
     macro_rules! go {
         ($n:literal) => {
-            backward_body::<$n>(
-                tile,
-                list,
-                splats,
-                splat_channels,
-                n_channels,
-                background,
-                mode,
-                state,
-                grads,
-                records,
-                skip_unreached,
-            )
+            if inp.mode.smooth {
+                backward_lanes::<$n, true>(inp, pass)
+            } else {
+                backward_lanes::<$n, false>(inp, pass)
+            }
         };
     }
-    match n_channels {
+    match inp.n_channels {
         1 => go!(1),
         3 => go!(3),
         4 => go!(4),
         _ => go!(0),
-    }
-}
-
-/// `FIXED > 0`: the channel count is `FIXED` (loops unroll); 0: `n_channels`.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn backward_body<const FIXED: usize>(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
-    state: TileForwardState,
-    grads: &PixelGradsView,
-    records: &mut [f32],
-    skip_unreached: bool,
-) {
-    if mode.smooth {
-        backward_lanes::<FIXED, true>(
-            tile,
-            list,
-            splats,
-            splat_channels,
-            n_channels,
-            background,
-            state,
-            grads,
-            records,
-            skip_unreached,
-        )
-    } else {
-        backward_lanes::<FIXED, false>(
-            tile,
-            list,
-            splats,
-            splat_channels,
-            n_channels,
-            background,
-            state,
-            grads,
-            records,
-            skip_unreached,
-        )
     }
 }
 
@@ -831,19 +674,23 @@ fn lane_sum(v: &Lanes) -> f32 {
 /// the same operations as the scalar formulas; per-splat sums are kept per lane and added
 /// in a fixed order at the end of each list entry.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn backward_lanes<const FIXED: usize, const SMOOTH: bool>(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    state: TileForwardState,
-    grads: &PixelGradsView,
-    records: &mut [f32],
-    skip_unreached: bool,
-) {
+fn backward_lanes<const FIXED: usize, const SMOOTH: bool>(inp: &TileInputs, pass: BackwardPass) {
+    // `mode` is rebuilt from `SMOOTH` so the alpha branch is resolved at compile time.
+    let TileInputs {
+        tile,
+        list,
+        splats,
+        splat_channels,
+        n_channels,
+        background,
+        mode: _,
+    } = *inp;
+    let BackwardPass {
+        state,
+        grads,
+        records,
+        skip_unreached,
+    } = pass;
     const T: usize = TILE_PX as usize;
     const TP: usize = TILE_PIXELS;
     let mode = AlphaMode { smooth: SMOOTH };
@@ -1427,20 +1274,24 @@ mod tests {
                     let run = |skip: bool| {
                         let mut records = vec![f32::NAN; count * (REC_CHANNELS + NC)];
                         backward_entry(
-                            &t,
-                            &list,
-                            &splats,
-                            &channels,
-                            NC,
-                            &[0.25, 0.75],
-                            mode,
-                            TileForwardState {
-                                transmittance: &trans,
-                                last: &last,
+                            &TileInputs {
+                                tile: &t,
+                                list: &list,
+                                splats: &splats,
+                                splat_channels: &channels,
+                                n_channels: NC,
+                                background: &[0.25, 0.75],
+                                mode,
                             },
-                            &grads,
-                            &mut records,
-                            skip,
+                            BackwardPass {
+                                state: TileForwardState {
+                                    transmittance: &trans,
+                                    last: &last,
+                                },
+                                grads: &grads,
+                                records: &mut records,
+                                skip_unreached: skip,
+                            },
                         );
                         records.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
                     };
