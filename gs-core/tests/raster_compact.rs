@@ -10,63 +10,20 @@
 //!   lists are much shorter; with early termination on and off, smooth mode, a
 //!   background, and a tile selection (`blend_tiles`).
 
+mod common;
+
+use common::{assert_bits_eq, assert_same_grads, backward, pixel_weights, Gaussians};
 use glam::Vec3;
 use gs_core::camera::{Camera, Intrinsics};
 use gs_core::init::SplitMix64;
 use gs_core::raster::bin::TileSelection;
 use gs_core::raster::{
-    prepare_view, render_backward, render_prepared, render_with, GaussianGrads, GaussianView,
-    PixelGrads, RasterSettings, RasterWorkspace, RenderOutput,
+    prepare_view, render_prepared, render_with, RasterSettings, RasterWorkspace, RenderOutput,
 };
 
 const NC: usize = 3;
 const WIDTH: u32 = 96;
 const HEIGHT: u32 = 80;
-
-#[derive(Clone, Default)]
-struct Gaussians {
-    means: Vec<f32>,
-    log_scales: Vec<f32>,
-    rotations: Vec<f32>,
-    opacity_logits: Vec<f32>,
-    channels: Vec<f32>,
-}
-
-impl Gaussians {
-    fn view(&self) -> GaussianView<'_> {
-        GaussianView {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            rotations: &self.rotations,
-            opacity_logits: &self.opacity_logits,
-            channels: &self.channels,
-            n_channels: NC,
-        }
-    }
-
-    /// Adds a Gaussian with its centre given in the camera frame.
-    fn push(
-        &mut self,
-        rng: &mut SplitMix64,
-        camera: &Camera,
-        centre_cam: Vec3,
-        sigma_m: f32,
-        opacity_logit: f32,
-    ) {
-        let world = camera.rotation.conjugate() * (centre_cam - camera.translation);
-        self.means.extend(world.to_array());
-        for _ in 0..3 {
-            self.log_scales.push((sigma_m * rng.uniform(0.5, 1.5)).ln());
-        }
-        for _ in 0..4 {
-            self.rotations.push(rng.uniform(-1.0, 1.0));
-        }
-        self.opacity_logits.push(opacity_logit);
-        for _ in 0..NC {
-            self.channels.push(rng.uniform(0.0, 1.0));
-        }
-    }
-}
 
 fn camera() -> Camera {
     let k = Intrinsics::from_fov_x(1.0, WIDTH, HEIGHT);
@@ -83,19 +40,19 @@ fn camera() -> Camera {
 /// about 0.5 %, so their alpha passes 1/255 near the centre only, or nowhere when tiny).
 fn scene(seed: u64, camera: &Camera) -> Gaussians {
     let mut rng = SplitMix64::new(seed);
-    let mut g = Gaussians::default();
+    let mut g = Gaussians::new(NC);
     // tan(fov_x / 2) = 0.546; the image spans |x/z| < 0.546, |y/z| < 0.455.
     for _ in 0..900 {
         let z = rng.uniform(4.0, 7.0);
         let c = Vec3::new(rng.uniform(-0.5, 0.5) * z, rng.uniform(-0.4, 0.4) * z, z);
         let sigma = rng.uniform(0.03, 0.3);
         let logit = rng.uniform(-1.0, 4.0);
-        g.push(&mut rng, camera, c, sigma, logit);
+        g.push_in_camera(&mut rng, camera, c, sigma, |_| logit);
     }
     for _ in 0..150 {
         let z = rng.uniform(2.5, 3.0);
         let c = Vec3::new(rng.uniform(-1.4, 0.0), rng.uniform(-1.2, 1.2), z);
-        g.push(&mut rng, camera, c, 0.25, 6.0);
+        g.push_in_camera(&mut rng, camera, c, 0.25, |_| 6.0);
     }
     for _ in 0..600 {
         let z = rng.uniform(1.5, 8.0);
@@ -106,22 +63,9 @@ fn scene(seed: u64, camera: &Camera) -> Gaussians {
             rng.uniform(0.05, 0.3)
         };
         let logit = rng.uniform(-5.6, -5.0);
-        g.push(&mut rng, camera, c, sigma, logit);
+        g.push_in_camera(&mut rng, camera, c, sigma, |_| logit);
     }
     g
-}
-
-fn pixel_weights(rng: &mut SplitMix64, pixels: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-    let mut draw = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect() };
-    (draw(pixels * NC), draw(pixels), draw(pixels))
-}
-
-/// Same bits everywhere; the message names the first difference only.
-fn assert_bits_eq(a: &[f32], b: &[f32], what: &str) {
-    assert_eq!(a.len(), b.len(), "{what}: lengths");
-    if let Some(i) = (0..a.len()).find(|&i| a[i].to_bits() != b[i].to_bits()) {
-        panic!("{what}: first difference at {i}: {} vs {}", a[i], b[i]);
-    }
 }
 
 fn assert_same_render(a: &RenderOutput, b: &RenderOutput, what: &str) {
@@ -135,49 +79,6 @@ fn assert_same_render(a: &RenderOutput, b: &RenderOutput, what: &str) {
         b.tile_entry_count(),
         "{what}: entries"
     );
-}
-
-fn assert_same_grads(a: &GaussianGrads, b: &GaussianGrads, what: &str) {
-    assert_bits_eq(&a.d_means, &b.d_means, &format!("{what}: d_means"));
-    assert_bits_eq(
-        &a.d_log_scales,
-        &b.d_log_scales,
-        &format!("{what}: d_log_scales"),
-    );
-    assert_bits_eq(&a.d_rotations, &b.d_rotations, &format!("{what}: d_rot"));
-    assert_bits_eq(
-        &a.d_opacity_logits,
-        &b.d_opacity_logits,
-        &format!("{what}: d_opacity_logits"),
-    );
-    assert_bits_eq(&a.d_channels, &b.d_channels, &format!("{what}: d_channels"));
-    assert_bits_eq(
-        &a.mean2d_grad_ndc,
-        &b.mean2d_grad_ndc,
-        &format!("{what}: mean2d_grad_ndc"),
-    );
-    assert_eq!(a.dropped_nonfinite, b.dropped_nonfinite, "{what}: dropped");
-}
-
-fn backward(
-    camera: &Camera,
-    g: &Gaussians,
-    settings: &RasterSettings,
-    out: &RenderOutput,
-    weights: &(Vec<f32>, Vec<f32>, Vec<f32>),
-) -> GaussianGrads {
-    render_backward(
-        camera,
-        &g.view(),
-        settings,
-        out,
-        &PixelGrads {
-            d_color: &weights.0,
-            d_alpha: Some(&weights.1),
-            d_depth: Some(&weights.2),
-        },
-    )
-    .unwrap()
 }
 
 /// Left half of the image as the mask, for a tile selection.
@@ -195,7 +96,7 @@ fn compacted_lists_give_the_same_image_and_gradients() {
     for seed in [11u64, 12] {
         let g = scene(seed, &cam);
         let mut rng = SplitMix64::new(seed ^ 0x5a5a);
-        let weights = pixel_weights(&mut rng, pixels);
+        let weights = pixel_weights(&mut rng, pixels, NC);
         let background: Vec<f32> = (0..NC).map(|_| rng.uniform(0.0, 1.0)).collect();
         for early_termination in [true, false] {
             for smooth_cutoff in [false, true] {

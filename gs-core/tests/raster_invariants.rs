@@ -8,93 +8,15 @@
 //! - bad inputs give errors, never panics;
 //! - extreme scales, opacities and positions (camera inside the cloud) stay finite.
 
+mod common;
+
+use common::{backward, pixel_weights, Gaussians};
 use glam::{Quat, Vec3};
 use gs_core::raster::{
-    render, render_backward, GaussianGrads, GaussianView, PixelGrads, RasterError, RasterSettings,
-    RenderOutput,
+    render, render_backward, GaussianGrads, PixelGrads, RasterError, RasterSettings, RenderOutput,
 };
 use gs_core::rng::SplitMix64;
 use gs_core::{Camera, Intrinsics};
-
-#[derive(Clone, Default)]
-struct Gaussians {
-    means: Vec<f32>,
-    log_scales: Vec<f32>,
-    rotations: Vec<f32>,
-    opacity_logits: Vec<f32>,
-    channels: Vec<f32>,
-    n_channels: usize,
-}
-
-impl Gaussians {
-    fn new(n_channels: usize) -> Self {
-        Self {
-            n_channels,
-            ..Default::default()
-        }
-    }
-
-    fn view(&self) -> GaussianView<'_> {
-        GaussianView {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            rotations: &self.rotations,
-            opacity_logits: &self.opacity_logits,
-            channels: &self.channels,
-            n_channels: self.n_channels,
-        }
-    }
-
-    fn len(&self) -> usize {
-        self.opacity_logits.len()
-    }
-
-    fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], rot: [f32; 4], logit: f32, ch: &[f32]) {
-        assert_eq!(ch.len(), self.n_channels);
-        self.means.extend(mean);
-        self.log_scales.extend(log_scale);
-        self.rotations.extend(rot);
-        self.opacity_logits.push(logit);
-        self.channels.extend_from_slice(ch);
-    }
-
-    /// Inserts Gaussian `src` of `other` at position `at`.
-    fn insert_from(&mut self, at: usize, other: &Gaussians, src: usize) {
-        let nc = self.n_channels;
-        let splice = |dst: &mut Vec<f32>, from: &[f32], w: usize| {
-            let row = from[src * w..src * w + w].to_vec();
-            dst.splice(at * w..at * w, row);
-        };
-        splice(&mut self.means, &other.means, 3);
-        splice(&mut self.log_scales, &other.log_scales, 3);
-        splice(&mut self.rotations, &other.rotations, 4);
-        splice(&mut self.opacity_logits, &other.opacity_logits, 1);
-        splice(&mut self.channels, &other.channels, nc);
-    }
-
-    fn random_cloud(
-        rng: &mut SplitMix64,
-        n: usize,
-        n_channels: usize,
-        centre: Vec3,
-        radius: f32,
-    ) -> Self {
-        let mut g = Gaussians::new(n_channels);
-        for _ in 0..n {
-            let m = centre
-                + Vec3::new(
-                    rng.uniform(-1.0, 1.0),
-                    rng.uniform(-1.0, 1.0),
-                    rng.uniform(-1.0, 1.0),
-                ) * radius;
-            let s = [(); 3].map(|_| rng.uniform(-3.5, -1.5));
-            let q = [(); 4].map(|_| rng.uniform(-1.0, 1.0));
-            let ch: Vec<f32> = (0..n_channels).map(|_| rng.uniform(0.0, 1.0)).collect();
-            g.push(m.to_array(), s, q, rng.uniform(-3.0, 4.0), &ch);
-        }
-        g
-    }
-}
 
 fn camera(width: u32, height: u32) -> Camera {
     Camera::look_at(
@@ -106,14 +28,8 @@ fn camera(width: u32, height: u32) -> Camera {
 }
 
 fn pixel_grads_for(out: &RenderOutput, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-    let mut rng = SplitMix64::new(seed);
     let px = out.width as usize * out.height as usize;
-    let c = (0..px * out.n_channels)
-        .map(|_| rng.uniform(-1.0, 1.0))
-        .collect();
-    let a = (0..px).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let d = (0..px).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    (c, a, d)
+    pixel_weights(&mut SplitMix64::new(seed), px, out.n_channels)
 }
 
 fn render_and_backward(
@@ -122,19 +38,7 @@ fn render_and_backward(
     settings: &RasterSettings,
 ) -> (RenderOutput, GaussianGrads) {
     let out = render(cam, &g.view(), settings).unwrap();
-    let (c, a, d) = pixel_grads_for(&out, 5);
-    let grads = render_backward(
-        cam,
-        &g.view(),
-        settings,
-        &out,
-        &PixelGrads {
-            d_color: &c,
-            d_alpha: Some(&a),
-            d_depth: Some(&d),
-        },
-    )
-    .unwrap();
+    let grads = backward(cam, g, settings, &out, &pixel_grads_for(&out, 5));
     (out, grads)
 }
 

@@ -13,6 +13,9 @@
 //!   blended, and so is the rendered image on the tiles kept; a reach smaller than the
 //!   SSIM window's half width does change the gradients (so the comparison can fail).
 
+mod common;
+
+use common::{assert_bits_eq, assert_same_grads, backward, bits, pixel_weights, Gaussians};
 use glam::Vec3;
 use gs_core::camera::{Camera, Intrinsics};
 use gs_core::init::{inverse_sigmoid, SplitMix64};
@@ -21,64 +24,19 @@ use gs_core::model::{GaussianModel, Param};
 use gs_core::nn::SceneBox;
 use gs_core::raster::bin::{TileGrid, TileSelection, TILE_PX};
 use gs_core::raster::blend::AlphaMode;
-use gs_core::raster::project::{footprint_certainly_misses, GaussianParams};
+use gs_core::raster::project::footprint_certainly_misses;
 use gs_core::raster::{
-    camera_frame, project_splats_with, render, render_backward, GaussianGrads, GaussianView,
-    PixelGrads, RasterSettings, RenderOutput,
+    camera_frame, project_splats_with, render, render_backward, GaussianGrads, PixelGrads,
+    RasterSettings, RenderOutput,
 };
 use gs_core::sunaware::trainer::loss_and_grads;
 use gs_core::sunaware::{Observation, SunAwareConfig, SunAwareModel, Variant};
 
 const NC: usize = 3;
 
-#[derive(Clone, Default)]
-struct Gaussians {
-    means: Vec<f32>,
-    log_scales: Vec<f32>,
-    rotations: Vec<f32>,
-    opacity_logits: Vec<f32>,
-    channels: Vec<f32>,
-}
-
-impl Gaussians {
-    fn view(&self) -> GaussianView<'_> {
-        GaussianView {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            rotations: &self.rotations,
-            opacity_logits: &self.opacity_logits,
-            channels: &self.channels,
-            n_channels: NC,
-        }
-    }
-
-    fn params(&self, i: usize) -> GaussianParams {
-        let m = &self.means[3 * i..3 * i + 3];
-        let s = &self.log_scales[3 * i..3 * i + 3];
-        let q = &self.rotations[4 * i..4 * i + 4];
-        GaussianParams {
-            mean: [m[0], m[1], m[2]],
-            log_scale: [s[0], s[1], s[2]],
-            rotation: [q[0], q[1], q[2], q[3]],
-            opacity_logit: self.opacity_logits[i],
-        }
-    }
-
-    /// Adds a Gaussian with its centre given in the camera frame.
-    fn push(&mut self, rng: &mut SplitMix64, camera: &Camera, centre_cam: Vec3, sigma_m: f32) {
-        let world = camera.rotation.conjugate() * (centre_cam - camera.translation);
-        self.means.extend(world.to_array());
-        for _ in 0..3 {
-            self.log_scales.push((sigma_m * rng.uniform(0.5, 1.5)).ln());
-        }
-        for _ in 0..4 {
-            self.rotations.push(rng.uniform(-1.0, 1.0));
-        }
-        self.opacity_logits.push(rng.uniform(-1.0, 4.0));
-        for _ in 0..NC {
-            self.channels.push(rng.uniform(0.0, 1.0));
-        }
-    }
+/// Opacity logits of the skip scenes: U(-1, 4).
+fn random_logit(rng: &mut SplitMix64) -> f32 {
+    rng.uniform(-1.0, 4.0)
 }
 
 /// 96x64 pixels (6x4 tiles), fov_x 1 rad.
@@ -105,13 +63,13 @@ fn settings(rng: &mut SplitMix64) -> RasterSettings {
 /// near plane and behind the camera.
 fn scene(seed: u64, camera: &Camera) -> Gaussians {
     let mut rng = SplitMix64::new(seed);
-    let mut g = Gaussians::default();
+    let mut g = Gaussians::new(NC);
     // tan(fov_x / 2) = 0.546; the image spans |x/z| < 0.546, |y/z| < 0.364.
     for _ in 0..400 {
         let z = rng.uniform(3.0, 7.0);
         let c = Vec3::new(rng.uniform(-0.45, 0.45) * z, rng.uniform(-0.3, 0.3) * z, z);
         let sigma = rng.uniform(0.03, 0.25);
-        g.push(&mut rng, camera, c, sigma);
+        g.push_in_camera(&mut rng, camera, c, sigma, random_logit);
     }
     for _ in 0..600 {
         let z = rng.uniform(0.5, 20.0);
@@ -121,49 +79,14 @@ fn scene(seed: u64, camera: &Camera) -> Gaussians {
         } else {
             rng.uniform(0.02, 0.2)
         };
-        g.push(&mut rng, camera, c, sigma);
+        g.push_in_camera(&mut rng, camera, c, sigma, random_logit);
     }
     for _ in 0..50 {
         let z = rng.uniform(-3.0, 0.19);
         let c = Vec3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), z);
-        g.push(&mut rng, camera, c, 0.3);
+        g.push_in_camera(&mut rng, camera, c, 0.3, random_logit);
     }
     g
-}
-
-fn pixel_weights(rng: &mut SplitMix64, pixels: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-    let mut draw = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect() };
-    (draw(pixels * NC), draw(pixels), draw(pixels))
-}
-
-fn bits(v: &[f32]) -> Vec<u32> {
-    v.iter().map(|x| x.to_bits()).collect()
-}
-
-/// Same bits everywhere; the message names the first difference only.
-fn assert_bits_eq(a: &[f32], b: &[f32], what: &str) {
-    assert_eq!(a.len(), b.len(), "{what}: lengths");
-    if let Some(i) = (0..a.len()).find(|&i| a[i].to_bits() != b[i].to_bits()) {
-        panic!("{what}: first difference at {i}: {} vs {}", a[i], b[i]);
-    }
-}
-
-fn assert_same_grads(a: &GaussianGrads, b: &GaussianGrads, what: &str) {
-    assert_bits_eq(&a.d_means, &b.d_means, "{what}: d_means");
-    assert_bits_eq(&a.d_log_scales, &b.d_log_scales, "{what}: d_log_scales");
-    assert_bits_eq(&a.d_rotations, &b.d_rotations, "{what}: d_rotations");
-    assert_bits_eq(
-        &a.d_opacity_logits,
-        &b.d_opacity_logits,
-        "{what}: d_opacity_logits",
-    );
-    assert_bits_eq(&a.d_channels, &b.d_channels, "{what}: d_channels");
-    assert_bits_eq(
-        &a.mean2d_grad_ndc,
-        &b.mean2d_grad_ndc,
-        "{what}: mean2d_grad_ndc",
-    );
-    assert_eq!(a.dropped_nonfinite, b.dropped_nonfinite, "{what}: dropped");
 }
 
 fn render_and_backward(
@@ -173,18 +96,7 @@ fn render_and_backward(
     weights: &(Vec<f32>, Vec<f32>, Vec<f32>),
 ) -> (RenderOutput, GaussianGrads) {
     let out = render(camera, &g.view(), settings).unwrap();
-    let grads = render_backward(
-        camera,
-        &g.view(),
-        settings,
-        &out,
-        &PixelGrads {
-            d_color: &weights.0,
-            d_alpha: Some(&weights.1),
-            d_depth: Some(&weights.2),
-        },
-    )
-    .unwrap();
+    let grads = backward(camera, g, settings, &out, weights);
     (out, grads)
 }
 
@@ -211,7 +123,7 @@ fn frustum_cull_changes_no_bit() {
             })
             .count();
         assert!(flagged > 200, "seed {seed}: only {flagged} culled early");
-        let weights = pixel_weights(&mut rng, (k.width * k.height) as usize);
+        let weights = pixel_weights(&mut rng, (k.width * k.height) as usize, NC);
         let (out_on, grads_on) = render_and_backward(&cam, &g, &on, &weights);
         let (out_off, grads_off) = render_and_backward(&cam, &g, &off, &weights);
         let outside_but_visible = (0..n)
@@ -267,7 +179,7 @@ fn early_frustum_test_is_conservative() {
     let frame = camera_frame(&cam, 0.2).unwrap();
     let cutoff = AlphaMode { smooth: false }.cutoff();
     let mut rng = SplitMix64::new(11);
-    let mut g = Gaussians::default();
+    let mut g = Gaussians::new(NC);
     for _ in 0..20_000 {
         let z = rng.uniform(0.2, 30.0);
         // Centres within +-20 % of the image border, in x or in y.
@@ -298,7 +210,7 @@ fn early_frustum_test_is_conservative() {
             z,
         );
         let sigma = 10f32.powf(rng.uniform(-3.0, 0.5));
-        g.push(&mut rng, &cam, c, sigma);
+        g.push_in_camera(&mut rng, &cam, c, sigma, random_logit);
     }
     let n = g.opacity_logits.len();
     let full = project_splats_with(
@@ -329,12 +241,12 @@ fn early_frustum_test_is_conservative() {
 /// Dense, opaque stacks: many pixels stop early with early termination on.
 fn dense_scene(camera: &Camera) -> Gaussians {
     let mut rng = SplitMix64::new(5);
-    let mut g = Gaussians::default();
+    let mut g = Gaussians::new(NC);
     for _ in 0..1500 {
         let z = rng.uniform(3.0, 6.0);
         let c = Vec3::new(rng.uniform(-0.3, 0.3) * z, rng.uniform(-0.2, 0.2) * z, z);
         let sigma = rng.uniform(0.1, 0.4);
-        g.push(&mut rng, camera, c, sigma);
+        g.push_in_camera(&mut rng, camera, c, sigma, random_logit);
     }
     g
 }
@@ -350,7 +262,7 @@ fn early_termination_off_moves_pixels_within_the_bound() {
         early_termination: false,
         ..on.clone()
     };
-    let weights = pixel_weights(&mut rng, (k.width * k.height) as usize);
+    let weights = pixel_weights(&mut rng, (k.width * k.height) as usize, NC);
     let (out_on, _) = render_and_backward(&cam, &g, &on, &weights);
     let (out_off, grads_off) = render_and_backward(&cam, &g, &off, &weights);
     // Largest |channel - background| over every Gaussian and channel.
