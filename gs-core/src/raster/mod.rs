@@ -388,8 +388,15 @@ pub struct ProjectedSet {
     pub radii_px: Vec<f32>,
 }
 
-/// Pixel rectangle outside which `o exp(power) < cutoff` for certain.
-fn splat_rect(mean_px: [f32; 2], cov2: [f32; 3], q_max: f32, width: u32, height: u32) -> PixelRect {
+/// Pixel rectangle outside which `o exp(power) < cutoff` for certain (also the light
+/// pass's bound, `sunaware::light`).
+pub(crate) fn splat_rect(
+    mean_px: [f32; 2],
+    cov2: [f32; 3],
+    q_max: f32,
+    width: u32,
+    height: u32,
+) -> PixelRect {
     // Extent of the ellipse d^T K d <= q_max along x is sqrt(q_max * Sigma_xx); the margin
     // covers rounding in the conic and in exp.
     let ext_x = (q_max * cov2[0]).sqrt() * 1.001 + 0.01;

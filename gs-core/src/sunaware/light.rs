@@ -43,7 +43,7 @@ use crate::nn::SceneBox;
 use crate::raster::bin::{bin_tiles, PixelRect, TileGrid};
 use crate::raster::blend::{AlphaMode, Splat, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_STOP};
 use crate::raster::project::COV2D_DILATION_PX2;
-use crate::raster::{camera_frame, depth_order, project_splats, GaussianView};
+use crate::raster::{camera_frame, depth_order, project_splats, splat_rect, GaussianView};
 
 use super::config::{LightConfig, LightProjection};
 use super::error::SunAwareError;
@@ -125,19 +125,6 @@ fn quat_to_mat(q: [f32; 4]) -> [[f32; 3]; 3] {
             1.0 - 2.0 * (x * x + y * y),
         ],
     ]
-}
-
-/// Pixel rectangle outside which `o exp(power) < cutoff` (the rasterizer's bound).
-fn splat_rect(mean_px: [f32; 2], cov2: [f32; 3], q_max: f32, width: u32, height: u32) -> PixelRect {
-    let ext_x = (q_max * cov2[0]).sqrt() * 1.001 + 0.01;
-    let ext_y = (q_max * cov2[2]).sqrt() * 1.001 + 0.01;
-    let to_px = |v: f32, hi: u32| v.clamp(0.0, hi as f32) as u32;
-    PixelRect {
-        x0: to_px((mean_px[0] - ext_x - 0.5).floor(), width),
-        y0: to_px((mean_px[1] - ext_y - 0.5).floor(), height),
-        x1: to_px((mean_px[0] + ext_x - 0.5).floor() + 1.0, width),
-        y1: to_px((mean_px[1] + ext_y - 0.5).floor() + 1.0, height),
-    }
 }
 
 /// Orthographic splat of Gaussian `i`, or `None` when culled.
