@@ -903,20 +903,27 @@ mod tests {
 
     type TileImages = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<u32>);
 
-    fn render_tile(splats: &[Splat], channels: &[f32], early_termination: bool) -> TileImages {
-        let list: Vec<u32> = (0..splats.len() as u32).collect();
+    /// Blends `list` over tile `t` (background `[0.25, 0.75]`).
+    fn forward_on(
+        t: &PixelRect,
+        list: &[u32],
+        splats: &[Splat],
+        channels: &[f32],
+        mode: AlphaMode,
+        early_termination: bool,
+    ) -> TileImages {
         let mut color = vec![0.0; TILE_PIXELS * NC];
         let mut depth = vec![0.0; TILE_PIXELS];
         let mut trans = vec![0.0; TILE_PIXELS];
         let mut last = vec![0; TILE_PIXELS];
         blend_tile_forward(
-            &tile(),
-            &list,
+            t,
+            list,
             splats,
             channels,
             NC,
             &[0.25, 0.75],
-            AlphaMode { smooth: false },
+            mode,
             early_termination,
             TileForwardOut {
                 color: &mut color,
@@ -926,6 +933,12 @@ mod tests {
             },
         );
         (color, depth, trans, last)
+    }
+
+    fn render_tile(splats: &[Splat], channels: &[f32], early_termination: bool) -> TileImages {
+        let list: Vec<u32> = (0..splats.len() as u32).collect();
+        let hard = AlphaMode { smooth: false };
+        forward_on(&tile(), &list, splats, channels, hard, early_termination)
     }
 
     /// Loss weights in image layout for an image 48 wide, 48 high (the tile is inside).
@@ -1112,27 +1125,14 @@ mod tests {
 
     /// Renders `list` (a subset of the splats' indices, in order) over the test tile.
     fn render_list(list: &[u32], splats: &[Splat], channels: &[f32]) -> TileImages {
-        let mut color = vec![0.0; TILE_PIXELS * NC];
-        let mut depth = vec![0.0; TILE_PIXELS];
-        let mut trans = vec![0.0; TILE_PIXELS];
-        let mut last = vec![0; TILE_PIXELS];
-        blend_tile_forward(
+        forward_on(
             &tile(),
             list,
             splats,
             channels,
-            NC,
-            &[0.25, 0.75],
             AlphaMode { smooth: false },
             true,
-            TileForwardOut {
-                color: &mut color,
-                depth: &mut depth,
-                transmittance: &mut trans,
-                last: &mut last,
-            },
-        );
-        (color, depth, trans, last)
+        )
     }
 
     /// Four tile-wide layers: raw alpha 0.99, 0.98 (T = 2e-4), 0.9 (would take every pixel
@@ -1245,26 +1245,8 @@ mod tests {
                     let (splats, channels) = random_splats(seed * 31 + 7, count, NC);
                     let list: Vec<u32> = (0..count as u32).collect();
                     let mode = AlphaMode { smooth };
-                    let mut color = vec![0.0; TILE_PIXELS * NC];
-                    let mut depth = vec![0.0; TILE_PIXELS];
-                    let mut trans = vec![0.0; TILE_PIXELS];
-                    let mut last = vec![0; TILE_PIXELS];
-                    blend_tile_forward(
-                        &t,
-                        &list,
-                        &splats,
-                        &channels,
-                        NC,
-                        &[0.25, 0.75],
-                        mode,
-                        early_termination,
-                        TileForwardOut {
-                            color: &mut color,
-                            depth: &mut depth,
-                            transmittance: &mut trans,
-                            last: &mut last,
-                        },
-                    );
+                    let (_, _, trans, last) =
+                        forward_on(&t, &list, &splats, &channels, mode, early_termination);
                     let grads = PixelGradsView {
                         width: 48,
                         d_color: &wc,
