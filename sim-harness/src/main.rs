@@ -217,7 +217,8 @@ enum Command {
         /// Scenario file to use instead of the three built-in targets (repeatable).
         #[arg(long)]
         scenario: Vec<PathBuf>,
-        /// Initialisations to compare, in order: surface, random, hull, hull-grey.
+        /// Initialisations to compare, in order: surface, random, or a hull start named
+        /// hull[-grey][-volume][-recarve] (docs/initialisation.md).
         #[arg(long, value_delimiter = ',', default_value = "surface,random,hull")]
         inits: Vec<String>,
         /// Evaluate every N rounds during training (0: only at the end).
