@@ -61,9 +61,10 @@ use std::path::{Path, PathBuf};
 struct Cli {
     #[command(subcommand)]
     command: Command,
-    /// Where the rasterizer and the shadow pass run in `table`, `demo` and `pareto`: cpu or
-    /// wgpu (a build with `--features wgpu` and a Vulkan adapter); overrides the preset's
-    /// `backend`. The networks and Adam stay on the CPU either way.
+    /// Where the rasterizer, the shadow pass's per-pixel walk and the networks' products run
+    /// in `table`, `demo` and `pareto`: cpu or wgpu (a build with `--features wgpu` and a
+    /// Vulkan adapter); overrides the preset's `backend`. Adam and the networks' input
+    /// assembly stay on the CPU either way (docs/gpu.md).
     #[arg(long, global = true)]
     backend: Option<String>,
 }
