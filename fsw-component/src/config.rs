@@ -110,9 +110,10 @@ pub struct TrainingConfig {
     pub min_view_angle_deg: f64,
     /// Worker threads of the trainer (fixed for bit-identical results).
     pub threads: usize,
-    /// Where the rasterizer and the shadow pass run: "cpu" (default) or "wgpu" (needs the
-    /// cargo feature `wgpu` and a Vulkan adapter; either missing stops the start with an
-    /// error, never a silent fallback). The networks and Adam stay on the CPU.
+    /// Where the rasterizer, the shadow pass and the networks' products run: "cpu" (default)
+    /// or "wgpu" (needs the cargo feature `wgpu` and a Vulkan adapter; either missing stops
+    /// the start with an error, never a silent fallback). Adam and the networks' input
+    /// assembly stay on the CPU.
     pub backend: String,
 }
 
