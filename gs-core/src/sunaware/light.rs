@@ -214,17 +214,19 @@ pub fn light_splats(
     }
 }
 
-/// The exponent of an occluder's footprint at a pixel centre (`alpha = o exp(power)`).
-fn occluder_power(s: &Splat, px: f32, py: f32) -> f32 {
+/// The exponent of a splat's footprint at a pixel centre: an occluder's alpha is
+/// `o exp(power)`, a receiver's weight `exp(power)`.
+fn footprint_power(s: &Splat, px: f32, py: f32) -> f32 {
     let dx = s.mean_px[0] - px;
     let dy = s.mean_px[1] - py;
     let [a, b, c] = s.conic;
     -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
 }
 
-/// The rasterizer's alpha of an occluder at a pixel centre: `min(0.99, o exp(power))`.
-fn occluder_alpha(s: &Splat, px: f32, py: f32) -> f32 {
-    let raw = s.opacity * occluder_power(s, px, py).exp();
+/// The rasterizer's alpha from an occluder's opacity and footprint exponent:
+/// `min(0.99, o exp(power))`, 0 where that is NaN.
+fn occluder_alpha(opacity: f32, power: f32) -> f32 {
+    let raw = opacity * power.exp();
     if raw.is_nan() {
         0.0
     } else {
@@ -400,11 +402,15 @@ fn tile_visibility(
                 for px in x0..x1.max(x0) {
                     let t = &mut trans[pixel_index(px, py)];
                     let (fx, fy) = (px as f32 + 0.5, py as f32 + 0.5);
-                    // Most of the rectangle misses the footprint: no exponential there.
-                    if *t < TRANSMITTANCE_STOP || occluder_power(o, fx, fy) < floor {
+                    if *t < TRANSMITTANCE_STOP {
                         continue;
                     }
-                    let alpha = occluder_alpha(o, fx, fy);
+                    // Most of the rectangle misses the footprint: no exponential there.
+                    let power = footprint_power(o, fx, fy);
+                    if power < floor {
+                        continue;
+                    }
+                    let alpha = occluder_alpha(o.opacity, power);
                     if alpha >= ALPHA_MIN {
                         *t *= 1.0 - alpha;
                         if *t < TRANSMITTANCE_STOP {
@@ -429,8 +435,7 @@ fn tile_visibility(
                 if dx * dx + dy * dy > r2 {
                     continue;
                 }
-                let [a, b, c] = s.conic;
-                let weight = (-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy).exp();
+                let weight = footprint_power(s, fx, fy).exp();
                 if weight.is_nan() || weight <= 1e-6 {
                     continue;
                 }
@@ -541,8 +546,8 @@ mod tests {
                         && ranked[list[next_occluder] as usize].depth < limit
                     {
                         if trans >= TRANSMITTANCE_STOP {
-                            let alpha =
-                                occluder_alpha(&ranked[list[next_occluder] as usize], fx, fy);
+                            let o = &ranked[list[next_occluder] as usize];
+                            let alpha = occluder_alpha(o.opacity, footprint_power(o, fx, fy));
                             if alpha >= ALPHA_MIN {
                                 trans *= 1.0 - alpha;
                             }
