@@ -10,6 +10,8 @@
 //! some Gaussians behind the near plane, off-screen, or with the Jacobian clamp active.
 #![cfg(feature = "wgpu")]
 
+mod common;
+
 use glam::Vec3;
 use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
 use gs_core::raster::{render, render_backward, GaussianView, PixelGrads, RasterSettings};
@@ -473,54 +475,17 @@ fn gemm_matches_cpu() {
 /// the runs apart); both are scored by the same CPU evaluator.
 #[test]
 fn training_reaches_the_same_psnr_on_both_backends() {
-    use glam::Quat;
-    use gs_core::init::{inverse_sigmoid, random_in_sphere};
-    use gs_core::sh::rgb_to_sh_dc;
-    use gs_core::train::{evaluate, render_rgb, train_with_backend, Backend, TrainConfig};
-    use gs_core::train::{TrainResult, TrainView};
-    use gs_core::{GaussianModel, ModelLayout, Param};
+    use gs_core::init::random_in_sphere;
+    use gs_core::train::{evaluate, train_with_backend, Backend, TrainConfig, TrainResult};
+    use gs_core::{GaussianModel, ModelLayout};
     use std::sync::Arc;
 
     let Some(ctx) = context(GpuOptions::default()) else {
         return;
     };
     let gpu = Arc::new(GpuRasterizer::new(ctx).unwrap());
-    let mut rng = SplitMix64::new(8);
-    let mut gt = GaussianModel::new(ModelLayout::sh(0)).unwrap();
-    gt.params.push_zeros(200);
-    for i in 0..200 {
-        let p = Vec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.4;
-        let q = Quat::from_rotation_z(rng.uniform(0.0, 6.0)) * Quat::from_rotation_x(1.0);
-        let params = &mut gt.params;
-        params
-            .row_mut(Param::Mean, i)
-            .copy_from_slice(&p.to_array());
-        params.row_mut(Param::LogScale, i).copy_from_slice(&[
-            0.12f32.ln(),
-            0.06f32.ln(),
-            0.03f32.ln(),
-        ]);
-        params
-            .row_mut(Param::Rotation, i)
-            .copy_from_slice(&[q.w, q.x, q.y, q.z]);
-        params.row_mut(Param::OpacityLogit, i)[0] = inverse_sigmoid(0.8);
-        for c in params.row_mut(Param::ShDc, i) {
-            *c = rgb_to_sh_dc(rng.uniform(0.0, 1.0));
-        }
-    }
-    let k = Intrinsics::from_fov_x(45f32.to_radians(), 96, 96);
-    let views: Vec<TrainView> = (0..8)
-        .map(|i| {
-            let a = i as f32 / 8.0 * std::f32::consts::TAU;
-            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.8 * (3.0 * a).sin());
-            let camera = Camera::look_at(k, eye, Vec3::ZERO, Vec3::Z);
-            TrainView {
-                camera,
-                image: render_rgb(&gt, &camera, 0, [0.0; 3]).unwrap(),
-                mask: None,
-            }
-        })
-        .collect();
+    let gt = common::ground_truth(200, 8);
+    let views = common::ring_views(&gt, 8, 96);
     let start = random_in_sphere(400, Vec3::ZERO, 1.0, ModelLayout::sh(0), 5)
         .unwrap()
         .model;

@@ -8,18 +8,17 @@
 //! file runs in seconds on Mesa's software driver.
 #![cfg(feature = "wgpu")]
 
+mod common;
+
 use std::sync::Arc;
 
-use glam::{Quat, Vec3};
+use glam::Vec3;
 use gs_core::densify::DensifyStats;
 use gs_core::gpu::{GpuContext, GpuRasterizer, ResidentModel};
-use gs_core::init::{inverse_sigmoid, random_in_sphere};
+use gs_core::init::random_in_sphere;
 use gs_core::optim::Adam;
 use gs_core::rng::SplitMix64;
-use gs_core::sh::rgb_to_sh_dc;
-use gs_core::train::{
-    evaluate, render_rgb, train_with_backend, Backend, TrainConfig, TrainView, Trainer,
-};
+use gs_core::train::{evaluate, train_with_backend, Backend, TrainConfig, TrainView, Trainer};
 use gs_core::{Camera, GaussianModel, Intrinsics, ModelLayout, Param, ParamSet};
 
 /// A rasterizer, or None (with a notice) when there is no adapter and GS_REQUIRE_GPU is
@@ -249,42 +248,8 @@ fn check_loss_kernels(
 
 /// A small scene: a ground-truth model, `n_views` views around it at `size` pixels.
 fn scene(n_views: usize, size: u32) -> (GaussianModel, Vec<TrainView>) {
-    let mut rng = SplitMix64::new(8);
-    let mut gt = GaussianModel::new(ModelLayout::sh(0)).unwrap();
-    gt.params.push_zeros(150);
-    for i in 0..150 {
-        let p = Vec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.4;
-        let q = Quat::from_rotation_z(rng.uniform(0.0, 6.0)) * Quat::from_rotation_x(1.0);
-        let params = &mut gt.params;
-        params
-            .row_mut(Param::Mean, i)
-            .copy_from_slice(&p.to_array());
-        params.row_mut(Param::LogScale, i).copy_from_slice(&[
-            0.12f32.ln(),
-            0.06f32.ln(),
-            0.03f32.ln(),
-        ]);
-        params
-            .row_mut(Param::Rotation, i)
-            .copy_from_slice(&[q.w, q.x, q.y, q.z]);
-        params.row_mut(Param::OpacityLogit, i)[0] = inverse_sigmoid(0.8);
-        for c in params.row_mut(Param::ShDc, i) {
-            *c = rgb_to_sh_dc(rng.uniform(0.0, 1.0));
-        }
-    }
-    let k = Intrinsics::from_fov_x(45f32.to_radians(), size, size);
-    let views = (0..n_views)
-        .map(|i| {
-            let a = i as f32 / n_views as f32 * std::f32::consts::TAU;
-            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.8 * (3.0 * a).sin());
-            let camera = Camera::look_at(k, eye, Vec3::ZERO, Vec3::Z);
-            TrainView {
-                camera,
-                image: render_rgb(&gt, &camera, 0, [0.0; 3]).unwrap(),
-                mask: None,
-            }
-        })
-        .collect();
+    let gt = common::ground_truth(150, 8);
+    let views = common::ring_views(&gt, n_views, size);
     (gt, views)
 }
 

@@ -1,56 +1,15 @@
 //! Training loop behaviour: determinism (across runs and thread counts), how the mask
 //! enters, non-finite steps being skipped, and clear errors for bad input.
 
-use glam::{Quat, Vec3};
-use gs_core::init::{inverse_sigmoid, random_in_sphere, SplitMix64};
-use gs_core::sh::rgb_to_sh_dc;
+mod common;
+
+use common::{ground_truth, ring_views};
+use glam::Vec3;
+use gs_core::init::{random_in_sphere, SplitMix64};
 use gs_core::train::{
-    camera_extent, render_rgb, train, TrainConfig, TrainError, TrainResult, TrainView, Trainer,
+    camera_extent, train, TrainConfig, TrainError, TrainResult, TrainView, Trainer,
 };
-use gs_core::{Camera, GaussianModel, Intrinsics, ModelLayout, Param};
-
-fn ground_truth(n: usize, seed: u64) -> GaussianModel {
-    let mut rng = SplitMix64::new(seed);
-    let mut m = GaussianModel::new(ModelLayout::sh(0)).unwrap();
-    m.params.push_zeros(n);
-    for i in 0..n {
-        let p = Vec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.4;
-        let q = Quat::from_rotation_z(rng.next_f32() * 6.0) * Quat::from_rotation_x(1.0);
-        let params = &mut m.params;
-        params
-            .row_mut(Param::Mean, i)
-            .copy_from_slice(&p.to_array());
-        params.row_mut(Param::LogScale, i).copy_from_slice(&[
-            0.12f32.ln(),
-            0.06f32.ln(),
-            0.03f32.ln(),
-        ]);
-        params
-            .row_mut(Param::Rotation, i)
-            .copy_from_slice(&[q.w, q.x, q.y, q.z]);
-        params.row_mut(Param::OpacityLogit, i)[0] = inverse_sigmoid(0.8);
-        for c in params.row_mut(Param::ShDc, i) {
-            *c = rgb_to_sh_dc(rng.next_f32());
-        }
-    }
-    m
-}
-
-fn ring_views(gt: &GaussianModel, n: usize, size: u32) -> Vec<TrainView> {
-    let k = Intrinsics::from_fov_x(45f32.to_radians(), size, size);
-    (0..n)
-        .map(|i| {
-            let a = i as f32 / n as f32 * std::f32::consts::TAU;
-            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.8 * (3.0 * a).sin());
-            let camera = Camera::look_at(k, eye, Vec3::ZERO, Vec3::Z);
-            TrainView {
-                camera,
-                image: render_rgb(gt, &camera, 0, [0.0; 3]).unwrap(),
-                mask: None,
-            }
-        })
-        .collect()
-}
+use gs_core::{GaussianModel, ModelLayout, Param};
 
 /// A config that exercises every part of the loop in a few hundred iterations.
 fn busy_config(iterations: usize) -> TrainConfig {
