@@ -5,6 +5,9 @@
 //! 1. validation (sizes, finiteness, camera, Sun vector): a bad frame is an error;
 //! 2. eclipse frames, and unlit frames (mean masked brightness below
 //!    `min_mean_brightness`), teach nothing: skipped and counted (each skip switchable);
+//!    a frame whose mask is zero everywhere (the target is not in it) has nothing for the
+//!    masked loss to read: always skipped and counted (`skipped_empty_mask`), never an
+//!    error, since a sensor pipeline can legitimately send one;
 //! 3. the paper's keyframe rule ([`KeyframeWindow::offer`]): add when the view vector
 //!    moved more than 10 degrees, keep the two newest, evict the most redundant beyond W.
 //!
@@ -68,6 +71,14 @@ impl Frame {
     }
 
     /// Mean image value over the mask (weighted), or over the whole image without one.
+    /// Whether the frame carries a mask that is zero everywhere (NaN is not zero: such a
+    /// mask fails validation instead).
+    pub fn mask_is_empty(&self) -> bool {
+        self.mask
+            .as_ref()
+            .is_some_and(|m| m.iter().all(|&v| v == 0.0))
+    }
+
     pub fn mean_brightness(&self) -> f32 {
         let (mut sum, mut weight) = (0.0f64, 0.0f64);
         for (px, rgb) in self.image.chunks_exact(3).enumerate() {
@@ -189,8 +200,14 @@ impl From<gs_core::init::InitError> for OnlineError {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum SkipReason {
     Eclipse,
-    Unlit { mean_brightness: f32 },
-    ViewTooClose { cos_to_newest: f64 },
+    /// The frame's mask is zero everywhere.
+    EmptyMask,
+    Unlit {
+        mean_brightness: f32,
+    },
+    ViewTooClose {
+        cos_to_newest: f64,
+    },
     DuplicateId,
 }
 
@@ -211,6 +228,7 @@ pub struct OfferCounters {
     pub added: u64,
     pub evicted: u64,
     pub skipped_eclipse: u64,
+    pub skipped_empty_mask: u64,
     pub skipped_unlit: u64,
     pub skipped_view: u64,
     pub skipped_duplicate: u64,
@@ -384,8 +402,20 @@ impl OnlineTrainer {
         if !frame.time_s.is_finite() {
             return bad("time is not finite".into());
         }
-        frame
-            .observation()
+        // An all-zero mask is validated for its size and values here and skipped by
+        // `offer`; the trainer's own check (an error) never sees it.
+        let mut observation = frame.observation();
+        if frame.mask_is_empty() {
+            let pixels = cam.intrinsics.width as usize * cam.intrinsics.height as usize;
+            if observation.mask.map(<[f32]>::len) != Some(pixels) {
+                return bad(format!(
+                    "mask has {} values, the camera needs {pixels} (H * W)",
+                    observation.mask.map_or(0, <[f32]>::len)
+                ));
+            }
+            observation.mask = None;
+        }
+        observation
             .validate()
             .map_err(|e| OnlineError::BadFrame(format!("frame {}: {e}", frame.id)))?;
         let position = cam.position();
@@ -404,6 +434,10 @@ impl OnlineTrainer {
         if frame.eclipse && self.config.skip_eclipse {
             self.counters.skipped_eclipse += 1;
             return Ok(OfferReport::Skipped(SkipReason::Eclipse));
+        }
+        if frame.mask_is_empty() {
+            self.counters.skipped_empty_mask += 1;
+            return Ok(OfferReport::Skipped(SkipReason::EmptyMask));
         }
         if self.config.skip_unlit {
             let mean_brightness = frame.mean_brightness();

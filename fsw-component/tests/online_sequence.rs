@@ -260,6 +260,51 @@ fn eclipse_and_unlit_frames_are_skipped_and_counted() {
 }
 
 #[test]
+fn frames_with_an_empty_mask_are_skipped_and_counted_not_errors() {
+    let scene = SyntheticScene::plate_and_ball(6, 20).unwrap();
+    // The unlit skip off, so the empty-mask rule is the one that acts.
+    let mut t = OnlineTrainer::new(
+        OnlineConfig {
+            skip_unlit: false,
+            ..config(2)
+        },
+        &surface_init(&scene),
+        scene.scene_box,
+    )
+    .unwrap();
+    let empty = |id| {
+        let mut f = frame(&scene, id, false);
+        f.mask.as_mut().unwrap().fill(0.0);
+        f
+    };
+    assert_eq!(
+        t.offer(empty(0)).unwrap(),
+        OfferReport::Skipped(SkipReason::EmptyMask)
+    );
+    // An empty mask of the wrong size, or a mask with a NaN, is still a bad frame.
+    let mut short = empty(1);
+    short.mask.as_mut().unwrap().pop();
+    let msg = t.offer(short).unwrap_err().to_string();
+    assert!(msg.contains("mask has"), "{msg}");
+    let mut nan = empty(1);
+    nan.mask.as_mut().unwrap()[5] = f32::NAN;
+    assert!(t.offer(nan).is_err());
+    // Training goes on with the frames that have a target in them.
+    for id in 1..3 {
+        t.offer(frame(&scene, id, false)).unwrap();
+    }
+    assert!(t.run_round_if_due().unwrap().is_some());
+    let c = t.counters();
+    assert_eq!(
+        (c.offered, c.added, c.skipped_empty_mask, c.skipped_unlit),
+        (3, 2, 1, 0)
+    );
+    let mut ids = t.window().ids();
+    ids.sort_unstable();
+    assert_eq!(ids, vec![1, 2]);
+}
+
+#[test]
 fn bad_frames_are_errors_and_random_init_works() {
     let scene = SyntheticScene::plate_and_ball(6, 20).unwrap();
     let init = Initialisation::RandomSphere {

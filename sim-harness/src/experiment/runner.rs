@@ -68,6 +68,8 @@ pub struct RunOutcome {
     pub frames_offered: u64,
     pub keyframes_added: u64,
     pub skipped_eclipse: u64,
+    /// Frames whose mask was zero everywhere (the target out of the image).
+    pub skipped_empty_mask: u64,
     pub skipped_view: u64,
     pub train_s: f64,
     /// Process CPU time (all threads, user + system, getrusage) spent inside training
@@ -323,6 +325,7 @@ pub fn run_config(
         frames_offered: counters.offered,
         keyframes_added: counters.added,
         skipped_eclipse: counters.skipped_eclipse,
+        skipped_empty_mask: counters.skipped_empty_mask,
         skipped_view: counters.skipped_view,
         train_s,
         train_cpu_s,
