@@ -9,7 +9,8 @@
 use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use crate::sync::SyncConfig;
 use glam::DQuat;
-use gs_core::sunaware::{BackendKind, SunAwareError, Variant};
+use gs_core::nn::MatmulPrecision;
+use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, Variant};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
@@ -115,6 +116,16 @@ pub struct TrainingConfig {
     /// the start with an error, never a silent fallback). Adam and the networks' input
     /// assembly stay on the CPU.
     pub backend: String,
+    /// Width of the appearance network's (Phi's) hidden layers. Default 128, the
+    /// recommended preset's (docs/runtime-vs-error.md: about half the training CPU of the
+    /// paper's 256 at -0.10..+0.06 dB on the three simulated targets).
+    pub appearance_hidden_width: usize,
+    /// Positional-encoding frequencies of the Sun and view directions. Default 2, the
+    /// recommended preset's (the paper's 4 scored lower in the sweep at the same cost).
+    pub encoding_frequencies: usize,
+    /// The networks' matrix products: "f32" (default) or "bf16" (AVX-512 BF16 only; a CPU
+    /// without it fails validation).
+    pub mlp_precision: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -205,6 +216,9 @@ impl Default for TrainingConfig {
             min_view_angle_deg: window.min_view_angle_deg,
             threads: 2,
             backend: "cpu".to_string(),
+            appearance_hidden_width: 128,
+            encoding_frequencies: 2,
+            mlp_precision: "f32".to_string(),
         }
     }
 }
@@ -354,6 +368,7 @@ impl ComponentConfig {
             return Err(invalid("training.threads", "must be at least 1"));
         }
         self.backend()?;
+        self.model_config()?;
         if self.checkpoint.path.as_os_str().is_empty() {
             return Err(invalid("checkpoint.path", "must not be empty"));
         }
@@ -443,6 +458,36 @@ impl ComponentConfig {
         kind.check_compiled_in()
             .map_err(|e| invalid("training.backend", e.to_string()))?;
         Ok(kind)
+    }
+
+    /// The Sun-aware model's settings: the variant and the `[training]` model keys over
+    /// the trainer's defaults. Each key is checked by the model's own validation, one at a
+    /// time, so the error names the key.
+    pub fn model_config(&self) -> Result<SunAwareConfig, ConfigError> {
+        let t = &self.training;
+        let mut model = SunAwareConfig {
+            variant: self.variant()?,
+            ..SunAwareConfig::default()
+        };
+        let check = |model: &SunAwareConfig, key: &'static str| {
+            model.validate().map_err(|e| invalid(key, e.to_string()))
+        };
+        model.appearance_hidden_width = t.appearance_hidden_width;
+        check(&model, "training.appearance_hidden_width")?;
+        model.encoding_frequencies = t.encoding_frequencies;
+        check(&model, "training.encoding_frequencies")?;
+        model.mlp_precision = match t.mlp_precision.as_str() {
+            "f32" => MatmulPrecision::F32,
+            "bf16" => MatmulPrecision::Bf16,
+            other => {
+                return Err(invalid(
+                    "training.mlp_precision",
+                    format!("{other:?} is not \"f32\" or \"bf16\""),
+                ))
+            }
+        };
+        check(&model, "training.mlp_precision")?;
+        Ok(model)
     }
 
     pub fn window_config(&self) -> Result<WindowConfig, ConfigError> {
@@ -589,6 +634,18 @@ mod tests {
             "training.variant"
         );
         assert_eq!(invalid_key("[training]\nthreads = 0\n"), "training.threads");
+        assert_eq!(
+            invalid_key("[training]\nappearance_hidden_width = 0\n"),
+            "training.appearance_hidden_width"
+        );
+        assert_eq!(
+            invalid_key("[training]\nencoding_frequencies = 0\n"),
+            "training.encoding_frequencies"
+        );
+        assert_eq!(
+            invalid_key("[training]\nmlp_precision = \"f16\"\n"),
+            "training.mlp_precision"
+        );
         assert_eq!(
             invalid_key("[training]\npasses_per_round = 0\n"),
             "training.passes_per_round"

@@ -100,8 +100,8 @@ pub fn build_learner(
             settings.backend = kind
                 .open()
                 .map_err(|e| RuntimeError::Config(format!("training.backend: {e}")))?;
-            settings.online.model.variant = config
-                .variant()
+            settings.online.model = config
+                .model_config()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?;
             Box::new(SunAwareLearner::new(settings).map_err(RuntimeError::Config)?)
         }
