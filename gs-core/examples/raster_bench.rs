@@ -16,6 +16,9 @@
 
 use std::time::Instant;
 
+mod bench_util;
+use bench_util::{median, peak_rss_mb, process_cpu_ms};
+
 use glam::{Quat, Vec3};
 use gs_core::raster::{
     render, render_backward_with, render_with, GaussianView, PixelGrads, RasterSettings,
@@ -174,42 +177,6 @@ fn calibrate_distance() -> f32 {
     0.5 * (near + far)
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
-}
-
-/// CPU time of every thread of this process so far, ms (from /proc/self/task/*/schedstat).
-/// The benchmark machine is shared, so CPU time per pass is reported beside wall time.
-fn process_cpu_ms() -> f64 {
-    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
-        return f64::NAN;
-    };
-    let mut ns = 0u64;
-    for t in tasks.flatten() {
-        if let Ok(s) = std::fs::read_to_string(t.path().join("schedstat")) {
-            ns += s
-                .split_whitespace()
-                .next()
-                .and_then(|v| v.parse::<u64>().ok())
-                .unwrap_or(0);
-        }
-    }
-    ns as f64 / 1e6
-}
-
-fn peak_rss_mb() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<f64>().ok())
-        })
-        .map_or(f64::NAN, |kb| kb / 1024.0)
-}
-
 struct Row {
     gaussians: usize,
     width: u32,
@@ -289,14 +256,14 @@ fn bench(n: usize, width: u32, height: u32, distance_m: f32, runs: usize) -> Row
         visible,
         tile_entries_per_gaussian: entries as f64 / visible.max(1) as f64,
         coverage: cov,
-        forward_ms: median(&mut fwd),
-        backward_ms: median(&mut bwd),
-        project_ms: median(&mut proj),
-        sort_bin_ms: median(&mut sort),
-        blend_ms: median(&mut blend),
-        backward_blend_ms: median(&mut bblend),
-        backward_reduce_project_ms: median(&mut bred),
-        cpu_ms: median(&mut cpu),
+        forward_ms: median(fwd.clone()),
+        backward_ms: median(bwd.clone()),
+        project_ms: median(proj.clone()),
+        sort_bin_ms: median(sort.clone()),
+        blend_ms: median(blend.clone()),
+        backward_blend_ms: median(bblend.clone()),
+        backward_reduce_project_ms: median(bred.clone()),
+        cpu_ms: median(cpu.clone()),
     }
 }
 

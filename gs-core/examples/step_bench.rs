@@ -47,6 +47,9 @@
 
 use std::time::Instant;
 
+mod bench_util;
+use bench_util::{median, peak_rss_mb, process_cpu_ms, reset_peak_rss};
+
 use glam::{Quat, Vec3};
 use gs_core::model::{GaussianModel, Param};
 use gs_core::nn::mlp::BLOCK_ROWS;
@@ -149,51 +152,6 @@ fn camera(width: u32, height: u32) -> Camera {
         Vec3::ZERO,
         Vec3::Z,
     )
-}
-
-/// CPU time of every thread of this process so far, ms (from /proc/self/task/*/schedstat).
-fn process_cpu_ms() -> f64 {
-    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
-        return f64::NAN;
-    };
-    let mut ns = 0u64;
-    for t in tasks.flatten() {
-        if let Ok(s) = std::fs::read_to_string(t.path().join("schedstat")) {
-            ns += s
-                .split_whitespace()
-                .next()
-                .and_then(|v| v.parse::<u64>().ok())
-                .unwrap_or(0);
-        }
-    }
-    ns as f64 / 1e6
-}
-
-/// Process resident-memory high-water mark, MB (NaN where /proc is unavailable).
-fn peak_rss_mb() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<f64>().ok())
-        })
-        .map_or(f64::NAN, |kb| kb / 1024.0)
-}
-
-/// Resets the high-water mark to the current RSS (Linux >= 4.0); false where it cannot.
-fn reset_peak_rss() -> bool {
-    std::fs::write("/proc/self/clear_refs", "5").is_ok()
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    if v.is_empty() {
-        f64::NAN
-    } else {
-        v[v.len() / 2]
-    }
 }
 
 fn seconds_ms(f: impl FnOnce()) -> f64 {
