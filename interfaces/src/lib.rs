@@ -8,9 +8,11 @@
 //! - [`cyphal`]: Cyphal/CAN v1.0 message transfers, classic CAN and CAN FD.
 //! - [`messages`]: the catalogue (port IDs, versions, fields) and the validating postcard codec.
 //! - [`ccsds`]: CCSDS Space Packets over UDP with segmentation and a per-message CRC-32.
+//! - `sessions` (private): the bounded session table's life cycle both reassemblers share.
 #![no_std]
 
 pub mod ccsds;
 pub mod crc;
 pub mod cyphal;
 pub mod messages;
+mod sessions;

@@ -20,6 +20,7 @@ use super::header::{
     PRIMARY_HEADER_LEN, SEQUENCE_COUNT_MODULO,
 };
 use crate::crc::crc32_ieee;
+use crate::sessions::{self, Claim, SessionTimes};
 use core::fmt;
 
 pub const DEFAULT_MESSAGE_TIMEOUT_US: u64 = 2_000_000;
@@ -171,6 +172,24 @@ struct Session {
     last_count: Option<u16>,
 }
 
+impl SessionTimes for Session {
+    fn in_use(&self) -> bool {
+        self.in_use
+    }
+    fn in_progress(&self) -> bool {
+        self.in_progress
+    }
+    fn start_us(&self) -> u64 {
+        self.start_us
+    }
+    fn last_activity_us(&self) -> u64 {
+        self.last_activity_us
+    }
+    fn abandon(&mut self) {
+        self.in_progress = false;
+    }
+}
+
 const IDLE_SESSION: Session = Session {
     in_use: false,
     packet_type: PacketType::Telemetry,
@@ -261,12 +280,8 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CcsdsReassembler<B, N> {
 
     /// Abandons unfinished messages older than the timeout.
     pub fn expire(&mut self, now_us: u64) {
-        for s in self.sessions.iter_mut() {
-            if s.in_progress && now_us.saturating_sub(s.start_us) > self.timeout_us {
-                s.in_progress = false;
-                self.counters.abandoned_messages += 1;
-            }
-        }
+        self.counters.abandoned_messages +=
+            sessions::expire(&mut self.sessions, now_us, self.timeout_us);
     }
 
     /// Feeds one received datagram.
@@ -445,26 +460,15 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CcsdsReassembler<B, N> {
         apid: u16,
         now_us: u64,
     ) -> Result<usize, CcsdsRxError> {
-        let timeout = self.timeout_us;
-        let index = match self.sessions.iter().position(|s| !s.in_use) {
-            Some(free) => free,
-            None => {
-                let mut best: Option<usize> = None;
-                for (i, s) in self.sessions.iter().enumerate() {
-                    let evictable = !s.in_progress || now_us.saturating_sub(s.start_us) > timeout;
-                    let older = best
-                        .map(|b| s.last_activity_us < self.sessions[b].last_activity_us)
-                        .unwrap_or(true);
-                    if evictable && older {
-                        best = Some(i);
-                    }
-                }
-                let chosen = best.ok_or(CcsdsRxError::NoSessionSlot)?;
-                if self.sessions[chosen].in_progress {
+        let index = match sessions::claim(&self.sessions, now_us, self.timeout_us) {
+            Some(Claim::Free(index)) => index,
+            Some(Claim::Evict { index, abandons }) => {
+                if abandons {
                     self.counters.abandoned_messages += 1;
                 }
-                chosen
+                index
             }
+            None => return Err(CcsdsRxError::NoSessionSlot),
         };
         self.sessions[index] = Session {
             in_use: true,

@@ -19,6 +19,7 @@
 
 use super::frame::{is_valid_frame_length, CanIdError, MessageCanId, Priority, TailByte};
 use crate::crc::Crc16CcittFalse;
+use crate::sessions::{self, Claim, SessionTimes};
 use core::fmt;
 
 /// Default transfer-ID timeout, as recommended by the specification.
@@ -191,6 +192,24 @@ struct Session {
     last_completed_transfer_id: Option<u8>,
 }
 
+impl SessionTimes for Session {
+    fn in_use(&self) -> bool {
+        self.in_use
+    }
+    fn in_progress(&self) -> bool {
+        self.in_progress
+    }
+    fn start_us(&self) -> u64 {
+        self.start_us
+    }
+    fn last_activity_us(&self) -> u64 {
+        self.last_activity_us
+    }
+    fn abandon(&mut self) {
+        self.in_progress = false;
+    }
+}
+
 const IDLE_SESSION: Session = Session {
     in_use: false,
     source_node_id: 0,
@@ -277,12 +296,8 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CanReassembler<B, N> {
     /// Abandons unfinished transfers older than the timeout (call periodically so that a
     /// silent sender does not hold a slot).
     pub fn expire(&mut self, now_us: u64) {
-        for s in self.sessions.iter_mut() {
-            if s.in_progress && now_us.saturating_sub(s.start_us) > self.transfer_id_timeout_us {
-                s.in_progress = false;
-                self.counters.abandoned_transfers += 1;
-            }
-        }
+        self.counters.abandoned_transfers +=
+            sessions::expire(&mut self.sessions, now_us, self.transfer_id_timeout_us);
     }
 
     /// Feeds one received frame of either CAN ID format: standard (11-bit) frames are not
@@ -482,26 +497,15 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CanReassembler<B, N> {
         subject_id: u16,
         now_us: u64,
     ) -> Result<usize, CanRxError> {
-        let timeout = self.transfer_id_timeout_us;
-        let index = match self.sessions.iter().position(|s| !s.in_use) {
-            Some(free) => free,
-            None => {
-                let mut best: Option<usize> = None;
-                for (i, s) in self.sessions.iter().enumerate() {
-                    let evictable = !s.in_progress || now_us.saturating_sub(s.start_us) > timeout;
-                    let older = best
-                        .map(|b| s.last_activity_us < self.sessions[b].last_activity_us)
-                        .unwrap_or(true);
-                    if evictable && older {
-                        best = Some(i);
-                    }
-                }
-                let chosen = best.ok_or(CanRxError::NoSessionSlot)?;
-                if self.sessions[chosen].in_progress {
+        let index = match sessions::claim(&self.sessions, now_us, self.transfer_id_timeout_us) {
+            Some(Claim::Free(index)) => index,
+            Some(Claim::Evict { index, abandons }) => {
+                if abandons {
                     self.counters.abandoned_transfers += 1;
                 }
-                chosen
+                index
             }
+            None => return Err(CanRxError::NoSessionSlot),
         };
         self.sessions[index] = Session {
             in_use: true,
