@@ -11,11 +11,14 @@
 //! frame the trainer has not seen by then. K defaults to the window size W. The carving box
 //! is the cube around the target's bounding sphere (a size prior, not the model); colours are
 //! sampled from the keyframe images (the view that sees each point most frontally), or grey.
-//! Variants (`hull` with suffixes `-grey`, `-volume`, `-recarve`): points filling the
-//! hull's voxels rather than its surface; and [`HullPruner`], which carves a persistent
-//! volume with every keyframe as the window takes it and prunes the Gaussians whose centres
-//! fall outside it (more than one voxel from any occupied voxel). Both use only the masks
-//! and poses of frames the trainer has been offered by then, never an evaluation view.
+//! Variants (`hull` with suffixes `-grey`, `-volume`, `-recarve`, `-photo`): points filling
+//! the hull's voxels rather than its surface; points inside the hull that project onto the
+//! foreground in every keyframe, drawn favouring those whose colour the keyframes agree on
+//! (`gs_core::hull::carve_photo_consistent`, preset key `hull_photo`); and [`HullPruner`],
+//! which carves a persistent volume with every keyframe as the window takes it and prunes
+//! the Gaussians whose centres fall outside it (more than one voxel from any occupied
+//! voxel). All use only the images, masks and poses of frames the trainer has been offered
+//! by then, never an evaluation view.
 //!
 //! Invariants: every number written comes from a run in this process; runs go one after
 //! another, targets in order, initialisations in the order asked; the CSV and Markdown are
@@ -37,7 +40,8 @@ use fsw_component::online::OnlineTrainer;
 use fsw_component::online::{Initialisation, OnlineError};
 use glam::Vec3;
 use gs_core::hull::{
-    carve, sample_colours, CarvedVolume, ColourView, HullGrid, HullOptions, HullSampling, HullView,
+    carve, carve_photo_consistent, sample_colours, CarvedVolume, ColourView, HullGrid, HullOptions,
+    HullSampling, HullView, PhotoOptions,
 };
 use gs_core::model::Param;
 use gs_core::sunaware::Variant;
@@ -66,6 +70,12 @@ pub struct HullReport {
     /// Fraction of the points farther than [`far_distance_m`] from the true surface.
     pub far_fraction: f64,
     pub carve_s: f64,
+    /// `-photo`: candidates drawn, dropped as off the silhouette, and scored by fewer than
+    /// two views; the median colour spread (0 for the other hulls).
+    pub photo_candidates: usize,
+    pub photo_off_silhouette: usize,
+    pub photo_unscored: usize,
+    pub photo_median_spread: f32,
 }
 
 /// Sequence indices of the first `count` keyframes the online window would take: lit frames
@@ -145,22 +155,33 @@ pub fn hull_initialisation(
             HullSampling::Shell
         },
     };
-    let hull = carve(&views, grid, options)
-        .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
+    let images: Vec<Vec<f32>> = frames.iter().map(|&i| scene.frames[i].rgb_f32()).collect();
+    let colour_views: Vec<ColourView> = frames
+        .iter()
+        .zip(&cameras)
+        .zip(&images)
+        .map(|((&i, &camera), rgb)| ColourView {
+            camera,
+            rgb,
+            mask: &scene.frames[i].mask8,
+        })
+        .collect();
+    let (hull, photo) = if preset.hull_photo {
+        let photo_options = PhotoOptions {
+            samples_per_voxel: preset.hull_photo_samples,
+            spread_width: preset.hull_photo_spread_width,
+        };
+        let (hull, stats) = carve_photo_consistent(&colour_views, grid, options, photo_options)
+            .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
+        (hull, Some(stats))
+    } else {
+        let hull = carve(&views, grid, options)
+            .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
+        (hull, None)
+    };
     let (colours, uncoloured) = if preset.hull_grey_colours {
         (vec![GREY; hull.points.len()], 0)
     } else {
-        let images: Vec<Vec<f32>> = frames.iter().map(|&i| scene.frames[i].rgb_f32()).collect();
-        let colour_views: Vec<ColourView> = frames
-            .iter()
-            .zip(&cameras)
-            .zip(&images)
-            .map(|((&i, &camera), rgb)| ColourView {
-                camera,
-                rgb,
-                mask: &scene.frames[i].mask8,
-            })
-            .collect();
         sample_colours(&hull.points, &hull.normals, &colour_views, GREY)
     };
     let (mean_distance_to_surface_m, far_fraction) =
@@ -175,6 +196,10 @@ pub fn hull_initialisation(
         mean_distance_to_surface_m,
         far_fraction,
         carve_s: started.elapsed().as_secs_f64(),
+        photo_candidates: photo.map_or(0, |p| p.candidates),
+        photo_off_silhouette: photo.map_or(0, |p| p.off_silhouette),
+        photo_unscored: photo.map_or(0, |p| p.unscored),
+        photo_median_spread: photo.map_or(0.0, |p| p.median_spread),
     };
     // Normals are left out, as for the surface samples, so the two differ only in where
     // the points are and what colour they start with.
@@ -265,15 +290,17 @@ pub struct HullVariant {
     pub volume: bool,
     /// `-recarve`: carve with every keyframe and prune Gaussians outside ([`HullPruner`]).
     pub recarve: bool,
+    /// `-photo`: points inside the hull where the keyframes agree on the colour.
+    pub photo: bool,
 }
 
-/// Parses `surface`, `random`, or `hull` followed by any of `-grey`, `-volume`, `-recarve`
-/// (each at most once, any order).
+/// Parses `surface`, `random`, or `hull` followed by any of `-grey`, `-volume`, `-recarve`,
+/// `-photo` (each at most once, any order; `-photo` overrides `-volume`).
 pub fn parse_init_variant(name: &str) -> Result<(InitKind, HullVariant), ExperimentError> {
     let unknown = || {
         ExperimentError::Invalid(format!(
             "unknown initialisation {name:?} (surface, random, or hull with any of the \
-             suffixes -grey, -volume, -recarve)"
+             suffixes -grey, -volume, -recarve, -photo)"
         ))
     };
     match name {
@@ -292,6 +319,7 @@ pub fn parse_init_variant(name: &str) -> Result<(InitKind, HullVariant), Experim
             "grey" => &mut variant.grey,
             "volume" => &mut variant.volume,
             "recarve" => &mut variant.recarve,
+            "photo" => &mut variant.photo,
             _ => return Err(unknown()),
         };
         if *flag {
@@ -973,6 +1001,7 @@ pub fn write_hull_figure(
         init: InitKind::Hull,
         hull_grey_colours: job.preset.hull_grey_colours || variant.grey,
         hull_volume: job.preset.hull_volume || variant.volume,
+        hull_photo: job.preset.hull_photo || variant.photo,
         ..job.preset.clone()
     };
     let mut data = Vec::new();
@@ -998,6 +1027,16 @@ pub fn write_hull_figure(
             100.0 * report.far_fraction,
             far_distance_m(&scene, &preset)
         ));
+        if report.photo_candidates > 0 {
+            progress(&format!(
+                "{}: photo-consistency: {} candidates, {} off the silhouette, {} seen by fewer than two views, median colour spread {:.4}",
+                scene.name,
+                report.photo_candidates,
+                report.photo_off_silhouette,
+                report.photo_unscored,
+                report.photo_median_spread
+            ));
+        }
         reports.push((scene.name.clone(), report));
         data.push(hull_figure_row(&scene, &preset)?);
     }
@@ -1070,6 +1109,7 @@ pub fn run_init_ablation(
                 hull_grey_colours: variant.grey,
                 hull_volume: variant.volume,
                 hull_recarve: variant.recarve,
+                hull_photo: variant.photo,
                 configs: vec!["d".into()],
                 ..job.preset.clone()
             };
@@ -1175,9 +1215,13 @@ mod tests {
         assert_eq!(kind, InitKind::Hull);
         assert!(v.recarve && v.volume && !v.grey);
         assert_eq!(parse_init("hull-grey").unwrap(), (InitKind::Hull, true));
+        let (kind, v) = parse_init_variant("hull-photo").unwrap();
+        assert_eq!(kind, InitKind::Hull);
+        assert!(v.photo && !v.volume && !v.recarve && !v.grey);
         for bad in [
             "hull-",
             "hull-grey-grey",
+            "hull-photo-photo",
             "hullgrey",
             "hull-shell",
             "random-grey",
@@ -1186,6 +1230,81 @@ mod tests {
             let e = parse_init_variant(bad).unwrap_err().to_string();
             assert!(e.contains(&format!("{bad:?}")), "{bad}: {e}");
         }
+    }
+
+    #[test]
+    fn the_photo_preset_keys_parse_and_bad_values_are_errors() {
+        let p = Preset::from_toml_str(
+            "init = \"hull\"\nhull_photo = true\nhull_photo_spread_width = 0.25\nhull_photo_samples = 8\n",
+            "t.toml",
+        )
+        .unwrap();
+        assert!(p.hull_photo);
+        assert_eq!(p.hull_photo_spread_width, 0.25);
+        assert_eq!(p.hull_photo_samples, 8);
+        assert!(!Preset::default().hull_photo);
+        for bad in [
+            "hull_photo_spread_width = 0.0",
+            "hull_photo_spread_width = -1.0",
+            "hull_photo_spread_width = nan",
+            "hull_photo_samples = 0",
+            "hull_photo_samples = 65",
+        ] {
+            let e = Preset::from_toml_str(bad, "t.toml")
+                .unwrap_err()
+                .to_string();
+            let key = bad.split(' ').next().unwrap();
+            assert!(e.contains(key), "{bad}: {e}");
+        }
+    }
+
+    /// On a small rendered target from its first keyframes, the photo-consistent start lies
+    /// closer to the true surface than the volume start (the carving's margin shell is
+    /// dropped), reports its candidates, and is reproducible.
+    #[test]
+    fn the_photo_start_lies_closer_to_the_surface_than_the_volume_start() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/scenarios/quick.toml");
+        let preset = Preset {
+            name: "tiny".into(),
+            downsample: 10,
+            cadence_s: 30.0,
+            frames: Some(8),
+            eval_views: 1,
+            figure_views: 1,
+            samples_per_pixel: 1,
+            window: 4,
+            init_points: 400,
+            hull_resolution: 48,
+            init: InitKind::Hull,
+            hull_volume: true,
+            ..Preset::default()
+        };
+        let scenario = preset.apply(&Scenario::load(&path).unwrap()).unwrap();
+        let scene = render_scene(&scenario, 2000, &mut |_| {}).unwrap();
+        let (_, volume) = hull_initialisation(&scene, &preset).unwrap();
+        let photo_preset = Preset {
+            hull_photo: true,
+            ..preset.clone()
+        };
+        let (init, photo) = hull_initialisation(&scene, &photo_preset).unwrap();
+        assert_eq!(photo.frames, volume.frames);
+        assert_eq!(photo.occupied_voxels, volume.occupied_voxels);
+        assert_eq!(photo.points, 400);
+        assert_eq!(
+            photo.photo_candidates,
+            preset.hull_photo_samples as usize * volume.occupied_voxels
+        );
+        assert!(photo.photo_off_silhouette > 0);
+        assert_eq!(volume.photo_candidates, 0);
+        assert!(
+            photo.mean_distance_to_surface_m < 0.8 * volume.mean_distance_to_surface_m,
+            "photo {} m, volume {} m",
+            photo.mean_distance_to_surface_m,
+            volume.mean_distance_to_surface_m
+        );
+        assert!(photo.far_fraction < volume.far_fraction);
+        let (again, _) = hull_initialisation(&scene, &photo_preset).unwrap();
+        assert_eq!(init, again);
     }
 
     /// Gaussians on the true surface and Gaussians spread through the bounding ball: carving

@@ -107,6 +107,13 @@ pub struct Preset {
     /// `init = "hull"`: carve again with every new keyframe and prune the Gaussians whose
     /// centres the carving leaves outside the hull (only masks and poses seen so far).
     pub hull_recarve: bool,
+    /// `init = "hull"`: points inside the hull where the keyframes agree on the colour
+    /// (`gs_core::hull::carve_photo_consistent`) instead of on its surface or through it.
+    pub hull_photo: bool,
+    /// `hull_photo`: weight width in median colour spreads (smaller: sharper selection).
+    pub hull_photo_spread_width: f32,
+    /// `hull_photo`: candidate points per occupied voxel.
+    pub hull_photo_samples: u32,
     /// Width of the appearance feature f_i, Phi's per-Gaussian input (paper: 72).
     pub feature_dim: usize,
     /// L of the positional encoding of the Sun and view vectors (DESIGN.md: 4).
@@ -171,6 +178,9 @@ impl Default for Preset {
             hull_grey_colours: false,
             hull_volume: false,
             hull_recarve: false,
+            hull_photo: false,
+            hull_photo_spread_width: 0.5,
+            hull_photo_samples: 4,
             feature_dim: 72,
             encoding_frequencies: 4,
             passes_per_round: 1,
@@ -317,6 +327,18 @@ impl Preset {
             return bad(format!(
                 "hull_resolution {} is outside 8..=320",
                 self.hull_resolution
+            ));
+        }
+        if !(self.hull_photo_spread_width.is_finite() && self.hull_photo_spread_width > 0.0) {
+            return bad(format!(
+                "hull_photo_spread_width {} must be finite and positive",
+                self.hull_photo_spread_width
+            ));
+        }
+        if !(1..=64).contains(&self.hull_photo_samples) {
+            return bad(format!(
+                "hull_photo_samples {} is outside 1..=64",
+                self.hull_photo_samples
             ));
         }
         if self.configs.is_empty() {
