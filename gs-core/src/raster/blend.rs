@@ -146,6 +146,36 @@ fn row_exp<S: RowOps>(ops: S, sp: &Splat, py: f32, x_origin: u32) -> S::F {
     ops.exp(power)
 }
 
+/// `exp(power)` of splat `sp` on the tile rows of `r` (into `gauss[ly]`, tile-local row
+/// `ly`), and per row the lanes of `live(ly)` where `o exp(power)` reaches `cutoff` (0
+/// for rows without live lanes, which are not evaluated and whose `gauss` is left as it
+/// was). Every row's exponential is computed before any row is blended: they are
+/// independent, so the core overlaps their long dependency chains instead of waiting on
+/// each row's branches.
+#[inline(always)]
+fn entry_rows<S: RowOps>(
+    ops: S,
+    sp: &Splat,
+    tile: &PixelRect,
+    r: &PixelRect,
+    cutoff: f32,
+    live: impl Fn(usize) -> u16,
+    gauss: &mut [S::F; ROW],
+) -> [u16; ROW] {
+    let mut kept = [0u16; ROW];
+    for y in r.y0..r.y1 {
+        let ly = (y - tile.y0) as usize;
+        let live = live(ly);
+        if live == 0 {
+            continue;
+        }
+        let g = row_exp(ops, sp, y as f32 + 0.5, tile.x0);
+        kept[ly] = live & ops.ge(ops.mul(ops.splat(sp.opacity), g), ops.splat(cutoff));
+        gauss[ly] = g;
+    }
+    kept
+}
+
 #[inline(always)]
 fn row_mut(plane: &mut [f32], p0: usize) -> &mut Row {
     (&mut plane[p0..p0 + ROW])
@@ -447,6 +477,7 @@ fn forward_rows<S: RowOps, const FIXED: usize, const SMOOTH: bool>(
     let mut n_active = ((tile.x1 - tile.x0) * (tile.y1 - tile.y0)) as usize;
     let stop = mode.stop(early_termination);
     let cutoff = mode.cutoff();
+    let mut gauss = [ops.splat(0.0); ROW];
     for (j, &rank) in list.iter().enumerate() {
         if n_active == 0 {
             break;
@@ -461,32 +492,33 @@ fn forward_rows<S: RowOps, const FIXED: usize, const SMOOTH: bool>(
         let cols = column_mask(&r, tile);
         let o = s.opacity;
         let entry_end = j as u32 + 1;
+        let kept_rows = entry_rows(
+            ops,
+            s,
+            tile,
+            &r,
+            cutoff,
+            |ly| row_active[ly] & cols,
+            &mut gauss,
+        );
         for y in r.y0..r.y1 {
             let ly = (y - tile.y0) as usize;
-            let live = row_active[ly] & cols;
-            if live == 0 {
-                continue;
-            }
-            let g = row_exp(ops, s, y as f32 + 0.5, tile.x0);
-            let raw = ops.mul(ops.splat(o), g);
-            let kept = live & ops.ge(raw, ops.splat(cutoff));
+            let kept = kept_rows[ly];
             if kept == 0 {
                 continue;
             }
+            let raw = ops.mul(ops.splat(o), gauss[ly]);
             let p0 = ly * ROW;
             let t_row = row_mut(out.transmittance, p0);
             let t = ops.load(t_row);
             let alpha = alpha_row::<S, SMOOTH>(ops, raw).0;
             let t_next = ops.mul(t, ops.sub(ops.splat(1.0), alpha));
+            // No branches on the masks below (an empty mask changes nothing): they are
+            // hard to predict, and a miss would stall the rows in flight.
             let stops = kept & ops.lt(t_next, ops.splat(stop));
-            if stops != 0 {
-                row_active[ly] &= !stops;
-                n_active -= stops.count_ones() as usize;
-            }
+            row_active[ly] &= !stops;
+            n_active -= stops.count_ones() as usize;
             let blends = kept & !stops;
-            if blends == 0 {
-                continue;
-            }
             ops.store_masked(t_row, blends, t_next);
             let w = ops.mul(alpha, t);
             for (k, &c) in ch.iter().enumerate() {
@@ -605,6 +637,7 @@ fn contributions_rows<S: RowOps, const SMOOTH: bool>(
     let mut n_active = ((tile.x1 - tile.x0) * (tile.y1 - tile.y0)) as usize;
     let stop = mode.stop(early_termination);
     let cutoff = mode.cutoff();
+    let mut gauss = [ops.splat(0.0); ROW];
     for (j, &rank) in list.iter().enumerate() {
         if n_active == 0 {
             break;
@@ -618,33 +651,33 @@ fn contributions_rows<S: RowOps, const SMOOTH: bool>(
         let cols = column_mask(&r, tile);
         let o = s.opacity;
         let mut flag = 0u8;
+        let kept_rows = entry_rows(
+            ops,
+            s,
+            tile,
+            &r,
+            cutoff,
+            |ly| row_active[ly] & cols,
+            &mut gauss,
+        );
         for y in r.y0..r.y1 {
             let ly = (y - tile.y0) as usize;
-            let live = row_active[ly] & cols;
-            if live == 0 {
-                continue;
-            }
-            let g = row_exp(ops, s, y as f32 + 0.5, tile.x0);
-            let raw = ops.mul(ops.splat(o), g);
-            let kept = live & ops.ge(raw, ops.splat(cutoff));
+            let kept = kept_rows[ly];
             if kept == 0 {
                 continue;
             }
+            let raw = ops.mul(ops.splat(o), gauss[ly]);
             let t_row = row_mut(&mut transmittance, ly * ROW);
             let t = ops.load(t_row);
             let alpha = alpha_row::<S, SMOOTH>(ops, raw).0;
             let t_next = ops.mul(t, ops.sub(ops.splat(1.0), alpha));
+            // No branches on the masks (see `forward_rows`).
             let stops = kept & ops.lt(t_next, ops.splat(stop));
-            if stops != 0 {
-                row_active[ly] &= !stops;
-                n_active -= stops.count_ones() as usize;
-                flag |= ENTRY_STOPS;
-            }
+            row_active[ly] &= !stops;
+            n_active -= stops.count_ones() as usize;
             let blends = kept & !stops;
-            if blends != 0 {
-                flag |= ENTRY_BLENDS;
-                ops.store_masked(t_row, blends, t_next);
-            }
+            ops.store_masked(t_row, blends, t_next);
+            flag |= (u8::from(stops != 0) * ENTRY_STOPS) | (u8::from(blends != 0) * ENTRY_BLENDS);
         }
         flags[j] = flag;
     }
@@ -818,6 +851,7 @@ fn backward_rows<S: RowOps, const FIXED: usize, const SMOOTH: bool>(
     records[max_last * stride..].fill(0.0);
     let mut acc_ch = vec![ops.half_zero(); nc];
     let cutoff = mode.cutoff();
+    let mut gauss = [ops.splat(0.0); ROW];
     for j in (0..max_last).rev() {
         let rank = list[j] as usize;
         if let Some(ahead) = j.checked_sub(PREFETCH_AHEAD) {
@@ -840,28 +874,34 @@ fn backward_rows<S: RowOps, const FIXED: usize, const SMOOTH: bool>(
         let z = s.depth;
         let dx0 = s.mean_px[0] - (tile.x0 as f32 + 0.5);
         let j_u32 = j as u32;
+        // Only the pixels that blended something at or behind this entry can have
+        // blended it: a row without one changes nothing (every lane would add a zero),
+        // so it is not evaluated at all.
+        let mut reach_rows = [0u16; ROW];
         for y in r.y0..r.y1 {
             let ly = (y - tile.y0) as usize;
-            if j_u32 >= row_max_last[ly] {
-                continue;
+            if j_u32 < row_max_last[ly] {
+                let p0 = ly * ROW;
+                let last_row: &[u32; ROW] = last[p0..p0 + ROW].try_into().expect("one tile row");
+                reach_rows[ly] = ops.lt_u32(j_u32, last_row);
             }
-            let p0 = ly * ROW;
-            // Only the pixels that blended something at or behind this entry can have
-            // blended it: a row without one changes nothing (every lane would add a
-            // zero), so it is not evaluated at all.
-            let last_row: &[u32; ROW] = last[p0..p0 + ROW].try_into().expect("one tile row");
-            let reach = ops.lt_u32(j_u32, last_row);
-            let live = if skip_unreached { cols & reach } else { cols };
-            if live == 0 {
-                continue;
-            }
-            let py = y as f32 + 0.5;
-            let g = row_exp(ops, s, py, tile.x0);
-            let raw = ops.mul(ops.splat(o), g);
-            let on = live & reach & ops.ge(raw, ops.splat(cutoff));
+        }
+        let live = |ly: usize| match reach_rows[ly] {
+            0 => 0,
+            reach if skip_unreached => cols & reach,
+            _ => cols,
+        };
+        let kept_rows = entry_rows(ops, s, tile, &r, cutoff, live, &mut gauss);
+        for y in r.y0..r.y1 {
+            let ly = (y - tile.y0) as usize;
+            let on = kept_rows[ly] & reach_rows[ly];
             if on == 0 {
                 continue;
             }
+            let p0 = ly * ROW;
+            let py = y as f32 + 0.5;
+            let g = gauss[ly];
+            let raw = ops.mul(ops.splat(o), g);
             let dy = s.mean_px[1] - py;
             let (alpha, d_alpha_d_raw) = alpha_row::<S, SMOOTH>(ops, raw);
             let one = ops.splat(1.0);
