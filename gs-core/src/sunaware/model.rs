@@ -51,6 +51,7 @@ use glam::Vec3;
 use crate::camera::Camera;
 use crate::init::SplitMix64;
 use crate::model::{GaussianModel, Param, ParamSet};
+use crate::nn::shadow::{ShadowBatch, ShadowPass};
 use crate::nn::{AppearanceNet, MlpForward, PositionalEncoding, SceneBox, ShadowNet, TapeMode};
 use crate::raster::blend::AlphaMode;
 use crate::raster::{
@@ -179,7 +180,7 @@ struct Scratch(Mutex<ScratchBuffers>);
 struct ScratchBuffers {
     raster: RasterWorkspace,
     phi: Option<NetPass>,
-    psi: Option<NetPass>,
+    psi: Option<ShadowPass>,
 }
 
 impl Clone for Scratch {
@@ -212,7 +213,7 @@ impl Scratch {
 
     /// The kept network buffers (Phi, Psi), leaving none behind (fresh ones unless
     /// `reuse`).
-    fn take_nets(&self, reuse: bool) -> (NetPass, NetPass) {
+    fn take_nets(&self, reuse: bool) -> (NetPass, ShadowPass) {
         if !reuse {
             return Default::default();
         }
@@ -330,7 +331,7 @@ pub struct FramePass {
     channels: Vec<f32>,
     n_channels: usize,
     phi: Option<NetPass>,
-    psi: Option<NetPass>,
+    psi: Option<ShadowPass>,
     render: PassRender,
     settings: RasterSettings,
 }
@@ -714,21 +715,19 @@ impl SunAwareModel {
         let mut refined = Vec::new();
         let psi = match &self.shadow {
             Some(net) if shadowed => {
-                let NetPass {
-                    mut input,
-                    mut forward,
-                } = std::mem::take(&mut psi_buffers);
-                net.assemble_input(
-                    &network_list,
-                    &vis,
-                    p.get(Param::ShadowLatent),
-                    p.get(Param::Mean),
-                    sun,
-                    &self.scene_box,
-                    &mut input,
-                )?;
-                net.mlp
-                    .forward_train_into(&input, network_list.len(), tape, &mut forward)?;
+                let mut forward = std::mem::take(&mut psi_buffers);
+                let batch = ShadowBatch {
+                    gaussians: &network_list,
+                    visibility: &vis,
+                    latents: p.get(Param::ShadowLatent),
+                    means: p.get(Param::Mean),
+                    sun_dir: sun,
+                    scene_box: &self.scene_box,
+                };
+                // Psi recomputes its hidden activations in backward whatever the setting:
+                // writing its fresh 96-float-per-row tape costs more than the small
+                // GEMMs that rebuild it (nn::shadow, docs/bench/step.md).
+                net.forward_train_into(&batch, TapeMode::Recompute, &mut forward)?;
                 refined = vec![0.0f32; n];
                 let multiply = self.config.shadow_refinement == ShadowRefinement::Multiply;
                 for (r, &g) in network_list.iter().enumerate() {
@@ -741,7 +740,7 @@ impl SunAwareModel {
                     channels[g * nc + 3] = v;
                     refined[g] = v;
                 }
-                Some(NetPass { input, forward })
+                Some(forward)
             }
             _ => None,
         };
@@ -1011,30 +1010,28 @@ impl SunAwareModel {
                 })
                 .collect();
             d_shadow = vec![0.0f32; net.mlp.num_params()];
-            let mut d_input = vec![0.0f32; psi.input.len()];
-            net.mlp.backward(
-                &psi.input,
-                &psi.forward,
+            let batch = ShadowBatch {
+                gaussians: &pass.network_list,
+                visibility: &pass.visibility,
+                latents: p.get(Param::ShadowLatent),
+                means: p.get(Param::Mean),
+                sun_dir: pass.sun_dir.to_array(),
+                scene_box: &self.scene_box,
+            };
+            // Means gain Psi's term straight on top of the rasterizer's (the list has no
+            // repeats, so the same bits as through a zeroed buffer).
+            let mut d_latents = vec![0.0f32; p.get(Param::ShadowLatent).len()];
+            net.backward(
+                &batch,
+                psi,
                 &d_out,
                 &mut d_shadow,
-                Some(&mut d_input),
-            )?;
-            let mut d_latents = vec![0.0f32; p.get(Param::ShadowLatent).len()];
-            let mut d_means = vec![0.0f32; n * 3];
-            net.scatter_input_grad_from_input(
-                &pass.network_list,
-                &psi.input,
-                &self.scene_box,
-                &d_input,
                 &mut d_latents,
-                &mut d_means,
+                params.get_mut(Param::Mean),
             )?;
             params
                 .get_mut(Param::ShadowLatent)
                 .copy_from_slice(&d_latents);
-            for (a, b) in params.get_mut(Param::Mean).iter_mut().zip(&d_means) {
-                *a += b;
-            }
         }
         timings.psi_backward_ms = ms_since(t3);
         let grads = SunAwareGrads {
@@ -1181,7 +1178,7 @@ mod tests {
         assert_eq!(bits(&a.image), bits(&b.image));
         // Recompute keeps no hidden activations.
         let tape = |p: &FramePass| {
-            p.phi.as_ref().unwrap().forward.tape_len() + p.psi.as_ref().unwrap().forward.tape_len()
+            p.phi.as_ref().unwrap().forward.tape_len() + p.psi.as_ref().unwrap().tape_len()
         };
         assert!(tape(&a) > 0);
         assert_eq!(tape(&b), 0);
