@@ -667,7 +667,6 @@ impl ShadowNet {
                     let scratch = &mut *scratch.borrow_mut();
                     let BlockScratch {
                         hidden: hidden_again,
-                        y: y_again,
                         d_x,
                         d_z,
                         d_prev,
@@ -677,8 +676,7 @@ impl ShadowNet {
                         Some(hidden) => hidden,
                         None => {
                             hidden_again.resize(block_rows * hidden_per_row, 0.0);
-                            y_again.resize(block_rows, 0.0);
-                            forward_block(&folded, x, block_rows, hidden_again, y_again);
+                            forward_block_layers(&folded, x, block_rows, hidden_again, None);
                             hidden_again
                         }
                     };
@@ -782,13 +780,12 @@ fn fresh_len(v: &mut Vec<f32>, len: usize) {
     }
 }
 
-/// Per-thread buffers of the forward and backward blocks: recomputed rows, activations
-/// and outputs, and the backward's gradients (contents never carry over: every value is
+/// Per-thread buffers of the forward and backward blocks: recomputed activations and the
+/// backward's gradients (contents never carry over: every value is
 /// written before it is read).
 #[derive(Default)]
 struct BlockScratch {
     hidden: Vec<f32>,
-    y: Vec<f32>,
     d_x: Vec<f32>,
     d_z: Vec<f32>,
     d_prev: Vec<f32>,
@@ -838,6 +835,18 @@ fn leaky_slope_from_output(a: f32) -> f32 {
 /// in the same order): output into `out`, hidden activations layer after layer into
 /// `hidden`.
 fn forward_block(mlp: &Mlp, x: &[f32], rows: usize, hidden: &mut [f32], out: &mut [f32]) {
+    forward_block_layers(mlp, x, rows, hidden, Some(out));
+}
+
+/// [`forward_block`]; without `out` only the hidden layers run (a backward's recompute:
+/// it has the output already).
+fn forward_block_layers(
+    mlp: &Mlp,
+    x: &[f32],
+    rows: usize,
+    hidden: &mut [f32],
+    mut out: Option<&mut [f32]>,
+) {
     let widths = mlp.widths();
     let layers = widths.len() - 1;
     let products = mlp.products();
@@ -854,6 +863,9 @@ fn forward_block(mlp: &Mlp, x: &[f32], rows: usize, hidden: &mut [f32], out: &mu
             &done[hidden_at - rows * n_in..]
         };
         if l + 1 == layers {
+            let Some(out) = out.take() else {
+                return;
+            };
             products.matmul(input, w, out, rows, n_in, n_out, false);
             for row in out.chunks_exact_mut(n_out) {
                 for (v, &bj) in row.iter_mut().zip(b) {
