@@ -15,9 +15,21 @@
 //! final transmittance and last blended entry, so it is the exact gradient of the forward
 //! that ran with early termination on or off.
 //!
+//! The tile loops (forward, the alpha-only pass [`tile_contributions`], backward) work on
+//! whole tile rows: per list entry, the exponentials of every row the splat meets
+//! (`entry_rows`), then per row the 16 lanes' alpha, the masks of the lanes that pass
+//! the cutoff, stop and blend, and masked updates of the pixel state. One generic source
+//! over `lanes::RowOps`, built for AVX-512 (intrinsics, chosen at run time where the CPU
+//! has AVX-512F/BW/VL/DQ), AVX2 and portable (plain arrays). The scalar and 8-lane loops
+//! these replaced stay in `reference.rs` (tests only).
+//!
 //! Invariants:
-//! - forward and backward evaluate alpha with the same functions (`row_gauss`, [`alpha_of`]),
-//!   so they agree bit for bit on which Gaussians each pixel kept;
+//! - forward, the alpha-only pass and backward evaluate alpha with the same functions
+//!   (`row_exp` and `alpha_row`: [`fast_exp`] and [`alpha_of`] lane by lane), so they
+//!   agree bit for bit on which Gaussians each pixel kept;
+//! - every build gives the same bits, and the same bits as the replaced loops: each
+//!   lane is the scalar formula operation for operation (no fused multiply-adds; the
+//!   backward's per-splat sums keep their 8-lane order), checked on random tiles;
 //! - a splat is only evaluated inside its rectangle (a conservative bound of where its
 //!   alpha reaches the cutoff), so binning never changes the image.
 //! - in smooth mode (test-only) the 1/255 step is a C1 ramp `alpha * smoothstep` over
@@ -308,12 +320,22 @@ impl Isa {
             if let Some(ops) = lanes::Avx512::detect() {
                 return Isa::Avx512(ops);
             }
-            if std::arch::is_x86_feature_detected!("avx2") {
+            if avx2_build_supported() {
                 return Isa::Avx2;
             }
         }
         Isa::Portable
     }
+}
+
+/// The CPU has every feature the AVX2 build of the tile loops enables.
+#[cfg(target_arch = "x86_64")]
+fn avx2_build_supported() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
+        && std::arch::is_x86_feature_detected!("bmi1")
+        && std::arch::is_x86_feature_detected!("bmi2")
+        && std::arch::is_x86_feature_detected!("popcnt")
 }
 
 /// Instantiates `$body` (an expression over the parameters and `$ops`, a [`RowOps`])
@@ -337,8 +359,8 @@ macro_rules! multiversion {
             // SAFETY: an `Avx512` exists only where the CPU has those features.
             #[cfg(target_arch = "x86_64")]
             Isa::Avx512(ops) => unsafe { avx512(ops, $($arg),*) },
-            // SAFETY: `Isa::Avx2` is only chosen where the CPU has AVX2 (`Isa::best`, and
-            // the tests check the same way).
+            // SAFETY: `Isa::Avx2` is only chosen where the CPU has those features
+            // (`avx2_build_supported`).
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => unsafe { avx2(Portable, $($arg),*) },
             Isa::Portable => portable(Portable, $($arg),*),
@@ -786,10 +808,10 @@ fn lane_sum(v: &Lanes) -> f32 {
 /// Backward over whole tile rows: every lane of a row that holds a kept pixel is computed
 /// together, with selects so that the other lanes change nothing. Per-pixel quantities are
 /// the same operations as the scalar formulas; per-splat sums are kept in 8 lanes
-/// ([`RowOps::fold`]: lane `i` adds pixel `i`, then pixel `i + 8`, the order of the
-/// 8-lane groups this replaced) and added in a fixed order at the end of each list entry. A lane that
-/// kept nothing adds zeros, which leave the sums' bits as they are (the sums start at
-/// +0.0 and round to nearest, so they are never -0.0).
+/// (`RowOps::fold`: lane `i` adds pixel `i`, then pixel `i + 8`, the order of the 8-lane
+/// groups this replaced) and added in a fixed order at the end of each list entry. A
+/// lane that kept nothing adds zeros, which leave the sums' bits as they are (the sums
+/// start at +0.0 and round to nearest, so they are never -0.0).
 #[inline(always)]
 fn backward_rows<S: RowOps, const FIXED: usize, const SMOOTH: bool>(
     ops: S,
@@ -1336,12 +1358,12 @@ mod tests {
         (splats, channels)
     }
 
-    /// The backward's skip of lane groups no pixel of which blended anything at or behind
-    /// an entry writes the same records, bit for bit, as evaluating every group the
-    /// splat's rectangle meets (random tiles: clipped, tiny, faint and near-opaque splats;
-    /// early termination on and off, smooth mode, a partial tile).
+    /// The backward's skip of rows no pixel of which blended anything at or behind an
+    /// entry writes the same records, bit for bit, as evaluating every row the splat's
+    /// rectangle meets (random tiles: clipped, tiny, faint and near-opaque splats; early
+    /// termination on and off, smooth mode, a partial tile).
     #[test]
-    fn skipping_unreached_lane_groups_writes_the_same_records() {
+    fn skipping_unreached_rows_writes_the_same_records() {
         let mut partial = tile();
         partial.x1 = partial.x0 + 11;
         partial.y1 = partial.y0 + 5;
@@ -1400,7 +1422,7 @@ mod tests {
         let mut isas = vec![Isa::Portable];
         #[cfg(target_arch = "x86_64")]
         {
-            if std::arch::is_x86_feature_detected!("avx2") {
+            if avx2_build_supported() {
                 isas.push(Isa::Avx2);
             }
             if let Some(ops) = lanes::Avx512::detect() {

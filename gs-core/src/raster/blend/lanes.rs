@@ -193,10 +193,12 @@ mod avx512 {
 
     impl Avx512 {
         pub(in super::super) fn detect() -> Option<Avx512> {
+            // Every feature the AVX-512 build of the tile loops enables.
             let ok = std::arch::is_x86_feature_detected!("avx512f")
                 && std::arch::is_x86_feature_detected!("avx512bw")
                 && std::arch::is_x86_feature_detected!("avx512vl")
-                && std::arch::is_x86_feature_detected!("avx512dq");
+                && std::arch::is_x86_feature_detected!("avx512dq")
+                && super::super::avx2_build_supported();
             ok.then_some(Avx512 { _private: () })
         }
     }
