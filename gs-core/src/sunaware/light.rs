@@ -509,9 +509,15 @@ unsafe fn tile_visibility_avx512(
 
 /// Pixels of a tile row handled together by the occluder loop (a tile row is 16 pixels).
 const WALK_LANES: usize = 16;
+/// Tile rows an occluder handles at once (one 64-bit mask of live pixels) in full-width
+/// tiles.
+const OCCLUDER_BLOCK_ROWS: usize = 4;
 /// Pixels of a receiver's window row handled together (the window is `2 reach + 1` = 7
 /// pixels wide at the default radius of 2 px).
 const RECEIVER_LANES: usize = 8;
+/// Receiver windows up to this many pixels on a side (the default radius gives 7) are
+/// handled in one piece of `WINDOW_SIDE^2` lanes.
+const WINDOW_SIDE: usize = 8;
 
 // `!(a < b)` on floats: NaN goes on to the next test, exactly as in the plain scan.
 #[inline(always)]
@@ -585,10 +591,10 @@ fn tile_visibility_body(
     }
     // Keys are unique (the position breaks ties), so the unstable sort is the stable one.
     order.sort_unstable();
-    // WALK_LANES values past the last pixel, so a lane loop may read a whole chunk.
+    // Values past the last pixel, so a lane loop may read a whole chunk or block of rows.
     let pixels = tile_w * (rect.y1 - rect.y0) as usize;
     trans.clear();
-    trans.resize(pixels + WALK_LANES, 1.0);
+    trans.resize(pixels + OCCLUDER_BLOCK_ROWS * WALK_LANES, 1.0);
     let r2 = footprint_radius_px * footprint_radius_px;
     let mut next_occluder = 0;
     let mut saturated = 0usize;
@@ -610,6 +616,37 @@ fn tile_visibility_body(
         // converts in one vector instruction).
         let (x0, x1, y0, y1) = window(s);
         let (x0, x1, y0, y1) = (x0 as i32, x1 as i32, y0 as i32, y1 as i32);
+        if x1 - x0 <= WINDOW_SIDE as i32 && y1 - y0 <= WINDOW_SIDE as i32 {
+            // The whole window at once: one mask, one loop over its pixels.
+            let mut power = [0.0f32; WINDOW_SIDE * WINDOW_SIDE];
+            let mut live = 0u64;
+            for (l, p) in power.iter_mut().enumerate() {
+                let (c, r) = ((l % WINDOW_SIDE) as i32, (l / WINDOW_SIDE) as i32);
+                let fx = (x0 + c) as f32 + 0.5;
+                let fy = (y0 + r) as f32 + 0.5;
+                let dx = s.mean_px[0] - fx;
+                let dy = s.mean_px[1] - fy;
+                let inside = !(dx * dx + dy * dy > r2);
+                *p = footprint_power(s, fx, fy);
+                live |= ((c < x1 - x0 && r < y1 - y0 && inside) as u64) << l;
+            }
+            // Bits in increasing row, then x: the sums run in row-major pixel order.
+            while live != 0 {
+                let l = live.trailing_zeros() as usize;
+                live &= live - 1;
+                let weight = power[l].exp();
+                if weight.is_nan() || weight <= 1e-6 {
+                    continue;
+                }
+                let (c, r) = ((l % WINDOW_SIDE) as i32, (l / WINDOW_SIDE) as i32);
+                let t = trans[(y0 + r - rect.y0 as i32) as usize * tile_w
+                    + (x0 + c - rect.x0 as i32) as usize];
+                let seen = if t < TRANSMITTANCE_STOP { 0.0 } else { t };
+                acc[k][0] += weight;
+                acc[k][1] += weight * seen;
+            }
+            continue;
+        }
         for py in y0..y1 {
             let fy = py as f32 + 0.5;
             let row = (py - rect.y0 as i32) as usize * tile_w;
@@ -661,6 +698,49 @@ fn apply_occluder(
     let tile_w = (rect.x1 - rect.x0) as usize;
     let (x0, x1) = (o.rect.x0.max(rect.x0), o.rect.x1.min(rect.x1));
     let (y0, y1) = (o.rect.y0.max(rect.y0), o.rect.y1.min(rect.y1));
+    if x0 >= x1 || y0 >= y1 {
+        return;
+    }
+    if tile_w == WALK_LANES {
+        // Blocks of rows at once: in a full-width tile the block's pixels are contiguous,
+        // lane `l` is column `x0 + l % 16` of row `py + l / 16` (lanes past the rectangle
+        // are masked off, and read the padding past the last pixel at worst).
+        const BLOCK: usize = OCCLUDER_BLOCK_ROWS * WALK_LANES;
+        let mut py = y0;
+        while py < y1 {
+            let base = (py - rect.y0) as usize * tile_w + (x0 - rect.x0) as usize;
+            let t_lanes: &[f32; BLOCK] =
+                trans[base..base + BLOCK].try_into().expect("BLOCK values");
+            let mut power = [0.0f32; BLOCK];
+            let mut live = 0u64;
+            for (l, p) in power.iter_mut().enumerate() {
+                let (c, r) = ((l % WALK_LANES) as u32, (l / WALK_LANES) as u32);
+                let fx = (x0 + c) as f32 + 0.5;
+                let fy = (py + r) as f32 + 0.5;
+                *p = footprint_power(o, fx, fy);
+                // Most of the rectangle misses the footprint: no exponential there.
+                let go = x0 + c < x1
+                    && py + r < y1
+                    && !(t_lanes[l] < TRANSMITTANCE_STOP)
+                    && !(*p < floor);
+                live |= (go as u64) << l;
+            }
+            while live != 0 {
+                let l = live.trailing_zeros() as usize;
+                live &= live - 1;
+                let alpha = occluder_alpha(o.opacity, power[l]);
+                if alpha >= ALPHA_MIN {
+                    let t = &mut trans[base + l];
+                    *t *= 1.0 - alpha;
+                    if *t < TRANSMITTANCE_STOP {
+                        *saturated += 1;
+                    }
+                }
+            }
+            py += OCCLUDER_BLOCK_ROWS as u32;
+        }
+        return;
+    }
     for py in y0..y1.max(y0) {
         let fy = py as f32 + 0.5;
         let mut cs = x0;
