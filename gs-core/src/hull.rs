@@ -13,6 +13,9 @@
 //! ([`HullSampling::Shell`]); or every occupied voxel is a candidate and each point lies at a
 //! seeded uniform position inside its voxel ([`HullSampling::Volume`]), so the points fill
 //! the hull and some lie on the true surface wherever it is inside the hull.
+//! [`HullSampling::Silhouette`] ([`carve_silhouette_consistent`]) draws candidates inside
+//! the occupied voxels and keeps those whose own projection is foreground in every view
+//! that sees them, removing the carving's conservative margin.
 //! [`carve_photo_consistent`] also takes the views' images: it draws candidates inside the
 //! occupied voxels, drops those that project onto background in a view (the carving's
 //! conservative margin), and draws the points with weights favouring candidates whose colour
@@ -134,6 +137,9 @@ pub enum HullSampling {
     /// no outward direction: their normal is the occupancy-gradient fallback (+z where the
     /// neighbourhood is full), which matters only for colour sampling.
     Volume,
+    /// Points inside occupied voxels that project onto the foreground in every view that
+    /// sees them ([`carve_silhouette_consistent`] with [`SILHOUETTE_SAMPLES_PER_VOXEL`]).
+    Silhouette,
 }
 
 impl Default for HullOptions {
@@ -395,6 +401,10 @@ pub fn carve(
     grid: HullGrid,
     options: HullOptions,
 ) -> Result<HullPoints, HullError> {
+    if options.sampling == HullSampling::Silhouette {
+        return carve_silhouette_consistent(views, grid, options, SILHOUETTE_SAMPLES_PER_VOXEL)
+            .map(|(hull, _)| hull);
+    }
     let (voxel_m, dims, occupancy) = carve_occupancy(views, grid, options)?;
     let total = dims[0] * dims[1] * dims[2];
     let corner_of = |x: usize, y: usize, z: usize| {
@@ -429,7 +439,9 @@ pub fn carve(
     let surface_count = surface.len();
     let candidates = match options.sampling {
         HullSampling::Shell => surface,
-        HullSampling::Volume => (0..total).filter(|&i| occupancy[i] != 0).collect(),
+        HullSampling::Volume | HullSampling::Silhouette => {
+            (0..total).filter(|&i| occupancy[i] != 0).collect()
+        }
     };
 
     // Deterministic subsample: a seeded partial Fisher-Yates, then back to index order.
@@ -450,7 +462,7 @@ pub fn carve(
             let (x, y, z) = unflatten(dims, i);
             let offset = match options.sampling {
                 HullSampling::Shell => Vec3::splat(0.5),
-                HullSampling::Volume => {
+                HullSampling::Volume | HullSampling::Silhouette => {
                     // Per-voxel stream: independent of thread count and of the other voxels.
                     let mut rng = SplitMix64::new(
                         options.seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F),
@@ -494,6 +506,12 @@ impl Default for PhotoOptions {
     }
 }
 
+/// The smallest colour spread the photo-consistency weight resolves: one 8-bit level.
+const MIN_SPREAD: f32 = 1.0 / 255.0;
+
+/// Candidates per occupied voxel of [`HullSampling::Silhouette`].
+pub const SILHOUETTE_SAMPLES_PER_VOXEL: u32 = 4;
+
 /// What [`carve_photo_consistent`] saw, for reports.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PhotoStats {
@@ -514,7 +532,8 @@ struct PhotoView<'a> {
     camera: Camera,
     width: usize,
     height: usize,
-    rgb: &'a [f32],
+    /// `None`: masks only (every colour reads as black, so every spread is 0).
+    rgb: Option<&'a [f32]>,
     mask: &'a [u8],
 }
 
@@ -547,7 +566,9 @@ impl PhotoView<'_> {
         for (px, py, weight) in taps {
             let i = py * self.width + px;
             mask += weight * (self.mask[i] >= FOREGROUND_THRESHOLD) as u8 as f32;
-            rgb += weight * Vec3::new(self.rgb[3 * i], self.rgb[3 * i + 1], self.rgb[3 * i + 2]);
+            if let Some(image) = self.rgb {
+                rgb += weight * Vec3::new(image[3 * i], image[3 * i + 1], image[3 * i + 2]);
+            }
         }
         Some((mask, rgb))
     }
@@ -610,7 +631,6 @@ pub fn carve_photo_consistent(
             mask: v.mask,
         })
         .collect();
-    let (voxel_m, dims, occupancy) = carve_occupancy(&hull_views, grid, options)?;
     let photo_views: Vec<PhotoView> = views
         .iter()
         .enumerate()
@@ -627,11 +647,56 @@ pub fn carve_photo_consistent(
                 camera: v.camera,
                 width: v.camera.intrinsics.width as usize,
                 height: v.camera.intrinsics.height as usize,
-                rgb: v.rgb,
+                rgb: Some(v.rgb),
                 mask: v.mask,
             })
         })
         .collect::<Result<_, _>>()?;
+    consistent_points(&hull_views, &photo_views, grid, options, photo)
+}
+
+/// Carves like [`carve`], then draws `samples_per_voxel` seeded uniform candidates in each
+/// occupied voxel, drops those that project onto background (bilinear mask below one half)
+/// in any view that sees them, and returns `point_count` of the rest, drawn uniformly
+/// (seeded): points inside the hull and on the silhouette in every view. The carving keeps
+/// a conservative margin around the silhouette (a voxel survives when any pixel under its
+/// grown footprint is foreground), which at voxels of a pixel or less is most of a thin
+/// target's hull; this test at the point itself removes it. Not conservative: a point of
+/// the true surface within half a pixel of a silhouette's edge may be dropped. `stats`
+/// as for [`carve_photo_consistent`] (every spread 0).
+pub fn carve_silhouette_consistent(
+    views: &[HullView],
+    grid: HullGrid,
+    options: HullOptions,
+    samples_per_voxel: u32,
+) -> Result<(HullPoints, PhotoStats), HullError> {
+    let photo_views: Vec<PhotoView> = views
+        .iter()
+        .map(|v| PhotoView {
+            camera: v.camera,
+            width: v.camera.intrinsics.width as usize,
+            height: v.camera.intrinsics.height as usize,
+            rgb: None,
+            mask: v.mask,
+        })
+        .collect();
+    let photo = PhotoOptions {
+        samples_per_voxel,
+        spread_width: 1.0,
+    };
+    consistent_points(views, &photo_views, grid, options, photo)
+}
+
+/// The shared body of [`carve_photo_consistent`] and [`carve_silhouette_consistent`]:
+/// `photo_views` are `views` with their images (or none).
+fn consistent_points(
+    views: &[HullView],
+    photo_views: &[PhotoView],
+    grid: HullGrid,
+    options: HullOptions,
+    photo: PhotoOptions,
+) -> Result<(HullPoints, PhotoStats), HullError> {
+    let (voxel_m, dims, occupancy) = carve_occupancy(views, grid, options)?;
     let samples = photo.samples_per_voxel.max(1) as usize;
     let total = dims[0] * dims[1] * dims[2];
     let occupied_voxels: Vec<usize> = (0..total).filter(|&i| occupancy[i] != 0).collect();
@@ -651,7 +716,6 @@ pub fn carve_photo_consistent(
             let corner = grid.min_m + Vec3::new(x as f32, y as f32, z as f32) * voxel_m;
             let mut rng =
                 SplitMix64::new(options.seed ^ (i as u64).wrapping_mul(0xA076_1D64_78BD_642F));
-            let photo_views = &photo_views;
             (0..samples).map(move |_| {
                 let offset = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
                 // u in (0, 1]: -ln(-ln u) is a standard Gumbel draw.
@@ -669,7 +733,10 @@ pub fn carve_photo_consistent(
     let mut spreads: Vec<f32> = candidates.iter().filter_map(|c| c.spread.ok()).collect();
     spreads.sort_unstable_by(f32::total_cmp);
     let median_spread = spreads.get(spreads.len() / 2).copied().unwrap_or(0.0);
-    let width = (photo.spread_width.max(0.0) * median_spread).max(1e-6);
+    // Spreads below one 8-bit level are quantisation, not evidence: a median below that
+    // (more than half the candidates on exactly the same colour in every view, e.g. an
+    // unlit dark body) must not make the weight a knife edge.
+    let width = (photo.spread_width.max(0.0) * median_spread.max(MIN_SPREAD)).max(1e-6);
     let median_log_weight = -0.5 * (median_spread / width).powi(2);
     let stats = PhotoStats {
         candidates: candidates.len(),

@@ -5,16 +5,22 @@
 //! renders); checked: the photo-consistent points concentrate on the plate where volume
 //! points spread through the slab, a wide weight falls back to the volume's spread, every
 //! point projects onto the foreground in every view that sees it, the draw is seeded and
-//! independent of the thread count, and bad input is an error.
+//! independent of the thread count, and bad input is an error. The silhouette-only start
+//! (`HullSampling::Silhouette`) at low resolution: it removes the carving's margin around
+//! the plate's edges, and equals `carve_silhouette_consistent`.
 
 use glam::Vec3;
 use gs_core::camera::{Camera, Intrinsics};
 use gs_core::hull::{
-    carve, carve_photo_consistent, ColourView, HullError, HullGrid, HullOptions, HullPoints,
-    HullSampling, HullView, PhotoOptions,
+    carve, carve_photo_consistent, carve_silhouette_consistent, ColourView, HullError, HullGrid,
+    HullOptions, HullPoints, HullSampling, HullView, PhotoOptions, SILHOUETTE_SAMPLES_PER_VOXEL,
 };
 
 const SIZE_PX: u32 = 128;
+/// Low-resolution images for the silhouette test: a pixel covers two voxels, as on the
+/// simulated targets (160x100 images, voxels of half a pixel), so the carving's one-pixel
+/// margin is several voxels wide.
+const SMALL_SIZE_PX: u32 = 32;
 const FOV_X_RAD: f32 = 0.9;
 const DISTANCE_M: f32 = 4.0;
 /// The plate: |x|, |y| <= PLATE_HALF_M in the plane z = 0.
@@ -50,6 +56,10 @@ struct View {
 
 /// A camera `CONE_DEG` off +z at azimuth `azimuth_deg`, looking at the plate's centre.
 fn camera_at(azimuth_deg: f32) -> Camera {
+    camera_of_size(azimuth_deg, SIZE_PX)
+}
+
+fn camera_of_size(azimuth_deg: f32, size_px: u32) -> Camera {
     let (tilt, azimuth) = (CONE_DEG.to_radians(), azimuth_deg.to_radians());
     let dir = Vec3::new(
         tilt.sin() * azimuth.cos(),
@@ -57,7 +67,7 @@ fn camera_at(azimuth_deg: f32) -> Camera {
         tilt.cos(),
     );
     Camera::look_at(
-        Intrinsics::from_fov_x(FOV_X_RAD, SIZE_PX, SIZE_PX),
+        Intrinsics::from_fov_x(FOV_X_RAD, size_px, size_px),
         dir * DISTANCE_M,
         Vec3::ZERO,
         Vec3::Y,
@@ -295,4 +305,66 @@ fn bad_input_is_an_error() {
         carve_photo_consistent(&blank, grid(), options(), photo(0.5)),
         Err(HullError::NothingLeft { .. })
     ));
+}
+
+#[test]
+fn silhouette_points_drop_the_carving_margin_around_the_plate() {
+    let views: Vec<View> = (0..6)
+        .map(|k| render(camera_of_size(60.0 * k as f32, SMALL_SIZE_PX)))
+        .collect();
+    let hull_views: Vec<HullView> = views
+        .iter()
+        .map(|v| HullView {
+            camera: v.camera,
+            mask: &v.mask,
+        })
+        .collect();
+    let pixel_m = DISTANCE_M / views[0].camera.intrinsics.fx;
+    let volume = carve(&hull_views, grid(), options()).unwrap();
+    assert!(
+        volume.voxel_m < 0.6 * pixel_m,
+        "{} {pixel_m}",
+        volume.voxel_m
+    );
+    let silhouette = carve(
+        &hull_views,
+        grid(),
+        HullOptions {
+            sampling: HullSampling::Silhouette,
+            ..options()
+        },
+    )
+    .unwrap();
+    let (direct, stats) =
+        carve_silhouette_consistent(&hull_views, grid(), options(), SILHOUETTE_SAMPLES_PER_VOXEL)
+            .unwrap();
+    assert_eq!(silhouette, direct);
+    assert_eq!(silhouette.points.len(), POINTS);
+    assert_eq!(stats.median_spread, 0.0);
+    assert!(stats.off_silhouette > 0);
+    // Beyond the plate's edge by more than half a pixel: the margin.
+    let edge_m = PLATE_HALF_M + 0.5 * pixel_m;
+    let beyond = |hull: &HullPoints| {
+        hull.points
+            .iter()
+            .filter(|p| p.x.abs().max(p.y.abs()) > edge_m)
+            .count() as f32
+            / hull.points.len() as f32
+    };
+    let (volume_beyond, silhouette_beyond) = (beyond(&volume), beyond(&silhouette));
+    assert!(
+        volume_beyond > 0.05,
+        "volume: {volume_beyond} beyond the edge"
+    );
+    assert!(
+        silhouette_beyond < 0.01,
+        "silhouette: {silhouette_beyond} beyond the edge"
+    );
+    for p in &silhouette.points {
+        for view in &views {
+            if let Some(fg) = foreground_at(view, *p) {
+                assert!(fg >= 0.5, "{p} on background ({fg}) in a view");
+            }
+        }
+    }
 }

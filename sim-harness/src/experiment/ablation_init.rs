@@ -11,10 +11,11 @@
 //! frame the trainer has not seen by then. K defaults to the window size W. The carving box
 //! is the cube around the target's bounding sphere (a size prior, not the model); colours are
 //! sampled from the keyframe images (the view that sees each point most frontally), or grey.
-//! Variants (`hull` with suffixes `-grey`, `-volume`, `-recarve`, `-photo`): points filling
-//! the hull's voxels rather than its surface; points inside the hull that project onto the
-//! foreground in every keyframe, drawn favouring those whose colour the keyframes agree on
-//! (`gs_core::hull::carve_photo_consistent`, preset key `hull_photo`); and [`HullPruner`],
+//! Variants (`hull` with suffixes `-grey`, `-volume`, `-recarve`, `-silhouette`, `-photo`):
+//! points filling the hull's voxels rather than its surface; points inside the hull that
+//! project onto the foreground in every keyframe (`-silhouette`, preset key
+//! `hull_silhouette`), optionally drawn favouring those whose colour the keyframes agree on
+//! (`-photo`, `gs_core::hull::carve_photo_consistent`, preset key `hull_photo`); and [`HullPruner`],
 //! which carves a persistent volume with every keyframe as the window takes it and prunes
 //! the Gaussians whose centres fall outside it (more than one voxel from any occupied
 //! voxel). All use only the images, masks and poses of frames the trainer has been offered
@@ -40,8 +41,9 @@ use fsw_component::online::OnlineTrainer;
 use fsw_component::online::{Initialisation, OnlineError};
 use glam::Vec3;
 use gs_core::hull::{
-    carve, carve_photo_consistent, sample_colours, CarvedVolume, ColourView, HullGrid, HullOptions,
-    HullSampling, HullView, PhotoOptions,
+    carve, carve_photo_consistent, carve_silhouette_consistent, sample_colours, CarvedVolume,
+    ColourView, HullGrid, HullOptions, HullSampling, HullView, PhotoOptions,
+    SILHOUETTE_SAMPLES_PER_VOXEL,
 };
 use gs_core::model::Param;
 use gs_core::sunaware::Variant;
@@ -69,6 +71,9 @@ pub struct HullReport {
     pub mean_distance_to_surface_m: f64,
     /// Fraction of the points farther than [`far_distance_m`] from the true surface.
     pub far_fraction: f64,
+    /// Fraction of the true surface samples farther than [`far_distance_m`] from every hull
+    /// point: the parts of the target the start leaves without a point (diagnostic only).
+    pub surface_uncovered_fraction: f64,
     pub carve_s: f64,
     /// `-photo`: candidates drawn, dropped as off the silhouette, and scored by fewer than
     /// two views; the median colour spread (0 for the other hulls).
@@ -174,6 +179,11 @@ pub fn hull_initialisation(
         let (hull, stats) = carve_photo_consistent(&colour_views, grid, options, photo_options)
             .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
         (hull, Some(stats))
+    } else if preset.hull_silhouette {
+        let (hull, stats) =
+            carve_silhouette_consistent(&views, grid, options, SILHOUETTE_SAMPLES_PER_VOXEL)
+                .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
+        (hull, Some(stats))
     } else {
         let hull = carve(&views, grid, options)
             .map_err(|e| OnlineError::Config(format!("{}: {e}", scene.name)))?;
@@ -184,8 +194,9 @@ pub fn hull_initialisation(
     } else {
         sample_colours(&hull.points, &hull.normals, &colour_views, GREY)
     };
-    let (mean_distance_to_surface_m, far_fraction) =
-        distance_summary(&hull.points, scene, far_distance_m(scene, preset));
+    let far_m = far_distance_m(scene, preset);
+    let (mean_distance_to_surface_m, far_fraction) = distance_summary(&hull.points, scene, far_m);
+    let surface_uncovered_fraction = uncovered_fraction(&hull.points, scene, far_m);
     let report = HullReport {
         frames: frames.iter().map(|&i| scene.frames[i].index).collect(),
         voxel_m: hull.voxel_m,
@@ -195,6 +206,7 @@ pub fn hull_initialisation(
         uncoloured_points: uncoloured,
         mean_distance_to_surface_m,
         far_fraction,
+        surface_uncovered_fraction,
         carve_s: started.elapsed().as_secs_f64(),
         photo_candidates: photo.map_or(0, |p| p.candidates),
         photo_off_silhouette: photo.map_or(0, |p| p.off_silhouette),
@@ -258,6 +270,27 @@ pub fn distance_summary(points: &[Vec3], scene: &SceneData, far_m: f64) -> (f64,
     (d.iter().sum::<f64>() / n, far / n)
 }
 
+/// Fraction of the scene's surface samples farther than `far_m` from every point of
+/// `points` (brute force; NaN when there are no samples, 1 when there are no points;
+/// diagnostic only).
+pub fn uncovered_fraction(points: &[Vec3], scene: &SceneData, far_m: f64) -> f64 {
+    use rayon::prelude::*;
+    if scene.surface.is_empty() {
+        return f64::NAN;
+    }
+    let far_squared = (far_m * far_m) as f32;
+    let uncovered = scene
+        .surface
+        .par_iter()
+        .filter(|s| {
+            points
+                .iter()
+                .all(|p| (s.position_m - *p).length_squared() > far_squared)
+        })
+        .count();
+    uncovered as f64 / scene.surface.len() as f64
+}
+
 /// This process's CPU time (user + system, all threads) from `/proc/self/stat`, seconds;
 /// `None` where that file is missing. Linux reports it in USER_HZ = 100 ticks per second.
 pub fn process_cpu_s() -> Option<f64> {
@@ -292,15 +325,18 @@ pub struct HullVariant {
     pub recarve: bool,
     /// `-photo`: points inside the hull where the keyframes agree on the colour.
     pub photo: bool,
+    /// `-silhouette`: points inside the hull on the foreground in every keyframe.
+    pub silhouette: bool,
 }
 
 /// Parses `surface`, `random`, or `hull` followed by any of `-grey`, `-volume`, `-recarve`,
-/// `-photo` (each at most once, any order; `-photo` overrides `-volume`).
+/// `-photo`, `-silhouette` (each at most once, any order; `-photo` overrides `-silhouette`,
+/// both override `-volume`).
 pub fn parse_init_variant(name: &str) -> Result<(InitKind, HullVariant), ExperimentError> {
     let unknown = || {
         ExperimentError::Invalid(format!(
             "unknown initialisation {name:?} (surface, random, or hull with any of the \
-             suffixes -grey, -volume, -recarve, -photo)"
+             suffixes -grey, -volume, -recarve, -photo, -silhouette)"
         ))
     };
     match name {
@@ -320,6 +356,7 @@ pub fn parse_init_variant(name: &str) -> Result<(InitKind, HullVariant), Experim
             "volume" => &mut variant.volume,
             "recarve" => &mut variant.recarve,
             "photo" => &mut variant.photo,
+            "silhouette" => &mut variant.silhouette,
             _ => return Err(unknown()),
         };
         if *flag {
@@ -1002,6 +1039,7 @@ pub fn write_hull_figure(
         hull_grey_colours: job.preset.hull_grey_colours || variant.grey,
         hull_volume: job.preset.hull_volume || variant.volume,
         hull_photo: job.preset.hull_photo || variant.photo,
+        hull_silhouette: job.preset.hull_silhouette || variant.silhouette,
         ..job.preset.clone()
     };
     let mut data = Vec::new();
@@ -1016,7 +1054,7 @@ pub fn write_hull_figure(
         )?;
         let (_, report) = hull_initialisation(&scene, &preset)?;
         progress(&format!(
-            "{}: hull from frames {:?}, {} points ({} occupied, {} surface voxels of {:.3} m), mean {:.3} m from the true surface, {:.1} % farther than {:.2} m",
+            "{}: hull from frames {:?}, {} points ({} occupied, {} surface voxels of {:.3} m), mean {:.3} m from the true surface, {:.1} % farther than {:.2} m; {:.1} % of the surface samples that far from every point",
             scene.name,
             report.frames,
             report.points,
@@ -1025,7 +1063,8 @@ pub fn write_hull_figure(
             report.voxel_m,
             report.mean_distance_to_surface_m,
             100.0 * report.far_fraction,
-            far_distance_m(&scene, &preset)
+            far_distance_m(&scene, &preset),
+            100.0 * report.surface_uncovered_fraction
         ));
         if report.photo_candidates > 0 {
             progress(&format!(
@@ -1110,6 +1149,7 @@ pub fn run_init_ablation(
                 hull_volume: variant.volume,
                 hull_recarve: variant.recarve,
                 hull_photo: variant.photo,
+                hull_silhouette: variant.silhouette,
                 configs: vec!["d".into()],
                 ..job.preset.clone()
             };
@@ -1217,11 +1257,14 @@ mod tests {
         assert_eq!(parse_init("hull-grey").unwrap(), (InitKind::Hull, true));
         let (kind, v) = parse_init_variant("hull-photo").unwrap();
         assert_eq!(kind, InitKind::Hull);
-        assert!(v.photo && !v.volume && !v.recarve && !v.grey);
+        assert!(v.photo && !v.volume && !v.recarve && !v.grey && !v.silhouette);
+        let (_, v) = parse_init_variant("hull-silhouette").unwrap();
+        assert!(v.silhouette && !v.photo && !v.volume);
         for bad in [
             "hull-",
             "hull-grey-grey",
             "hull-photo-photo",
+            "hull-silhouette-silhouette",
             "hullgrey",
             "hull-shell",
             "random-grey",
@@ -1235,11 +1278,11 @@ mod tests {
     #[test]
     fn the_photo_preset_keys_parse_and_bad_values_are_errors() {
         let p = Preset::from_toml_str(
-            "init = \"hull\"\nhull_photo = true\nhull_photo_spread_width = 0.25\nhull_photo_samples = 8\n",
+            "init = \"hull\"\nhull_photo = true\nhull_silhouette = true\nhull_photo_spread_width = 0.25\nhull_photo_samples = 8\n",
             "t.toml",
         )
         .unwrap();
-        assert!(p.hull_photo);
+        assert!(p.hull_photo && p.hull_silhouette);
         assert_eq!(p.hull_photo_spread_width, 0.25);
         assert_eq!(p.hull_photo_samples, 8);
         assert!(!Preset::default().hull_photo);
@@ -1258,11 +1301,11 @@ mod tests {
         }
     }
 
-    /// On a small rendered target from its first keyframes, the photo-consistent start lies
-    /// closer to the true surface than the volume start (the carving's margin shell is
-    /// dropped), reports its candidates, and is reproducible.
+    /// On a small rendered target from its first keyframes, the photo-consistent and the
+    /// silhouette starts lie closer to the true surface than the volume start (the
+    /// carving's margin shell is dropped), report their candidates, and are reproducible.
     #[test]
-    fn the_photo_start_lies_closer_to_the_surface_than_the_volume_start() {
+    fn the_photo_and_silhouette_starts_lie_closer_to_the_surface_than_the_volume_start() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/scenarios/quick.toml");
         let preset = Preset {
             name: "tiny".into(),
@@ -1305,6 +1348,23 @@ mod tests {
         assert!(photo.far_fraction < volume.far_fraction);
         let (again, _) = hull_initialisation(&scene, &photo_preset).unwrap();
         assert_eq!(init, again);
+        let silhouette_preset = Preset {
+            hull_silhouette: true,
+            ..preset.clone()
+        };
+        let (_, silhouette) = hull_initialisation(&scene, &silhouette_preset).unwrap();
+        assert_eq!(silhouette.points, 400);
+        assert_eq!(
+            silhouette.photo_off_silhouette, photo.photo_off_silhouette,
+            "the same candidates, the same test"
+        );
+        assert_eq!(silhouette.photo_median_spread, 0.0);
+        assert!(
+            silhouette.mean_distance_to_surface_m < 0.8 * volume.mean_distance_to_surface_m,
+            "silhouette {} m, volume {} m",
+            silhouette.mean_distance_to_surface_m,
+            volume.mean_distance_to_surface_m
+        );
     }
 
     /// Gaussians on the true surface and Gaussians spread through the bounding ball: carving

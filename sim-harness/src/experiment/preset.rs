@@ -110,6 +110,9 @@ pub struct Preset {
     /// `init = "hull"`: points inside the hull where the keyframes agree on the colour
     /// (`gs_core::hull::carve_photo_consistent`) instead of on its surface or through it.
     pub hull_photo: bool,
+    /// `init = "hull"`: points inside the hull that project onto the foreground in every
+    /// keyframe (`gs_core::hull::HullSampling::Silhouette`); `hull_photo` wins over it.
+    pub hull_silhouette: bool,
     /// `hull_photo`: weight width in median colour spreads (smaller: sharper selection).
     pub hull_photo_spread_width: f32,
     /// `hull_photo`: candidate points per occupied voxel.
@@ -179,6 +182,7 @@ impl Default for Preset {
             hull_volume: false,
             hull_recarve: false,
             hull_photo: false,
+            hull_silhouette: false,
             hull_photo_spread_width: 0.5,
             hull_photo_samples: 4,
             feature_dim: 72,
