@@ -11,6 +11,17 @@
 //!
 //! `V_i` comes from the shadow pass and gets no gradient (DESIGN.md section 3). The input
 //! gradient flows to the latents `l_i` and, through `p_i`, to the means.
+//!
+//! Training path ([`ShadowNet::forward_train_into`], [`ShadowNet::backward`]): the Sun's
+//! `6L` columns are the same for every row of a step, so on the CPU they are folded into
+//! the first layer's bias ([`ShadowNet::folded_mlp`]) and the rows carry only
+//! `[V_i | gamma_L(p_i) | l_i]`; each block of `BLOCK_ROWS` rows is assembled and run while
+//! in cache, with `Mlp`'s own arithmetic on the folded network (the same bits as `Mlp` on
+//! those rows), and the backward hands the input gradient straight to the encoding's
+//! backward. The function is the full network's up to f32 summation order (tested against
+//! f64); gradients reach the Sun's weight rows through the fold's chain rule. The
+//! parameter layout is the full network's (checkpoints unchanged). On a wgpu device the
+//! full rows go through `mlp` as before.
 
 use rayon::prelude::*;
 
