@@ -280,6 +280,20 @@ pub fn light_axis_sigmas_m(model: &GaussianModel, light: &LightCamera) -> Vec<f3
         .collect()
 }
 
+/// A splat that covers no pixel (a placeholder that is never walked).
+const NO_SPLAT: Splat = Splat {
+    mean_px: [f32::NAN; 2],
+    conic: [0.0; 3],
+    opacity: 0.0,
+    depth: f32::INFINITY,
+    rect: PixelRect {
+        x0: 0,
+        y0: 0,
+        x1: 0,
+        y1: 0,
+    },
+};
+
 /// `V_i` for every Gaussian from its splats in the light image (see the module docs).
 /// `receiver_margin_m[i]` (empty: all zero) is added to the depth bias for receiver `i`.
 pub fn visibility_from_splats(
@@ -292,9 +306,12 @@ pub fn visibility_from_splats(
     let n = splats.len();
     let order = depth_order(splats);
     // Element-wise maps, in parallel (each value depends on its own inputs only).
+    // `depth_order` lists only the splats that exist, so the map is indexed (rayon collects
+    // it straight into place) and the fallback is never taken.
     let ranked: Vec<Splat> = order
         .par_iter()
-        .filter_map(|&g| splats[g as usize])
+        .with_min_len(4096)
+        .map(|&g| splats[g as usize].unwrap_or(NO_SPLAT))
         .collect();
     // Occluders must end before this depth to shadow the receiver of that rank.
     let limit_of_rank: Vec<f32> = order
