@@ -14,7 +14,9 @@
 //! (serial radix/counting sorts), [`blend::blend_tile_forward`] (rayon over 16x16 tiles).
 //! Backward: [`blend::blend_tile_backward`] per tile writes one gradient record per
 //! tile-list entry; records are summed per Gaussian in tile order and pushed through
-//! [`project::project_backward`].
+//! [`project::project_backward`] (rayon over blocks of Gaussians, each Gaussian's sum in
+//! one task, so the thread count changes no bit). The forward's tile-major buffers go to
+//! the image layout by bands of tile rows (rayon), one tile row per copy.
 //!
 //! Invariants:
 //! - outputs are pixel-major, row-major: `color[(y * W + x) * C + c]`;
@@ -510,7 +512,7 @@ fn resolve_background(settings: &RasterSettings, nc: usize) -> Result<Vec<f32>, 
 }
 
 /// Scratch memory that [`render_with`] and [`render_backward_with`] reuse from call to
-/// call (tile-major forward buffers, backward gradient records and sums). Every reused
+/// call (tile-major forward buffers, backward gradient records). Every reused
 /// value is overwritten before it is read, so results are bit-identical to [`render`] and
 /// [`render_backward`]; reuse only saves the allocation and the page faults of fresh
 /// memory (about 20 MB per call at 960x600). Buffers only grow.
@@ -519,17 +521,15 @@ pub struct RasterWorkspace {
     tile_color: Vec<f32>,
     tile_depth: Vec<f32>,
     records: Vec<f32>,
-    sums: Vec<f32>,
 }
 
 impl RasterWorkspace {
-    /// Frees the backward's gradient records and sums (the largest buffers: one record
-    /// per tile entry), keeping the forward's tile buffers. For callers that hold the
+    /// Frees the backward's gradient records (the largest buffer: one record per tile
+    /// entry), keeping the forward's tile buffers. For callers that hold the
     /// workspace across other memory-hungry work and care more about peak memory than
     /// about the backward's page faults.
     pub fn release_backward_buffers(&mut self) {
         self.records = Vec::new();
-        self.sums = Vec::new();
     }
 }
 
@@ -913,39 +913,19 @@ pub fn render_prepared(
     let mut color = vec![0.0f32; w * h * nc];
     let mut alpha = vec![0.0f32; w * h];
     let mut depth = vec![0.0f32; w * h];
-    let tiles_x = grid.tiles_x as usize;
-    let tile_px = TILE_PX as usize;
-    let tile_pixel = |x: usize, y: usize| {
-        ((y / tile_px) * tiles_x + x / tile_px) * TILE_PIXELS
-            + (y % tile_px) * tile_px
-            + x % tile_px
-    };
-    alpha
-        .par_chunks_mut(w)
-        .zip(depth.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, (alpha_row, depth_row))| {
-            for x in 0..w {
-                let q = tile_pixel(x, y);
-                alpha_row[x] = 1.0 - tile_transmittance[q];
-                depth_row[x] = tile_depth[q];
-            }
-        });
-    if nc > 0 {
-        color
-            .par_chunks_mut(w * nc)
-            .enumerate()
-            .for_each(|(y, row)| {
-                for x in 0..w {
-                    let q = tile_pixel(x, y);
-                    let tile = q / TILE_PIXELS;
-                    let p = q % TILE_PIXELS;
-                    let src =
-                        &tile_color[tile * color_chunk + p * nc..tile * color_chunk + p * nc + nc];
-                    row[x * nc..x * nc + nc].copy_from_slice(src);
-                }
-            });
-    }
+    untile(
+        &grid,
+        nc,
+        TileMajor {
+            color: tile_color,
+            color_chunk,
+            depth: tile_depth,
+            transmittance: &tile_transmittance,
+        },
+        &mut color,
+        &mut alpha,
+        &mut depth,
+    );
     let blend_ms = ms_since(t2);
 
     let mut radii_px = radii_px;
@@ -986,9 +966,6 @@ pub fn render_prepared(
     })
 }
 
-/// Ranks ahead whose scattered data the backward reduction prefetches.
-const REDUCE_PREFETCH_AHEAD: usize = 8;
-
 /// Hints the cache to fetch the line holding `value` (never faults; no effect elsewhere).
 #[inline(always)]
 fn prefetch<T>(value: &T) {
@@ -1001,6 +978,305 @@ fn prefetch<T>(value: &T) {
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = value;
+}
+
+/// Tile-major forward buffers (`TILE_PIXELS` pixels per tile, row-major in the tile).
+struct TileMajor<'a> {
+    color: &'a [f32],
+    /// Values per tile in `color` (at least `TILE_PIXELS * nc`).
+    color_chunk: usize,
+    depth: &'a [f32],
+    transmittance: &'a [f32],
+}
+
+/// Copies the tile-major buffers into the image layout (`alpha = 1 - T`), one band of
+/// tile rows per rayon task, one tile row (up to 16 pixels) per copy. Only copies: the
+/// bits do not depend on the split.
+fn untile(
+    grid: &TileGrid,
+    nc: usize,
+    tiles: TileMajor,
+    color: &mut [f32],
+    alpha: &mut [f32],
+    depth: &mut [f32],
+) {
+    let w = grid.width as usize;
+    let tile_px = TILE_PX as usize;
+    let tiles_x = grid.tiles_x as usize;
+    let band = tile_px * w;
+    // Empty colour bands when there are no channels (a chunk size of zero is not allowed).
+    let color_bands: Vec<&mut [f32]> = if nc > 0 {
+        color.chunks_mut(band * nc).collect()
+    } else {
+        (0..grid.tiles_y).map(|_| <&mut [f32]>::default()).collect()
+    };
+    let bands: Vec<_> = color_bands
+        .into_iter()
+        .zip(alpha.chunks_mut(band).zip(depth.chunks_mut(band)))
+        .collect();
+    bands
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(ty, (color_band, (alpha_band, depth_band)))| {
+            let rows = alpha_band.len() / w;
+            for tx in 0..tiles_x {
+                let t = ty * tiles_x + tx;
+                let x0 = tx * tile_px;
+                let cols = tile_px.min(w - x0);
+                for ly in 0..rows {
+                    let src = t * TILE_PIXELS + ly * tile_px;
+                    let dst = ly * w + x0;
+                    for (a, &tr) in alpha_band[dst..dst + cols]
+                        .iter_mut()
+                        .zip(&tiles.transmittance[src..src + cols])
+                    {
+                        *a = 1.0 - tr;
+                    }
+                    depth_band[dst..dst + cols].copy_from_slice(&tiles.depth[src..src + cols]);
+                    if nc > 0 {
+                        let c_src = t * tiles.color_chunk + ly * tile_px * nc;
+                        color_band[dst * nc..(dst + cols) * nc]
+                            .copy_from_slice(&tiles.color[c_src..c_src + cols * nc]);
+                    }
+                }
+            }
+        });
+}
+
+/// The backward blend of every tile (rayon): one gradient record of
+/// `REC_CHANNELS + n_channels` values per entry of `st.bins` into `records` (every value
+/// written).
+fn write_records(
+    st: &ForwardState,
+    mode: AlphaMode,
+    nc: usize,
+    pixel_view: &blend::PixelGradsView,
+    records: &mut [f32],
+) {
+    let grid = st.grid;
+    let bins = &st.bins;
+    let stride = REC_CHANNELS + nc;
+    let mut per_tile: Vec<&mut [f32]> = Vec::with_capacity(grid.n_tiles());
+    let mut rest: &mut [f32] = &mut *records;
+    for t in 0..grid.n_tiles() {
+        let len = (bins.tile_offsets[t + 1] - bins.tile_offsets[t]) * stride;
+        let (head, tail) = rest.split_at_mut(len);
+        per_tile.push(head);
+        rest = tail;
+    }
+    let blend_tiles = st.settings.blend_tiles.as_ref();
+    per_tile
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(t, tile_records)| {
+            if blend_tiles.is_some_and(|sel| !sel.is_active(t)) {
+                // Not blended in the forward: no gradient reaches its entries.
+                tile_records.fill(0.0);
+                return;
+            }
+            let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
+            let px = t * TILE_PIXELS..(t + 1) * TILE_PIXELS;
+            blend::blend_tile_backward(
+                &grid.tile_rect(t),
+                list,
+                &st.splats,
+                &st.splat_channels,
+                nc,
+                &st.background,
+                mode,
+                blend::TileForwardState {
+                    transmittance: &st.tile_transmittance[px.clone()],
+                    last: &st.tile_last[px],
+                },
+                pixel_view,
+                tile_records,
+            );
+        });
+}
+
+/// Gaussians per block of the backward reduction (one rayon task each).
+const REDUCE_BLOCK: usize = 256;
+
+/// How far ahead (in Gaussians) the reduction fetches what it will read: a rank's
+/// offsets and splat first, then its list of entries, then the entries' records, each
+/// step reading only what the previous one fetched.
+const PREFETCH_RANK_AHEAD: usize = 12;
+const PREFETCH_ENTRIES_AHEAD: usize = 8;
+const PREFETCH_RECORDS_AHEAD: usize = 4;
+
+/// Marks a Gaussian without a rank (culled) in [`rank_of_gaussian`].
+const NO_RANK: u32 = u32::MAX;
+
+/// Inverse of `gaussian_of_rank` over `n` Gaussians; [`NO_RANK`] for the culled ones.
+fn rank_of_gaussian(gaussian_of_rank: &[u32], n: usize) -> Vec<u32> {
+    let mut out = vec![NO_RANK; n];
+    for (rank, &g) in gaussian_of_rank.iter().enumerate() {
+        out[g as usize] = rank as u32;
+    }
+    out
+}
+
+/// What the per-Gaussian reduction of the backward reads.
+struct ReduceInputs<'a> {
+    frame: &'a CameraFrame,
+    mode: AlphaMode,
+    /// Half the image width and height, pixels (pixel to NDC gradient scale).
+    half_px: [f32; 2],
+    gaussians: &'a GaussianView<'a>,
+    state: &'a ForwardState,
+    rank_of_gaussian: &'a [u32],
+    /// One record of `stride` values per entry of `state.bins`.
+    records: &'a [f32],
+    stride: usize,
+}
+
+/// The output rows of Gaussians `first..first + d_opacity_logits.len()`.
+struct GradBlock<'a> {
+    first: usize,
+    d_means: &'a mut [f32],
+    d_log_scales: &'a mut [f32],
+    d_rotations: &'a mut [f32],
+    d_opacity_logits: &'a mut [f32],
+    d_channels: &'a mut [f32],
+    mean2d_grad_ndc: &'a mut [f32],
+}
+
+/// `out` cut into blocks of [`REDUCE_BLOCK`] Gaussians (any channel count, zero too).
+fn gaussian_blocks(out: &mut GaussianGrads, nc: usize) -> Vec<GradBlock<'_>> {
+    let n = out.d_opacity_logits.len();
+    let mut blocks = Vec::with_capacity(n.div_ceil(REDUCE_BLOCK));
+    let mut means = &mut out.d_means[..];
+    let mut log_scales = &mut out.d_log_scales[..];
+    let mut rotations = &mut out.d_rotations[..];
+    let mut opacity = &mut out.d_opacity_logits[..];
+    let mut channels = &mut out.d_channels[..];
+    let mut ndc = &mut out.mean2d_grad_ndc[..];
+    let mut first = 0;
+    while first < n {
+        let len = REDUCE_BLOCK.min(n - first);
+        let (m, m_rest) = std::mem::take(&mut means).split_at_mut(3 * len);
+        let (s, s_rest) = std::mem::take(&mut log_scales).split_at_mut(3 * len);
+        let (r, r_rest) = std::mem::take(&mut rotations).split_at_mut(4 * len);
+        let (o, o_rest) = std::mem::take(&mut opacity).split_at_mut(len);
+        let (c, c_rest) = std::mem::take(&mut channels).split_at_mut(nc * len);
+        let (d, d_rest) = std::mem::take(&mut ndc).split_at_mut(len);
+        blocks.push(GradBlock {
+            first,
+            d_means: m,
+            d_log_scales: s,
+            d_rotations: r,
+            d_opacity_logits: o,
+            d_channels: c,
+            mean2d_grad_ndc: d,
+        });
+        (means, log_scales, rotations, opacity, channels, ndc) =
+            (m_rest, s_rest, r_rest, o_rest, c_rest, d_rest);
+        first += len;
+    }
+    blocks
+}
+
+/// Sums the records of each Gaussian of `block` (in tile order, from +0.0: the order of
+/// `entry_of_rank`, whatever the thread count) and pushes them through the projection
+/// backward into the block's rows. Rows of culled Gaussians stay zero, as do those of a
+/// Gaussian whose gradient is not finite (counted). Returns (dropped, mismatch): mismatch
+/// when a Gaussian's parameters or channels no longer give the forward's splat.
+fn reduce_block(inputs: &ReduceInputs, block: GradBlock) -> (usize, bool) {
+    let ReduceInputs {
+        frame,
+        mode,
+        half_px: [half_w, half_h],
+        gaussians,
+        state: st,
+        rank_of_gaussian,
+        records,
+        stride,
+    } = *inputs;
+    let nc = gaussians.n_channels;
+    let bins = &st.bins;
+    let n = rank_of_gaussian.len();
+    let rank_ahead = |g: usize, ahead: usize| {
+        rank_of_gaussian
+            .get(g + ahead)
+            .copied()
+            .filter(|&r| r != NO_RANK)
+            .map(|r| r as usize)
+    };
+    let mut dropped = 0;
+    for i in 0..block.d_opacity_logits.len() {
+        let g = block.first + i;
+        // Ranks lie scattered in Gaussian order: fetch what a Gaussian a few steps ahead
+        // will read while this one is summed.
+        if let Some(r) = rank_ahead(g, PREFETCH_RANK_AHEAD) {
+            prefetch(&bins.rank_offsets[r]);
+            prefetch(&st.splats[r]);
+            if nc > 0 {
+                prefetch(&st.splat_channels[r * nc]);
+            }
+        }
+        if let Some(r) = rank_ahead(g, PREFETCH_ENTRIES_AHEAD) {
+            if let Some(e) = bins.entry_of_rank.get(bins.rank_offsets[r]) {
+                prefetch(e);
+            }
+        }
+        if let Some(r) = rank_ahead(g, PREFETCH_RECORDS_AHEAD) {
+            for &e in &bins.entry_of_rank[bins.rank_offsets[r]..bins.rank_offsets[r + 1]] {
+                prefetch(&records[e as usize * stride]);
+            }
+        }
+        debug_assert!(g < n);
+        let rank = rank_of_gaussian[g];
+        if rank == NO_RANK {
+            continue;
+        }
+        let rank = rank as usize;
+        // The geometry part of the sum here, the channel part in the output row (which
+        // starts at +0.0 like the sum).
+        let mut sum = [0.0f32; REC_CHANNELS];
+        let d_ch = &mut block.d_channels[i * nc..(i + 1) * nc];
+        for &e in &bins.entry_of_rank[bins.rank_offsets[rank]..bins.rank_offsets[rank + 1]] {
+            let rec = &records[e as usize * stride..(e as usize + 1) * stride];
+            let (rec_geo, rec_ch) = rec.split_at(REC_CHANNELS);
+            for (s, r) in sum.iter_mut().zip(rec_geo) {
+                *s += r;
+            }
+            for (s, r) in d_ch.iter_mut().zip(rec_ch) {
+                *s += r;
+            }
+        }
+        let splat = &st.splats[rank];
+        let Ok(p) = project::project_forward(frame, &gaussians.params(g), mode.cutoff()) else {
+            return (dropped, true);
+        };
+        if p.mean_px != splat.mean_px
+            || p.conic != splat.conic
+            || p.opacity != splat.opacity
+            || p.t_cam[2] != splat.depth
+            || gaussians.channels[g * nc..g * nc + nc]
+                != st.splat_channels[rank * nc..rank * nc + nc]
+        {
+            return (dropped, true);
+        }
+        let d = ProjectedGrad {
+            d_mean_px: [sum[0], sum[1]],
+            d_conic: [sum[REC_CONIC], sum[REC_CONIC + 1], sum[REC_CONIC + 2]],
+            d_opacity: sum[REC_OPACITY],
+            d_depth: sum[REC_DEPTH],
+        };
+        let pg = project::project_backward(frame, &p, &d);
+        let ndc = (sum[0] * half_w).hypot(sum[1] * half_h);
+        if !(pg.is_finite() && d_ch.iter().all(|v| v.is_finite()) && ndc.is_finite()) {
+            d_ch.fill(0.0);
+            dropped += 1;
+            continue;
+        }
+        block.d_means[3 * i..3 * i + 3].copy_from_slice(&pg.d_mean);
+        block.d_log_scales[3 * i..3 * i + 3].copy_from_slice(&pg.d_log_scale);
+        block.d_rotations[4 * i..4 * i + 4].copy_from_slice(&pg.d_rotation);
+        block.d_opacity_logits[i] = pg.d_opacity_logit;
+        block.mean2d_grad_ndc[i] = ndc;
+    }
+    (dropped, false)
 }
 
 fn check_grad_slice(what: &'static str, slice: &[f32], expected: usize) -> Result<(), RasterError> {
@@ -1071,7 +1347,6 @@ pub fn render_backward_with(
     let mode = AlphaMode {
         smooth: settings.smooth_cutoff,
     };
-    let grid = st.grid;
     let bins = &st.bins;
     let stride = REC_CHANNELS + nc;
 
@@ -1079,112 +1354,16 @@ pub fn render_backward_with(
     let n_entries = bins.tile_ranks.len();
     // Each tile writes every value of its records (see `blend_tile_backward`).
     let records = scratch(&mut workspace.records, n_entries * stride);
-    let mut per_tile: Vec<&mut [f32]> = Vec::with_capacity(grid.n_tiles());
-    let mut rest: &mut [f32] = &mut *records;
-    for t in 0..grid.n_tiles() {
-        let len = (bins.tile_offsets[t + 1] - bins.tile_offsets[t]) * stride;
-        let (head, tail) = rest.split_at_mut(len);
-        per_tile.push(head);
-        rest = tail;
-    }
-    let blend_tiles = st.settings.blend_tiles.as_ref();
     let pixel_view = blend::PixelGradsView {
         width: forward.width as usize,
         d_color: grads.d_color,
         d_alpha: grads.d_alpha,
         d_depth: grads.d_depth,
     };
-    per_tile
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(t, tile_records)| {
-            if blend_tiles.is_some_and(|sel| !sel.is_active(t)) {
-                // Not blended in the forward: no gradient reaches its entries.
-                tile_records.fill(0.0);
-                return;
-            }
-            let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
-            let px = t * TILE_PIXELS..(t + 1) * TILE_PIXELS;
-            blend::blend_tile_backward(
-                &grid.tile_rect(t),
-                list,
-                &st.splats,
-                &st.splat_channels,
-                nc,
-                &st.background,
-                mode,
-                blend::TileForwardState {
-                    transmittance: &st.tile_transmittance[px.clone()],
-                    last: &st.tile_last[px],
-                },
-                &pixel_view,
-                tile_records,
-            );
-        });
+    write_records(st, mode, nc, &pixel_view, records);
     let blend_ms = ms_since(t0);
 
     let t1 = Instant::now();
-    let half_w = 0.5 * forward.width as f32;
-    let half_h = 0.5 * forward.height as f32;
-    // Per-rank sums of the records stay in `sums` (the channel part is the channel
-    // gradient); everything else is folded into the projection backward.
-    let sums = scratch(&mut workspace.sums, st.splats.len() * stride);
-    sums.fill(0.0);
-    type RankGrad = Result<(project::ParamGrad, f32), ()>;
-    let per_rank: Vec<RankGrad> = sums
-        .par_chunks_mut(stride)
-        .enumerate()
-        .with_min_len(256)
-        .map(|(rank, sum)| {
-            // Records and model rows are read in rank order but lie scattered: fetch those
-            // of a rank a few steps ahead while this one is summed.
-            let ahead = rank + REDUCE_PREFETCH_AHEAD;
-            if ahead < st.splats.len() {
-                let entries =
-                    &bins.entry_of_rank[bins.rank_offsets[ahead]..bins.rank_offsets[ahead + 1]];
-                for &e in entries {
-                    prefetch(&records[e as usize * stride]);
-                }
-                let g = st.gaussian_of_rank[ahead] as usize;
-                prefetch(&gaussians.means[3 * g]);
-                prefetch(&gaussians.log_scales[3 * g]);
-                prefetch(&gaussians.rotations[4 * g]);
-                prefetch(&gaussians.opacity_logits[g]);
-                if nc > 0 {
-                    prefetch(&gaussians.channels[nc * g]);
-                }
-            }
-            for &e in &bins.entry_of_rank[bins.rank_offsets[rank]..bins.rank_offsets[rank + 1]] {
-                let rec = &records[e as usize * stride..(e as usize + 1) * stride];
-                for (s, r) in sum.iter_mut().zip(rec) {
-                    *s += r;
-                }
-            }
-            let g = st.gaussian_of_rank[rank] as usize;
-            let splat = &st.splats[rank];
-            let p = project::project_forward(&frame, &gaussians.params(g), mode.cutoff())
-                .map_err(|_| ())?;
-            if p.mean_px != splat.mean_px
-                || p.conic != splat.conic
-                || p.opacity != splat.opacity
-                || p.t_cam[2] != splat.depth
-                || gaussians.channels[g * nc..g * nc + nc]
-                    != st.splat_channels[rank * nc..rank * nc + nc]
-            {
-                return Err(());
-            }
-            let d = ProjectedGrad {
-                d_mean_px: [sum[0], sum[1]],
-                d_conic: [sum[REC_CONIC], sum[REC_CONIC + 1], sum[REC_CONIC + 2]],
-                d_opacity: sum[REC_OPACITY],
-                d_depth: sum[REC_DEPTH],
-            };
-            let pg = project::project_backward(&frame, &p, &d);
-            let ndc = (sum[0] * half_w).hypot(sum[1] * half_h);
-            Ok((pg, ndc))
-        })
-        .collect();
-
     let mut out = GaussianGrads {
         d_means: vec![0.0; 3 * n],
         d_log_scales: vec![0.0; 3 * n],
@@ -1195,25 +1374,26 @@ pub fn render_backward_with(
         dropped_nonfinite: 0,
         timings: BackwardTimings::default(),
     };
-    for (rank, res) in per_rank.into_iter().enumerate() {
-        let Ok((pg, ndc)) = res else {
-            return Err(RasterError::ForwardMismatch(
-                "Gaussian parameters changed since the forward pass",
-            ));
-        };
-        let g = st.gaussian_of_rank[rank] as usize;
-        let d_ch = &sums[rank * stride + REC_CHANNELS..(rank + 1) * stride];
-        if !(pg.is_finite() && d_ch.iter().all(|v| v.is_finite()) && ndc.is_finite()) {
-            out.dropped_nonfinite += 1;
-            continue;
-        }
-        out.d_means[3 * g..3 * g + 3].copy_from_slice(&pg.d_mean);
-        out.d_log_scales[3 * g..3 * g + 3].copy_from_slice(&pg.d_log_scale);
-        out.d_rotations[4 * g..4 * g + 4].copy_from_slice(&pg.d_rotation);
-        out.d_opacity_logits[g] = pg.d_opacity_logit;
-        out.d_channels[nc * g..nc * g + nc].copy_from_slice(d_ch);
-        out.mean2d_grad_ndc[g] = ndc;
+    let reduce = ReduceInputs {
+        frame: &frame,
+        mode,
+        half_px: [0.5 * forward.width as f32, 0.5 * forward.height as f32],
+        gaussians,
+        state: st,
+        rank_of_gaussian: &rank_of_gaussian(&st.gaussian_of_rank, n),
+        records,
+        stride,
+    };
+    let (dropped, mismatch) = gaussian_blocks(&mut out, nc)
+        .into_par_iter()
+        .map(|block| reduce_block(&reduce, block))
+        .reduce(|| (0, false), |a, b| (a.0 + b.0, a.1 || b.1));
+    if mismatch {
+        return Err(RasterError::ForwardMismatch(
+            "Gaussian parameters changed since the forward pass",
+        ));
     }
+    out.dropped_nonfinite = dropped;
     out.timings = BackwardTimings {
         blend_ms,
         reduce_project_ms: ms_since(t1),
@@ -1380,6 +1560,187 @@ mod tests {
             bumped[4 * g] += 0.5;
             let out = render(&camera(), &scene.view(&bumped, 4), &settings()).unwrap();
             assert_ne!(bits(&out.color), bits(&clean.color), "Gaussian {g} unread");
+        }
+    }
+
+    /// The backward reduction as it was written first: serial, in rank order, each
+    /// rank's records summed in tile order into a buffer starting at +0.0, then pushed
+    /// through the projection backward and scattered to the Gaussians.
+    fn serial_reduction(
+        scene: &Scene,
+        channels: &[f32],
+        out: &RenderOutput,
+        d_color: &[f32],
+        d_alpha: &[f32],
+    ) -> GaussianGrads {
+        let st = &out.state;
+        let nc = 4;
+        let stride = REC_CHANNELS + nc;
+        let gaussians = scene.view(channels, nc);
+        let frame = camera_frame(&camera(), settings().near_m).unwrap();
+        let mode = AlphaMode { smooth: false };
+        let mut records = vec![f32::NAN; st.bins.tile_ranks.len() * stride];
+        let view = blend::PixelGradsView {
+            width: out.width as usize,
+            d_color,
+            d_alpha: Some(d_alpha),
+            d_depth: None,
+        };
+        write_records(st, mode, nc, &view, &mut records);
+        let n = gaussians.len();
+        let mut g_out = GaussianGrads {
+            d_means: vec![0.0; 3 * n],
+            d_log_scales: vec![0.0; 3 * n],
+            d_rotations: vec![0.0; 4 * n],
+            d_opacity_logits: vec![0.0; n],
+            d_channels: vec![0.0; nc * n],
+            mean2d_grad_ndc: vec![0.0; n],
+            ..GaussianGrads::default()
+        };
+        let (half_w, half_h) = (0.5 * out.width as f32, 0.5 * out.height as f32);
+        for (rank, &g) in st.gaussian_of_rank.iter().enumerate() {
+            let g = g as usize;
+            let mut sum = vec![0.0f32; stride];
+            let bins = &st.bins;
+            for &e in &bins.entry_of_rank[bins.rank_offsets[rank]..bins.rank_offsets[rank + 1]] {
+                let rec = &records[e as usize * stride..(e as usize + 1) * stride];
+                for (s, r) in sum.iter_mut().zip(rec) {
+                    *s += r;
+                }
+            }
+            let p = project::project_forward(&frame, &gaussians.params(g), mode.cutoff()).unwrap();
+            let d = ProjectedGrad {
+                d_mean_px: [sum[0], sum[1]],
+                d_conic: [sum[REC_CONIC], sum[REC_CONIC + 1], sum[REC_CONIC + 2]],
+                d_opacity: sum[REC_OPACITY],
+                d_depth: sum[REC_DEPTH],
+            };
+            let pg = project::project_backward(&frame, &p, &d);
+            let ndc = (sum[0] * half_w).hypot(sum[1] * half_h);
+            let d_ch = &sum[REC_CHANNELS..];
+            if !(pg.is_finite() && d_ch.iter().all(|v| v.is_finite()) && ndc.is_finite()) {
+                g_out.dropped_nonfinite += 1;
+                continue;
+            }
+            g_out.d_means[3 * g..3 * g + 3].copy_from_slice(&pg.d_mean);
+            g_out.d_log_scales[3 * g..3 * g + 3].copy_from_slice(&pg.d_log_scale);
+            g_out.d_rotations[4 * g..4 * g + 4].copy_from_slice(&pg.d_rotation);
+            g_out.d_opacity_logits[g] = pg.d_opacity_logit;
+            g_out.d_channels[nc * g..nc * g + nc].copy_from_slice(d_ch);
+            g_out.mean2d_grad_ndc[g] = ndc;
+        }
+        g_out
+    }
+
+    /// The blocked, parallel reduction gives the serial one's bits, on the full lists and
+    /// on the compacted ones, with culled Gaussians and more than one block.
+    #[test]
+    fn backward_reduction_is_the_serial_rank_order_sum() {
+        let n = 2 * REDUCE_BLOCK + 77;
+        let mut scene = Scene::random(11, n);
+        // Every ninth Gaussian far off to the side: culled, no rank.
+        for g in (0..n).step_by(9) {
+            scene.means[3 * g] = 40.0;
+        }
+        let mut rng = SplitMix64::new(12);
+        let channels: Vec<f32> = (0..4 * n).map(|_| rng.uniform(0.0, 1.0)).collect();
+        let plain = render(&camera(), &scene.view(&channels, 4), &settings()).unwrap();
+        let prepared = prepare_view(&camera(), &scene.view(&[], 0), &settings()).unwrap();
+        prepared.contributing();
+        let compacted =
+            render_prepared(&mut RasterWorkspace::default(), prepared, &channels, 4).unwrap();
+        assert!(compacted.blended_entry_count() < plain.blended_entry_count());
+        let n_culled = plain.visible.iter().filter(|&&v| !v).count();
+        assert!(n_culled > 0 && n_culled < n / 2, "{n_culled} culled");
+        for out in [&plain, &compacted] {
+            let d_color: Vec<f32> = (0..out.color.len())
+                .map(|i| ((i * 7919) % 13) as f32 / 13.0 - 0.4)
+                .collect();
+            let d_alpha: Vec<f32> = (0..out.alpha.len()).map(|i| (i % 5) as f32 * 0.1).collect();
+            let expected = serial_reduction(&scene, &channels, out, &d_color, &d_alpha);
+            let got = backward(&scene, &channels, out);
+            assert_same_grads(&got, &expected);
+            assert_eq!(got.dropped_nonfinite, expected.dropped_nonfinite);
+            let nonzero = got.d_means.iter().filter(|&&v| v != 0.0).count();
+            assert!(nonzero > n, "only {nonzero} non-zero mean gradients");
+        }
+    }
+
+    /// Images and gradients are the same bits with 1, 2 and 3 worker threads.
+    #[test]
+    fn results_do_not_depend_on_the_thread_count() {
+        let n = 1200;
+        let scene = Scene::random(13, n);
+        let mut rng = SplitMix64::new(14);
+        let channels: Vec<f32> = (0..4 * n).map(|_| rng.uniform(0.0, 1.0)).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let prepared = prepare_view(&camera(), &scene.view(&[], 0), &settings()).unwrap();
+                prepared.contributing();
+                let out = render_prepared(&mut RasterWorkspace::default(), prepared, &channels, 4)
+                    .unwrap();
+                let grads = backward(&scene, &channels, &out);
+                (out, grads)
+            })
+        };
+        let (out1, grads1) = run(1);
+        for threads in [2, 3] {
+            let (out, grads) = run(threads);
+            assert_eq!(bits(&out.color), bits(&out1.color), "{threads} threads");
+            assert_eq!(bits(&out.alpha), bits(&out1.alpha), "{threads} threads");
+            assert_eq!(bits(&out.depth), bits(&out1.depth), "{threads} threads");
+            assert_same_grads(&grads, &grads1);
+        }
+    }
+
+    /// The band-wise copy puts every tile-major value at its pixel, ragged edge tiles and
+    /// zero channels included.
+    #[test]
+    fn untile_puts_each_tile_pixel_at_its_image_pixel() {
+        for (w, h, nc) in [(37u32, 21u32, 3usize), (32, 16, 1), (5, 40, 0)] {
+            let grid = TileGrid::new(w, h);
+            let color_chunk = TILE_PIXELS * nc.max(1);
+            let n_tiles = grid.n_tiles();
+            let value = |i: usize| i as f32 * 0.25 + 1.0;
+            let color: Vec<f32> = (0..n_tiles * color_chunk).map(value).collect();
+            let depth: Vec<f32> = (0..n_tiles * TILE_PIXELS).map(|i| -value(i)).collect();
+            let trans: Vec<f32> = (0..n_tiles * TILE_PIXELS).map(|i| 1.0 / value(i)).collect();
+            let (wu, hu) = (w as usize, h as usize);
+            let mut img_color = vec![f32::NAN; wu * hu * nc];
+            let mut img_alpha = vec![f32::NAN; wu * hu];
+            let mut img_depth = vec![f32::NAN; wu * hu];
+            untile(
+                &grid,
+                nc,
+                TileMajor {
+                    color: &color,
+                    color_chunk,
+                    depth: &depth,
+                    transmittance: &trans,
+                },
+                &mut img_color,
+                &mut img_alpha,
+                &mut img_depth,
+            );
+            let tile_px = TILE_PX as usize;
+            for y in 0..hu {
+                for x in 0..wu {
+                    let t = (y / tile_px) * grid.tiles_x as usize + x / tile_px;
+                    let p = (y % tile_px) * tile_px + x % tile_px;
+                    let q = t * TILE_PIXELS + p;
+                    let at = y * wu + x;
+                    assert_eq!(img_alpha[at].to_bits(), (1.0 - trans[q]).to_bits());
+                    assert_eq!(img_depth[at].to_bits(), depth[q].to_bits());
+                    for c in 0..nc {
+                        let src = color[t * color_chunk + p * nc + c];
+                        assert_eq!(img_color[at * nc + c].to_bits(), src.to_bits());
+                    }
+                }
+            }
         }
     }
 
