@@ -18,6 +18,9 @@
 
 use std::time::Instant;
 
+mod bench_util;
+use bench_util::{median, process_cpu_ms};
+
 use glam::{Quat, Vec3};
 use gs_core::loss::{photometric_loss, ssim, ImageShape};
 use gs_core::model::{GaussianModel, Param};
@@ -59,29 +62,6 @@ fn scene(n: usize, config: &SunAwareConfig, seed: u64) -> GaussianModel {
         p_.row_mut(Param::OpacityLogit, i)[0] = rng.uniform(-1.0, 2.5);
     }
     g
-}
-
-/// CPU time of every thread of this process so far, ms.
-fn process_cpu_ms() -> f64 {
-    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
-        return f64::NAN;
-    };
-    let mut ns = 0u64;
-    for t in tasks.flatten() {
-        if let Ok(s) = std::fs::read_to_string(t.path().join("schedstat")) {
-            ns += s
-                .split_whitespace()
-                .next()
-                .and_then(|v| v.parse::<u64>().ok())
-                .unwrap_or(0);
-        }
-    }
-    ns as f64 / 1e6
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
 }
 
 /// Median wall and CPU ms of `repeats` calls of `f` after one warm-up.
