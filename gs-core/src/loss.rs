@@ -957,7 +957,7 @@ fn check_image(what: &'static str, v: &[f32], shape: ImageShape) -> Result<(), L
 /// Index of the first NaN or infinity. Whole chunks are tested without an early exit (the
 /// test vectorises; a plain `position` runs one value per cycle), then the first bad chunk
 /// is searched.
-fn first_non_finite(v: &[f32]) -> Option<usize> {
+pub(crate) fn first_non_finite(v: &[f32]) -> Option<usize> {
     const CHUNK: usize = 512;
     for (ci, chunk) in v.chunks(CHUNK).enumerate() {
         if !chunk.iter().fold(true, |ok, x| ok & x.is_finite()) {

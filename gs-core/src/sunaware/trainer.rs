@@ -337,7 +337,7 @@ pub fn loss_and_grads(
     let pass = model.forward_for_step(&obs.camera, obs.sun_dir, sh_degree, settings, visibility)?;
     timings.add_forward(&pass.timings);
     let t0 = Instant::now();
-    if !pass.image.iter().all(|v| v.is_finite()) {
+    if crate::loss::first_non_finite(&pass.image).is_some() {
         let nan = LossParts {
             total: f32::NAN,
             l1: f32::NAN,
@@ -362,7 +362,7 @@ pub fn loss_and_grads(
         ssim: loss.ssim,
         iso: 0.0,
     };
-    if !(loss.loss.is_finite() && loss.d_rendered.iter().all(|v| v.is_finite())) {
+    if !(loss.loss.is_finite() && crate::loss::first_non_finite(&loss.d_rendered).is_none()) {
         timings.total_ms = ms_since(t_call);
         return Ok((parts, pass, None, timings));
     }
