@@ -27,13 +27,16 @@
 //!
 //! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
 //! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]
-//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu]`
+//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu] [--default-malloc]`
 //!
 //! `--backend cpu,wgpu` measures each configuration on each listed backend (default `cpu`;
 //! `wgpu` needs `--features wgpu` and a Vulkan adapter): the camera pass's rasterizer and
 //! the shadow pass move to the GPU, Phi, Psi and Adam stay on the CPU. On a software
 //! Vulkan driver (Mesa's lavapipe) the wgpu rows are CPU timings of the GPU kernels, not
 //! GPU timings; the adapter is printed with the results.
+//!
+//! The process keeps freed memory as the component and the simulator do
+//! (`gs_core::heap::retain_freed_memory`); `--default-malloc` keeps glibc's defaults.
 //!
 //! `--set` changes settings of `SunAwareConfig` (defaults otherwise): the speed switches
 //! (`NAME=on|off`), `mlp_precision=f32|bf16` and `appearance_hidden_width=N`; `--ab SWITCH`
@@ -703,6 +706,11 @@ fn pass_miss(ok: bool) -> &'static str {
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    // As the component and the simulator run the step (gs_core::heap); `--default-malloc`
+    // keeps glibc's defaults, to measure what the setting buys. Children inherit the flag.
+    if !args.iter().any(|a| a == "--default-malloc") {
+        gs_core::heap::retain_freed_memory();
+    }
     if let Err(e) = run(&args) {
         eprintln!("step_bench: {e}");
         std::process::exit(2);

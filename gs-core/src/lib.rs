@@ -7,6 +7,7 @@ pub mod camera;
 pub mod densify;
 #[cfg(feature = "wgpu")]
 pub mod gpu;
+pub mod heap;
 pub mod hull;
 pub mod init;
 pub mod loss;

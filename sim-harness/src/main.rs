@@ -631,6 +631,9 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
 }
 
 fn main() {
+    // Training steps allocate the same large buffers again and again: keep them mapped
+    // (gs_core::heap; same results, less page faulting).
+    gs_core::heap::retain_freed_memory();
     if let Err(e) = run(Cli::parse()) {
         eprintln!("error: {e}");
         std::process::exit(1);
