@@ -9,7 +9,7 @@
 //! paper's configurations a-d online on each target and writes the results table and figure
 //! (see `sim_harness::experiment::table_job`). `sim-harness demo [--out DIR]` runs the
 //! README's demo (see `sim_harness::experiment::demo`). `sim-harness ablation-init --out DIR
-//! [--preset NAME] [--inits surface,random,hull]` compares initialisations (see
+//! [--preset NAME] [--inits surface,random,hull-silhouette]` compares initialisations (see
 //! `sim_harness::experiment::ablation_init`).
 //!
 //! `sim-harness pareto --out DIR [--scenario FILE | --target NAME] [--preset NAME]` sweeps
@@ -219,7 +219,8 @@ enum Command {
         #[arg(long)]
         scenario: Vec<PathBuf>,
         /// Initialisations to compare, in order: surface, random, or a hull start named
-        /// hull[-grey][-volume][-recarve] (docs/initialisation.md).
+        /// hull with any of the suffixes -grey, -volume, -silhouette, -photo, -recarve, e.g.
+        /// hull-silhouette, the start that meets the 0.5 dB goal (docs/initialisation.md).
         #[arg(long, value_delimiter = ',', default_value = "surface,random,hull")]
         inits: Vec<String>,
         /// Evaluate every N rounds during training (0: only at the end).
