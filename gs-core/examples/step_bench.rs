@@ -20,10 +20,13 @@
 //!
 //! Network stages: FLOPs from the rows actually evaluated (the step's `visible`) times the
 //! layer shapes (forward `2 k n` per row and layer; backward twice that: weight and input
-//! gradients). The floor is this machine's time for the very same GEMMs, measured in the
-//! same run: each layer's product on matrices of that shape, blocked over
-//! `gs_core::nn::mlp::BLOCK_ROWS` rows in parallel as the MLP runs them (median of the
-//! repeats). `ratio = stage time / floor time`.
+//! gradients). The floor is this machine's time for the very same GEMMs (the network's
+//! layer shapes, its own products): each layer's product on matrices of that shape, blocked
+//! over `gs_core::nn::mlp::BLOCK_ROWS` rows in parallel as the MLP runs them. After the
+//! measured steps, `--repeats` more steps each followed at once by one timing of the
+//! floor; `ratio` is the median of those per-step `stage time / floor time` (a host whose
+//! speed drifts between a stage and its floor would otherwise show up as distance from the
+//! floor). The printed stage and floor ms are the medians of those paired repeats.
 //!
 //! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
 //! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]
@@ -244,53 +247,68 @@ impl LayerOperands {
     }
 }
 
-/// GEMM floor of one network over `rows` rows: (forward ms, backward ms), medians, on the
-/// network's own products (f32 or bf16, as configured).
-fn gemm_floor_ms(mlp: &Mlp, rows: usize, repeats: usize) -> (f64, f64) {
-    let products = mlp.products();
-    if rows == 0 {
-        return (0.0, 0.0);
+/// The GEMMs of one network over `rows` rows (its layer shapes, its own products), built
+/// once and timed right after each measured step, so a stage and its floor are measured
+/// seconds apart under the same machine state.
+struct FloorOperands {
+    products: Products,
+    layers: Vec<LayerOperands>,
+}
+
+impl FloorOperands {
+    fn new(mlp: &Mlp, rows: usize) -> Self {
+        let mut rng = SplitMix64::new(99);
+        let mut layers: Vec<LayerOperands> = if rows == 0 {
+            Vec::new()
+        } else {
+            mlp.widths()
+                .windows(2)
+                .map(|p| LayerOperands::new(rows, p[0], p[1], &mut rng))
+                .collect()
+        };
+        // One untimed pass: first-touch page faults are not GEMM time.
+        for l in &mut layers {
+            l.forward(mlp.products());
+            l.backward(mlp.products());
+        }
+        Self {
+            products: mlp.products(),
+            layers,
+        }
     }
-    let mut rng = SplitMix64::new(99);
-    let mut layers: Vec<LayerOperands> = mlp
-        .widths()
-        .windows(2)
-        .map(|p| LayerOperands::new(rows, p[0], p[1], &mut rng))
-        .collect();
-    // One untimed pass: first-touch page faults are not GEMM time.
-    for l in &mut layers {
-        l.forward(products);
-        l.backward(products);
+
+    /// One forward and one backward of every layer: (forward ms, backward ms).
+    fn time_once(&mut self) -> (f64, f64) {
+        let products = self.products;
+        let fwd = self
+            .layers
+            .iter_mut()
+            .map(|l| seconds_ms(|| l.forward(products)))
+            .sum();
+        let bwd = self
+            .layers
+            .iter_mut()
+            .map(|l| seconds_ms(|| l.backward(products)))
+            .sum();
+        (fwd, bwd)
     }
-    let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
-    for _ in 0..repeats {
-        fwd.push(
-            layers
-                .iter_mut()
-                .map(|l| seconds_ms(|| l.forward(products)))
-                .sum(),
-        );
-        bwd.push(
-            layers
-                .iter_mut()
-                .map(|l| seconds_ms(|| l.backward(products)))
-                .sum(),
-        );
-    }
-    (median(fwd), median(bwd))
 }
 
 struct NetStage {
     name: &'static str,
     rows: usize,
     gflop: f64,
+    /// Medians over the paired repeats (see [`measure`]).
     stage_ms: f64,
     floor_ms: f64,
+    /// Median over the repeats of each step's stage time over the floor timed right
+    /// after that step (not the ratio of the medians).
+    ratio: f64,
 }
 
 impl NetStage {
     fn ratio(&self) -> f64 {
-        self.stage_ms / self.floor_ms
+        self.ratio
     }
 
     fn gemm_gflops(&self) -> f64 {
@@ -315,6 +333,58 @@ struct Measured {
     nets: Vec<NetStage>,
     /// Precision of the networks' products (and of their floor).
     precision: MatmulPrecision,
+}
+
+/// The networks' stages against their GEMM floors, paired: after the measured steps (so
+/// the floors' operands do not count in the peak memory), `repeats` more steps, each
+/// followed at once by one timing of the same GEMMs on `rows` rows. Each stage's ratio is
+/// the median of its per-step ratios, so a change in the machine's speed between the
+/// steps and the floors (a shared host) does not pass for distance from the floor.
+fn paired_floors(
+    trainer: &mut SunAwareTrainer,
+    obs: &Observation,
+    rows: usize,
+    repeats: usize,
+) -> Result<Vec<NetStage>, String> {
+    let model = &trainer.model;
+    let phi = &model
+        .appearance
+        .as_ref()
+        .ok_or("configuration d has Phi")?
+        .mlp;
+    let psi = &model.shadow.as_ref().ok_or("configuration d has Psi")?.mlp;
+    let gflop = |mlp: &Mlp| (rows * mlp.flops_per_row_forward()) as f64 / 1e9;
+    let (phi_gflop, psi_gflop) = (gflop(phi), gflop(psi));
+    let mut floors = [FloorOperands::new(phi, rows), FloorOperands::new(psi, rows)];
+    // [phi_f, phi_b, psi_f, psi_b]: (stage ms, floor ms) per repeat.
+    let mut pairs: [Vec<(f64, f64)>; 4] = Default::default();
+    for r in 0..repeats {
+        let stats = trainer
+            .step(obs, r as f32 / repeats as f32)
+            .map_err(|e| format!("step: {e}"))?;
+        let t = &stats.timings;
+        let (phi_f, phi_b) = floors[0].time_once();
+        let (psi_f, psi_b) = floors[1].time_once();
+        pairs[0].push((t.phi_forward_ms, phi_f));
+        pairs[1].push((t.phi_backward_ms, phi_b));
+        pairs[2].push((t.psi_forward_ms, psi_f));
+        pairs[3].push((t.psi_backward_ms, psi_b));
+    }
+    let names = ["phi_forward", "phi_backward", "psi_forward", "psi_backward"];
+    let gflops = [phi_gflop, 2.0 * phi_gflop, psi_gflop, 2.0 * psi_gflop];
+    Ok(names
+        .iter()
+        .zip(gflops)
+        .zip(&pairs)
+        .map(|((&name, gflop), p)| NetStage {
+            name,
+            rows,
+            gflop,
+            stage_ms: median(p.iter().map(|&(s, _)| s).collect()),
+            floor_ms: median(p.iter().map(|&(_, f)| f).collect()),
+            ratio: median(p.iter().map(|&(s, f)| s / f).collect()),
+        })
+        .collect())
 }
 
 fn measure(
@@ -385,47 +455,7 @@ fn measure(
         total_ms: med(|t| t.total_ms),
     };
     let rows = median(rows) as usize;
-    let model = &trainer.model;
-    let mut nets = Vec::new();
-    let phi = &model
-        .appearance
-        .as_ref()
-        .expect("configuration d has Phi")
-        .mlp;
-    let psi = &model.shadow.as_ref().expect("configuration d has Psi").mlp;
-    for (mlp, fwd_name, bwd_name, fwd_ms, bwd_ms) in [
-        (
-            phi,
-            "phi_forward",
-            "phi_backward",
-            stages.phi_forward_ms,
-            stages.phi_backward_ms,
-        ),
-        (
-            psi,
-            "psi_forward",
-            "psi_backward",
-            stages.psi_forward_ms,
-            stages.psi_backward_ms,
-        ),
-    ] {
-        let (floor_fwd, floor_bwd) = gemm_floor_ms(mlp, rows, repeats);
-        let gflop_fwd = (rows * mlp.flops_per_row_forward()) as f64 / 1e9;
-        nets.push(NetStage {
-            name: fwd_name,
-            rows,
-            gflop: gflop_fwd,
-            stage_ms: fwd_ms,
-            floor_ms: floor_fwd,
-        });
-        nets.push(NetStage {
-            name: bwd_name,
-            rows,
-            gflop: 2.0 * gflop_fwd,
-            stage_ms: bwd_ms,
-            floor_ms: floor_bwd,
-        });
-    }
+    let nets = paired_floors(&mut trainer, &obs, rows, repeats)?;
     Ok(Measured {
         label: label.to_string(),
         gaussians: n,
@@ -607,7 +637,7 @@ impl Measured {
         }
         for net in &self.nets {
             v.push(net.rows.to_string());
-            for x in [net.gflop, net.stage_ms, net.floor_ms] {
+            for x in [net.gflop, net.stage_ms, net.floor_ms, net.ratio] {
                 v.push(format!("{x:e}"));
             }
         }
@@ -623,7 +653,7 @@ impl Measured {
                     .map_err(|e| format!("child result {s:?}: {e}"))
             })
             .collect::<Result<_, _>>()?;
-        if f.len() != 5 + 13 + 4 + 4 * 4 + 1 {
+        if f.len() != 5 + 13 + 4 + 4 * 5 + 1 {
             return Err(format!("child result has {} numbers", f.len()));
         }
         let st = &f[5..18];
@@ -647,13 +677,14 @@ impl Measured {
             .iter()
             .enumerate()
             .map(|(k, &name)| {
-                let o = 22 + 4 * k;
+                let o = 22 + 5 * k;
                 NetStage {
                     name,
                     rows: f[o] as usize,
                     gflop: f[o + 1],
                     stage_ms: f[o + 2],
                     floor_ms: f[o + 3],
+                    ratio: f[o + 4],
                 }
             })
             .collect();
@@ -669,7 +700,7 @@ impl Measured {
             cpu_ms: f[20],
             peak_rss_mb: f[21],
             nets,
-            precision: if f[38] == 1.0 {
+            precision: if f[42] == 1.0 {
                 MatmulPrecision::Bf16
             } else {
                 MatmulPrecision::F32
