@@ -17,6 +17,9 @@ use tokio::net::UdpSocket;
 
 use super::{sockopt, TransportError};
 
+/// Reads of /proc/net/udp before the kernel drop count is given up as unknown.
+const KERNEL_TABLE_READS: usize = 4;
+
 /// Largest datagram payload sent or accepted, in bytes.
 pub const MAX_DATAGRAM_BYTES: usize = 1472;
 
@@ -110,14 +113,22 @@ impl UdpTransport {
         })
     }
 
+    /// The kernel's count of datagrams dropped on this socket's full receive queue, from
+    /// the socket's row of /proc/net/udp(6); `None` where that row cannot be read.
     fn kernel_drops(&self) -> Option<u64> {
         let table_path = if self.local_addr.is_ipv6() {
             "/proc/net/udp6"
         } else {
             "/proc/net/udp"
         };
-        let table = std::fs::read_to_string(table_path).ok()?;
-        sockopt::drops_from_proc_table(&table, self.socket_inode?)
+        let inode = self.socket_inode?;
+        // The kernel writes the table a page per read() while sockets come and go, so a
+        // concurrent close can shift the listing and skip our row in one read (seen once in
+        // CI with the tests' sockets opening and closing in parallel): read it again.
+        (0..KERNEL_TABLE_READS).find_map(|_| {
+            let table = std::fs::read_to_string(table_path).ok()?;
+            sockopt::drops_from_proc_table(&table, inode)
+        })
     }
 
     /// A snapshot of the counters (reads /proc for the kernel's drop count).
