@@ -699,6 +699,32 @@ fn tile_visibility_body(
     }
 }
 
+/// Multiplies the transmittance of every pixel in `live` (bit `l`: pixel `trans[l]`) by
+/// `1 - alpha` of its exponent `power[l]` where that alpha reaches the cutoff, in pixel
+/// order (scalar `exp`: the same bits as the plain scan), and counts the pixels it takes
+/// below the stop.
+#[inline(always)]
+fn attenuate_live_pixels(
+    mut live: u64,
+    opacity: f32,
+    power: &[f32],
+    trans: &mut [f32],
+    saturated: &mut usize,
+) {
+    while live != 0 {
+        let l = live.trailing_zeros() as usize;
+        live &= live - 1;
+        let alpha = occluder_alpha(opacity, power[l]);
+        if alpha >= ALPHA_MIN {
+            let t = &mut trans[l];
+            *t *= 1.0 - alpha;
+            if *t < TRANSMITTANCE_STOP {
+                *saturated += 1;
+            }
+        }
+    }
+}
+
 /// Applies occluder `o` to the tile's transmittance: `T *= 1 - alpha` on the pixels of its
 /// rectangle inside the tile where `T` has not stopped and its exponent is not certainly
 /// below the cutoff (`floor`); counts pixels that stop.
@@ -742,18 +768,7 @@ fn apply_occluder(
                     && !(*p < floor);
                 live |= (go as u64) << l;
             }
-            while live != 0 {
-                let l = live.trailing_zeros() as usize;
-                live &= live - 1;
-                let alpha = occluder_alpha(o.opacity, power[l]);
-                if alpha >= ALPHA_MIN {
-                    let t = &mut trans[base + l];
-                    *t *= 1.0 - alpha;
-                    if *t < TRANSMITTANCE_STOP {
-                        *saturated += 1;
-                    }
-                }
-            }
+            attenuate_live_pixels(live, o.opacity, &power, &mut trans[base..], saturated);
             py += OCCLUDER_BLOCK_ROWS as u32;
         }
         return;
@@ -776,18 +791,13 @@ fn apply_occluder(
                 let go = l < n && !(t_lanes[l] < TRANSMITTANCE_STOP) && !(*p < floor);
                 live |= (go as u32) << l;
             }
-            while live != 0 {
-                let l = live.trailing_zeros() as usize;
-                live &= live - 1;
-                let alpha = occluder_alpha(o.opacity, power[l]);
-                if alpha >= ALPHA_MIN {
-                    let t = &mut trans[base + l];
-                    *t *= 1.0 - alpha;
-                    if *t < TRANSMITTANCE_STOP {
-                        *saturated += 1;
-                    }
-                }
-            }
+            attenuate_live_pixels(
+                u64::from(live),
+                o.opacity,
+                &power,
+                &mut trans[base..],
+                saturated,
+            );
             cs += WALK_LANES as u32;
         }
     }
