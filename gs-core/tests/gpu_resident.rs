@@ -14,7 +14,7 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use gs_core::densify::DensifyStats;
-use gs_core::gpu::{GpuContext, GpuRasterizer, ResidentModel};
+use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer, ResidentModel};
 use gs_core::init::random_in_sphere;
 use gs_core::optim::Adam;
 use gs_core::rng::SplitMix64;
@@ -24,7 +24,12 @@ use gs_core::{Camera, GaussianModel, Intrinsics, ModelLayout, Param, ParamSet};
 /// A rasterizer, or None (with a notice) when there is no adapter and GS_REQUIRE_GPU is
 /// not 1.
 fn gpu() -> Option<Arc<GpuRasterizer>> {
-    match GpuContext::new() {
+    gpu_with(GpuOptions::default())
+}
+
+/// [`gpu`] with the given options.
+fn gpu_with(options: GpuOptions) -> Option<Arc<GpuRasterizer>> {
+    match GpuContext::with_options(options) {
         Ok(ctx) => {
             eprintln!("GPU: {}", ctx.describe());
             Some(Arc::new(GpuRasterizer::new(ctx).unwrap()))
@@ -371,7 +376,15 @@ fn one_resident_step_matches_the_cpu_step() {
 /// (read back at those steps) and re-upload the edited model.
 #[test]
 fn resident_training_with_densification_reaches_the_same_psnr() {
-    let Some(gpu) = gpu() else {
+    // Deterministic backward sums: with the atomic ones, the last bits of the gradients vary
+    // from run to run, and about one run in ten a Gaussian at the split threshold went the
+    // other way at iteration 100 (396 splits instead of 397) and the runs diverged (18.52
+    // against 18.88 dB). The comparison is of one training, not of a chaotic amplifier of
+    // summation order; `one_resident_step_matches_the_cpu_step` covers the atomic paths.
+    let Some(gpu) = gpu_with(GpuOptions {
+        deterministic: true,
+        ..GpuOptions::default()
+    }) else {
         return;
     };
     let (_, mut views) = scene(6, 64);
