@@ -368,6 +368,43 @@ macro_rules! multiversion {
     }};
 }
 
+/// One list entry on one tile row, for the `kept` pixels: its alpha, the transmittance
+/// before it, and the pixels it stops (the new transmittance would fall below `stop`) and
+/// blends into, whose transmittance it updates in `t_row`. The forward and the alpha-only
+/// pass both take this step, so they agree bit for bit on every pixel's sequence. No
+/// branches on the masks (an empty mask changes nothing): they are hard to predict, and a
+/// miss would stall the rows in flight.
+struct RowStep<F> {
+    alpha: F,
+    t: F,
+    stops: u16,
+    blends: u16,
+}
+
+#[inline(always)]
+fn row_step<S: RowOps, const SMOOTH: bool>(
+    ops: S,
+    opacity: f32,
+    gauss: S::F,
+    t_row: &mut Row,
+    kept: u16,
+    stop: f32,
+) -> RowStep<S::F> {
+    let raw = ops.mul(ops.splat(opacity), gauss);
+    let t = ops.load(t_row);
+    let alpha = alpha_row::<S, SMOOTH>(ops, raw).0;
+    let t_next = ops.mul(t, ops.sub(ops.splat(1.0), alpha));
+    let stops = kept & ops.lt(t_next, ops.splat(stop));
+    let blends = kept & !stops;
+    ops.store_masked(t_row, blends, t_next);
+    RowStep {
+        alpha,
+        t,
+        stops,
+        blends,
+    }
+}
+
 /// [`alpha_of`] on a row, for lanes already known to pass the cutoff: `(alpha, d alpha /
 /// d (o gauss))`, the same operations, selects instead of branches.
 #[inline(always)]
@@ -529,19 +566,12 @@ fn forward_rows<S: RowOps, const FIXED: usize, const SMOOTH: bool>(
             if kept == 0 {
                 continue;
             }
-            let raw = ops.mul(ops.splat(o), gauss[ly]);
             let p0 = ly * ROW;
             let t_row = row_mut(out.transmittance, p0);
-            let t = ops.load(t_row);
-            let alpha = alpha_row::<S, SMOOTH>(ops, raw).0;
-            let t_next = ops.mul(t, ops.sub(ops.splat(1.0), alpha));
-            // No branches on the masks below (an empty mask changes nothing): they are
-            // hard to predict, and a miss would stall the rows in flight.
-            let stops = kept & ops.lt(t_next, ops.splat(stop));
+            let step = row_step::<S, SMOOTH>(ops, o, gauss[ly], t_row, kept, stop);
+            let (alpha, t, stops, blends) = (step.alpha, step.t, step.stops, step.blends);
             row_active[ly] &= !stops;
             n_active -= stops.count_ones() as usize;
-            let blends = kept & !stops;
-            ops.store_masked(t_row, blends, t_next);
             let w = ops.mul(alpha, t);
             for (k, &c) in ch.iter().enumerate() {
                 let acc = row_mut(&mut color, k * TILE_PIXELS + p0);
@@ -688,17 +718,11 @@ fn contributions_rows<S: RowOps, const SMOOTH: bool>(
             if kept == 0 {
                 continue;
             }
-            let raw = ops.mul(ops.splat(o), gauss[ly]);
             let t_row = row_mut(&mut transmittance, ly * ROW);
-            let t = ops.load(t_row);
-            let alpha = alpha_row::<S, SMOOTH>(ops, raw).0;
-            let t_next = ops.mul(t, ops.sub(ops.splat(1.0), alpha));
-            // No branches on the masks (see `forward_rows`).
-            let stops = kept & ops.lt(t_next, ops.splat(stop));
+            let RowStep { stops, blends, .. } =
+                row_step::<S, SMOOTH>(ops, o, gauss[ly], t_row, kept, stop);
             row_active[ly] &= !stops;
             n_active -= stops.count_ones() as usize;
-            let blends = kept & !stops;
-            ops.store_masked(t_row, blends, t_next);
             flag |= (u8::from(stops != 0) * ENTRY_STOPS) | (u8::from(blends != 0) * ENTRY_BLENDS);
         }
         flags[j] = flag;
