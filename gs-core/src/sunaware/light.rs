@@ -340,17 +340,15 @@ pub fn visibility_from_splats(
         .into_par_iter()
         .for_each_init(TileScratch::default, |scratch, (t, acc)| {
             let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
-            tile_visibility_into(
+            let walk = TileWalk {
                 list,
-                &ranked,
-                &limit_of_rank,
-                &power_floor_of_rank,
-                grid.tile_rect(t),
+                ranked: &ranked,
+                limit_of_rank: &limit_of_rank,
+                power_floor_of_rank: &power_floor_of_rank,
+                rect: grid.tile_rect(t),
                 footprint_radius_px,
-                scratch,
-                acc,
-                WalkIsa::Detect,
-            );
+            };
+            tile_visibility_into(&walk, scratch, acc, WalkIsa::Detect);
         });
     // Per rank, its entries' sums in tile order (`entry_of_rank` lists them so): the same
     // additions in the same order as a pass over the tiles, in parallel over ranks.
@@ -419,44 +417,31 @@ struct TileScratch {
 /// (`tests::tile_walk_matches_the_plain_scan_bit_for_bit`) at the cost of the occluders'
 /// footprints instead of pixels x list length.
 #[cfg(test)]
-#[allow(clippy::too_many_arguments)]
-fn tile_visibility(
-    list: &[u32],
-    ranked: &[Splat],
-    limit_of_rank: &[f32],
-    power_floor_of_rank: &[f32],
+fn tile_visibility(walk: &TileWalk, isa: WalkIsa) -> Vec<[f32; 2]> {
+    let mut acc = vec![[0.0f32; 2]; walk.list.len()];
+    let mut scratch = TileScratch::default();
+    tile_visibility_into(walk, &mut scratch, &mut acc, isa);
+    acc
+}
+
+/// What the walk of one light tile reads: its list (ranks in depth order), the splats and
+/// per-rank limits and exponent floors in rank order, the tile's pixels and the footprint
+/// radius. Bundled so the plain and the AVX-512 builds take the same one argument.
+struct TileWalk<'a> {
+    list: &'a [u32],
+    ranked: &'a [Splat],
+    limit_of_rank: &'a [f32],
+    power_floor_of_rank: &'a [f32],
     rect: PixelRect,
     footprint_radius_px: f32,
-    isa: WalkIsa,
-) -> Vec<[f32; 2]> {
-    let mut acc = vec![[0.0f32; 2]; list.len()];
-    let mut scratch = TileScratch::default();
-    tile_visibility_into(
-        list,
-        ranked,
-        limit_of_rank,
-        power_floor_of_rank,
-        rect,
-        footprint_radius_px,
-        &mut scratch,
-        &mut acc,
-        isa,
-    );
-    acc
 }
 
 /// [`tile_visibility`] into `acc` (one entry per list entry, zeroed here) with reused
 /// buffers, compiled for AVX-512F where the CPU has it (the lane loops below become vector
 /// operations: the same separate IEEE operations, and the same scalar `expf` calls, so the
 /// same bits; tested against the plain build).
-#[allow(clippy::too_many_arguments)]
 fn tile_visibility_into(
-    list: &[u32],
-    ranked: &[Splat],
-    limit_of_rank: &[f32],
-    power_floor_of_rank: &[f32],
-    rect: PixelRect,
-    footprint_radius_px: f32,
+    walk: &TileWalk,
     scratch: &mut TileScratch,
     acc: &mut [[f32; 2]],
     isa: WalkIsa,
@@ -464,31 +449,11 @@ fn tile_visibility_into(
     #[cfg(target_arch = "x86_64")]
     if isa == WalkIsa::Detect && std::arch::is_x86_feature_detected!("avx512f") {
         // SAFETY: the CPU has AVX-512F (checked just above).
-        unsafe {
-            tile_visibility_avx512(
-                list,
-                ranked,
-                limit_of_rank,
-                power_floor_of_rank,
-                rect,
-                footprint_radius_px,
-                scratch,
-                acc,
-            )
-        };
+        unsafe { tile_visibility_avx512(walk, scratch, acc) };
         return;
     }
     let _ = isa;
-    tile_visibility_body(
-        list,
-        ranked,
-        limit_of_rank,
-        power_floor_of_rank,
-        rect,
-        footprint_radius_px,
-        scratch,
-        acc,
-    );
+    tile_visibility_body(walk, scratch, acc);
 }
 
 /// Which build of the tile walk runs: the widest the CPU has, or the plain one (tests).
@@ -501,27 +466,8 @@ enum WalkIsa {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn tile_visibility_avx512(
-    list: &[u32],
-    ranked: &[Splat],
-    limit_of_rank: &[f32],
-    power_floor_of_rank: &[f32],
-    rect: PixelRect,
-    footprint_radius_px: f32,
-    scratch: &mut TileScratch,
-    acc: &mut [[f32; 2]],
-) {
-    tile_visibility_body(
-        list,
-        ranked,
-        limit_of_rank,
-        power_floor_of_rank,
-        rect,
-        footprint_radius_px,
-        scratch,
-        acc,
-    );
+unsafe fn tile_visibility_avx512(walk: &TileWalk, scratch: &mut TileScratch, acc: &mut [[f32; 2]]) {
+    tile_visibility_body(walk, scratch, acc);
 }
 
 /// Pixels of a tile row handled together by the occluder loop (a tile row is 16 pixels).
@@ -538,17 +484,16 @@ const WINDOW_SIDE: usize = 8;
 
 // `!(a < b)` on floats: NaN goes on to the next test, exactly as in the plain scan.
 #[inline(always)]
-#[allow(clippy::too_many_arguments, clippy::neg_cmp_op_on_partial_ord)]
-fn tile_visibility_body(
-    list: &[u32],
-    ranked: &[Splat],
-    limit_of_rank: &[f32],
-    power_floor_of_rank: &[f32],
-    rect: PixelRect,
-    footprint_radius_px: f32,
-    scratch: &mut TileScratch,
-    acc: &mut [[f32; 2]],
-) {
+#[allow(clippy::neg_cmp_op_on_partial_ord)]
+fn tile_visibility_body(walk: &TileWalk, scratch: &mut TileScratch, acc: &mut [[f32; 2]]) {
+    let TileWalk {
+        list,
+        ranked,
+        limit_of_rank,
+        power_floor_of_rank,
+        rect,
+        footprint_radius_px,
+    } = *walk;
     acc.iter_mut().for_each(|a| *a = [0.0; 2]);
     if list.is_empty() || rect.is_empty() {
         return;
@@ -1078,25 +1023,24 @@ mod tests {
                         .flat_map(|p| [p[0].to_bits(), p[1].to_bits()])
                         .collect::<Vec<_>>()
                 };
+                let walk = TileWalk {
+                    list: &list,
+                    ranked: &ranked,
+                    limit_of_rank: &limit_of_rank,
+                    power_floor_of_rank: &floors,
+                    rect,
+                    footprint_radius_px: radius,
+                };
                 // Both builds of the walk (AVX-512 where the CPU has it, and plain).
                 for isa in [WalkIsa::Detect, WalkIsa::Plain] {
-                    let got =
-                        tile_visibility(&list, &ranked, &limit_of_rank, &floors, rect, radius, isa);
+                    let got = tile_visibility(&walk, isa);
                     assert_eq!(
                         bits(&got),
                         bits(&want),
                         "trial {trial}, radius {radius} {isa:?}"
                     );
                 }
-                let got = tile_visibility(
-                    &list,
-                    &ranked,
-                    &limit_of_rank,
-                    &floors,
-                    rect,
-                    radius,
-                    WalkIsa::Detect,
-                );
+                let got = tile_visibility(&walk, WalkIsa::Detect);
                 if count >= 40 {
                     assert!(
                         got.iter().any(|a| a[0] > 0.0 && a[1] < a[0]),
