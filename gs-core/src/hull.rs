@@ -412,28 +412,14 @@ pub fn carve(
     };
     let occupied = occupancy.iter().filter(|&&o| o != 0).count();
 
-    let occ = |x: i64, y: i64, z: i64| -> f32 {
-        if x < 0
-            || y < 0
-            || z < 0
-            || x >= dims[0] as i64
-            || y >= dims[1] as i64
-            || z >= dims[2] as i64
-        {
-            return 0.0;
-        }
-        occupancy[voxel_index(dims, x as usize, y as usize, z as usize)] as f32
-    };
+    let occ = |x: i64, y: i64, z: i64| occupancy_at(&occupancy, dims, x, y, z);
     let surface: Vec<usize> = (0..total)
         .into_par_iter()
         .filter(|&i| {
             if occupancy[i] == 0 {
                 return false;
             }
-            let (x, y, z) = unflatten(dims, i);
-            FACE_NEIGHBOURS
-                .iter()
-                .any(|o| occ(x + o[0], y + o[1], z + o[2]) == 0.0)
+            is_surface_voxel(&occupancy, dims, i)
         })
         .collect();
     let surface_count = surface.len();
@@ -769,26 +755,10 @@ fn consistent_points(
     let mut chosen: Vec<usize> = keyed.into_iter().map(|(_, k)| k).collect();
     chosen.sort_unstable();
 
-    let occ = |x: i64, y: i64, z: i64| -> f32 {
-        if x < 0
-            || y < 0
-            || z < 0
-            || x >= dims[0] as i64
-            || y >= dims[1] as i64
-            || z >= dims[2] as i64
-        {
-            return 0.0;
-        }
-        occupancy[voxel_index(dims, x as usize, y as usize, z as usize)] as f32
-    };
+    let occ = |x: i64, y: i64, z: i64| occupancy_at(&occupancy, dims, x, y, z);
     let surface = occupied_voxels
         .iter()
-        .filter(|&&i| {
-            let (x, y, z) = unflatten(dims, i);
-            FACE_NEIGHBOURS
-                .iter()
-                .any(|o| occ(x + o[0], y + o[1], z + o[2]) == 0.0)
-        })
+        .filter(|&&i| is_surface_voxel(&occupancy, dims, i))
         .count();
     let (points, normals): (Vec<Vec3>, Vec<Vec3>) = chosen
         .iter()
@@ -946,6 +916,23 @@ const FACE_NEIGHBOURS: [[i64; 3]; 6] = [
     [0, 0, -1],
     [0, 0, 1],
 ];
+
+/// The occupancy (0 or 1) of voxel `(x, y, z)`; 0 outside the grid.
+fn occupancy_at(occupancy: &[u8], dims: [usize; 3], x: i64, y: i64, z: i64) -> f32 {
+    if x < 0 || y < 0 || z < 0 || x >= dims[0] as i64 || y >= dims[1] as i64 || z >= dims[2] as i64
+    {
+        return 0.0;
+    }
+    occupancy[voxel_index(dims, x as usize, y as usize, z as usize)] as f32
+}
+
+/// Whether occupied voxel `i` has an empty (or out-of-grid) 6-neighbour.
+fn is_surface_voxel(occupancy: &[u8], dims: [usize; 3], i: usize) -> bool {
+    let (x, y, z) = unflatten(dims, i);
+    FACE_NEIGHBOURS
+        .iter()
+        .any(|o| occupancy_at(occupancy, dims, x + o[0], y + o[1], z + o[2]) == 0.0)
+}
 
 fn unflatten(dims: [usize; 3], i: usize) -> (i64, i64, i64) {
     let x = i % dims[0];
