@@ -28,8 +28,10 @@
 pub mod gemm;
 pub mod loss;
 pub mod mlp;
+pub mod network_io;
 pub mod raster;
 pub mod resident;
+pub mod resident_sunaware;
 pub mod shadow;
 
 use std::sync::Arc;

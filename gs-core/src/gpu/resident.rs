@@ -174,7 +174,7 @@ fn row_width(dims: &[usize; Param::COUNT]) -> usize {
 }
 
 /// Start of each group in the packed layout for `n` rows, and the total.
-fn offsets(dims: &[usize; Param::COUNT], n: usize) -> Result<[u32; Param::COUNT + 1], GpuError> {
+pub(crate) fn offsets(dims: &[usize; Param::COUNT], n: usize) -> Result<[u32; Param::COUNT + 1], GpuError> {
     let mut out = [0u32; Param::COUNT + 1];
     let mut at = 0u64;
     for (g, d) in dims.iter().enumerate() {
@@ -188,7 +188,7 @@ fn offsets(dims: &[usize; Param::COUNT], n: usize) -> Result<[u32; Param::COUNT 
 }
 
 /// A [`ParamSet`]'s groups end to end.
-fn pack(set: &ParamSet) -> Vec<f32> {
+pub(crate) fn pack(set: &ParamSet) -> Vec<f32> {
     let mut out = Vec::with_capacity(set.len() * row_width(&set.dims()));
     for p in Param::ALL {
         out.extend_from_slice(set.get(p));
@@ -197,7 +197,7 @@ fn pack(set: &ParamSet) -> Vec<f32> {
 }
 
 /// Packed values back into `set` (same dims and rows).
-fn unpack(values: &[f32], set: &mut ParamSet) {
+pub(crate) fn unpack(values: &[f32], set: &mut ParamSet) {
     let mut at = 0;
     for p in Param::ALL {
         let dst = set.get_mut(p);
@@ -732,7 +732,7 @@ impl ResidentModel {
 }
 
 /// Pads to a multiple of 4 bytes, at least 4 (`write_buffer` needs both).
-fn pad4(mut bytes: Vec<u8>) -> Vec<u8> {
+pub(crate) fn pad4(mut bytes: Vec<u8>) -> Vec<u8> {
     bytes.resize(bytes.len().max(4).next_multiple_of(4), 0);
     bytes
 }

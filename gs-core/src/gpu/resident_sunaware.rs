@@ -1,0 +1,1 @@
+//! Device-resident training step of the Sun-aware model. (Work in progress.)
