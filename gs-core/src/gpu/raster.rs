@@ -82,7 +82,7 @@ pub(super) fn prelude(nc: usize) -> String {
 
 /// Pipelines whose shaders depend on the channel count.
 pub(super) struct ChannelPipelines {
-    project: wgpu::ComputePipeline,
+    pub(super) project: wgpu::ComputePipeline,
     pub(super) keygen: wgpu::ComputePipeline,
     pub(super) ranges: wgpu::ComputePipeline,
     blend: wgpu::ComputePipeline,

@@ -45,26 +45,26 @@ use crate::model::{Param, ParamSet};
 use crate::optim::{Adam, GroupRates};
 use crate::raster::RasterSettings;
 
-const RESIDENT_COMMON: &str = include_str!("shaders/resident_common.wgsl");
-const RESIDENT_COLOUR: &str = include_str!("shaders/resident_colour.wgsl");
-const RESIDENT_PACK: &str = include_str!("shaders/resident_pack.wgsl");
+pub(super) const RESIDENT_COMMON: &str = include_str!("shaders/resident_common.wgsl");
+pub(super) const RESIDENT_COLOUR: &str = include_str!("shaders/resident_colour.wgsl");
+pub(super) const RESIDENT_PACK: &str = include_str!("shaders/resident_pack.wgsl");
 const RESIDENT_GRADS: &str = include_str!("shaders/resident_grads.wgsl");
-const RESIDENT_STATS: &str = include_str!("shaders/resident_stats.wgsl");
-const ADAM: &str = include_str!("shaders/adam.wgsl");
-const RESIDENT_OVERFLOW: &str = include_str!("shaders/resident_overflow.wgsl");
+pub(super) const RESIDENT_STATS: &str = include_str!("shaders/resident_stats.wgsl");
+pub(super) const ADAM: &str = include_str!("shaders/adam.wgsl");
+pub(super) const RESIDENT_OVERFLOW: &str = include_str!("shaders/resident_overflow.wgsl");
 /// Refusal bits of `flags[0]`: a non-finite render or gradient; the sort's capacity was
 /// too small (the step is redone).
-const REFUSED_NONFINITE: u32 = 1;
-const REFUSED_OVERFLOW: u32 = 2;
+pub(super) const REFUSED_NONFINITE: u32 = 1;
+pub(super) const REFUSED_OVERFLOW: u32 = 2;
 /// Steps whose entry counts size the sort (a few passes over a training view set).
-const RECENT_STEPS: usize = 32;
+pub(super) const RECENT_STEPS: usize = 32;
 
 /// Channels of the plain trainer's render (RGB).
 const CHANNELS: usize = 3;
 /// Floats per rasterizer gradient row with RGB (project_backward.wgsl: 13 + channels).
 const OSTRIDE: u32 = 13 + CHANNELS as u32;
 /// Floats per rasterizer input row (mean 3, log-scale 3, quaternion 4, opacity logit 1).
-const GSTRIDE: u64 = 11;
+pub(super) const GSTRIDE: u64 = 11;
 
 /// Compiled kernels of the resident path.
 struct ResidentPipelines {
@@ -174,7 +174,10 @@ fn row_width(dims: &[usize; Param::COUNT]) -> usize {
 }
 
 /// Start of each group in the packed layout for `n` rows, and the total.
-pub(crate) fn offsets(dims: &[usize; Param::COUNT], n: usize) -> Result<[u32; Param::COUNT + 1], GpuError> {
+pub(crate) fn offsets(
+    dims: &[usize; Param::COUNT],
+    n: usize,
+) -> Result<[u32; Param::COUNT + 1], GpuError> {
     let mut out = [0u32; Param::COUNT + 1];
     let mut at = 0u64;
     for (g, d) in dims.iter().enumerate() {
@@ -451,31 +454,13 @@ impl ResidentModel {
         encoder: &mut wgpu::CommandEncoder,
         rates: &GroupRates,
     ) -> Result<wgpu::Buffer, GpuError> {
-        let off = offsets(&self.dims, self.n)?;
-        let t = (self.adam_step + 1) as i32;
-        let bias1 = 1.0 - (self.beta1 as f64).powi(t);
-        let bias2 = 1.0 - (self.beta2 as f64).powi(t);
-        let mut words = [0u32; 28];
-        words[..9].copy_from_slice(&off);
-        let mut active = 0u32;
-        for p in Param::ALL {
-            let lr = rates[p.index()];
-            if !(lr.is_finite() && lr >= 0.0) {
-                return Err(GpuError::Invalid(format!(
-                    "learning rate of {} is {lr}",
-                    p.name()
-                )));
-            }
-            if lr != 0.0 && self.dims[p.index()] != 0 {
-                active |= 1 << p.index();
-            }
-            words[12 + p.index()] = ((lr as f64 / bias1) as f32).to_bits();
-        }
-        words[20] = active;
-        words[21] = self.beta1.to_bits();
-        words[22] = self.beta2.to_bits();
-        words[23] = self.eps.to_bits();
-        words[24] = ((1.0 / bias2.sqrt()) as f32).to_bits();
+        let words = adam_words(
+            &self.dims,
+            self.n,
+            rates,
+            self.adam_step + 1,
+            (self.beta1, self.beta2, self.eps),
+        )?;
         let ctx = self.raster.context();
         let uniform = self.scratch.uniform(ctx, "adam", &u32_bytes(&words))?;
         let b = &self.buffers;
@@ -484,28 +469,20 @@ impl ResidentModel {
             &[&uniform, &b.params, &b.grads, &b.m, &b.v, &b.flags],
         );
         let mut pass = encoder.begin_compute_pass(&Default::default());
-        dispatch_1d(&mut pass, &self.pipelines.adam, &bind, off[8] as u64);
+        dispatch_1d(&mut pass, &self.pipelines.adam, &bind, words[8] as u64);
         drop(pass);
         Ok(uniform)
     }
 
     fn step_uniform(&self, camera: &Camera, degree: u32, accumulate_stats: bool) -> Vec<u8> {
-        let off = offsets(&self.dims, self.n).unwrap_or([0; Param::COUNT + 1]);
-        let mut w = [0u32; 20];
-        w[..8].copy_from_slice(&off[..8]);
-        w[8] = self.n as u32;
-        w[9] = self.dims[Param::ShRest.index()] as u32;
-        w[10] = (degree + 1) * (degree + 1);
-        w[11] = degree;
-        let c = camera.position();
-        w[12] = c.x.to_bits();
-        w[13] = c.y.to_bits();
-        w[14] = c.z.to_bits();
-        w[16] = accumulate_stats as u32;
-        w[17] = OSTRIDE;
-        w[18] = self.dims[Param::Feature.index()] as u32;
-        w[19] = self.dims[Param::ShadowLatent.index()] as u32;
-        u32_bytes(&w)
+        step_words(
+            &self.dims,
+            self.n,
+            Some(degree),
+            camera,
+            accumulate_stats,
+            OSTRIDE,
+        )
     }
 
     /// One training step on the device: SH colour at `degree` from the camera centre,
@@ -729,6 +706,75 @@ impl ResidentModel {
         });
         Ok(())
     }
+}
+
+/// The Adam kernel's uniform (shaders/adam.wgsl) for Adam step `step` (1-based) over the
+/// packed groups of `n` rows of `dims`: step sizes and the bias correction in f64 as
+/// optim.rs computes them; groups with rate 0 (or width 0) stay untouched.
+pub(super) fn adam_words(
+    dims: &[usize; Param::COUNT],
+    n: usize,
+    rates: &GroupRates,
+    step: u64,
+    betas_eps: (f32, f32, f32),
+) -> Result<[u32; 28], GpuError> {
+    let off = offsets(dims, n)?;
+    let t = i32::try_from(step).unwrap_or(i32::MAX);
+    let (beta1, beta2, eps) = betas_eps;
+    let bias1 = 1.0 - (beta1 as f64).powi(t);
+    let bias2 = 1.0 - (beta2 as f64).powi(t);
+    let mut words = [0u32; 28];
+    words[..9].copy_from_slice(&off);
+    let mut active = 0u32;
+    for p in Param::ALL {
+        let lr = rates[p.index()];
+        if !(lr.is_finite() && lr >= 0.0) {
+            return Err(GpuError::Invalid(format!(
+                "learning rate of {} is {lr}",
+                p.name()
+            )));
+        }
+        if lr != 0.0 && dims[p.index()] != 0 {
+            active |= 1 << p.index();
+        }
+        words[12 + p.index()] = ((lr as f64 / bias1) as f32).to_bits();
+    }
+    words[20] = active;
+    words[21] = beta1.to_bits();
+    words[22] = beta2.to_bits();
+    words[23] = eps.to_bits();
+    words[24] = ((1.0 / bias2.sqrt()) as f32).to_bits();
+    Ok(words)
+}
+
+/// The `Step` uniform of the resident kernels (shaders/resident_common.wgsl): group
+/// offsets, counts and widths, the SH degree (`coeffs` 0 when `degree` is `None`: no SH
+/// colour), the camera centre, whether statistics accumulate, and the stride of the
+/// rasterizer's gradient rows.
+pub(super) fn step_words(
+    dims: &[usize; Param::COUNT],
+    n: usize,
+    degree: Option<u32>,
+    camera: &Camera,
+    accumulate_stats: bool,
+    ostride: u32,
+) -> Vec<u8> {
+    let off = offsets(dims, n).unwrap_or([0; Param::COUNT + 1]);
+    let mut w = [0u32; 20];
+    w[..8].copy_from_slice(&off[..8]);
+    w[8] = n as u32;
+    w[9] = dims[Param::ShRest.index()] as u32;
+    w[10] = degree.map_or(0, |d| (d + 1) * (d + 1));
+    w[11] = degree.unwrap_or(0);
+    let c = camera.position();
+    w[12] = c.x.to_bits();
+    w[13] = c.y.to_bits();
+    w[14] = c.z.to_bits();
+    w[16] = accumulate_stats as u32;
+    w[17] = ostride;
+    w[18] = dims[Param::Feature.index()] as u32;
+    w[19] = dims[Param::ShadowLatent.index()] as u32;
+    u32_bytes(&w)
 }
 
 /// Pads to a multiple of 4 bytes, at least 4 (`write_buffer` needs both).
