@@ -1,11 +1,12 @@
-// Split-K reduction of the device MLP (gpu/mlp.rs): dst[i] = sum over chunks z of
-// src[z * count + i], in chunk order (deterministic), one thread per output value.
+// Split-K reduction of the device MLP (gpu/mlp.rs): dst[dst_off + i] = sum over chunks z of
+// src[z * count + i], in chunk order (deterministic), one thread per output value. Chunks
+// past the batch's live rows hold 0 (mlp_gemm.wgsl's live_dim 2), so they add nothing.
 
 struct SumChunks {
     count: u32,
     chunks: u32,
+    dst_off: u32,
     pad0: u32,
-    pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> u: SumChunks;
@@ -22,5 +23,5 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     for (var z = 0u; z < u.chunks; z++) {
         sum += src[z * u.count + i];
     }
-    dst[i] = sum;
+    dst[u.dst_off + i] = sum;
 }
