@@ -18,6 +18,7 @@
 
 use std::sync::Arc;
 
+use gs_core::gpu::mlp::{DeviceBatch, DeviceNetwork};
 use gs_core::gpu::{GpuContext, GpuMlp};
 use gs_core::nn::{HiddenActivation, Init, Mlp, TapeMode};
 use gs_core::rng::SplitMix64;
@@ -242,4 +243,204 @@ fn device_mlp_edge_cases_match_the_cpu() {
         .backward(&input, &forward, &d_out, &mut d_params, None)
         .is_err());
     assert!(d_params.iter().all(|&v| v == 0.0));
+}
+
+// ---- The resident path (`gpu::mlp::DeviceNetwork`, `GpuMlp::encode_*`, driven from the
+// host through `DeviceBatch`, `GpuMlp::run_forward_backward` and `GpuMlp::run_adam`, which
+// record exactly what the resident Sun-aware step records).
+
+/// A network with random non-zero biases (Kaiming leaves them 0, which would hide a bias
+/// read from the wrong offset).
+fn network_with_biases(widths: &[usize], hidden: HiddenActivation, seed: u64) -> Mlp {
+    let mut net = Mlp::new(widths, hidden, Init::KaimingUniform, seed).unwrap();
+    let mut rng = SplitMix64::new(seed ^ 0xb1a5);
+    for l in 0..net.num_layers() {
+        let range = net.bias_range(l);
+        for b in &mut net.params_mut()[range] {
+            *b = rng.uniform_symmetric(0.2);
+        }
+    }
+    net
+}
+
+/// Rows `live..` of a `rows x width` batch set to NaN: the device must never read them.
+fn poison_dead_rows(values: &mut [f32], width: usize, live: usize) {
+    for v in &mut values[live * width..] {
+        *v = f32::NAN;
+    }
+}
+
+fn assert_all_zero_bits(name: &str, values: &[f32]) {
+    if let Some(i) = values.iter().position(|v| v.to_bits() != 0) {
+        panic!("{name}: value {} at {i}, expected +0", values[i]);
+    }
+}
+
+struct ResidentCase {
+    widths: &'static [usize],
+    hidden: HiddenActivation,
+    max_rows: usize,
+    live: usize,
+}
+
+/// One resident forward + backward on `batch` of `live` of its rows: (output, input
+/// gradient, parameter gradient), the parameter gradient first poisoned with NaN so a
+/// value the backward does not overwrite shows.
+fn resident_run(
+    gpu: &GpuMlp,
+    net: &DeviceNetwork,
+    batch: &DeviceBatch,
+    (input, d_out): (&[f32], &[f32]),
+    live: usize,
+) -> Run {
+    let ctx = gpu.context();
+    net.upload_grads(ctx, &vec![f32::NAN; net.len()]).unwrap();
+    batch.write(gpu, input, live, d_out).unwrap();
+    gpu.run_forward_backward(net, batch, true).unwrap();
+    let (output, d_input) = batch.read(gpu).unwrap();
+    (output, net.download_grads(ctx).unwrap(), Some(d_input))
+}
+
+fn check_resident_case(gpu: &Arc<GpuMlp>, case: &ResidentCase, seed: u64) {
+    let cpu_net = network_with_biases(case.widths, case.hidden, seed);
+    let (n_in, n_out) = (cpu_net.input_width(), cpu_net.output_width());
+    let (max_rows, live) = (case.max_rows, case.live);
+    let mut rng = SplitMix64::new(seed ^ 0x5eed);
+    let mut input: Vec<f32> = (0..max_rows * n_in).map(|_| rng.normal()).collect();
+    let mut d_out: Vec<f32> = (0..max_rows * n_out).map(|_| rng.normal()).collect();
+    let zeros = vec![0.0f32; cpu_net.num_params()];
+    let net = DeviceNetwork::new(gpu.context(), &cpu_net, &zeros, &zeros, 0).unwrap();
+    let batch = DeviceBatch::new(gpu, &net, max_rows).unwrap();
+    let label = format!("resident {:?} {:?}", case.widths, case.hidden);
+    let compare = |name: &str, rows: usize, (input, d_out): (&[f32], &[f32]), got: &Run| {
+        let (y_c, p_c, x_c) = run(
+            &cpu_net,
+            &input[..rows * n_in],
+            rows,
+            TapeMode::Cache,
+            &d_out[..rows * n_out],
+            true,
+        );
+        let (y_g, p_g, x_g) = got;
+        let x_g = x_g.as_ref().unwrap();
+        let mut worst = assert_close(&format!("{name} output"), &y_c, &y_g[..rows * n_out]);
+        worst = worst.max(assert_close(
+            &format!("{name} dX"),
+            x_c.as_ref().unwrap(),
+            &x_g[..rows * n_in],
+        ));
+        for l in 0..cpu_net.num_layers() {
+            let (w, b) = (cpu_net.weight_range(l), cpu_net.bias_range(l));
+            worst = worst.max(assert_close(
+                &format!("{name} dW{l}"),
+                &p_c[w.clone()],
+                &p_g[w],
+            ));
+            worst = worst.max(assert_close(
+                &format!("{name} db{l}"),
+                &p_c[b.clone()],
+                &p_g[b],
+            ));
+        }
+        assert_all_zero_bits(&format!("{name} dead output rows"), &y_g[rows * n_out..]);
+        assert_all_zero_bits(&format!("{name} dead dX rows"), &x_g[rows * n_in..]);
+        worst
+    };
+    // Every row live first, so the dead rows of the next run held non-zero values.
+    let full = resident_run(gpu, &net, &batch, (&input, &d_out), max_rows);
+    let name = format!("{label} all {max_rows} live");
+    let worst_full = compare(&name, max_rows, (&input, &d_out), &full);
+    // Then `live` rows: the dead ones are NaN and must be neither read nor left stale.
+    poison_dead_rows(&mut input, n_in, live);
+    poison_dead_rows(&mut d_out, n_out, live);
+    let t = std::time::Instant::now();
+    let partial = resident_run(gpu, &net, &batch, (&input, &d_out), live);
+    let device_s = t.elapsed().as_secs_f64();
+    let name = format!("{label} {live} of {max_rows} live");
+    let worst = compare(&name, live, (&input, &d_out), &partial);
+    // The host path on the live rows runs the same kernels with the same chunk
+    // boundaries: the same values (`==`: a dead chunk's +0 may flip the sign of a 0 sum).
+    let (host_y, tape) = gpu.forward(&cpu_net, &input[..live * n_in], live).unwrap();
+    let host = gpu.backward(&tape, &d_out[..live * n_out], true).unwrap();
+    assert!(
+        host_y[..] == partial.0[..live * n_out],
+        "{name}: output differs from the host path"
+    );
+    assert!(
+        host.params == partial.1,
+        "{name}: parameter gradient differs from the host path"
+    );
+    assert!(
+        host.input.unwrap()[..] == partial.2.as_ref().unwrap()[..live * n_in],
+        "{name}: input gradient differs from the host path"
+    );
+    // Deterministic: the same run again gives the same bits.
+    let again = resident_run(gpu, &net, &batch, (&input, &d_out), live);
+    let bits = |r: &Run| -> Vec<u32> {
+        let x = r.2.as_ref().unwrap();
+        r.0.iter()
+            .chain(&r.1)
+            .chain(x)
+            .map(|v| v.to_bits())
+            .collect()
+    };
+    assert!(bits(&again) == bits(&partial), "{name}: not repeatable");
+    eprintln!(
+        "{name}: worst error / tolerance {worst_full:.3} (all live), {worst:.3}; device \
+         forward + backward with transfers {:.1} ms (wall, shared machine)",
+        device_s * 1e3
+    );
+    // No live row: zero output, gradients and input gradient (every dead input is NaN).
+    poison_dead_rows(&mut input, n_in, 0);
+    poison_dead_rows(&mut d_out, n_out, 0);
+    let (y, p, x) = resident_run(gpu, &net, &batch, (&input, &d_out), 0);
+    assert_all_zero_bits(&format!("{label} 0 live output"), &y);
+    assert_all_zero_bits(&format!("{label} 0 live parameter gradient"), &p);
+    assert_all_zero_bits(&format!("{label} 0 live dX"), &x.unwrap());
+}
+
+/// The resident forward and backward against the CPU MLP on the live rows of batches
+/// whose dead rows hold NaN: outputs and every gradient within the module's tolerance,
+/// dead rows exactly +0, the parameter gradient that of the live rows only (the same
+/// values as the host path on those rows alone), repeat runs bit-identical, no live row
+/// all zeros.
+#[test]
+fn resident_network_matches_the_cpu_on_the_live_rows() {
+    let Some(gpu) = device() else {
+        return;
+    };
+    let cases = [
+        // Phi-like: three chunks of the weight gradient, the third dead.
+        ResidentCase {
+            widths: &[37, 256, 256, 256, 3],
+            hidden: HiddenActivation::Relu,
+            max_rows: 517,
+            live: 300,
+        },
+        // Psi-like.
+        ResidentCase {
+            widths: &[19, 32, 32, 32, 1],
+            hidden: HiddenActivation::LeakyRelu,
+            max_rows: 517,
+            live: 300,
+        },
+        // Phi as the training tests run it: the live count inside the fourth of five
+        // chunks, not on a 16-row tile boundary.
+        ResidentCase {
+            widths: &[80, 32, 32, 32, 3],
+            hidden: HiddenActivation::Relu,
+            max_rows: 1100,
+            live: 901,
+        },
+        // One chunk, one layer, one dead row.
+        ResidentCase {
+            widths: &[4, 3],
+            hidden: HiddenActivation::Relu,
+            max_rows: 17,
+            live: 16,
+        },
+    ];
+    for (i, case) in cases.iter().enumerate() {
+        check_resident_case(&gpu, case, 31 + i as u64);
+    }
 }
