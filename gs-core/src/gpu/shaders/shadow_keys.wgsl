@@ -1,7 +1,8 @@
 // Shadow pass, stage 2: for each depth-sorted tile entry e, a receiver key
 // (tile, limit as an order-preserving u32, e): sorted, each tile's receivers come in
 // increasing limit, ties by list position, as the CPU's receiver order. Padding keys
-// sort last.
+// (past the entry count, or tile 0xffffffff where the count stayed on the device:
+// `fr.n_entries == ENTRIES_ON_DEVICE`) sort last.
 
 @group(0) @binding(0) var<uniform> fr: Frame;
 @group(0) @binding(1) var<storage, read> keys: array<vec4<u32>>;
@@ -23,10 +24,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if e >= fr.n_sort {
         return;
     }
-    if e >= fr.n_entries {
+    let k = keys[e];
+    if e >= fr.n_entries || k.x == 0xffffffffu {
         receivers[e] = vec4<u32>(0xffffffffu, 0xffffffffu, 0xffffffffu, 0u);
         return;
     }
-    let k = keys[e];
     receivers[e] = vec4<u32>(k.x, order_bits(limits[k.z]), e, 0u);
 }
