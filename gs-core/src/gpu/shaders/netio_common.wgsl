@@ -1,0 +1,88 @@
+// Shared by the network input/output kernels (gpu/network_io.rs): the uniform, the
+// packed parameter layout's group offsets, and `sin(pi x)`, `cos(pi x)` and the
+// positional encoding ported operation for operation from nn/encoding.rs.
+
+struct NetIo {
+    // Start of each parameter group in the packed buffers (Param order).
+    off0: vec4<u32>,
+    off1: vec4<u32>,
+    // Gaussians (rows dispatched), channels per Gaussian, floats per network input row.
+    n: u32,
+    nc: u32,
+    width: u32,
+    // Feature width (Phi) or latent width (Psi).
+    dim: u32,
+    // Frequencies L of the encoding.
+    freqs: u32,
+    // Non-zero: Psi's output multiplies V (ShadowRefinement::Multiply).
+    multiply: u32,
+    pad0: u32,
+    pad1: u32,
+    // Camera centre (Phi), .w unused.
+    cam: vec4<f32>,
+    // Scene box (Psi): minimum corner, extent max - min, 1 / extent (host f32, as shadow.rs).
+    box_min: vec4<f32>,
+    box_extent: vec4<f32>,
+    box_inv_extent: vec4<f32>,
+    // gamma_L of the unit Sun direction (6L values, computed on the host by the CPU
+    // encoding: the same bits as the CPU rows).
+    sun: array<vec4<f32>, 24>,
+}
+
+const G_MEAN: u32 = 0u;
+const G_FEATURE: u32 = 6u;
+const G_LATENT: u32 = 7u;
+
+fn goff(u: NetIo, g: u32) -> u32 {
+    if g < 4u {
+        return u.off0[g];
+    }
+    return u.off1[g - 4u];
+}
+
+fn sun_code(u: NetIo, i: u32) -> f32 {
+    return u.sun[i / 4u][i % 4u];
+}
+
+fn finite(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+// encoding.rs SIN_POLY / COS_POLY (the same f32 values).
+const SIN_P0: f32 = 3.14159265358979;
+const SIN_P1: f32 = -5.167708;
+const SIN_P2: f32 = 2.549767;
+const SIN_P3: f32 = -0.5890751;
+const COS_P1: f32 = -4.934802;
+const COS_P2: f32 = 4.058707;
+const COS_P3: f32 = -1.3350445;
+const COS_P4: f32 = 0.23132879;
+
+// (sin(pi x), cos(pi x)) as encoding.rs `sin_cos_pi_lanes`: 2x rounds to the nearest
+// integer q (ties to even, as the CPU's magic-number rounding), r = x - q/2 is exact and
+// in [-1/4, 1/4], two polynomials give sin(pi r), cos(pi r), and q mod 4 swaps and
+// negates them. q mod 4 is taken in f32 (exact for every finite q), so the CPU's f64 path
+// for |x| >= 2^21 is not needed: there x is a multiple of 1/4 and r is exact as well
+// (the results then differ from the CPU's f64 values by below 1e-7).
+fn sin_cos_pi(x: f32) -> vec2<f32> {
+    let q = round(2.0 * x);
+    let r = x - 0.5 * q;
+    let z = r * r;
+    let s = r * (SIN_P0 + z * (SIN_P1 + z * (SIN_P2 + z * SIN_P3)));
+    let c = 1.0 + z * (COS_P1 + z * (COS_P2 + z * (COS_P3 + z * COS_P4)));
+    let quadrant = u32(q - 4.0 * floor(q * 0.25));
+    var sv = s;
+    var cv = c;
+    if (quadrant & 1u) != 0u {
+        sv = c;
+        cv = s;
+    }
+    let sin_bits = bitcast<u32>(sv) ^ ((quadrant & 2u) << 30u);
+    let cos_bits = bitcast<u32>(cv) ^ (((quadrant ^ (quadrant >> 1u)) & 1u) << 31u);
+    return vec2<f32>(bitcast<f32>(sin_bits), bitcast<f32>(cos_bits));
+}
+
+// Angular frequency of band k, 2^k pi (encoding.rs `omega`: f32 pi times 2^k, exact).
+fn omega(k: u32) -> f32 {
+    return SIN_P0 * f32(1u << k);
+}

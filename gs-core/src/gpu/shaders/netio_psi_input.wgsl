@@ -1,0 +1,65 @@
+// Psi's full input rows (shadow.rs `assemble_input`): row r < count of Gaussian
+// g = list[r] is [V_g (1) | gamma_L(sun) (6L) | gamma_L(p_g) (6L) | l_g (dim)], with
+// p_g = (mu_g - box_min) / extent - 0.5 per axis; rows r >= count are zeros. A
+// non-finite V, mean or latent, or a list entry out of range, sets flags[0] bit 0.
+
+@group(0) @binding(0) var<uniform> u: NetIo;
+@group(0) @binding(1) var<storage, read> params: array<f32>;
+@group(0) @binding(2) var<storage, read> list: array<u32>;
+@group(0) @binding(3) var<storage, read> count: array<u32>;
+@group(0) @binding(4) var<storage, read> visibility: array<f32>;
+@group(0) @binding(5) var<storage, read_write> input: array<f32>;
+@group(0) @binding(6) var<storage, read_write> flags: array<atomic<u32>>;
+
+@compute @workgroup_size(256)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let r = gid.x + gid.y * nwg.x * 256u;
+    if r >= u.n {
+        return;
+    }
+    let base = r * u.width;
+    let live = min(count[0], u.n);
+    var g = u.n;
+    if r < live {
+        g = list[r];
+        if g >= u.n {
+            atomicOr(&flags[0], 1u);
+        }
+    }
+    if g >= u.n {
+        for (var c = 0u; c < u.width; c++) {
+            input[base + c] = 0.0;
+        }
+        return;
+    }
+    let v = visibility[g];
+    var ok = finite(v);
+    input[base] = v;
+    let enc = 6u * u.freqs;
+    for (var j = 0u; j < enc; j++) {
+        input[base + 1u + j] = sun_code(u, j);
+    }
+    let mo = goff(u, G_MEAN) + 3u * g;
+    let po = base + 1u + enc;
+    let two_l = 2u * u.freqs;
+    for (var c = 0u; c < 3u; c++) {
+        let m = params[mo + c];
+        ok = ok && finite(m);
+        let p = (m - u.box_min[c]) / u.box_extent[c] - 0.5;
+        for (var k = 0u; k < u.freqs; k++) {
+            let sc = sin_cos_pi(p * f32(1u << k));
+            input[po + c * two_l + 2u * k] = sc.x;
+            input[po + c * two_l + 2u * k + 1u] = sc.y;
+        }
+    }
+    let lo = goff(u, G_LATENT) + g * u.dim;
+    let li = base + 1u + 2u * enc;
+    for (var j = 0u; j < u.dim; j++) {
+        let l = params[lo + j];
+        ok = ok && finite(l);
+        input[li + j] = l;
+    }
+    if !ok {
+        atomicOr(&flags[0], 1u);
+    }
+}
