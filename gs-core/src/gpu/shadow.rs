@@ -25,7 +25,7 @@ use std::sync::{Arc, Mutex};
 
 use super::raster::{frame_bytes, prelude, GpuRasterizer, SORT_BLOCK, SSTRIDE};
 use super::{bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuError, Scratch};
-use crate::model::Param;
+use crate::model::{Param, ParamSet};
 use crate::nn::SceneBox;
 use crate::raster::bin::TileGrid;
 use crate::raster::blend::{Splat, ALPHA_MIN};
@@ -105,6 +105,29 @@ struct WalkInputs<'a> {
     footprint_radius_px: f32,
 }
 
+/// `V`, `flags[0]` and the sort's sizes of a recorded pass run from the host
+/// ([`GpuShadow::sun_visibility_packed`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PackedVisibility {
+    /// `V_i` per Gaussian (not valid where `flags` has the overflow bit).
+    pub visibility: Vec<f32>,
+    /// Word 0 of the flags buffer: bit 1 (value 2), the sort capacity was too small.
+    pub flags: u32,
+    /// The light pass's tile entries.
+    pub tile_entries: u64,
+    /// Keys the sorts ran over.
+    pub n_sort: u64,
+}
+
+/// The host wrappers' light inputs (see [`GpuShadow::encode_sun_visibility`]).
+struct HostLight<'a> {
+    sun_dir: glam::Vec3,
+    camera_centre: glam::Vec3,
+    scene_box: &'a SceneBox,
+    config: &'a LightConfig,
+    near_m: f32,
+}
+
 fn sunaware_error(e: SunAwareError) -> GpuError {
     GpuError::Invalid(e.to_string())
 }
@@ -161,7 +184,6 @@ impl GpuShadow {
         config: &LightConfig,
         near_m: f32,
     ) -> Result<Vec<f32>, GpuError> {
-        let ctx = &self.raster.ctx;
         let n = model.len();
         let mut dims = [0usize; Param::COUNT];
         dims[..4].copy_from_slice(&GEOMETRY_DIMS);
@@ -175,29 +197,95 @@ impl GpuShadow {
         ] {
             packed.extend_from_slice(model.params.get(p));
         }
-        let scratch = self.host_scratch()?;
-        let params = scratch.storage(ctx, "shadow host params", packed.len() as u64 * 4)?;
-        ctx.queue.write_buffer(&params, 0, &f32_bytes(&packed));
-        let visibility = scratch.storage(ctx, "shadow host visibility", n as u64 * 4)?;
-        let flags = scratch.storage(ctx, "shadow host flags", 4)?;
-        let (record, encoder) = self.encode_sun_visibility(
-            ctx.encoder("shadow"),
-            &scratch,
-            &params,
-            &offsets,
-            n,
+        let light = HostLight {
             sun_dir,
             camera_centre,
             scene_box,
             config,
             near_m,
-            None,
+        };
+        Ok(self
+            .run_packed(&packed, &offsets, n, &light, None)?
+            .visibility)
+    }
+
+    /// [`Self::encode_sun_visibility`] on `params` packed in the resident layout
+    /// (`gpu::resident::pack`), run from the host: uploads, records with `capacity`,
+    /// submits and reads back `V`, the flags word and the entry count.
+    #[allow(clippy::too_many_arguments)]
+    pub fn sun_visibility_packed(
+        &self,
+        params: &ParamSet,
+        sun_dir: glam::Vec3,
+        camera_centre: glam::Vec3,
+        scene_box: &SceneBox,
+        config: &LightConfig,
+        near_m: f32,
+        capacity: Option<u64>,
+    ) -> Result<PackedVisibility, GpuError> {
+        let n = params.len();
+        let offsets = super::resident::offsets(&params.dims(), n)?;
+        let light = HostLight {
+            sun_dir,
+            camera_centre,
+            scene_box,
+            config,
+            near_m,
+        };
+        self.run_packed(
+            &super::resident::pack(params),
+            &offsets,
+            n,
+            &light,
+            capacity,
+        )
+    }
+
+    fn run_packed(
+        &self,
+        packed: &[f32],
+        offsets: &[u32; Param::COUNT + 1],
+        n: usize,
+        light: &HostLight,
+        capacity: Option<u64>,
+    ) -> Result<PackedVisibility, GpuError> {
+        let ctx = &self.raster.ctx;
+        let scratch = self.host_scratch()?;
+        let params = scratch.storage(ctx, "shadow host params", packed.len() as u64 * 4)?;
+        ctx.queue.write_buffer(&params, 0, &f32_bytes(packed));
+        let visibility = scratch.storage(ctx, "shadow host visibility", n as u64 * 4)?;
+        let flags = scratch.storage(ctx, "shadow host flags", 4)?;
+        let mut encoder = ctx.encoder("shadow");
+        encoder.clear_buffer(&flags, 0, None);
+        let (record, encoder) = self.encode_sun_visibility(
+            encoder,
+            &scratch,
+            &params,
+            offsets,
+            n,
+            light.sun_dir,
+            light.camera_centre,
+            light.scene_box,
+            light.config,
+            light.near_m,
+            capacity,
             &visibility,
             &flags,
         )?;
-        let back = ctx.read_back(encoder, &[(&visibility, n as u64 * 4)])?;
-        drop(record);
-        Ok(bytes_f32(&back[0]))
+        let back = ctx.read_back(
+            encoder,
+            &[
+                (&visibility, n as u64 * 4),
+                (&flags, 4),
+                (&record.entry_count, 4),
+            ],
+        )?;
+        Ok(PackedVisibility {
+            visibility: bytes_f32(&back[0]),
+            flags: bytes_u32(&back[1])[0],
+            tile_entries: bytes_u32(&back[2])[0] as u64,
+            n_sort: record.n_sort,
+        })
     }
 
     /// Records `V` for every Gaussian of the packed device `params` (the resident layout:
