@@ -19,7 +19,14 @@
 //! 1e-4 transmittance stop at a pixel; `V` in [0, 1], 1 for Gaussians no pixel saw
 //! (culled, e.g. for a non-finite parameter, or off the light image). The atomic sums make
 //! the last bits vary from run to run. A recorded pass reads back nothing when given a sort
-//! capacity; it then flags (`flags[0] |= 2`) a capacity below the entry count.
+//! capacity; it then flags (`flags[0] |= 2`) a capacity below the entry count (the flags
+//! word is only ever or-ed into, never cleared).
+//! One recorded pass per `GpuShadow` per submission: the uniforms of a recording (from the
+//! caller's scratch and from this pipeline set's own pool for the rasterizer's scan and
+//! sort, whose labels the caller's camera pass also uses) are written through the queue,
+//! so a second recording before the first is submitted would overwrite them. The host
+//! wrappers hold a lock from recording to readback; callers on several threads serialise
+//! their recordings likewise.
 
 use std::sync::{Arc, Mutex};
 
