@@ -19,7 +19,7 @@
 use std::sync::Arc;
 
 use gs_core::gpu::mlp::{DeviceBatch, DeviceNetwork};
-use gs_core::gpu::{GpuContext, GpuMlp};
+use gs_core::gpu::{GpuContext, GpuError, GpuMlp};
 use gs_core::nn::{HiddenActivation, Init, Mlp, TapeMode};
 use gs_core::rng::SplitMix64;
 
@@ -442,5 +442,355 @@ fn resident_network_matches_the_cpu_on_the_live_rows() {
     ];
     for (i, case) in cases.iter().enumerate() {
         check_resident_case(&gpu, case, 31 + i as u64);
+    }
+}
+
+/// `sunaware::trainer::FlatAdam::apply` (private there), reproduced operation for
+/// operation in f32 as written there.
+struct FlatAdamReference {
+    m: Vec<f32>,
+    v: Vec<f32>,
+    step: u64,
+}
+
+impl FlatAdamReference {
+    fn apply(&mut self, params: &mut [f32], grads: &[f32], lr: f32) {
+        let (b1, b2, eps) = (0.9f32, 0.999f32, gs_core::optim::ADAM_EPS);
+        self.step += 1;
+        let t = self.step as i32;
+        let bias1 = 1.0 - (b1 as f64).powi(t);
+        let bias2 = 1.0 - (b2 as f64).powi(t);
+        let step_size = (lr as f64 / bias1) as f32;
+        let inv_sqrt_bias2 = (1.0 / bias2.sqrt()) as f32;
+        for i in 0..params.len() {
+            self.m[i] = b1 * self.m[i] + (1.0 - b1) * grads[i];
+            self.v[i] = b2 * self.v[i] + (1.0 - b2) * grads[i] * grads[i];
+            let denom = self.v[i].sqrt() * inv_sqrt_bias2 + eps;
+            params[i] -= step_size * self.m[i] / denom;
+        }
+    }
+}
+
+/// Values of magnitude 1e-20 to 1e3 times `scale`, both signs.
+fn random_magnitudes(len: usize, rng: &mut SplitMix64, scale: f32) -> Vec<f32> {
+    (0..len)
+        .map(|_| {
+            let magnitude = 10f32.powf(rng.uniform(-20.0, 3.0));
+            scale * magnitude * if rng.next_f32() < 0.5 { -1.0 } else { 1.0 }
+        })
+        .collect()
+}
+
+/// The device state of `net` as (parameters, m, v).
+fn download_state(gpu: &GpuMlp, net: &DeviceNetwork, like: &Mlp) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let mut mlp = like.clone();
+    let mut m = vec![0.0f32; net.len()];
+    let mut v = vec![0.0f32; net.len()];
+    net.download(gpu.context(), &mut mlp, &mut m, &mut v)
+        .unwrap();
+    (mlp.params().to_vec(), m, v)
+}
+
+fn state_bits(state: &(Vec<f32>, Vec<f32>, Vec<f32>)) -> Vec<u32> {
+    state
+        .0
+        .iter()
+        .chain(&state.1)
+        .chain(&state.2)
+        .map(|x| x.to_bits())
+        .collect()
+}
+
+/// The device Adam step (`GpuMlp::encode_adam`) against FlatAdam's rule, from moments
+/// and a step counter of a run in progress: four steps (learning rates 1e-3, 5e-4 and 0,
+/// where the moments still move) and a refused one (flags[0] set) between them, which
+/// changes no bit and does not count.
+///
+/// Tolerance as tests/gpu_resident.rs's Adam test (the same kernel, same reasoning): per
+/// step the kernel computes the same operations in the same order, differing by FMA
+/// contraction and the Vulkan precision of division (2.5 ulp) and sqrt, so `|m_gpu -
+/// m_cpu| <= 8 eps (|m| + 0.1 sum|g|)`, `|v_gpu - v_cpu| <= 8 eps (|v| + 0.001 sum g^2)`,
+/// `|x_gpu - x_cpu| <= 8 eps (|x| + sum|dx|)` (eps = f32::EPSILON, `dx` the reference's
+/// per-step changes).
+#[test]
+fn resident_adam_matches_flat_adam() {
+    let Some(gpu) = device() else {
+        return;
+    };
+    let mut mlp = network_with_biases(&[19, 32, 32, 32, 1], HiddenActivation::LeakyRelu, 7);
+    let n = mlp.num_params();
+    let mut rng = SplitMix64::new(70);
+    let mut reference = FlatAdamReference {
+        m: random_magnitudes(n, &mut rng, 1e-2),
+        v: random_magnitudes(n, &mut rng, 1e-4)
+            .iter()
+            .map(|x| x.abs())
+            .collect(),
+        step: 5,
+    };
+    let ctx = gpu.context();
+    let mut net = DeviceNetwork::new(ctx, &mlp, &reference.m, &reference.v, 5).unwrap();
+    let mut sum_dx = vec![0.0f32; n];
+    let mut sum_g = vec![0.0f32; n];
+    let mut sum_g2 = vec![0.0f32; n];
+    for (lr, refuse) in [(1e-3, false), (2e-3, true), (5e-4, false), (0.0, false)] {
+        let grads = random_magnitudes(n, &mut rng, 1e-2);
+        net.upload_grads(ctx, &grads).unwrap();
+        if refuse {
+            let before = download_state(&gpu, &net, &mlp);
+            let step = net.adam_step();
+            assert!(!gpu.run_adam(&mut net, lr, true).unwrap());
+            assert_eq!(net.adam_step(), step, "a refused step counted");
+            let after = download_state(&gpu, &net, &mlp);
+            assert!(
+                state_bits(&before) == state_bits(&after),
+                "a refused step changed the network"
+            );
+            continue;
+        }
+        let before = mlp.params().to_vec();
+        reference.apply(mlp.params_mut(), &grads, lr);
+        assert!(gpu.run_adam(&mut net, lr, false).unwrap());
+        for i in 0..n {
+            sum_dx[i] += (mlp.params()[i] - before[i]).abs();
+            sum_g[i] += grads[i].abs();
+            sum_g2[i] += grads[i] * grads[i];
+        }
+    }
+    assert_eq!((net.adam_step(), reference.step), (8, 8));
+    let (x_g, m_g, v_g) = download_state(&gpu, &net, &mlp);
+    let eps = 8.0 * f32::EPSILON;
+    let mut worst = 0.0f32;
+    let mut differ = 0usize;
+    for i in 0..n {
+        let (x, m, v) = (mlp.params()[i], reference.m[i], reference.v[i]);
+        differ += [(x_g[i], x), (m_g[i], m), (v_g[i], v)]
+            .iter()
+            .filter(|(a, b)| a.to_bits() != b.to_bits())
+            .count();
+        let tol_x = eps * (x.abs() + sum_dx[i]);
+        let tol_m = eps * (m.abs() + 0.1 * sum_g[i]);
+        let tol_v = eps * (v.abs() + 0.001 * sum_g2[i]);
+        assert!(
+            (x_g[i] - x).abs() <= tol_x,
+            "x[{i}]: gpu {} cpu {x}",
+            x_g[i]
+        );
+        assert!(
+            (m_g[i] - m).abs() <= tol_m,
+            "m[{i}]: gpu {} cpu {m}",
+            m_g[i]
+        );
+        assert!(
+            (v_g[i] - v).abs() <= tol_v,
+            "v[{i}]: gpu {} cpu {v}",
+            v_g[i]
+        );
+        for (err, tol) in [
+            ((x_g[i] - x).abs(), tol_x),
+            ((m_g[i] - m).abs(), tol_m),
+            ((v_g[i] - v).abs(), tol_v),
+        ] {
+            if tol > 0.0 {
+                worst = worst.max(err / tol);
+            }
+        }
+    }
+    assert!(
+        sum_dx.iter().any(|&d| d > 0.0),
+        "the steps moved nothing, the comparison would be idle"
+    );
+    eprintln!(
+        "resident Adam: worst error / tolerance {worst:.3}, {differ} of {} values not \
+         bit-identical",
+        3 * n
+    );
+    // A non-finite or negative learning rate is refused before any device work.
+    for lr in [f32::NAN, f32::INFINITY, -1e-3] {
+        assert!(matches!(
+            gpu.run_adam(&mut net, lr, false),
+            Err(GpuError::Invalid(_))
+        ));
+    }
+    assert_eq!(net.adam_step(), 8);
+}
+
+/// Upload and download move every bit (subnormals, -0, extremes included); a network of
+/// another shape or activation, moments of the wrong length, non-finite values and
+/// mismatched batches are errors that change nothing.
+#[test]
+fn resident_network_round_trip_and_bad_input() {
+    let Some(gpu) = device() else {
+        return;
+    };
+    let ctx = gpu.context();
+    let widths = [5, 32, 2];
+    let n = Mlp::new(&widths, HiddenActivation::Relu, Init::KaimingUniform, 1)
+        .unwrap()
+        .num_params();
+    let mut rng = SplitMix64::new(90);
+    let special = [-0.0f32, 1e-40, -1e-45, f32::MAX, f32::MIN_POSITIVE, 1.0];
+    let mut values = |len: usize| -> Vec<f32> {
+        let mut out = random_magnitudes(len, &mut rng, 1.0);
+        out[..special.len()].copy_from_slice(&special);
+        out
+    };
+    let a = Mlp::from_params(&widths, HiddenActivation::Relu, values(n)).unwrap();
+    let (m_a, v_a) = (values(n), values(n));
+    let mut net = DeviceNetwork::new(ctx, &a, &m_a, &v_a, 12).unwrap();
+    assert_eq!(
+        (net.len(), net.widths(), net.adam_step()),
+        (n, &widths[..], 12)
+    );
+    let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    let got = download_state(&gpu, &net, &a);
+    assert_eq!(bits(&got.0), bits(a.params()));
+    assert_eq!((bits(&got.1), bits(&got.2)), (bits(&m_a), bits(&v_a)));
+    // A second upload replaces everything.
+    let b = Mlp::from_params(&widths, HiddenActivation::Relu, values(n)).unwrap();
+    let (m_b, v_b) = (values(n), values(n));
+    net.upload(ctx, &b, &m_b, &v_b, 3).unwrap();
+    assert_eq!(net.adam_step(), 3);
+    let got = download_state(&gpu, &net, &a);
+    assert_eq!(bits(&got.0), bits(b.params()));
+    assert_eq!((bits(&got.1), bits(&got.2)), (bits(&m_b), bits(&v_b)));
+    // Shapes and activations must match; nothing changes on refusal.
+    let other_width =
+        Mlp::new(&[5, 16, 2], HiddenActivation::Relu, Init::KaimingUniform, 2).unwrap();
+    let other_act =
+        Mlp::from_params(&widths, HiddenActivation::LeakyRelu, b.params().to_vec()).unwrap();
+    let short = vec![0.0f32; n - 1];
+    let mut nan_m = m_b.clone();
+    nan_m[4] = f32::NAN;
+    let (m_w, v_w) = (
+        vec![0.0f32; other_width.num_params()],
+        vec![0.0f32; other_width.num_params()],
+    );
+    let refusals = [
+        net.upload(ctx, &other_width, &m_w, &v_w, 1),
+        net.upload(ctx, &other_act, &m_b, &v_b, 1),
+        net.upload(ctx, &b, &short, &v_b, 1),
+        net.upload(ctx, &b, &nan_m, &v_b, 1),
+    ];
+    for r in refusals {
+        assert!(matches!(r, Err(GpuError::Invalid(_))), "{r:?}");
+    }
+    assert!(matches!(
+        DeviceNetwork::new(ctx, &b, &nan_m, &v_b, 0),
+        Err(GpuError::Invalid(_))
+    ));
+    assert_eq!(net.adam_step(), 3);
+    let got = download_state(&gpu, &net, &a);
+    assert_eq!(bits(&got.0), bits(b.params()));
+    let mut into = other_width.clone();
+    let (mut m_o, mut v_o) = (m_w.clone(), v_w.clone());
+    assert!(matches!(
+        net.download(ctx, &mut into, &mut m_o, &mut v_o),
+        Err(GpuError::Invalid(_))
+    ));
+    assert!(into == other_width);
+    let mut into = b.clone();
+    let mut m_short = short.clone();
+    let mut v_full = v_b.clone();
+    assert!(matches!(
+        net.download(ctx, &mut into, &mut m_short, &mut v_full),
+        Err(GpuError::Invalid(_))
+    ));
+    assert!(matches!(
+        net.upload_grads(ctx, &short),
+        Err(GpuError::Invalid(_))
+    ));
+    // Batches: lengths, live count, widths.
+    let batch = DeviceBatch::new(&gpu, &net, 10).unwrap();
+    let (x, d) = (vec![0.5f32; 10 * 5], vec![1.0f32; 10 * 2]);
+    assert!(batch.write(&gpu, &x[..49], 10, &d).is_err());
+    assert!(batch.write(&gpu, &x, 10, &d[..19]).is_err());
+    assert!(batch.write(&gpu, &x, 11, &d).is_err());
+    let other_net = DeviceNetwork::new(ctx, &other_width, &m_w, &v_w, 0).unwrap();
+    let wrong = Mlp::new(&[6, 32, 2], HiddenActivation::Relu, Init::KaimingUniform, 3).unwrap();
+    let zeros = vec![0.0f32; wrong.num_params()];
+    let wrong_net = DeviceNetwork::new(ctx, &wrong, &zeros, &zeros, 0).unwrap();
+    batch.write(&gpu, &x, 10, &d).unwrap();
+    assert!(gpu.run_forward_backward(&other_net, &batch, true).is_ok());
+    assert!(matches!(
+        gpu.run_forward_backward(&wrong_net, &batch, true),
+        Err(GpuError::Invalid(_))
+    ));
+}
+
+/// Process CPU time so far (every thread, the driver's included), seconds.
+fn process_cpu_s() -> f64 {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: getrusage only writes the struct it is given.
+        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+        unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut ru) };
+        let t = |tv: libc::timeval| tv.tv_sec as f64 + tv.tv_usec as f64 * 1e-6;
+        t(ru.ru_utime) + t(ru.ru_stime)
+    }
+    #[cfg(not(target_os = "linux"))]
+    f64::NAN
+}
+
+/// Timings, not a check (ignored; run with `--ignored --nocapture`): Phi-like
+/// [37, 256, 256, 256, 3] over 10,000 rows, forward + backward with the input gradient,
+/// the host path (`GpuMlp::forward`/`backward`: uploads of the input, the parameters and
+/// the output gradient, readback of the output and the gradients) against the resident
+/// path (`run_forward_backward`: one command buffer on device buffers, one wait), and the
+/// resident path with the batch's upload and readback. Wall and process CPU time, median
+/// of 5 alternated repeats after a warm-up.
+#[test]
+#[ignore]
+fn resident_network_timings() {
+    let Some(gpu) = device() else {
+        return;
+    };
+    let rows = 10_000;
+    let mlp = network_with_biases(&[37, 256, 256, 256, 3], HiddenActivation::Relu, 5);
+    let mut rng = SplitMix64::new(55);
+    let input: Vec<f32> = (0..rows * 37).map(|_| rng.normal()).collect();
+    let d_out: Vec<f32> = (0..rows * 3).map(|_| rng.normal()).collect();
+    let zeros = vec![0.0f32; mlp.num_params()];
+    let net = DeviceNetwork::new(gpu.context(), &mlp, &zeros, &zeros, 0).unwrap();
+    let batch = DeviceBatch::new(&gpu, &net, rows).unwrap();
+    batch.write(&gpu, &input, rows, &d_out).unwrap();
+    let host = || {
+        let (_, tape) = gpu.forward(&mlp, &input, rows).unwrap();
+        gpu.backward(&tape, &d_out, true).unwrap();
+    };
+    let resident = || gpu.run_forward_backward(&net, &batch, true).unwrap();
+    let resident_io = || {
+        batch.write(&gpu, &input, rows, &d_out).unwrap();
+        gpu.run_forward_backward(&net, &batch, true).unwrap();
+        batch.read(&gpu).unwrap();
+        net.download_grads(gpu.context()).unwrap();
+    };
+    let runs: [(&str, &dyn Fn()); 3] = [
+        ("host path (uploads + readbacks)", &host),
+        ("resident (device buffers)", &resident),
+        ("resident + batch upload/readback", &resident_io),
+    ];
+    for (_, f) in &runs {
+        f();
+    }
+    let mut times = vec![(Vec::new(), Vec::new()); runs.len()];
+    for _ in 0..5 {
+        for (k, (_, f)) in runs.iter().enumerate() {
+            let (t, c) = (std::time::Instant::now(), process_cpu_s());
+            f();
+            times[k].0.push(t.elapsed().as_secs_f64() * 1e3);
+            times[k].1.push((process_cpu_s() - c) * 1e3);
+        }
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    eprintln!("{}", gpu.context().describe());
+    eprintln!("Phi-like [37, 256, 256, 256, 3] x {rows} rows, forward + backward (+ dX):");
+    eprintln!("{:<34} {:>10} {:>12}", "path", "wall ms", "process CPU ms");
+    for (k, (name, _)) in runs.iter().enumerate() {
+        let (wall, cpu) = (median(&mut times[k].0), median(&mut times[k].1));
+        eprintln!("{name:<34} {wall:>10.1} {cpu:>12.1}");
     }
 }
