@@ -495,6 +495,7 @@ impl OnlineTrainer {
         let skipped_before = self.trainer.skipped_nonfinite;
         let (mut loss_sum, mut applied) = (0.0f64, 0u64);
         let mut trained_ids = Vec::with_capacity(n * passes);
+        let mut batch = Vec::with_capacity(n * passes);
         for pass in 0..passes {
             // Reshuffling the previous order keeps pass 0 identical to a one-pass round.
             rng.shuffle(&mut order);
@@ -503,11 +504,14 @@ impl OnlineTrainer {
                 trained_ids.push(frame.id);
                 // The learning rates decay over the whole round (sawtooth per round).
                 let progress = (pass * n + k) as f32 / (passes * n) as f32;
-                let stats = self.trainer.step(&frame.observation(), progress)?;
-                if !stats.skipped {
-                    loss_sum += stats.loss as f64;
-                    applied += 1;
-                }
+                batch.push((frame.observation(), progress));
+            }
+        }
+        // One batch: on a device-resident trainer the round's state stays on the device.
+        for stats in self.trainer.step_many(&batch)? {
+            if !stats.skipped {
+                loss_sum += stats.loss as f64;
+                applied += 1;
             }
         }
         self.rounds += 1;

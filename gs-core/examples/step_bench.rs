@@ -30,13 +30,16 @@
 //!
 //! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
 //! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]
-//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu] [--default-malloc]`
+//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu] [--hybrid] [--default-malloc]`
 //!
 //! `--backend cpu,wgpu` measures each configuration on each listed backend (default `cpu`;
-//! `wgpu` needs `--features wgpu` and a Vulkan adapter): the camera pass's rasterizer and
-//! the shadow pass move to the GPU, Phi, Psi and Adam stay on the CPU. On a software
-//! Vulkan driver (Mesa's lavapipe) the wgpu rows are CPU timings of the GPU kernels, not
-//! GPU timings; the adapter is printed with the results.
+//! `wgpu` needs `--features wgpu` and a Vulkan adapter). On `wgpu` the trainer is
+//! device-resident: the repeats run as one `step_many` batch and only the whole step is
+//! timed (no per-stage split, no CPU floors); `--hybrid` runs the older split instead (the
+//! camera pass, the shadow pass and the network products on the GPU, input assembly and
+//! Adam on the host, per-stage timings). On a software Vulkan driver (Mesa's lavapipe) the
+//! wgpu rows are CPU timings of the GPU kernels, not GPU timings; the adapter is printed
+//! with the results.
 //!
 //! The process keeps freed memory as the component and the simulator do
 //! (`gs_core::heap::retain_freed_memory`); `--default-malloc` keeps glibc's defaults.
@@ -409,6 +412,10 @@ fn measure(
     trainer
         .set_backend(&opened)
         .map_err(|e| format!("backend {backend}: {e}"))?;
+    if std::env::args().any(|a| a == "--hybrid") {
+        trainer.set_device_resident(false);
+    }
+    let resident = trainer.is_device_resident();
     let cam = camera(width, height);
     let mut rng = SplitMix64::new(11);
     let target: Vec<f32> = (0..width as usize * height as usize * 3)
@@ -427,7 +434,24 @@ fn measure(
     let mut cpu = Vec::new();
     let mut visible = Vec::new();
     let mut rows = Vec::new();
-    for r in 0..repeats {
+    if resident {
+        // Device-resident: the repeats run as one batch (state uploaded once, downloaded
+        // once, as a training round runs); each step's time is its own recording and wait.
+        let batch: Vec<(Observation, f32)> = (0..repeats)
+            .map(|r| (obs, r as f32 / repeats as f32))
+            .collect();
+        let c0 = process_cpu_ms();
+        let steps = trainer.step_many(&batch).expect("steps");
+        let per_step = (process_cpu_ms() - c0) / repeats.max(1) as f64;
+        for stats in steps {
+            cpu.push(per_step);
+            assert!(!stats.skipped, "step was skipped (non-finite)");
+            visible.push(stats.visible as f64);
+            rows.push(stats.network_rows as f64);
+            all.push(stats.timings);
+        }
+    }
+    for r in 0..if resident { 0 } else { repeats } {
         let c0 = process_cpu_ms();
         let stats = trainer.step(&obs, r as f32 / repeats as f32).expect("step");
         cpu.push(process_cpu_ms() - c0);
@@ -455,7 +479,12 @@ fn measure(
         total_ms: med(|t| t.total_ms),
     };
     let rows = median(rows) as usize;
-    let nets = paired_floors(&mut trainer, &obs, rows, repeats)?;
+    // The floors are CPU GEMMs: no meaning next to a device-resident step's stages.
+    let nets = if resident {
+        Vec::new()
+    } else {
+        paired_floors(&mut trainer, &obs, rows, repeats)?
+    };
     Ok(Measured {
         label: label.to_string(),
         gaussians: n,
@@ -837,8 +866,10 @@ fn run(args: &[String]) -> Result<(), String> {
         );
         if backends.contains(&BackendKind::Wgpu) {
             println!(
-                "backend=wgpu: rasterizer and shadow pass on the GPU (adapter on stderr), networks and Adam on the CPU; \
-                 on a software Vulkan driver (lavapipe) these are CPU timings, not GPU timings"
+                "backend=wgpu: device-resident (every stage on the GPU, one submission per step; only `step` is \
+                 timed), or with --hybrid the rasterizer, shadow pass and network products on the GPU and the rest on \
+                 the host; adapter on stderr; on a software Vulkan driver (lavapipe) these are CPU timings, not GPU \
+                 timings"
             );
         }
         println!(

@@ -1,10 +1,16 @@
-//! The Sun-aware trainer on the wgpu backend (feature `wgpu`) against the CPU backend:
-//! one step's gradients per group, the shadow pass through the model, and short training
-//! runs of configurations c and d reaching the same evaluation PSNR within 0.1 dB.
+//! The Sun-aware trainer on the wgpu backend (feature `wgpu`) against the CPU backend.
 //!
-//! The camera pass's rasterizer, the shadow pass and Phi's and Psi's forward and backward
-//! (`gpu::GpuMlp`) move to the GPU; the networks' input assembly and the Adam states run
-//! on the CPU on both backends.
+//! Hybrid path (`set_device_resident(false)`: the camera pass's rasterizer, the shadow
+//! pass and Phi's and Psi's forward and backward on the GPU, input assembly and Adam on
+//! the host): one step's gradients per group, the shadow pass through the model, and
+//! short training runs of configurations c and d reaching the same evaluation PSNR within
+//! 0.1 dB.
+//!
+//! Device-resident path (the default on wgpu, `gpu::resident_sunaware`): one step's
+//! gradients (read as Adam's first moments) per group against the CPU step, short
+//! training runs of b, c and d through `step_many` reaching the CPU's PSNR within 0.1 dB,
+//! a batch giving the same bits as single steps, a refused step changing nothing, and a
+//! sort overflow redone.
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1` (CI), where
 //! a missing adapter fails. Scenes are small (about 1,000 Gaussians, 96x64 images) so that
@@ -14,7 +20,7 @@
 use std::sync::Arc;
 
 use glam::Vec3;
-use gs_core::gpu::{GpuContext, GpuRasterizer};
+use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
 use gs_core::init::from_points;
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::checkpoint;
@@ -260,6 +266,8 @@ fn training_parity(variant: Variant, steps: usize) {
     let run = |backend: &Backend| -> (SunAwareTrainer, f64) {
         let mut trainer = SunAwareTrainer::new(start.clone());
         trainer.set_backend(backend).unwrap();
+        trainer.set_device_resident(false);
+        assert!(!trainer.is_device_resident());
         // The networks run where the backend says.
         let on_cpu = matches!(backend, Backend::Cpu);
         let model = &trainer.model;
@@ -300,4 +308,325 @@ fn sunaware_training_d_reaches_the_same_psnr() {
 #[test]
 fn sunaware_training_c_reaches_the_same_psnr() {
     training_parity(Variant::C, 40);
+}
+
+/// A context whose backward sums are bit-identical from run to run.
+fn deterministic_backend() -> Option<Backend> {
+    gpu_backend()?;
+    let ctx = GpuContext::with_options(GpuOptions {
+        deterministic: true,
+        ..GpuOptions::default()
+    })
+    .unwrap();
+    Some(Backend::Wgpu(Arc::new(GpuRasterizer::new(ctx).unwrap())))
+}
+
+fn observations(obs: &[View]) -> Vec<Observation<'_>> {
+    obs.iter()
+        .map(|(camera, sun, image, mask)| Observation {
+            camera: *camera,
+            sun_dir: *sun,
+            image,
+            mask: Some(mask),
+        })
+        .collect()
+}
+
+/// Random rotations and anisotropic scales (the initial Gaussians are isotropic, whose
+/// rotation gradients vanish and whose isotropic-loss gradient is a tie).
+fn randomise_shapes(model: &mut SunAwareModel, seed: u64) {
+    let mut rng = SplitMix64::new(seed);
+    let n = model.len();
+    let params = &mut model.gaussians.params;
+    for i in 0..n {
+        let q: Vec<f32> = (0..4).map(|_| rng.normal()).collect();
+        let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+        for (r, v) in params.row_mut(Param::Rotation, i).iter_mut().zip(&q) {
+            *r = v / norm;
+        }
+        for s in params.row_mut(Param::LogScale, i) {
+            *s += rng.uniform(-0.5, 0.5);
+        }
+    }
+}
+
+/// One device-resident step against one CPU step from the same trainer. Adam's first
+/// moment after a first step is `(1 - b1) g` (the same f32 product on both), so the
+/// moments compare the gradients of every group and both networks, here with the
+/// device's own visible list and shadow pass (`V` within 1e-4 of the CPU's for all but
+/// 0.5%, see above). Tolerance: the rasterizer's gradient tolerance of
+/// `sunaware_step_gradients_match_cpu`, all but 0.2% of the values (the shadow pass's
+/// differences reach Psi's inputs). The loss parts agree to f32 rounding of their sums.
+fn resident_step_parity(variant: Variant) {
+    let Some(backend) = gpu_backend() else {
+        return;
+    };
+    let (mut start, obs) = setup_with_width(variant, 2, 64);
+    randomise_shapes(&mut start, 4);
+    let observations = observations(&obs);
+    let mut cpu = SunAwareTrainer::new(start.clone());
+    let mut gpu = SunAwareTrainer::new(start);
+    gpu.set_backend(&backend).unwrap();
+    assert!(gpu.is_device_resident());
+    let c = cpu.step(&observations[0], 0.0).unwrap();
+    let g = gpu.step(&observations[0], 0.0).unwrap();
+    assert!(!c.skipped && !g.skipped);
+    eprintln!(
+        "loss cpu {} gpu {}; l1 {} {}; ssim {} {}; iso {} {}; visible {} {}",
+        c.loss, g.loss, c.l1, g.l1, c.ssim, g.ssim, c.iso, g.iso, c.visible, g.visible
+    );
+    for (what, a, b) in [
+        ("loss", c.loss, g.loss),
+        ("l1", c.l1, g.l1),
+        ("ssim", c.ssim, g.ssim),
+        ("iso", c.iso, g.iso),
+    ] {
+        assert!(
+            (a - b).abs() <= 1e-4 * a.abs().max(1e-3),
+            "{what}: cpu {a} gpu {b}"
+        );
+    }
+    assert_eq!(c.visible, g.visible, "visible lists differ in size");
+    assert_eq!(gpu.steps, 1);
+    assert_eq!(gpu.adam.step, 1);
+    assert_eq!(gpu.appearance_adam.step, 1);
+    let groups: &[Param] = if variant == Variant::B {
+        &[
+            Param::Mean,
+            Param::LogScale,
+            Param::Rotation,
+            Param::OpacityLogit,
+            Param::Feature,
+        ]
+    } else {
+        &[
+            Param::Mean,
+            Param::LogScale,
+            Param::Rotation,
+            Param::OpacityLogit,
+            Param::Feature,
+            Param::ShadowLatent,
+        ]
+    };
+    for &p in groups {
+        assert_close(p.name(), cpu.adam.m.get(p), gpu.adam.m.get(p), 2e-3);
+    }
+    assert_close(
+        "Phi moments",
+        &cpu.appearance_adam.m,
+        &gpu.appearance_adam.m,
+        2e-3,
+    );
+    if variant != Variant::B {
+        assert_eq!(gpu.shadow_adam.step, 1);
+        assert_close("Psi moments", &cpu.shadow_adam.m, &gpu.shadow_adam.m, 2e-3);
+    }
+    assert_eq!(
+        cpu.densify_stats.visible_count, gpu.densify_stats.visible_count,
+        "densification visibility counts"
+    );
+    assert_close(
+        "densify grad accum",
+        &cpu.densify_stats.grad_accum,
+        &gpu.densify_stats.grad_accum,
+        2e-3,
+    );
+}
+
+#[test]
+fn resident_step_d_matches_the_cpu_step() {
+    resident_step_parity(Variant::D);
+}
+
+#[test]
+fn resident_step_b_matches_the_cpu_step() {
+    resident_step_parity(Variant::B);
+}
+
+/// `steps` steps over 6 views on the CPU (one `step` each) and device-resident (through
+/// `step_many` in batches of 12, as the component's rounds run), densification between
+/// two batches on both; both scored on the CPU: within 0.1 dB.
+fn resident_training_parity(variant: Variant, steps: usize) {
+    let Some(backend) = gpu_backend() else {
+        return;
+    };
+    let (mut start, obs) = setup_with_width(variant, 6, 32);
+    // Densification between the second and third batch must change the model.
+    start.config.densify_from_step = 0;
+    start.config.densify.grad_threshold = 1e-5;
+    let observations = observations(&obs);
+    let score = |model: &SunAwareModel| -> f32 {
+        let mut m = model.clone();
+        m.set_backend(&Backend::Cpu).unwrap();
+        let total: f32 = observations
+            .iter()
+            .map(|o| m.evaluate(o, true).unwrap().psnr_db)
+            .sum();
+        total / observations.len() as f32
+    };
+    let batches: Vec<Vec<(Observation, f32)>> = (0..steps)
+        .map(|s| {
+            (
+                observations[s % observations.len()],
+                s as f32 / steps as f32,
+            )
+        })
+        .collect::<Vec<_>>()
+        .chunks(12)
+        .map(|c| c.to_vec())
+        .collect();
+    let run = |backend: &Backend| -> (SunAwareTrainer, f64) {
+        let mut trainer = SunAwareTrainer::new(start.clone());
+        trainer.set_backend(backend).unwrap();
+        let t = std::time::Instant::now();
+        for (b, batch) in batches.iter().enumerate() {
+            let stats = trainer.step_many(batch).unwrap();
+            assert_eq!(stats.len(), batch.len());
+            assert!(
+                stats.iter().all(|s| !s.skipped),
+                "batch {b}: a step skipped"
+            );
+            if b == 1 {
+                let report = trainer.densify_and_prune().unwrap();
+                assert!(
+                    report.cloned + report.split > 0,
+                    "densification added nothing"
+                );
+            }
+        }
+        (trainer, t.elapsed().as_secs_f64())
+    };
+    let (cpu, cpu_s) = run(&Backend::Cpu);
+    let (gpu, gpu_s) = run(&backend);
+    assert!(gpu.is_device_resident());
+    assert_eq!(gpu.skipped_nonfinite, 0);
+    assert_eq!(gpu.steps, steps as u64);
+    let (p0, pc, pg) = (score(&start), score(&cpu.model), score(&gpu.model));
+    eprintln!(
+        "resident configuration {variant}: {steps} steps, PSNR start {p0:.3} dB, cpu \
+         {pc:.3} dB ({cpu_s:.1} s), wgpu resident {pg:.3} dB ({gpu_s:.1} s; software \
+         driver), Gaussians cpu {} wgpu {}",
+        cpu.model.len(),
+        gpu.model.len()
+    );
+    assert!(pc > p0 + 1.0, "the run did not learn: {p0} -> {pc}");
+    assert!((pc - pg).abs() <= 0.1, "cpu {pc} dB vs wgpu {pg} dB");
+}
+
+#[test]
+fn resident_training_d_reaches_the_same_psnr() {
+    resident_training_parity(Variant::D, 48);
+}
+
+#[test]
+fn resident_training_c_reaches_the_same_psnr() {
+    resident_training_parity(Variant::C, 36);
+}
+
+#[test]
+fn resident_training_b_reaches_the_same_psnr() {
+    resident_training_parity(Variant::B, 36);
+}
+
+/// A batch of steps gives the same bits as the same steps one at a time (each a batch of
+/// one: upload, step, download): the host round trip loses nothing. Configuration b on a
+/// deterministic context (the light pass's sums are atomic, so c-d are not bit-stable).
+#[test]
+fn a_resident_batch_gives_the_same_bits_as_single_steps() {
+    let Some(backend) = deterministic_backend() else {
+        return;
+    };
+    let (start, obs) = setup_with_width(Variant::B, 4, 32);
+    let observations = observations(&obs);
+    let batch: Vec<(Observation, f32)> = (0..8)
+        .map(|s| (observations[s % 4], s as f32 / 8.0))
+        .collect();
+    let mut whole = SunAwareTrainer::new(start.clone());
+    whole.set_backend(&backend).unwrap();
+    let mut single = whole.clone();
+    let a = whole.step_many(&batch).unwrap();
+    let b: Vec<_> = batch
+        .iter()
+        .map(|(o, p)| single.step(o, *p).unwrap())
+        .collect();
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.loss.to_bits(), y.loss.to_bits(), "losses differ");
+    }
+    assert!(whole == single, "batched and single-step trainers differ");
+    assert!(whole.model != start, "nothing trained");
+}
+
+/// A NaN feature makes Phi's input non-finite: the device refuses the step, counts it and
+/// changes nothing (bit for bit); the CPU step rejects the same trainer with an error.
+#[test]
+fn a_refused_resident_step_changes_nothing() {
+    let Some(backend) = gpu_backend() else {
+        return;
+    };
+    let (mut start, obs) = setup_with_width(Variant::D, 1, 32);
+    start.gaussians.params.get_mut(Param::Feature)[5] = f32::NAN;
+    let observations = observations(&obs);
+    let mut cpu = SunAwareTrainer::new(start.clone());
+    assert!(cpu.step(&observations[0], 0.0).is_err());
+    let mut gpu = SunAwareTrainer::new(start);
+    gpu.set_backend(&backend).unwrap();
+    let before = checkpoint::to_bytes(&gpu);
+    let stats = gpu.step(&observations[0], 0.0).unwrap();
+    assert!(stats.skipped);
+    assert_eq!(gpu.skipped_nonfinite, 1);
+    assert_eq!(gpu.steps, 0);
+    gpu.skipped_nonfinite = 0;
+    assert_eq!(
+        checkpoint::to_bytes(&gpu),
+        before,
+        "a refused step changed the state"
+    );
+}
+
+/// A far view sizes the sorts; a near view then outgrows them: the device refuses the
+/// step, and it is redone at the exact counts. With all rates 0 nothing moves, so the
+/// near step after the far one gives the loss of a near step on a fresh trainer, bit for
+/// bit (deterministic context, configuration b).
+#[test]
+fn a_resident_sort_overflow_is_redone() {
+    let Some(backend) = deterministic_backend() else {
+        return;
+    };
+    let (mut start, obs) = setup_with_width(Variant::B, 1, 32);
+    let lr = &mut start.config.lr;
+    (lr.position_init, lr.position_final) = (0.0, 0.0);
+    (lr.sh_dc, lr.sh_rest, lr.opacity, lr.scale) = (0.0, 0.0, 0.0, 0.0);
+    (lr.rotation, lr.feature, lr.shadow_latent) = (0.0, 0.0, 0.0);
+    (lr.appearance_mlp, lr.shadow_mlp) = (0.0, 0.0);
+    let sun = obs[0].1;
+    // 300x200 px (247 tiles): from far every Gaussian touches one tile, from near many.
+    let (width, height) = (300, 200);
+    let far = orbit_camera(0, 1, 20.0, 0.6, width, height);
+    let near = orbit_camera(0, 1, 1.2, 0.6, width, height);
+    let image = vec![0.5f32; (width * height * 3) as usize];
+    let view = |camera: Camera| Observation {
+        camera,
+        sun_dir: sun,
+        image: &image,
+        mask: None,
+    };
+    let mut a = SunAwareTrainer::new(start.clone());
+    a.set_backend(&backend).unwrap();
+    let mut b = a.clone();
+    let far_stats = a.step(&view(far), 0.0).unwrap();
+    let a_near = a.step(&view(near), 0.0).unwrap();
+    let b_near = b.step(&view(near), 0.0).unwrap();
+    eprintln!(
+        "far: {} visible; near: {} visible, loss {} (after far) vs {} (fresh)",
+        far_stats.visible, a_near.visible, a_near.loss, b_near.loss
+    );
+    assert!(!a_near.skipped && !b_near.skipped);
+    assert_eq!(far_stats.device_sort_retries, 0);
+    assert_eq!(
+        a_near.device_sort_retries, 1,
+        "the near step did not outgrow the sort"
+    );
+    assert_eq!(b_near.device_sort_retries, 0);
+    assert_eq!(a_near.loss.to_bits(), b_near.loss.to_bits());
+    assert_eq!(a_near.visible, b_near.visible);
 }

@@ -1,1 +1,1085 @@
-//! Device-resident training step of the Sun-aware model. (Work in progress.)
+//! Device-resident training of the Sun-aware model (configurations b-d): the Gaussians,
+//! both networks' weights, every Adam moment and the densification statistics live in
+//! device buffers, and one training step (the CPU's `SunAwareTrainer::step`) runs as one
+//! command buffer with one small readback ([`SunAwareResident::step`]).
+//!
+//! A step, in recording order:
+//! 1. the rasterizer rows from the packed parameters (`resident_pack`, no SH colour);
+//! 2. the visible list: the rasterizer's projection with zero channels, survivors flagged
+//!    (`sa_survive`), numbered by the prefix sum, listed in index order with their count
+//!    on the device (`sa_list`): the CPU's visible list, which is the networks' batch
+//!    (the non-contributing skip needs the CPU's alpha pass, so the batch is every
+//!    visible Gaussian, as on the hybrid wgpu path);
+//! 3. (c-d) the shadow pass `V` from the packed parameters ([`GpuShadow`]);
+//! 4. Phi's input, forward, and scatter into channels 0..3; (c-d) Psi's, into channel 3
+//!    (`V * P` or `P`) ([`NetworkIo`], [`GpuMlp`]); the channels are checked finite;
+//! 5. the rasterizer's forward with those channels, `RGB * S` (`sa_compose`), the masked
+//!    L1 + SSIM loss and its image gradient ([`GpuLoss`]), `d(RGB, S)`
+//!    (`sa_compose_backward`), the rasterizer's backward;
+//! 6. the geometry gradients and `L_iso` (`sa_grads`), then Phi's and Psi's backward and
+//!    the scatter of their input gradients into features, latents and means;
+//! 7. every gradient checked finite (`sa_finite`); densification statistics; Adam on the
+//!    Gaussians (`adam.wgsl`, per-group rates) and on each network (the same kernel).
+//!
+//! The networks' row count lives on the device: their kernels are dispatched over all `n`
+//! Gaussians and skip rows past the count, so nothing waits for it. The two sorts
+//! (rasterizer, light pass) are sized from the recent steps' entry counts; a step that
+//! outgrows either is refused on the device (flags bit 1) and redone at the exact counts.
+//! Any non-finite or degenerate value (flags bit 0) refuses the step: nothing changes,
+//! as on the CPU, which skips such a step.
+//!
+//! Each subsystem (rasterizer and loss, light pass, networks, this module's kernels) takes
+//! its per-step buffers from its own [`Scratch`] pool: pools key buffers and uniforms by
+//! label, and a uniform written twice before one submission would hold only its last
+//! value.
+//!
+//! Invariants: the CPU path is the reference (`tests/gpu_sunaware_resident.rs` compares
+//! one step's parameters and a short training's PSNR); the host copy is brought up to
+//! date only by [`SunAwareResident::download`]; a refused step changes nothing on the
+//! device and is reported as refused.
+
+use std::sync::Arc;
+
+use super::loss::{combine, pixel_weights, GpuLoss};
+use super::mlp::{DeviceNetwork, GpuMlp};
+use super::network_io::NetworkIo;
+use super::raster::{frame_bytes, DeviceInputs, GpuRasterizer, SSTRIDE};
+use super::resident::{
+    adam_words, offsets, pack, pad4, step_words, unpack, ADAM, GSTRIDE, RECENT_STEPS,
+    REFUSED_NONFINITE, REFUSED_OVERFLOW, RESIDENT_COLOUR, RESIDENT_COMMON, RESIDENT_OVERFLOW,
+    RESIDENT_PACK, RESIDENT_STATS,
+};
+use super::shadow::GpuShadow;
+use super::{
+    bytes_f32, bytes_u32, dispatch_1d, f32_bytes, groups_1d, u32_bytes, GpuError, Scratch,
+};
+use crate::camera::Camera;
+use crate::densify::DensifyStats;
+use crate::loss::ImageShape;
+use crate::model::{Param, ParamSet};
+use crate::optim::{Adam, GroupRates};
+use crate::raster::bin::TileGrid;
+use crate::raster::blend::AlphaMode;
+use crate::raster::camera_frame;
+use crate::regularizer::IsoReduction;
+use crate::sunaware::config::ShadowRefinement;
+use crate::sunaware::trainer::FlatAdam;
+use crate::sunaware::SunAwareModel;
+
+const SA_SURVIVE: &str = include_str!("shaders/sa_survive.wgsl");
+const SA_LIST: &str = include_str!("shaders/sa_list.wgsl");
+const SA_COMPOSE: &str = include_str!("shaders/sa_compose.wgsl");
+const SA_COMPOSE_BACKWARD: &str = include_str!("shaders/sa_compose_backward.wgsl");
+const SA_GRADS: &str = include_str!("shaders/sa_grads.wgsl");
+const SA_FINITE: &str = include_str!("shaders/sa_finite.wgsl");
+
+/// Floats of the rasterizer's gradient row ahead of the channels (project_backward.wgsl).
+const OUT_FIXED: u32 = 13;
+
+/// This module's kernels and the shared resident ones.
+struct Pipelines {
+    pack: wgpu::ComputePipeline,
+    survive: wgpu::ComputePipeline,
+    list: wgpu::ComputePipeline,
+    compose: wgpu::ComputePipeline,
+    compose_backward: wgpu::ComputePipeline,
+    grads: wgpu::ComputePipeline,
+    finite: wgpu::ComputePipeline,
+    stats: wgpu::ComputePipeline,
+    adam: wgpu::ComputePipeline,
+    overflow: wgpu::ComputePipeline,
+    loss: GpuLoss,
+}
+
+/// Per-Gaussian device state, sized for `capacity` Gaussians.
+struct Buffers {
+    capacity: usize,
+    params: wgpu::Buffer,
+    grads: wgpu::Buffer,
+    m: wgpu::Buffer,
+    v: wgpu::Buffer,
+    /// `grad_accum`, `visible_count`, `max_radius_px`, `n` each (resident_stats.wgsl).
+    stats: wgpu::Buffer,
+}
+
+/// Every per-step scratch pool (see the module header: one per subsystem).
+#[derive(Default)]
+struct Pools {
+    raster: Scratch,
+    shadow: Scratch,
+    networks: Scratch,
+    own: Scratch,
+}
+
+/// One step's inputs: an observation, the Gaussians' per-group rates and the networks'.
+#[derive(Clone, Copy, Debug)]
+pub struct SunAwareStepInput<'a> {
+    pub camera: &'a Camera,
+    /// Unit vector towards the Sun, target body frame (normalised by the caller).
+    pub sun_dir: glam::Vec3,
+    /// `H * W * 3` RGB.
+    pub target: &'a [f32],
+    /// Optional `H * W` foreground weights in [0, 1].
+    pub mask: Option<&'a [f32]>,
+    pub rates: &'a GroupRates,
+    pub appearance_lr: f32,
+    pub shadow_lr: f32,
+}
+
+/// What one resident step did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SunAwareStepReport {
+    /// A non-finite or degenerate value somewhere in the step: nothing was changed.
+    pub refused: bool,
+    /// Steps redone because a sort outgrew its capacity (0 or 1).
+    pub sort_retries: usize,
+    /// Gaussians whose rasterizer gradient came out non-finite and was zeroed.
+    pub dropped_nonfinite: usize,
+    /// Photometric loss, its parts (masked means), and `lambda_iso L_iso`.
+    pub loss: f32,
+    pub l1: f32,
+    pub ssim: f32,
+    pub iso: f32,
+    /// Gaussians that survived the projection (the networks' rows).
+    pub visible: usize,
+    /// (tile, Gaussian) pairs blended in the camera pass and in the light pass.
+    pub tile_entries: usize,
+    pub light_entries: usize,
+    /// Wall time of the step, recording and waiting included, ms.
+    pub total_ms: f64,
+}
+
+/// The Sun-aware model's training state on the device (see the module header).
+pub struct SunAwareResident {
+    raster: Arc<GpuRasterizer>,
+    shadow: Arc<GpuShadow>,
+    mlp: Arc<GpuMlp>,
+    io: NetworkIo,
+    pipelines: Pipelines,
+    dims: [usize; Param::COUNT],
+    n: usize,
+    buffers: Buffers,
+    appearance: Option<DeviceNetwork>,
+    shadow_net: Option<DeviceNetwork>,
+    pools: Pools,
+    /// Targets and pixel weights uploaded in this batch, by the host slices' identity
+    /// (see [`SunAwareResident::begin_batch`]).
+    targets: Vec<CachedTarget>,
+    recent_entries: std::collections::VecDeque<(u64, u64)>,
+    adam_step: u64,
+    beta1: f32,
+    beta2: f32,
+    eps: f32,
+}
+
+impl std::fmt::Debug for SunAwareResident {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "SunAwareResident({} Gaussians, capacity {}, {} Adam steps)",
+            self.n, self.buffers.capacity, self.adam_step
+        )
+    }
+}
+
+/// A target image and its pixel weights on the device, with the identity (address and
+/// length) of the host slices they came from.
+struct CachedTarget {
+    key: (usize, usize, usize, usize),
+    target: wgpu::Buffer,
+    weights: wgpu::Buffer,
+}
+
+/// Keyframes a batch keeps on the device at most (beyond it the oldest upload is reused).
+const MAX_CACHED_TARGETS: usize = 64;
+
+/// A one-word-count uniform (`struct { n, pad, pad, pad }` in the kernels).
+fn count_words(n: usize) -> Vec<u8> {
+    u32_bytes(&[n as u32, 0, 0, 0])
+}
+
+impl SunAwareResident {
+    /// Compiles the kernels on the rasterizer's device; [`SunAwareResident::upload`] then
+    /// puts a trainer's state on it.
+    pub fn new(
+        raster: Arc<GpuRasterizer>,
+        shadow: Arc<GpuShadow>,
+        mlp: Arc<GpuMlp>,
+    ) -> Result<Self, GpuError> {
+        let ctx = raster.context();
+        let common = format!("{RESIDENT_COMMON}\n");
+        let pipelines = Pipelines {
+            pack: ctx.pipeline(
+                "sa pack",
+                &format!("{common}{RESIDENT_COLOUR}\n{RESIDENT_PACK}"),
+            )?,
+            survive: ctx.pipeline("sa survive", SA_SURVIVE)?,
+            list: ctx.pipeline("sa list", SA_LIST)?,
+            compose: ctx.pipeline("sa compose", SA_COMPOSE)?,
+            compose_backward: ctx.pipeline("sa compose backward", SA_COMPOSE_BACKWARD)?,
+            grads: ctx.pipeline("sa grads", &format!("{common}{SA_GRADS}"))?,
+            finite: ctx.pipeline("sa finite", &format!("{common}{SA_FINITE}"))?,
+            stats: ctx.pipeline("sa stats", &format!("{common}{RESIDENT_STATS}"))?,
+            adam: ctx.pipeline("sa adam", ADAM)?,
+            overflow: ctx.pipeline("sa overflow", RESIDENT_OVERFLOW)?,
+            loss: GpuLoss::new(ctx, 3)?,
+        };
+        let io = NetworkIo::new(ctx)?;
+        let dims = [0; Param::COUNT];
+        let buffers = Self::allocate(ctx, &dims, 1)?;
+        Ok(Self {
+            raster,
+            shadow,
+            mlp,
+            io,
+            pipelines,
+            dims,
+            n: 0,
+            buffers,
+            appearance: None,
+            shadow_net: None,
+            pools: Pools::default(),
+            targets: Vec::new(),
+            recent_entries: std::collections::VecDeque::new(),
+            adam_step: 0,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: crate::optim::ADAM_EPS,
+        })
+    }
+
+    fn allocate(
+        ctx: &super::GpuContext,
+        dims: &[usize; Param::COUNT],
+        capacity: usize,
+    ) -> Result<Buffers, GpuError> {
+        let values = (dims.iter().sum::<usize>() * capacity).max(1) as u64 * 4;
+        Ok(Buffers {
+            capacity,
+            params: ctx.storage("sa params", values)?,
+            grads: ctx.storage("sa grads", values)?,
+            m: ctx.storage("sa adam m", values)?,
+            v: ctx.storage("sa adam v", values)?,
+            stats: ctx.storage("sa densify stats", capacity as u64 * 12)?,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// Adam steps taken on the device (the Gaussians' optimiser).
+    pub fn adam_step(&self) -> u64 {
+        self.adam_step
+    }
+
+    /// Replaces the device state with the trainer's parts: the model's Gaussians and
+    /// networks, the three optimisers and the statistics. Buffers grow with 50% head room.
+    pub fn upload(
+        &mut self,
+        model: &SunAwareModel,
+        adam: &Adam,
+        appearance_adam: &FlatAdam,
+        shadow_adam: &FlatAdam,
+        stats: &DensifyStats,
+    ) -> Result<(), GpuError> {
+        let params = &model.gaussians.params;
+        let n = params.len();
+        let dims = params.dims();
+        let same = |a: &ParamSet| a.dims() == dims && a.len() == n;
+        if !same(&adam.m) || !same(&adam.v) || stats.len() != n {
+            return Err(GpuError::Invalid(format!(
+                "parameters ({n} rows), moments ({} and {} rows) and statistics ({} rows) \
+                 differ",
+                adam.m.len(),
+                adam.v.len(),
+                stats.len()
+            )));
+        }
+        if model.appearance.is_none() {
+            return Err(GpuError::Invalid(
+                "the resident Sun-aware step needs the appearance network (configurations \
+                 b-d)"
+                    .into(),
+            ));
+        }
+        offsets(&dims, n)?;
+        let ctx = self.raster.context();
+        if n > self.buffers.capacity || dims != self.dims {
+            let capacity = n.saturating_add(n / 2).max(1);
+            self.buffers = Self::allocate(ctx, &dims, capacity)?;
+        }
+        self.dims = dims;
+        let q = &ctx.queue;
+        q.write_buffer(&self.buffers.params, 0, &pad4(f32_bytes(&pack(params))));
+        q.write_buffer(&self.buffers.m, 0, &pad4(f32_bytes(&pack(&adam.m))));
+        q.write_buffer(&self.buffers.v, 0, &pad4(f32_bytes(&pack(&adam.v))));
+        let mut words: Vec<u32> = stats.grad_accum.iter().map(|v| v.to_bits()).collect();
+        words.extend_from_slice(&stats.visible_count);
+        words.extend(stats.max_radius_px.iter().map(|v| v.to_bits()));
+        q.write_buffer(&self.buffers.stats, 0, &pad4(u32_bytes(&words)));
+        self.appearance = Self::network(
+            ctx,
+            self.appearance.take(),
+            model.appearance.as_ref().map(|a| &a.mlp),
+            appearance_adam,
+        )?;
+        self.shadow_net = Self::network(
+            ctx,
+            self.shadow_net.take(),
+            model.shadow.as_ref().map(|s| &s.mlp),
+            shadow_adam,
+        )?;
+        self.n = n;
+        self.adam_step = adam.step;
+        (self.beta1, self.beta2, self.eps) = (adam.beta1, adam.beta2, adam.eps);
+        self.begin_batch();
+        Ok(())
+    }
+
+    /// A network's device state from the host's, reusing `old`'s buffers when it fits.
+    fn network(
+        ctx: &super::GpuContext,
+        old: Option<DeviceNetwork>,
+        mlp: Option<&crate::nn::Mlp>,
+        adam: &FlatAdam,
+    ) -> Result<Option<DeviceNetwork>, GpuError> {
+        let Some(mlp) = mlp else {
+            return Ok(None);
+        };
+        if let Some(mut net) = old {
+            if net.widths() == mlp.widths() {
+                net.upload(ctx, mlp, &adam.m, &adam.v, adam.step)?;
+                return Ok(Some(net));
+            }
+        }
+        Ok(Some(DeviceNetwork::new(
+            ctx, mlp, &adam.m, &adam.v, adam.step,
+        )?))
+    }
+
+    /// Starts a batch of steps whose observations' images stay alive and unchanged until
+    /// the next call: each distinct target (and mask) is uploaded once per batch, when
+    /// first stepped on, and found again by its slices' address and length. The upload
+    /// ([`SunAwareResident::upload`]) starts a batch too.
+    pub fn begin_batch(&mut self) {
+        self.targets.clear();
+    }
+
+    /// The device copy of `target` and its pixel weights, uploading them on first use in
+    /// this batch.
+    fn target_buffers(
+        &mut self,
+        target: &[f32],
+        mask: Option<&[f32]>,
+        shape: ImageShape,
+    ) -> Result<(wgpu::Buffer, wgpu::Buffer), GpuError> {
+        let key = (
+            target.as_ptr() as usize,
+            target.len(),
+            mask.map_or(0, |m| m.as_ptr() as usize),
+            mask.map_or(0, |m| m.len()),
+        );
+        if let Some(c) = self.targets.iter().find(|c| c.key == key) {
+            return Ok((c.target.clone(), c.weights.clone()));
+        }
+        let weights = pixel_weights(mask, shape)?;
+        let ctx = self.raster.context();
+        let (target_buf, weights_buf) = if self.targets.len() >= MAX_CACHED_TARGETS {
+            let old = self.targets.remove(0);
+            (old.target, old.weights)
+        } else {
+            let pixels = shape.pixels() as u64;
+            (
+                ctx.storage("sa target", pixels * 12)?,
+                ctx.storage("sa pixel weights", pixels * 4)?,
+            )
+        };
+        let (target_buf, weights_buf) = if target_buf.size() >= shape.values() as u64 * 4 {
+            (target_buf, weights_buf)
+        } else {
+            let pixels = shape.pixels() as u64;
+            (
+                ctx.storage("sa target", pixels * 12)?,
+                ctx.storage("sa pixel weights", pixels * 4)?,
+            )
+        };
+        ctx.queue
+            .write_buffer(&target_buf, 0, &pad4(f32_bytes(target)));
+        ctx.queue
+            .write_buffer(&weights_buf, 0, &pad4(f32_bytes(&weights)));
+        self.targets.push(CachedTarget {
+            key,
+            target: target_buf.clone(),
+            weights: weights_buf.clone(),
+        });
+        Ok((target_buf, weights_buf))
+    }
+
+    /// Copies the device state into the trainer's parts (same shapes as uploaded).
+    pub fn download(
+        &self,
+        model: &mut SunAwareModel,
+        adam: &mut Adam,
+        appearance_adam: &mut FlatAdam,
+        shadow_adam: &mut FlatAdam,
+        stats: &mut DensifyStats,
+    ) -> Result<(), GpuError> {
+        let n = self.n;
+        let params = &mut model.gaussians.params;
+        if params.len() != n || params.dims() != self.dims || adam.m.len() != n {
+            return Err(GpuError::Invalid(format!(
+                "host model has {} rows, the device {n}",
+                params.len()
+            )));
+        }
+        let values = (self.dims.iter().sum::<usize>() * n) as u64 * 4;
+        let ctx = self.raster.context();
+        let b = &self.buffers;
+        let back = ctx.read_back(
+            ctx.encoder("sa download"),
+            &[
+                (&b.params, values),
+                (&b.m, values),
+                (&b.v, values),
+                (&b.stats, n as u64 * 12),
+            ],
+        )?;
+        unpack(&bytes_f32(&back[0]), params);
+        unpack(&bytes_f32(&back[1]), &mut adam.m);
+        unpack(&bytes_f32(&back[2]), &mut adam.v);
+        let words = bytes_u32(&back[3]);
+        stats.grad_accum = words[..n].iter().map(|w| f32::from_bits(*w)).collect();
+        stats.visible_count = words[n..2 * n].to_vec();
+        stats.max_radius_px = words[2 * n..3 * n]
+            .iter()
+            .map(|w| f32::from_bits(*w))
+            .collect();
+        adam.step = self.adam_step;
+        if let (Some(net), Some(host)) = (&self.appearance, model.appearance.as_mut()) {
+            net.download(
+                ctx,
+                &mut host.mlp,
+                &mut appearance_adam.m,
+                &mut appearance_adam.v,
+            )?;
+            appearance_adam.step = net.adam_step();
+        }
+        if let (Some(net), Some(host)) = (&self.shadow_net, model.shadow.as_mut()) {
+            net.download(ctx, &mut host.mlp, &mut shadow_adam.m, &mut shadow_adam.v)?;
+            shadow_adam.step = net.adam_step();
+        }
+        Ok(())
+    }
+
+    /// One training step of `model`'s configuration on the device state (the model itself
+    /// supplies the settings, the scene box and the networks' shapes; its host values are
+    /// not read). Sorts are sized from recent steps; a step that outgrows them is redone
+    /// once at the exact counts.
+    pub fn step(
+        &mut self,
+        model: &SunAwareModel,
+        input: &SunAwareStepInput,
+    ) -> Result<SunAwareStepReport, GpuError> {
+        let t0 = std::time::Instant::now();
+        let head = |e: u64| e + e / 16 + 256;
+        let capacity = self
+            .recent_entries
+            .iter()
+            .copied()
+            .reduce(|a, b| (a.0.max(b.0), a.1.max(b.1)))
+            .map(|(c, l)| (head(c), head(l)));
+        let first = self.step_with(model, input, capacity)?;
+        let mut report = match first {
+            Attempt::Done(r) => r,
+            Attempt::Overflow { camera, light } => {
+                match self.step_with(model, input, Some((camera, light)))? {
+                    Attempt::Done(mut r) => {
+                        r.sort_retries = 1;
+                        r
+                    }
+                    Attempt::Overflow { .. } => {
+                        return Err(GpuError::Invalid(
+                            "a sort overflowed at its exact entry count".into(),
+                        ))
+                    }
+                }
+            }
+        };
+        report.total_ms = t0.elapsed().as_secs_f64() * 1e3;
+        Ok(report)
+    }
+}
+
+/// A step's outcome before the retry logic.
+enum Attempt {
+    Done(SunAwareStepReport),
+    /// A sort outgrew its capacity: the exact entry counts for the redo.
+    Overflow {
+        camera: u64,
+        light: u64,
+    },
+}
+
+impl SunAwareResident {
+    fn step_with(
+        &mut self,
+        model: &SunAwareModel,
+        input: &SunAwareStepInput,
+        capacity: Option<(u64, u64)>,
+    ) -> Result<Attempt, GpuError> {
+        let Some(appearance) = model.appearance.as_ref() else {
+            return Err(GpuError::Invalid("no appearance network".into()));
+        };
+        let shadowed = model.config.variant.uses_shadow();
+        let nc = if shadowed { 4 } else { 3 };
+        let n = self.n;
+        let camera = input.camera;
+        let settings = model.raster_settings(false);
+        let shape = ImageShape::new(
+            camera.intrinsics.width as usize,
+            camera.intrinsics.height as usize,
+            3,
+        );
+        if input.target.len() != shape.values() || shape.values() == 0 {
+            return Err(GpuError::Invalid(format!(
+                "target image: expected {} values (H * W * 3), got {}",
+                shape.values(),
+                input.target.len()
+            )));
+        }
+        let (target, pixel_weights_buf) = self.target_buffers(input.target, input.mask, shape)?;
+        let Some(phi) = self.appearance.as_ref() else {
+            return Err(GpuError::Invalid("no state uploaded".into()));
+        };
+        let ctx = self.raster.context();
+        let pools = &self.pools;
+        let own = &pools.own;
+        let off = offsets(&self.dims, n)?;
+        let ostride = OUT_FIXED + nc as u32;
+        let b = &self.buffers;
+        let pixels = shape.pixels() as u64;
+
+        let step_u = own.uniform(
+            ctx,
+            "sa step",
+            &step_words(&self.dims, n, None, camera, true, ostride),
+        )?;
+        let n_u = own.uniform(ctx, "sa n", &count_words(n))?;
+        let flags = own.storage(ctx, "sa flags", 16)?;
+        let gauss = own.storage(ctx, "sa gauss", n as u64 * GSTRIDE * 4)?;
+        let zero_chans = own.storage(ctx, "sa zero channels", (n * nc) as u64 * 4)?;
+        let chans = own.storage(ctx, "sa channels", (n * nc) as u64 * 4)?;
+        let pre_splats = own.storage(ctx, "sa visible splats", (n * SSTRIDE) as u64 * 4)?;
+        let pre_counts = own.storage(ctx, "sa visible tile counts", (n as u64 + 1) * 4)?;
+        let survive = own.storage(ctx, "sa survivors", (n as u64 + 1) * 4)?;
+        let list = own.storage(ctx, "sa list", n.max(1) as u64 * 4)?;
+        let count = own.storage(ctx, "sa count", 4)?;
+        let mut encoder = ctx.encoder("sa step");
+        encoder.clear_buffer(&flags, 0, None);
+        encoder.clear_buffer(&zero_chans, 0, None);
+        encoder.clear_buffer(&chans, 0, None);
+        encoder.clear_buffer(&pre_counts, 0, None);
+        encoder.clear_buffer(&list, 0, None);
+        let mut keep = Vec::new();
+        {
+            let bind = ctx.bind_group(
+                &self.pipelines.pack,
+                &[&step_u, &b.params, &gauss, &zero_chans],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.pack, &bind, n as u64);
+        }
+        // The visible list: the rasterizer's own projection (zero channels are finite, so
+        // only geometry culls), its survivors numbered in index order.
+        {
+            let frame = camera_frame(camera, settings.near_m).map_err(GpuError::Raster)?;
+            let mode = AlphaMode {
+                smooth: settings.smooth_cutoff,
+            };
+            let grid = TileGrid::new(camera.intrinsics.width, camera.intrinsics.height);
+            let frame_u = own.uniform(
+                ctx,
+                "sa visible frame",
+                &frame_bytes(
+                    &frame,
+                    mode.cutoff(),
+                    &grid,
+                    n as u32,
+                    mode.smooth,
+                    0,
+                    0,
+                    &settings.background,
+                ),
+            )?;
+            let project = &self.raster.channel_pipelines(nc)?.project;
+            let bind = ctx.bind_group(
+                project,
+                &[&frame_u, &gauss, &zero_chans, &pre_splats, &pre_counts],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, project, &bind, n as u64);
+        }
+        {
+            let bind = ctx.bind_group(&self.pipelines.survive, &[&n_u, &pre_splats, &survive]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.survive, &bind, n as u64 + 1);
+        }
+        self.raster.encode_scan_in(
+            &mut encoder,
+            &survive,
+            n as u64 + 1,
+            &mut keep,
+            Some(own),
+            0,
+        )?;
+        {
+            let bind = ctx.bind_group(
+                &self.pipelines.list,
+                &[&n_u, &pre_splats, &survive, &list, &count],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.list, &bind, n as u64 + 1);
+        }
+
+        // (c-d) The light pass.
+        let cam_pos = camera.position();
+        let visibility = own.storage(ctx, "sa visibility", n.max(1) as u64 * 4)?;
+        let mut light_record = None;
+        if shadowed {
+            let (record, enc) = self.shadow.encode_sun_visibility(
+                encoder,
+                &pools.shadow,
+                &b.params,
+                &off,
+                n,
+                input.sun_dir,
+                cam_pos,
+                &model.scene_box,
+                &model.config.light,
+                model.config.near_m,
+                capacity.map(|c| c.1),
+                &visibility,
+                &flags,
+            )?;
+            encoder = enc;
+            light_record = Some(record);
+        }
+
+        // The networks' forward and their channels.
+        let nets = &pools.networks;
+        let phi_in = nets.storage(
+            ctx,
+            "sa phi input",
+            (n.max(1) * appearance.input_width()) as u64 * 4,
+        )?;
+        let phi_out = nets.storage(ctx, "sa phi output", n.max(1) as u64 * 12)?;
+        let sun = input.sun_dir.to_array();
+        self.io.encode_phi_input(
+            &mut encoder,
+            nets,
+            appearance,
+            &b.params,
+            &off,
+            n,
+            &list,
+            &count,
+            sun,
+            cam_pos.to_array(),
+            &phi_in,
+            &flags,
+        )?;
+        let phi_tape = self.mlp.encode_forward(
+            &mut encoder,
+            nets,
+            "phi",
+            phi,
+            &phi_in,
+            &count,
+            n,
+            &phi_out,
+        )?;
+        self.io
+            .encode_phi_scatter(&mut encoder, nets, n, nc, &list, &count, &phi_out, &chans)?;
+        let multiply = model.config.shadow_refinement == ShadowRefinement::Multiply;
+        let psi_parts = match (model.shadow.as_ref(), self.shadow_net.as_ref(), shadowed) {
+            (Some(net), Some(psi), true) => {
+                let psi_in = nets.storage(
+                    ctx,
+                    "sa psi input",
+                    (n.max(1) * net.input_width()) as u64 * 4,
+                )?;
+                let psi_out = nets.storage(ctx, "sa psi output", n.max(1) as u64 * 4)?;
+                self.io.encode_psi_input(
+                    &mut encoder,
+                    nets,
+                    net,
+                    &model.scene_box,
+                    &b.params,
+                    &off,
+                    n,
+                    &list,
+                    &count,
+                    sun,
+                    &visibility,
+                    &psi_in,
+                    &flags,
+                )?;
+                let tape = self.mlp.encode_forward(
+                    &mut encoder,
+                    nets,
+                    "psi",
+                    psi,
+                    &psi_in,
+                    &count,
+                    n,
+                    &psi_out,
+                )?;
+                self.io.encode_psi_scatter(
+                    &mut encoder,
+                    nets,
+                    n,
+                    nc,
+                    &list,
+                    &count,
+                    &visibility,
+                    &psi_out,
+                    multiply,
+                    &chans,
+                )?;
+                Some((net, psi, tape))
+            }
+            _ => None,
+        };
+        self.encode_finite(&mut encoder, &chans, n * nc, "channels", &flags)?;
+
+        // Camera pass, loss, backward.
+        let device = self.raster.forward_device(
+            DeviceInputs {
+                camera,
+                settings: &settings,
+                n,
+                nc,
+                background: &settings.background,
+                gauss,
+                chans,
+            },
+            encoder,
+            Some(&pools.raster),
+            capacity.map(|c| c.0),
+        )?;
+        let mut encoder = device.encoder;
+        let st = &device.state;
+        let cap_u = own.uniform(
+            ctx,
+            "sa sort capacity",
+            &u32_bytes(&[n as u32, device.n_sort as u32, 0, 0]),
+        )?;
+        {
+            let bind = ctx.bind_group(&self.pipelines.overflow, &[&cap_u, &device.counts, &flags]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipelines.overflow);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(1, 1, 1);
+        }
+        let px_u = own.uniform(ctx, "sa pixels", &count_words(pixels as usize))?;
+        let d_image = own.storage(ctx, "sa image gradient", pixels * 5 * 4)?;
+        encoder.clear_buffer(&d_image, 0, None);
+        let image = if shadowed {
+            let image = own.storage(ctx, "sa image", pixels * 12)?;
+            let bind = ctx.bind_group(&self.pipelines.compose, &[&px_u, &device.color, &image]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.compose, &bind, pixels);
+            drop(pass);
+            image
+        } else {
+            device.color.clone()
+        };
+        let loss_buffers = self.pipelines.loss.encode(
+            ctx,
+            &mut encoder,
+            shape,
+            model.config.lambda_dssim,
+            &image,
+            &target,
+            &pixel_weights_buf,
+            &d_image,
+            &flags,
+            Some(&pools.raster),
+        )?;
+        let px_grad = if shadowed {
+            let d_color = own.storage(ctx, "sa colour gradient", pixels * 6 * 4)?;
+            let bind = ctx.bind_group(
+                &self.pipelines.compose_backward,
+                &[&px_u, &device.color, &d_image, &d_color],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.compose_backward, &bind, pixels);
+            drop(pass);
+            d_color
+        } else {
+            d_image.clone()
+        };
+        let rows = self.raster.encode_backward(
+            st,
+            device.tile_entries.unwrap_or(device.n_sort as usize),
+            &px_grad,
+            &mut encoder,
+            Some(&pools.raster),
+        )?;
+
+        // Gradients: geometry and L_iso, then the networks' terms.
+        let iso_factor = if model.config.variant.uses_isotropic_loss() {
+            model.config.lambda_iso as f64
+                * match model.config.iso_reduction {
+                    IsoReduction::Sum => 1.0,
+                    IsoReduction::MeanOverEntries => 1.0 / (3 * n.max(1)) as f64,
+                }
+        } else {
+            0.0
+        };
+        // One partial per dispatched workgroup (the grid may pad past ceil(n / 256)).
+        let (gx, gy) = groups_1d(n as u64);
+        let groups = gx as usize * gy as usize;
+        let partials = own.storage(ctx, "sa iso partials", groups as u64 * 4)?;
+        encoder.clear_buffer(&partials, 0, None);
+        {
+            let iso_u = own.uniform(
+                ctx,
+                "sa iso",
+                &u32_bytes(&[(iso_factor as f32).to_bits(), 0, 0, 0]),
+            )?;
+            let bind = ctx.bind_group(
+                &self.pipelines.grads,
+                &[
+                    &step_u, &iso_u, &b.params, &rows, &b.grads, &flags, &partials,
+                ],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.grads, &bind, n as u64);
+        }
+        let phi_d_out = nets.storage(ctx, "sa phi output gradient", n.max(1) as u64 * 12)?;
+        let phi_d_in = nets.storage(
+            ctx,
+            "sa phi input gradient",
+            (n.max(1) * appearance.input_width()) as u64 * 4,
+        )?;
+        self.io
+            .encode_phi_d_output(&mut encoder, nets, n, nc, &list, &count, &rows, &phi_d_out)?;
+        self.mlp.encode_backward(
+            &mut encoder,
+            nets,
+            "phi",
+            phi,
+            &phi_tape,
+            &phi_d_out,
+            Some(&phi_d_in),
+        )?;
+        self.io.encode_phi_input_grad(
+            &mut encoder,
+            nets,
+            appearance,
+            &b.params,
+            &off,
+            n,
+            &list,
+            &count,
+            cam_pos.to_array(),
+            &phi_d_in,
+            &b.grads,
+        )?;
+        if let Some((net, psi, tape)) = &psi_parts {
+            let psi_d_out = nets.storage(ctx, "sa psi output gradient", n.max(1) as u64 * 4)?;
+            let psi_d_in = nets.storage(
+                ctx,
+                "sa psi input gradient",
+                (n.max(1) * net.input_width()) as u64 * 4,
+            )?;
+            self.io.encode_psi_d_output(
+                &mut encoder,
+                nets,
+                n,
+                nc,
+                &list,
+                &count,
+                &visibility,
+                &rows,
+                multiply,
+                &psi_d_out,
+            )?;
+            self.mlp.encode_backward(
+                &mut encoder,
+                nets,
+                "psi",
+                psi,
+                tape,
+                &psi_d_out,
+                Some(&psi_d_in),
+            )?;
+            self.io.encode_psi_input_grad(
+                &mut encoder,
+                nets,
+                net,
+                &model.scene_box,
+                &b.params,
+                &off,
+                n,
+                &list,
+                &count,
+                &psi_d_in,
+                &b.grads,
+            )?;
+        }
+
+        // Checks, statistics, Adam.
+        self.encode_finite(&mut encoder, &b.grads, off[8] as usize, "gradients", &flags)?;
+        self.encode_finite(
+            &mut encoder,
+            phi.grads(),
+            phi.len(),
+            "phi gradients",
+            &flags,
+        )?;
+        if let Some((_, psi, _)) = &psi_parts {
+            self.encode_finite(
+                &mut encoder,
+                psi.grads(),
+                psi.len(),
+                "psi gradients",
+                &flags,
+            )?;
+        }
+        {
+            let bind = ctx.bind_group(
+                &self.pipelines.stats,
+                &[&step_u, &rows, &st.splats, &flags, &b.stats],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.stats, &bind, n as u64);
+        }
+        let words = adam_words(
+            &self.dims,
+            n,
+            input.rates,
+            self.adam_step + 1,
+            (self.beta1, self.beta2, self.eps),
+        )?;
+        {
+            let adam_u = own.uniform(ctx, "sa adam", &u32_bytes(&words))?;
+            let bind = ctx.bind_group(
+                &self.pipelines.adam,
+                &[&adam_u, &b.params, &b.grads, &b.m, &b.v, &flags],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut pass, &self.pipelines.adam, &bind, words[8] as u64);
+        }
+        self.mlp
+            .encode_adam(&mut encoder, nets, "phi", phi, input.appearance_lr, &flags)?;
+        if let Some((_, psi, _)) = &psi_parts {
+            self.mlp
+                .encode_adam(&mut encoder, nets, "psi", psi, input.shadow_lr, &flags)?;
+        }
+
+        // The report: flags, loss totals, the visible count, both entry counts, L_iso.
+        let entry_count = own.storage(ctx, "sa entry count", 4)?;
+        encoder.copy_buffer_to_buffer(&device.counts, 4 * n as u64, &entry_count, 0, 4);
+        let light_count = match &light_record {
+            Some(r) => r.entry_count.clone(),
+            None => {
+                let zero = own.storage(ctx, "sa no light entries", 4)?;
+                encoder.clear_buffer(&zero, 0, None);
+                zero
+            }
+        };
+        let back = ctx.read_back(
+            encoder,
+            &[
+                (&flags, 8),
+                (&loss_buffers.totals, 8),
+                (&count, 4),
+                (&entry_count, 4),
+                (&light_count, 4),
+                (&partials, groups as u64 * 4),
+            ],
+        )?;
+        drop((
+            keep,
+            device.state,
+            loss_buffers,
+            light_record,
+            phi_tape,
+            psi_parts,
+        ));
+        let flag_words = bytes_u32(&back[0]);
+        let totals = bytes_f32(&back[1]);
+        let visible = bytes_u32(&back[2])[0] as usize;
+        let camera_entries = bytes_u32(&back[3])[0] as u64;
+        let light_entries = bytes_u32(&back[4])[0] as u64;
+        if self.recent_entries.len() == RECENT_STEPS {
+            self.recent_entries.pop_front();
+        }
+        self.recent_entries
+            .push_back((camera_entries, light_entries));
+        if flag_words[0] & REFUSED_OVERFLOW != 0 {
+            return Ok(Attempt::Overflow {
+                camera: camera_entries,
+                light: light_entries,
+            });
+        }
+        let refused = flag_words[0] & REFUSED_NONFINITE != 0;
+        if !refused {
+            self.adam_step += 1;
+            if let Some(net) = self.appearance.as_mut() {
+                net.mark_stepped();
+            }
+            if shadowed {
+                if let Some(net) = self.shadow_net.as_mut() {
+                    net.mark_stepped();
+                }
+            }
+        }
+        let iso_sum: f64 = bytes_f32(&back[5]).iter().map(|&v| v as f64).sum();
+        let iso = (iso_factor * iso_sum) as f32;
+        let photometric = combine(totals[0], totals[1], model.config.lambda_dssim, Vec::new());
+        Ok(Attempt::Done(SunAwareStepReport {
+            refused,
+            sort_retries: 0,
+            dropped_nonfinite: flag_words[1] as usize,
+            loss: photometric.loss + iso,
+            l1: photometric.l1,
+            ssim: photometric.ssim,
+            iso,
+            visible,
+            tile_entries: camera_entries as usize,
+            light_entries: light_entries as usize,
+            total_ms: 0.0,
+        }))
+    }
+
+    /// Records the finiteness check of the first `len` values of `data`.
+    fn encode_finite(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        data: &wgpu::Buffer,
+        len: usize,
+        what: &str,
+        flags: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        if len == 0 {
+            return Ok(());
+        }
+        let ctx = self.raster.context();
+        let u = self
+            .pools
+            .own
+            .uniform(ctx, &format!("sa finite {what}"), &count_words(len))?;
+        let bind = ctx.bind_group(&self.pipelines.finite, &[&u, data, flags]);
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        dispatch_1d(&mut pass, &self.pipelines.finite, &bind, len as u64);
+        Ok(())
+    }
+}

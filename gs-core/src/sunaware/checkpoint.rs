@@ -499,6 +499,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<SunAwareTrainer, SunAwareError> {
         skipped_nonfinite,
         raster_dropped,
         densify_count,
+        resident: Default::default(),
     })
 }
 

@@ -78,6 +78,7 @@ struct BackendSlot {
 struct GpuPair {
     raster: Arc<crate::gpu::GpuRasterizer>,
     shadow: Arc<crate::gpu::GpuShadow>,
+    networks: Arc<crate::gpu::GpuMlp>,
 }
 
 impl PartialEq for BackendSlot {
@@ -457,12 +458,13 @@ impl SunAwareModel {
             crate::train::Backend::Wgpu(raster) => {
                 let shadow = crate::gpu::GpuShadow::new(raster.clone()).map_err(from_gpu)?;
                 let networks =
-                    crate::gpu::GpuMlp::new(raster.context().clone()).map_err(from_gpu)?;
-                self.set_network_device(Some(Arc::new(networks)));
+                    Arc::new(crate::gpu::GpuMlp::new(raster.context().clone()).map_err(from_gpu)?);
+                self.set_network_device(Some(networks.clone()));
                 self.backend = BackendSlot {
                     gpu: Some(GpuPair {
                         raster: raster.clone(),
                         shadow: Arc::new(shadow),
+                        networks,
                     }),
                 };
                 Ok(())
@@ -489,6 +491,20 @@ impl SunAwareModel {
             return crate::train::Backend::Wgpu(g.raster.clone());
         }
         crate::train::Backend::Cpu
+    }
+
+    /// The device resident training builds on: the rasterizer, the shadow pass and the
+    /// networks' kernels of the wgpu backend (`None` on the CPU).
+    #[cfg(feature = "wgpu")]
+    pub(crate) fn gpu_parts(
+        &self,
+    ) -> Option<(
+        Arc<crate::gpu::GpuRasterizer>,
+        Arc<crate::gpu::GpuShadow>,
+        Arc<crate::gpu::GpuMlp>,
+    )> {
+        let g = self.backend.gpu.as_ref()?;
+        Some((g.raster.clone(), g.shadow.clone(), g.networks.clone()))
     }
 
     /// Switches the networks' matrix products (and `config.mlp_precision`) to `precision`;

@@ -214,6 +214,9 @@ pub struct StepStats {
     pub position_lr: f32,
     /// The step was refused because something was non-finite.
     pub skipped: bool,
+    /// Device-resident steps only: 1 when a sort outgrew the capacity sized from recent
+    /// steps and the step was redone at the exact count (nothing applied twice).
+    pub device_sort_retries: usize,
     pub timings: StepTimings,
 }
 
@@ -451,6 +454,37 @@ pub struct SunAwareTrainer {
     pub raster_dropped: u64,
     /// Densification calls so far (seeds each call's random stream).
     pub densify_count: u64,
+    /// Device-resident training on the wgpu backend (not part of the trainer's value nor
+    /// of its checkpoint).
+    pub(crate) resident: ResidentSlot,
+}
+
+/// Whether, and on what, the trainer trains device-resident on wgpu
+/// ([`SunAwareTrainer::step_many`]): on by default; the engine (compiled kernels and device
+/// buffers) is built on first use. Clones share the engine (each batch uploads its own
+/// state, and a mutex serialises batches); equality ignores the slot.
+#[derive(Clone, Default)]
+pub(crate) struct ResidentSlot {
+    hybrid: bool,
+    #[cfg(feature = "wgpu")]
+    engine:
+        Option<std::sync::Arc<std::sync::Mutex<crate::gpu::resident_sunaware::SunAwareResident>>>,
+}
+
+impl PartialEq for ResidentSlot {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for ResidentSlot {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.hybrid {
+            "ResidentSlot(hybrid)"
+        } else {
+            "ResidentSlot(resident when on wgpu)"
+        })
+    }
 }
 
 impl SunAwareTrainer {
@@ -470,6 +504,7 @@ impl SunAwareTrainer {
             skipped_nonfinite: 0,
             raster_dropped: 0,
             densify_count: 0,
+            resident: ResidentSlot::default(),
         }
     }
 
@@ -477,7 +512,32 @@ impl SunAwareTrainer {
     /// [`SunAwareModel::set_backend`]); Phi, Psi and the three Adam states stay on the CPU.
     /// The backend is not part of the trainer's value or of its checkpoint.
     pub fn set_backend(&mut self, backend: &crate::train::Backend) -> Result<(), SunAwareError> {
+        #[cfg(feature = "wgpu")]
+        {
+            self.resident.engine = None;
+        }
         self.model.set_backend(backend)
+    }
+
+    /// On `wgpu`, train device-resident (`true`, the default: [`SunAwareTrainer::step_many`]
+    /// keeps every parameter, moment and statistic on the device for a batch of steps) or
+    /// on the hybrid path (`false`: the rasterizer, shadow pass and network products on the
+    /// device, the rest on the host, every step). No effect on the CPU backend.
+    pub fn set_device_resident(&mut self, on: bool) {
+        self.resident.hybrid = !on;
+    }
+
+    /// True when steps run device-resident: the wgpu backend, residency on, and a
+    /// configuration with the appearance network (configuration (a) runs hybrid).
+    pub fn is_device_resident(&self) -> bool {
+        #[cfg(feature = "wgpu")]
+        {
+            !self.resident.hybrid
+                && self.model.appearance.is_some()
+                && self.model.gpu_parts().is_some()
+        }
+        #[cfg(not(feature = "wgpu"))]
+        false
     }
 
     /// Target size used for the position rate and the clone/split boundary, metres.
@@ -517,12 +577,152 @@ impl SunAwareTrainer {
         r
     }
 
-    /// One optimisation step on one observation.
+    /// Optimisation steps on `batch` (observation, position-rate progress) in order: the
+    /// same as calling [`SunAwareTrainer::step`] on each, but when the trainer is
+    /// device-resident ([`SunAwareTrainer::is_device_resident`]) the whole batch runs on
+    /// the device with one upload of the trainer's state before and one download after,
+    /// so the host copy (`model`, the optimisers, the statistics) is current whenever no
+    /// batch is running. Every observation is checked before any work; an error mid-batch
+    /// leaves the trainer as it was before the batch.
+    pub fn step_many(
+        &mut self,
+        batch: &[(Observation, f32)],
+    ) -> Result<Vec<StepStats>, SunAwareError> {
+        if !self.is_device_resident() {
+            return batch.iter().map(|(o, p)| self.step(o, *p)).collect();
+        }
+        #[cfg(feature = "wgpu")]
+        return self.step_many_resident(batch);
+        #[cfg(not(feature = "wgpu"))]
+        unreachable!("is_device_resident is false without the wgpu feature")
+    }
+
+    #[cfg(feature = "wgpu")]
+    fn step_many_resident(
+        &mut self,
+        batch: &[(Observation, f32)],
+    ) -> Result<Vec<StepStats>, SunAwareError> {
+        use crate::gpu::resident_sunaware::{SunAwareResident, SunAwareStepInput};
+        let gpu = |e: crate::gpu::GpuError| SunAwareError::Config(format!("wgpu backend: {e}"));
+        let mut suns = Vec::with_capacity(batch.len());
+        for (obs, progress) in batch {
+            obs.validate()?;
+            if !progress.is_finite() {
+                return Err(SunAwareError::Config(
+                    "lr_progress_in_round must be finite".into(),
+                ));
+            }
+            if !(obs.sun_dir.is_finite() && obs.sun_dir.length_squared() > 1e-12) {
+                return Err(SunAwareError::BadObservation(format!(
+                    "Sun vector {:?} is not a finite non-zero vector",
+                    obs.sun_dir
+                )));
+            }
+            suns.push(obs.sun_dir.normalize());
+        }
+        let Some((raster, shadow, networks)) = self.model.gpu_parts() else {
+            return Err(SunAwareError::Config("no wgpu backend set".into()));
+        };
+        let engine = match &self.resident.engine {
+            Some(e) => e.clone(),
+            None => {
+                let e = std::sync::Arc::new(std::sync::Mutex::new(
+                    SunAwareResident::new(raster, shadow, networks).map_err(gpu)?,
+                ));
+                self.resident.engine = Some(e.clone());
+                e
+            }
+        };
+        let mut engine = engine
+            .lock()
+            .map_err(|_| SunAwareError::Config("resident engine lock poisoned".into()))?;
+        engine
+            .upload(
+                &self.model,
+                &self.adam,
+                &self.appearance_adam,
+                &self.shadow_adam,
+                &self.densify_stats,
+            )
+            .map_err(gpu)?;
+        let (mut steps, mut skipped, mut dropped) = (self.steps, 0u64, 0u64);
+        let mut out = Vec::with_capacity(batch.len());
+        let mut failure = None;
+        for ((obs, progress), sun) in batch.iter().zip(&suns) {
+            let position_lr = self.position_lr(*progress);
+            let rates = self.group_rates(position_lr);
+            let lr = &self.model.config.lr;
+            let input = SunAwareStepInput {
+                camera: &obs.camera,
+                sun_dir: *sun,
+                target: obs.image,
+                mask: obs.mask,
+                rates: &rates,
+                appearance_lr: lr.appearance_mlp,
+                shadow_lr: lr.shadow_mlp,
+            };
+            let report = match engine.step(&self.model, &input) {
+                Ok(r) => r,
+                Err(e) => {
+                    failure = Some(gpu(e));
+                    break;
+                }
+            };
+            if report.refused {
+                skipped += 1;
+            } else {
+                steps += 1;
+                dropped += report.dropped_nonfinite as u64;
+            }
+            out.push(StepStats {
+                step: steps,
+                loss: report.loss,
+                l1: report.l1,
+                ssim: report.ssim,
+                iso: report.iso,
+                visible: report.visible,
+                network_rows: report.visible,
+                gaussians: self.model.len(),
+                position_lr,
+                skipped: report.refused,
+                device_sort_retries: report.sort_retries,
+                timings: StepTimings {
+                    total_ms: report.total_ms,
+                    ..StepTimings::default()
+                },
+            });
+        }
+        if let Some(e) = failure {
+            return Err(e);
+        }
+        engine
+            .download(
+                &mut self.model,
+                &mut self.adam,
+                &mut self.appearance_adam,
+                &mut self.shadow_adam,
+                &mut self.densify_stats,
+            )
+            .map_err(gpu)?;
+        self.steps = steps;
+        self.skipped_nonfinite += skipped;
+        self.raster_dropped += dropped;
+        Ok(out)
+    }
+
+    /// One optimisation step on one observation (on a device-resident trainer, a batch of
+    /// one: see [`SunAwareTrainer::step_many`]).
     pub fn step(
         &mut self,
         obs: &Observation,
         lr_progress_in_round: f32,
     ) -> Result<StepStats, SunAwareError> {
+        if self.is_device_resident() {
+            let mut stats = self.step_many(&[(*obs, lr_progress_in_round)])?;
+            return stats
+                .pop()
+                .ok_or_else(|| SunAwareError::Config("a batch of one gave no step".into()));
+        }
         obs.validate()?;
         if !lr_progress_in_round.is_finite() {
             return Err(SunAwareError::Config(
@@ -546,6 +746,7 @@ impl SunAwareTrainer {
             gaussians: self.model.len(),
             position_lr,
             skipped: false,
+            device_sort_retries: 0,
             timings: StepTimings::default(),
         };
         let grads = match grads {

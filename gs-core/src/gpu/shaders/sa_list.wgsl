@@ -1,0 +1,30 @@
+// Visible list of the Sun-aware resident step, part 2: survivor i goes to row scanned[i]
+// of the list (ascending Gaussian indices, the CPU's visible list), and the count
+// (scanned[n]) to count[0], where the network kernels read it.
+
+struct Count {
+    n: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
+}
+
+@group(0) @binding(0) var<uniform> c: Count;
+@group(0) @binding(1) var<storage, read> splats: array<f32>;
+@group(0) @binding(2) var<storage, read> scanned: array<u32>;
+@group(0) @binding(3) var<storage, read_write> list: array<u32>;
+@group(0) @binding(4) var<storage, read_write> count: array<u32>;
+
+@compute @workgroup_size(256)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = gid.x + gid.y * nwg.x * 256u;
+    if i == 0u {
+        count[0] = scanned[c.n];
+    }
+    if i >= c.n {
+        return;
+    }
+    if splats[12u * i + 7u] >= 0.0 {
+        list[scanned[i]] = i;
+    }
+}
