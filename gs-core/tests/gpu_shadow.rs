@@ -357,3 +357,28 @@ fn bad_inputs_are_refused() {
         .unwrap();
     assert!(v.is_empty());
 }
+
+/// One pipeline set serving models of different sizes in turn (its reused buffers hold
+/// the previous pass's values; every one is cleared or overwritten): each pass still
+/// matches the CPU, with the readback and with a capacity.
+#[test]
+fn reused_buffers_carry_nothing_between_passes() {
+    let Some(shadow) = shadow_pass() else {
+        return;
+    };
+    let big = model(2000, 15);
+    let small = model(300, 16);
+    let sun = Vec3::from_array(SUNS[2]);
+    let config = config(LightProjection::Perspective);
+    for (what, m, capacity) in [
+        ("big", &big, None),
+        ("small after big", &small, None),
+        ("big again", &big, None),
+        ("small with a capacity", &small, Some(20_000)),
+    ] {
+        let cpu = sun_visibility(m, sun, CAMERA_CENTRE, &scene_box(), &config, NEAR_M).unwrap();
+        let device = device_run(&shadow, m, sun, &config, capacity);
+        assert_eq!(device.flags, 0, "{what}");
+        assert_matches_cpu(what, &cpu, &device.visibility);
+    }
+}
