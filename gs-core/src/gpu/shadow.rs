@@ -10,9 +10,9 @@
 //! the rasterizer's projection or `ortho_splat`, and its receiver limit from
 //! `light_axis_sigmas_m`); then the rasterizer's prefix sum, key generation, bitonic sort
 //! and tile ranges bin and depth-sort the splats, each tile's receivers are sorted by
-//! their depth limit, every pixel walks its receivers and occluders, and the weights are
-//! summed per Gaussian with atomics (shadow_vis.wgsl, unchanged: the existing walk's f32
-//! atomic adds, or the compare-and-swap loop).
+//! their depth limit (entries no pixel of the tile can receive at sort last), every pixel
+//! walks its receivers and occluders, and the weights are summed per Gaussian with atomics
+//! (shadow_vis.wgsl: f32 atomic adds, or the compare-and-swap loop, as before).
 //!
 //! Invariants: the same arithmetic as the CPU functions, so `V` agrees to f32 rounding of
 //! the sums, except where rounding moves an occluder across the 1/255 alpha cutoff or the
@@ -547,7 +547,7 @@ impl GpuShadow {
         {
             let bind = ctx.bind_group(
                 &self.receiver_keys,
-                &[&frame_buf, &keys, inputs.limits, &receivers],
+                &[&frame_buf, &keys, inputs.limits, &receivers, inputs.splats],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.receiver_keys, &bind, n_sort);

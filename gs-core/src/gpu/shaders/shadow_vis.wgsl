@@ -5,6 +5,12 @@
 // depth-sorted list: limits only grow), weighted by its own footprint there. The weights
 // and weighted transmittances are summed per Gaussian with atomic adds (`acc_add`).
 // `fr.cx` carries the squared footprint radius (px^2).
+// The pointer moves up to every receiver's limit, in range of the pixel or not: the
+// transmittance a receiver reads is the same product over the same occluders in the same
+// order either way, and the walk's control flow and loads stay the same for the whole
+// workgroup (about 20% less time on a software driver than moving it only for receivers
+// in range). The receivers no pixel of the tile can see come last in the tile's list
+// (shadow_keys.wgsl) and end the walk.
 
 @group(0) @binding(0) var<uniform> fr: Frame;
 @group(0) @binding(1) var<storage, read> keys: array<vec4<u32>>;
@@ -44,8 +50,23 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3:
     var trans = 1.0;
     var next = range.x;
     for (var r = range.x; r < range.y; r++) {
-        let g = keys[receivers[r].z].z;
+        let rk = receivers[r];
+        // The rest of the tile's list are no pixel's receivers (shadow_keys.wgsl).
+        if rk.y == 0xffffffffu {
+            break;
+        }
+        let g = keys[rk.z].z;
         let sb = g * SSTRIDE;
+        let limit = limits[g];
+        while next < range.y && splats[keys[next].z * SSTRIDE + 6u] < limit {
+            if trans >= TRANSMITTANCE_STOP {
+                let alpha = occluder_alpha(keys[next].z, fx, fy);
+                if alpha >= ALPHA_MIN {
+                    trans *= 1.0 - alpha;
+                }
+            }
+            next++;
+        }
         let dx = splats[sb] - fx;
         let dy = splats[sb + 1u] - fy;
         if dx * dx + dy * dy > r2 {
@@ -57,16 +78,6 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3:
         let weight = exp(-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy);
         if !finite(weight) || !(weight > 1e-6) {
             continue;
-        }
-        let limit = limits[g];
-        while next < range.y && splats[keys[next].z * SSTRIDE + 6u] < limit {
-            if trans >= TRANSMITTANCE_STOP {
-                let alpha = occluder_alpha(keys[next].z, fx, fy);
-                if alpha >= ALPHA_MIN {
-                    trans *= 1.0 - alpha;
-                }
-            }
-            next++;
         }
         var seen = trans;
         if trans < TRANSMITTANCE_STOP {
