@@ -356,6 +356,19 @@ fn bad_inputs_are_refused() {
         )
         .unwrap();
     assert!(v.is_empty());
+    let empty_run = shadow
+        .sun_visibility_packed(
+            &empty.params,
+            Vec3::Z,
+            CAMERA_CENTRE,
+            &scene_box(),
+            &config,
+            NEAR_M,
+            Some(0),
+        )
+        .unwrap();
+    assert!(empty_run.visibility.is_empty());
+    assert_eq!((empty_run.flags, empty_run.tile_entries), (0, 0));
 }
 
 /// One pipeline set serving models of different sizes in turn (its reused buffers hold
