@@ -738,14 +738,17 @@ fn process_cpu_s() -> f64 {
 /// the output gradient, readback of the output and the gradients) against the resident
 /// path (`run_forward_backward`: one command buffer on device buffers, one wait), and the
 /// resident path with the batch's upload and readback. Wall and process CPU time, median
-/// of 5 alternated repeats after a warm-up.
+/// of 5 alternated repeats after a warm-up. `GS_MLP_BENCH_ROWS` sets another row count.
 #[test]
 #[ignore]
 fn resident_network_timings() {
     let Some(gpu) = device() else {
         return;
     };
-    let rows = 10_000;
+    let rows = std::env::var("GS_MLP_BENCH_ROWS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(10_000);
     let mlp = network_with_biases(&[37, 256, 256, 256, 3], HiddenActivation::Relu, 5);
     let mut rng = SplitMix64::new(55);
     let input: Vec<f32> = (0..rows * 37).map(|_| rng.normal()).collect();

@@ -1,8 +1,9 @@
 //! The MLP's forward and backward on the device ([`GpuMlp`]): the same network, parameter
 //! layout and arithmetic as `crate::nn::mlp` (`Y = X W + b`, hidden ReLU or LeakyReLU,
 //! sigmoid output), with every matrix product `shaders/mlp_gemm.wgsl` (one invocation per
-//! output; the weight gradient's reduction over rows split into
-//! [`WEIGHT_GRADIENT_CHUNK_ROWS`]-row chunks, added in order by `mlp_sum_chunks.wgsl`),
+//! 8 x 8 block of outputs, each output its own in-order sum; the weight gradient's
+//! reduction over rows split into [`WEIGHT_GRADIENT_CHUNK_ROWS`]-row chunks, added in order
+//! by `mlp_sum_chunks.wgsl`),
 //! bias and activation (and their backward) a pointwise kernel (`mlp_pointwise.wgsl`) and
 //! the bias gradient a column sum (`mlp_colsum.wgsl`). Every kernel reads the weights in
 //! place from one flat parameter buffer in `nn::mlp`'s layout (word offsets in its
@@ -68,6 +69,10 @@ const ADAM: &str = include_str!("shaders/adam.wgsl");
 /// of the batch): each chunk is its own set of workgroups, the chunks are added in order
 /// afterwards. Fixed, so the sums' order does not depend on the device.
 pub const WEIGHT_GRADIENT_CHUNK_ROWS: usize = 256;
+
+/// Rows (and columns) of C one `mlp_gemm.wgsl` workgroup covers: 16 x 16 invocations of
+/// 8 x 8 outputs each.
+const GEMM_BLOCK: usize = 128;
 
 /// `sunaware::trainer::FlatAdam`'s moment decay rates.
 const ADAM_BETA1: f32 = 0.9;
@@ -570,8 +575,8 @@ impl GpuMlp {
         pass.set_pipeline(&self.gemm);
         pass.set_bind_group(0, &bind, &[]);
         pass.dispatch_workgroups(
-            s.n.div_ceil(16) as u32,
-            s.m.div_ceil(16) as u32,
+            s.n.div_ceil(GEMM_BLOCK) as u32,
+            s.m.div_ceil(GEMM_BLOCK) as u32,
             s.k.div_ceil(s.k_chunk) as u32,
         );
         Ok(())
