@@ -11,16 +11,17 @@
 //! `light_axis_sigmas_m`); then the rasterizer's prefix sum, key generation, bitonic sort
 //! and tile ranges bin and depth-sort the splats, each tile's receivers are sorted by
 //! their depth limit (entries no pixel of the tile can receive at sort last), every pixel
-//! walks its receivers and occluders, and the weights are summed per Gaussian with atomics
-//! (shadow_vis.wgsl: f32 atomic adds, or the compare-and-swap loop, as before).
+//! walks its receivers and occluders, and the weights are summed per Gaussian with integer
+//! atomics on 64-bit fixed-point sums (shadow_vis.wgsl; no float atomics).
 //!
 //! Invariants: the same arithmetic as the CPU functions, so `V` agrees to f32 rounding of
 //! the sums, except where rounding moves an occluder across the 1/255 alpha cutoff or the
 //! 1e-4 transmittance stop at a pixel; `V` in [0, 1], 1 for Gaussians no pixel saw
-//! (culled, e.g. for a non-finite parameter, or off the light image). The atomic sums make
-//! the last bits vary from run to run. A recorded pass reads back nothing when given a sort
-//! capacity; it then flags (`flags[0] |= 2`) a capacity below the entry count (the flags
-//! word is only ever or-ed into, never cleared).
+//! (culled, e.g. for a non-finite parameter, or off the light image). Deterministic: the
+//! per-Gaussian sums are exact integer sums (of the f32 terms, each to 2^-32), so the same
+//! inputs give the same bits in any order of the atomic adds. A recorded pass reads back
+//! nothing when given a sort capacity; it then flags (`flags[0] |= 2`) a capacity below the
+//! entry count (the flags word is only ever or-ed into, never cleared).
 //! One recorded pass per `GpuShadow` per submission: the uniforms of a recording (from the
 //! caller's scratch and from this pipeline set's own pool for the rasterizer's scan and
 //! sort, whose labels the caller's camera pass also uses) are written through the queue,
@@ -159,12 +160,11 @@ impl GpuShadow {
     pub fn new(raster: Arc<GpuRasterizer>) -> Result<Self, GpuError> {
         let ctx = &raster.ctx;
         let pre = prelude(0);
-        let acc = raster.atomic_accumulator();
         Ok(Self {
             project: ctx.pipeline("shadow_project", &format!("{pre}{SHADOW_PROJECT}"))?,
             count: ctx.pipeline("shadow_count", &format!("{pre}{SHADOW_COUNT}"))?,
             receiver_keys: ctx.pipeline("shadow_keys", &format!("{pre}{SHADOW_KEYS}"))?,
-            visibility: ctx.pipeline("shadow_vis", &format!("{pre}{acc}\n{SHADOW_VIS}"))?,
+            visibility: ctx.pipeline("shadow_vis", &format!("{pre}{SHADOW_VIS}"))?,
             finish: ctx.pipeline("shadow_final", &format!("{pre}{SHADOW_FINAL}"))?,
             overflow: ctx.pipeline("shadow_overflow", RESIDENT_OVERFLOW)?,
             sort_scratch: Scratch::default(),
@@ -519,7 +519,8 @@ impl GpuShadow {
         let keys = scratch.storage(ctx, "shadow keys", n_sort * 16)?;
         let receivers = scratch.storage(ctx, "shadow receivers", n_sort * 16)?;
         let ranges = scratch.storage(ctx, "shadow tile ranges", grid.n_tiles() as u64 * 8)?;
-        let sums = scratch.storage(ctx, "shadow sums", (2 * n as u64) * 4)?;
+        // Two 64-bit fixed-point sums per Gaussian (shadow_vis.wgsl).
+        let sums = scratch.storage(ctx, "shadow sums", (4 * n as u64) * 4)?;
         {
             let bind = ctx.bind_group(
                 &pipelines.keygen,

@@ -3,7 +3,9 @@
 // increasing limit; every receiver whose centre lies within the footprint radius reads
 // the transmittance of the occluders nearer than its limit (one pointer walks the
 // depth-sorted list: limits only grow), weighted by its own footprint there. The weights
-// and weighted transmittances are summed per Gaussian with atomic adds (`acc_add`).
+// and weighted transmittances are summed per Gaussian as 64-bit fixed-point integers
+// (`add_fixed`): integer atomic adds give the same sum in any order, so `V` is the same
+// bits from run to run, and each f32 term of at least 2^-8 enters the sum exactly.
 // `fr.cx` carries the squared footprint radius (px^2).
 // The pointer moves up to every receiver's limit, in range of the pixel or not: the
 // transmittance a receiver reads is the same product over the same occluders in the same
@@ -18,8 +20,30 @@
 @group(0) @binding(3) var<storage, read> ranges: array<vec2<u32>>;
 @group(0) @binding(4) var<storage, read> splats: array<f32>;
 @group(0) @binding(5) var<storage, read> limits: array<f32>;
+// Per Gaussian g: weight sum at words 4g (fraction, 2^-32 units) and 4g + 1 (integer
+// part), weighted-transmittance sum at 4g + 2 and 4g + 3.
+@group(0) @binding(7) var<storage, read_write> sums: array<atomic<u32>>;
 
 const ALPHA_MIN: f32 = 1.0 / 255.0;
+
+// Adds x (finite, >= 0, below 2^32) to the fixed-point sum at words k (fraction) and
+// k + 1 (integer part). x - floor(x) is exact, and scaling it by 2^32 is too, so the
+// fraction word gets it exactly where that is an integer (x's fraction >= 2^-8), else
+// truncated by less than 2^-32. The fraction word's wrap-arounds carry into the integer
+// word: the pair ends as the exact 64-bit sum whatever the order of the adds.
+fn add_fixed(k: u32, x: f32) {
+    let whole = floor(x);
+    let frac = u32((x - whole) * 4294967296.0);
+    let old = atomicAdd(&sums[k], frac);
+    var carry = 0u;
+    if old + frac < old {
+        carry = 1u;
+    }
+    let high = u32(whole) + carry;
+    if high != 0u {
+        atomicAdd(&sums[k + 1u], high);
+    }
+}
 
 fn occluder_alpha(g: u32, px: f32, py: f32) -> f32 {
     let sb = g * SSTRIDE;
@@ -83,7 +107,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3:
         if trans < TRANSMITTANCE_STOP {
             seen = 0.0;
         }
-        acc_add(2u * g, weight);
-        acc_add(2u * g + 1u, weight * seen);
+        add_fixed(4u * g, weight);
+        add_fixed(4u * g + 2u, weight * seen);
     }
 }
