@@ -712,6 +712,17 @@ fn resident_network_round_trip_and_bad_input() {
     let wrong_net = DeviceNetwork::new(ctx, &wrong, &zeros, &zeros, 0).unwrap();
     batch.write(&gpu, &x, 10, &d).unwrap();
     assert!(gpu.run_forward_backward(&other_net, &batch, true).is_ok());
+    // A batch of no rows at all records no kernels but still overwrites the gradient.
+    let empty = DeviceBatch::new(&gpu, &net, 0).unwrap();
+    empty.write(&gpu, &[], 0, &[]).unwrap();
+    net.upload_grads(ctx, &vec![f32::NAN; n]).unwrap();
+    gpu.run_forward_backward(&net, &empty, true).unwrap();
+    assert_all_zero_bits(
+        "0-row parameter gradient",
+        &net.download_grads(ctx).unwrap(),
+    );
+    let (y, dx) = empty.read(&gpu).unwrap();
+    assert!(y.is_empty() && dx.is_empty());
     assert!(matches!(
         gpu.run_forward_backward(&wrong_net, &batch, true),
         Err(GpuError::Invalid(_))
@@ -737,8 +748,8 @@ fn process_cpu_s() -> f64 {
 /// the host path (`GpuMlp::forward`/`backward`: uploads of the input, the parameters and
 /// the output gradient, readback of the output and the gradients) against the resident
 /// path (`run_forward_backward`: one command buffer on device buffers, one wait), and the
-/// resident path with the batch's upload and readback. Wall and process CPU time, median
-/// of 5 alternated repeats after a warm-up. `GS_MLP_BENCH_ROWS` sets another row count.
+/// resident path with the batch's upload and readback, and the CPU `nn::Mlp` for scale.
+/// Wall and process CPU time, median of 5 alternated repeats after a warm-up. `GS_MLP_BENCH_ROWS` sets another row count.
 #[test]
 #[ignore]
 fn resident_network_timings() {
@@ -768,7 +779,11 @@ fn resident_network_timings() {
         batch.read(&gpu).unwrap();
         net.download_grads(gpu.context()).unwrap();
     };
-    let runs: [(&str, &dyn Fn()); 3] = [
+    let cpu = || {
+        run(&mlp, &input, rows, TapeMode::Cache, &d_out, true);
+    };
+    let runs: [(&str, &dyn Fn()); 4] = [
+        ("CPU nn::Mlp (f32, for scale)", &cpu),
         ("host path (uploads + readbacks)", &host),
         ("resident (device buffers)", &resident),
         ("resident + batch upload/readback", &resident_io),
