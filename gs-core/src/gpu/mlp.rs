@@ -988,7 +988,8 @@ impl GpuMlp {
     /// [`GpuMlp::encode_forward`] then [`GpuMlp::encode_backward`] on `batch` as one
     /// command buffer, submitted and waited for (no readback): the output and, when
     /// `input_gradient`, the input gradient land in `batch`, the parameter gradient in
-    /// `net.grads()`. For tests and benchmarks outside the crate.
+    /// `net.grads()`. For tests and benchmarks outside the crate; its scratch is this
+    /// `GpuMlp`'s, under one label, so runs must not overlap (one thread at a time).
     pub fn run_forward_backward(
         &self,
         net: &DeviceNetwork,
