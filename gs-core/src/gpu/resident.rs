@@ -48,7 +48,7 @@ use crate::raster::RasterSettings;
 pub(super) const RESIDENT_COMMON: &str = include_str!("shaders/resident_common.wgsl");
 pub(super) const RESIDENT_COLOUR: &str = include_str!("shaders/resident_colour.wgsl");
 pub(super) const RESIDENT_PACK: &str = include_str!("shaders/resident_pack.wgsl");
-const RESIDENT_GRADS: &str = include_str!("shaders/resident_grads.wgsl");
+pub(super) const RESIDENT_GRADS: &str = include_str!("shaders/resident_grads.wgsl");
 pub(super) const RESIDENT_STATS: &str = include_str!("shaders/resident_stats.wgsl");
 pub(super) const ADAM: &str = include_str!("shaders/adam.wgsl");
 pub(super) const RESIDENT_OVERFLOW: &str = include_str!("shaders/resident_overflow.wgsl");

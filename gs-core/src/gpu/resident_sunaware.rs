@@ -1,4 +1,4 @@
-//! Device-resident training of the Sun-aware model (configurations b-d): the Gaussians,
+//! Device-resident training of the Sun-aware model (configurations a-d): the Gaussians,
 //! both networks' weights, every Adam moment and the densification statistics live in
 //! device buffers, and one training step (the CPU's `SunAwareTrainer::step`) runs as one
 //! command buffer with one small readback ([`SunAwareResident::step`]).
@@ -11,7 +11,9 @@
 //!    (the non-contributing skip needs the CPU's alpha pass, so the batch is every
 //!    visible Gaussian, as on the hybrid wgpu path);
 //! 3. (c-d) the shadow pass `V` from the packed parameters ([`GpuShadow`]);
-//! 4. Phi's input, forward, and scatter into channels 0..3; (c-d) Psi's, into channel 3
+//! 4. (a) SH colour in step 1 instead (`resident_pack`, the plain trainer's kernel, whose
+//!    `resident_grads` then gives the SH and geometry gradients in step 6);
+//!    (b-d) Phi's input, forward, and scatter into channels 0..3; (c-d) Psi's, into channel 3
 //!    (`V * P` or `P`) ([`NetworkIo`], [`GpuMlp`]); the channels are checked finite;
 //! 5. the rasterizer's forward with those channels, `RGB * S` (`sa_compose`), the masked
 //!    L1 + SSIM loss and its image gradient ([`GpuLoss`]), `d(RGB, S)`
@@ -46,8 +48,8 @@ use super::network_io::NetworkIo;
 use super::raster::{frame_bytes, DeviceInputs, GpuRasterizer, SSTRIDE};
 use super::resident::{
     adam_words, offsets, pack, pad4, step_words, unpack, ADAM, GSTRIDE, RECENT_STEPS,
-    REFUSED_NONFINITE, REFUSED_OVERFLOW, RESIDENT_COLOUR, RESIDENT_COMMON, RESIDENT_OVERFLOW,
-    RESIDENT_PACK, RESIDENT_STATS,
+    REFUSED_NONFINITE, REFUSED_OVERFLOW, RESIDENT_COLOUR, RESIDENT_COMMON, RESIDENT_GRADS,
+    RESIDENT_OVERFLOW, RESIDENT_PACK, RESIDENT_STATS,
 };
 use super::shadow::GpuShadow;
 use super::{
@@ -84,6 +86,7 @@ struct Pipelines {
     compose: wgpu::ComputePipeline,
     compose_backward: wgpu::ComputePipeline,
     grads: wgpu::ComputePipeline,
+    sh_grads: wgpu::ComputePipeline,
     finite: wgpu::ComputePipeline,
     stats: wgpu::ComputePipeline,
     adam: wgpu::ComputePipeline,
@@ -122,6 +125,8 @@ pub struct SunAwareStepInput<'a> {
     /// Optional `H * W` foreground weights in [0, 1].
     pub mask: Option<&'a [f32]>,
     pub rates: &'a GroupRates,
+    /// Active SH degree (configuration (a); unused with the appearance network).
+    pub sh_degree: u32,
     pub appearance_lr: f32,
     pub shadow_lr: f32,
 }
@@ -218,6 +223,10 @@ impl SunAwareResident {
             compose: ctx.pipeline("sa compose", SA_COMPOSE)?,
             compose_backward: ctx.pipeline("sa compose backward", SA_COMPOSE_BACKWARD)?,
             grads: ctx.pipeline("sa grads", &format!("{common}{SA_GRADS}"))?,
+            sh_grads: ctx.pipeline(
+                "sa sh grads",
+                &format!("{common}{RESIDENT_COLOUR}\n{RESIDENT_GRADS}"),
+            )?,
             finite: ctx.pipeline("sa finite", &format!("{common}{SA_FINITE}"))?,
             stats: ctx.pipeline("sa stats", &format!("{common}{RESIDENT_STATS}"))?,
             adam: ctx.pipeline("sa adam", ADAM)?,
@@ -299,13 +308,6 @@ impl SunAwareResident {
                 adam.v.len(),
                 stats.len()
             )));
-        }
-        if model.appearance.is_none() {
-            return Err(GpuError::Invalid(
-                "the resident Sun-aware step needs the appearance network (configurations \
-                 b-d)"
-                    .into(),
-            ));
         }
         offsets(&dims, n)?;
         let ctx = self.raster.context();
@@ -532,9 +534,8 @@ impl SunAwareResident {
         input: &SunAwareStepInput,
         capacity: Option<(u64, u64)>,
     ) -> Result<Attempt, GpuError> {
-        let Some(appearance) = model.appearance.as_ref() else {
-            return Err(GpuError::Invalid("no appearance network".into()));
-        };
+        // Configuration (a): SH colour on the device (resident_pack), no networks.
+        let sh_colour = model.appearance.is_none();
         let shadowed = model.config.variant.uses_shadow();
         let nc = if shadowed { 4 } else { 3 };
         let n = self.n;
@@ -553,8 +554,10 @@ impl SunAwareResident {
             )));
         }
         let (target, pixel_weights_buf) = self.target_buffers(input.target, input.mask, shape)?;
-        let Some(phi) = self.appearance.as_ref() else {
-            return Err(GpuError::Invalid("no state uploaded".into()));
+        let phi_parts = match (model.appearance.as_ref(), self.appearance.as_ref()) {
+            (Some(net), Some(phi)) => Some((net, phi)),
+            (None, _) => None,
+            (Some(_), None) => return Err(GpuError::Invalid("no state uploaded".into())),
         };
         let ctx = self.raster.context();
         let pools = &self.pools;
@@ -567,7 +570,14 @@ impl SunAwareResident {
         let step_u = own.uniform(
             ctx,
             "sa step",
-            &step_words(&self.dims, n, None, camera, true, ostride),
+            &step_words(
+                &self.dims,
+                n,
+                sh_colour.then_some(input.sh_degree),
+                camera,
+                true,
+                ostride,
+            ),
         )?;
         let n_u = own.uniform(ctx, "sa n", &count_words(n))?;
         let flags = own.storage(ctx, "sa flags", 16)?;
@@ -589,7 +599,12 @@ impl SunAwareResident {
         {
             let bind = ctx.bind_group(
                 &self.pipelines.pack,
-                &[&step_u, &b.params, &gauss, &zero_chans],
+                &[
+                    &step_u,
+                    &b.params,
+                    &gauss,
+                    if sh_colour { &chans } else { &zero_chans },
+                ],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.pack, &bind, n as u64);
@@ -672,39 +687,53 @@ impl SunAwareResident {
 
         // The networks' forward and their channels.
         let nets = &pools.networks;
-        let phi_in = nets.storage(
-            ctx,
-            "sa phi input",
-            (n.max(1) * appearance.input_width()) as u64 * 4,
-        )?;
-        let phi_out = nets.storage(ctx, "sa phi output", n.max(1) as u64 * 12)?;
         let sun = input.sun_dir.to_array();
-        self.io.encode_phi_input(
-            &mut encoder,
-            nets,
-            appearance,
-            &b.params,
-            &off,
-            n,
-            &list,
-            &count,
-            sun,
-            cam_pos.to_array(),
-            &phi_in,
-            &flags,
-        )?;
-        let phi_tape = self.mlp.encode_forward(
-            &mut encoder,
-            nets,
-            "phi",
-            phi,
-            &phi_in,
-            &count,
-            n,
-            &phi_out,
-        )?;
-        self.io
-            .encode_phi_scatter(&mut encoder, nets, n, nc, &list, &count, &phi_out, &chans)?;
+        let phi_tape = match phi_parts {
+            None => None,
+            Some((appearance, phi)) => {
+                let phi_in = nets.storage(
+                    ctx,
+                    "sa phi input",
+                    (n.max(1) * appearance.input_width()) as u64 * 4,
+                )?;
+                let phi_out = nets.storage(ctx, "sa phi output", n.max(1) as u64 * 12)?;
+                self.io.encode_phi_input(
+                    &mut encoder,
+                    nets,
+                    appearance,
+                    &b.params,
+                    &off,
+                    n,
+                    &list,
+                    &count,
+                    sun,
+                    cam_pos.to_array(),
+                    &phi_in,
+                    &flags,
+                )?;
+                let phi_tape = self.mlp.encode_forward(
+                    &mut encoder,
+                    nets,
+                    "phi",
+                    phi,
+                    &phi_in,
+                    &count,
+                    n,
+                    &phi_out,
+                )?;
+                self.io.encode_phi_scatter(
+                    &mut encoder,
+                    nets,
+                    n,
+                    nc,
+                    &list,
+                    &count,
+                    &phi_out,
+                    &chans,
+                )?;
+                Some(phi_tape)
+            }
+        };
         let multiply = model.config.shadow_refinement == ShadowRefinement::Multiply;
         let psi_parts = match (model.shadow.as_ref(), self.shadow_net.as_ref(), shadowed) {
             (Some(net), Some(psi), true) => {
@@ -853,45 +882,64 @@ impl SunAwareResident {
                 "sa iso",
                 &u32_bytes(&[(iso_factor as f32).to_bits(), 0, 0, 0]),
             )?;
-            let bind = ctx.bind_group(
-                &self.pipelines.grads,
-                &[
-                    &step_u, &iso_u, &b.params, &rows, &b.grads, &flags, &partials,
-                ],
-            );
             let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, &self.pipelines.grads, &bind, n as u64);
+            if sh_colour {
+                // resident_grads: geometry plus the SH colour backward (no L_iso in (a)).
+                let bind = ctx.bind_group(
+                    &self.pipelines.sh_grads,
+                    &[&step_u, &b.params, &rows, &b.grads, &flags],
+                );
+                dispatch_1d(&mut pass, &self.pipelines.sh_grads, &bind, n as u64);
+            } else {
+                let bind = ctx.bind_group(
+                    &self.pipelines.grads,
+                    &[
+                        &step_u, &iso_u, &b.params, &rows, &b.grads, &flags, &partials,
+                    ],
+                );
+                dispatch_1d(&mut pass, &self.pipelines.grads, &bind, n as u64);
+            }
         }
-        let phi_d_out = nets.storage(ctx, "sa phi output gradient", n.max(1) as u64 * 12)?;
-        let phi_d_in = nets.storage(
-            ctx,
-            "sa phi input gradient",
-            (n.max(1) * appearance.input_width()) as u64 * 4,
-        )?;
-        self.io
-            .encode_phi_d_output(&mut encoder, nets, n, nc, &list, &count, &rows, &phi_d_out)?;
-        self.mlp.encode_backward(
-            &mut encoder,
-            nets,
-            "phi",
-            phi,
-            &phi_tape,
-            &phi_d_out,
-            Some(&phi_d_in),
-        )?;
-        self.io.encode_phi_input_grad(
-            &mut encoder,
-            nets,
-            appearance,
-            &b.params,
-            &off,
-            n,
-            &list,
-            &count,
-            cam_pos.to_array(),
-            &phi_d_in,
-            &b.grads,
-        )?;
+        if let (Some((appearance, phi)), Some(phi_tape)) = (phi_parts, &phi_tape) {
+            let phi_d_out = nets.storage(ctx, "sa phi output gradient", n.max(1) as u64 * 12)?;
+            let phi_d_in = nets.storage(
+                ctx,
+                "sa phi input gradient",
+                (n.max(1) * appearance.input_width()) as u64 * 4,
+            )?;
+            self.io.encode_phi_d_output(
+                &mut encoder,
+                nets,
+                n,
+                nc,
+                &list,
+                &count,
+                &rows,
+                &phi_d_out,
+            )?;
+            self.mlp.encode_backward(
+                &mut encoder,
+                nets,
+                "phi",
+                phi,
+                phi_tape,
+                &phi_d_out,
+                Some(&phi_d_in),
+            )?;
+            self.io.encode_phi_input_grad(
+                &mut encoder,
+                nets,
+                appearance,
+                &b.params,
+                &off,
+                n,
+                &list,
+                &count,
+                cam_pos.to_array(),
+                &phi_d_in,
+                &b.grads,
+            )?;
+        }
         if let Some((net, psi, tape)) = &psi_parts {
             let psi_d_out = nets.storage(ctx, "sa psi output gradient", n.max(1) as u64 * 4)?;
             let psi_d_in = nets.storage(
@@ -937,13 +985,15 @@ impl SunAwareResident {
 
         // Checks, statistics, Adam.
         self.encode_finite(&mut encoder, &b.grads, off[8] as usize, "gradients", &flags)?;
-        self.encode_finite(
-            &mut encoder,
-            phi.grads(),
-            phi.len(),
-            "phi gradients",
-            &flags,
-        )?;
+        if let Some((_, phi)) = phi_parts {
+            self.encode_finite(
+                &mut encoder,
+                phi.grads(),
+                phi.len(),
+                "phi gradients",
+                &flags,
+            )?;
+        }
         if let Some((_, psi, _)) = &psi_parts {
             self.encode_finite(
                 &mut encoder,
@@ -977,8 +1027,10 @@ impl SunAwareResident {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.adam, &bind, words[8] as u64);
         }
-        self.mlp
-            .encode_adam(&mut encoder, nets, "phi", phi, input.appearance_lr, &flags)?;
+        if let Some((_, phi)) = phi_parts {
+            self.mlp
+                .encode_adam(&mut encoder, nets, "phi", phi, input.appearance_lr, &flags)?;
+        }
         if let Some((_, psi, _)) = &psi_parts {
             self.mlp
                 .encode_adam(&mut encoder, nets, "psi", psi, input.shadow_lr, &flags)?;

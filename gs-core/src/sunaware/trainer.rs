@@ -527,14 +527,11 @@ impl SunAwareTrainer {
         self.resident.hybrid = !on;
     }
 
-    /// True when steps run device-resident: the wgpu backend, residency on, and a
-    /// configuration with the appearance network (configuration (a) runs hybrid).
+    /// True when steps run device-resident: the wgpu backend with residency on.
     pub fn is_device_resident(&self) -> bool {
         #[cfg(feature = "wgpu")]
         {
-            !self.resident.hybrid
-                && self.model.appearance.is_some()
-                && self.model.gpu_parts().is_some()
+            !self.resident.hybrid && self.model.gpu_parts().is_some()
         }
         #[cfg(not(feature = "wgpu"))]
         false
@@ -547,8 +544,13 @@ impl SunAwareTrainer {
 
     /// SH degree in use at the current step (configuration a).
     pub fn active_sh_degree(&self) -> u32 {
+        self.sh_degree_after(self.steps)
+    }
+
+    /// SH degree in use after `steps` applied steps.
+    fn sh_degree_after(&self, steps: u64) -> u32 {
         let interval = self.model.config.sh_degree_interval.max(1);
-        ((self.steps / interval).min(3) as u32).min(self.model.gaussians.layout().sh_degree)
+        ((steps / interval).min(3) as u32).min(self.model.gaussians.layout().sh_degree)
     }
 
     /// Position rate at `progress` in [0, 1] through a round.
@@ -658,6 +660,7 @@ impl SunAwareTrainer {
                 target: obs.image,
                 mask: obs.mask,
                 rates: &rates,
+                sh_degree: self.sh_degree_after(steps),
                 appearance_lr: lr.appearance_mlp,
                 shadow_lr: lr.shadow_mlp,
             };
