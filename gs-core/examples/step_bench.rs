@@ -682,7 +682,9 @@ impl Measured {
                     .map_err(|e| format!("child result {s:?}: {e}"))
             })
             .collect::<Result<_, _>>()?;
-        if f.len() != 5 + 13 + 4 + 4 * 5 + 1 {
+        // The network floors are absent for a device-resident run.
+        let with_nets = f.len() == 5 + 13 + 4 + 4 * 5 + 1;
+        if !with_nets && f.len() != 5 + 13 + 4 + 1 {
             return Err(format!("child result has {} numbers", f.len()));
         }
         let st = &f[5..18];
@@ -702,7 +704,8 @@ impl Measured {
             optimizer_ms: st[12],
             total_ms: f[18],
         };
-        let nets = Self::NET_NAMES
+        let named = if with_nets { &Self::NET_NAMES[..] } else { &[] };
+        let nets = named
             .iter()
             .enumerate()
             .map(|(k, &name)| {
@@ -729,7 +732,7 @@ impl Measured {
             cpu_ms: f[20],
             peak_rss_mb: f[21],
             nets,
-            precision: if f[42] == 1.0 {
+            precision: if f[f.len() - 1] == 1.0 {
                 MatmulPrecision::Bf16
             } else {
                 MatmulPrecision::F32
