@@ -35,7 +35,8 @@
 //! `--backend cpu,wgpu` measures each configuration on each listed backend (default `cpu`;
 //! `wgpu` needs `--features wgpu` and a Vulkan adapter). On `wgpu` the trainer is
 //! device-resident: the repeats run as one `step_many` batch and only the whole step is
-//! timed (no per-stage split, no CPU floors); `--hybrid` runs the older split instead (the
+//! timed, its stages from the device's timestamp queries where the adapter has them (no
+//! CPU floors); `--hybrid` runs the older split instead (the
 //! camera pass, the shadow pass and the network products on the GPU, input assembly and
 //! Adam on the host, per-stage timings). On a software Vulkan driver (Mesa's lavapipe) the
 //! wgpu rows are CPU timings of the GPU kernels, not GPU timings; the adapter is printed
@@ -436,7 +437,8 @@ fn measure(
     let mut rows = Vec::new();
     if resident {
         // Device-resident: the repeats run as one batch (state uploaded once, downloaded
-        // once, as a training round runs); each step's time is its own recording and wait.
+        // once, as a training round runs); each step's time is its own recording and wait,
+        // its stages the device's timestamps (zeros without timestamp queries).
         let batch: Vec<(Observation, f32)> = (0..repeats)
             .map(|r| (obs, r as f32 / repeats as f32))
             .collect();
@@ -869,8 +871,8 @@ fn run(args: &[String]) -> Result<(), String> {
         );
         if backends.contains(&BackendKind::Wgpu) {
             println!(
-                "backend=wgpu: device-resident (every stage on the GPU, one submission per step; only `step` is \
-                 timed), or with --hybrid the rasterizer, shadow pass and network products on the GPU and the rest on \
+                "backend=wgpu: device-resident (every stage on the GPU, one submission per step; stages are device \
+                 timestamps, `other` the host's recording and waiting), or with --hybrid the rasterizer, shadow pass and network products on the GPU and the rest on \
                  the host; adapter on stderr; on a software Vulkan driver (lavapipe) these are CPU timings, not GPU \
                  timings"
             );

@@ -116,6 +116,8 @@ pub struct GpuContext {
     driver: String,
     has_float32_atomics: bool,
     use_float32_atomics: bool,
+    /// Timestamp queries between commands (per-stage device times).
+    has_timestamps: bool,
     pub(crate) options: GpuOptions,
     pub(crate) limits: wgpu::Limits,
 }
@@ -144,11 +146,17 @@ impl GpuContext {
             .features()
             .contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
         let use_float32_atomics = has_float32_atomics && !options.force_cas_atomics;
-        let required_features = if use_float32_atomics {
+        let mut required_features = if use_float32_atomics {
             wgpu::Features::SHADER_FLOAT32_ATOMIC
         } else {
             wgpu::Features::empty()
         };
+        let timestamps =
+            wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
+        let has_timestamps = adapter.features().contains(timestamps);
+        if has_timestamps {
+            required_features |= timestamps;
+        }
         // Ask for what the adapter has: the storage-buffer size limits bound the scenes.
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -167,9 +175,15 @@ impl GpuContext {
             driver: format!("{} {}", info.driver, info.driver_info),
             has_float32_atomics,
             use_float32_atomics,
+            has_timestamps,
             options,
             limits,
         })
+    }
+
+    /// Whether per-stage device times can be measured ([`StageClock`]).
+    pub fn has_timestamps(&self) -> bool {
+        self.has_timestamps
     }
 
     pub fn adapter_name(&self) -> &str {
@@ -446,6 +460,90 @@ impl Scratch {
         };
         ctx.queue.write_buffer(&b, 0, data);
         Ok(b)
+    }
+}
+
+/// Device times between marks recorded in command encoders (timestamp queries), for the
+/// per-stage split of a step: `mark` after each stage, `resolve` into the readback, then
+/// `stages_ms` gives each stage's time since the previous mark. Only where the adapter
+/// has the timestamp features ([`GpuContext::has_timestamps`]); marking changes no result.
+pub(crate) struct StageClock {
+    set: wgpu::QuerySet,
+    resolved: wgpu::Buffer,
+    labels: std::cell::RefCell<Vec<&'static str>>,
+    capacity: u32,
+    period_ns: f32,
+}
+
+impl StageClock {
+    /// Room for `capacity` marks; `None` without timestamp support.
+    pub(crate) fn new(ctx: &GpuContext, capacity: u32) -> Option<Self> {
+        if !ctx.has_timestamps {
+            return None;
+        }
+        let set = ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("stage clock"),
+            ty: wgpu::QueryType::Timestamp,
+            count: capacity,
+        });
+        let resolved = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("stage clock resolved"),
+            size: capacity as u64 * 8,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        Some(Self {
+            set,
+            resolved,
+            labels: std::cell::RefCell::new(Vec::new()),
+            capacity,
+            period_ns: ctx.queue.get_timestamp_period(),
+        })
+    }
+
+    /// Starts a new series of marks.
+    pub(crate) fn reset(&self) {
+        self.labels.borrow_mut().clear();
+    }
+
+    /// Records a mark ending stage `label` (the first mark starts the series). Marks past
+    /// the capacity are ignored.
+    pub(crate) fn mark(&self, encoder: &mut wgpu::CommandEncoder, label: &'static str) {
+        let mut labels = self.labels.borrow_mut();
+        let index = labels.len() as u32;
+        if index < self.capacity {
+            encoder.write_timestamp(&self.set, index);
+            labels.push(label);
+        }
+    }
+
+    /// Records the copy of the marks into a buffer for [`GpuContext::read_back`], and the
+    /// byte count to read.
+    pub(crate) fn resolve(&self, encoder: &mut wgpu::CommandEncoder) -> (&wgpu::Buffer, u64) {
+        let count = self.labels.borrow().len() as u32;
+        if count > 0 {
+            encoder.resolve_query_set(&self.set, 0..count, &self.resolved, 0);
+        }
+        (&self.resolved, (count.max(1) as u64) * 8)
+    }
+
+    /// Each stage's device time from the read-back marks: `(label of the ending mark,
+    /// ms since the previous mark)`, skipping the first mark.
+    pub(crate) fn stages_ms(&self, bytes: &[u8]) -> Vec<(&'static str, f64)> {
+        let ticks: Vec<u64> = bytes
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
+            .collect();
+        self.labels
+            .borrow()
+            .iter()
+            .enumerate()
+            .skip(1)
+            .filter_map(|(i, &label)| {
+                let dt = ticks.get(i)?.checked_sub(*ticks.get(i - 1)?)?;
+                Some((label, dt as f64 * self.period_ns as f64 * 1e-6))
+            })
+            .collect()
     }
 }
 

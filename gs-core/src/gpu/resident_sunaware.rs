@@ -54,6 +54,7 @@ use super::resident::{
 use super::shadow::GpuShadow;
 use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, groups_1d, u32_bytes, GpuError, Scratch,
+    StageClock,
 };
 use crate::camera::Camera;
 use crate::densify::DensifyStats;
@@ -66,6 +67,7 @@ use crate::raster::camera_frame;
 use crate::regularizer::IsoReduction;
 use crate::sunaware::config::ShadowRefinement;
 use crate::sunaware::trainer::FlatAdam;
+use crate::sunaware::StepTimings;
 use crate::sunaware::SunAwareModel;
 
 const SA_SURVIVE: &str = include_str!("shaders/sa_survive.wgsl");
@@ -152,6 +154,13 @@ pub struct SunAwareStepReport {
     pub light_entries: usize,
     /// Wall time of the step, recording and waiting included, ms.
     pub total_ms: f64,
+    /// Device time per stage from timestamp queries, where the adapter has them (else
+    /// zeros; `total_ms` is always set): `project_ms` the rasterizer rows and the
+    /// visible list, `blend_forward_ms` the camera pass's projection, sort and blend,
+    /// `loss_ms` `RGB * S`, the loss and its backward, `blend_backward_ms` the whole
+    /// rasterizer backward, `phi_backward_ms` the geometry gradients and Phi's backward,
+    /// `optimizer_ms` the checks, statistics and every Adam step.
+    pub stages: StepTimings,
 }
 
 /// The Sun-aware model's training state on the device (see the module header).
@@ -167,6 +176,8 @@ pub struct SunAwareResident {
     appearance: Option<DeviceNetwork>,
     shadow_net: Option<DeviceNetwork>,
     pools: Pools,
+    /// Per-stage device times, where the adapter has timestamp queries.
+    clock: Option<StageClock>,
     /// Targets and pixel weights uploaded in this batch, by the host slices' identity
     /// (see [`SunAwareResident::begin_batch`]).
     targets: Vec<CachedTarget>,
@@ -236,6 +247,7 @@ impl SunAwareResident {
         let io = NetworkIo::new(ctx)?;
         let dims = [0; Param::COUNT];
         let buffers = Self::allocate(ctx, &dims, 1)?;
+        let clock = StageClock::new(ctx, 16);
         Ok(Self {
             raster,
             shadow,
@@ -248,6 +260,7 @@ impl SunAwareResident {
             appearance: None,
             shadow_net: None,
             pools: Pools::default(),
+            clock,
             targets: Vec::new(),
             recent_entries: std::collections::VecDeque::new(),
             adam_step: 0,
@@ -590,6 +603,16 @@ impl SunAwareResident {
         let list = own.storage(ctx, "sa list", n.max(1) as u64 * 4)?;
         let count = own.storage(ctx, "sa count", 4)?;
         let mut encoder = ctx.encoder("sa step");
+        let clock = self.clock.as_ref();
+        let mark = |encoder: &mut wgpu::CommandEncoder, label| {
+            if let Some(c) = clock {
+                c.mark(encoder, label);
+            }
+        };
+        if let Some(c) = clock {
+            c.reset();
+        }
+        mark(&mut encoder, "start");
         encoder.clear_buffer(&flags, 0, None);
         encoder.clear_buffer(&zero_chans, 0, None);
         encoder.clear_buffer(&chans, 0, None);
@@ -661,6 +684,8 @@ impl SunAwareResident {
             dispatch_1d(&mut pass, &self.pipelines.list, &bind, n as u64 + 1);
         }
 
+        mark(&mut encoder, "project");
+
         // (c-d) The light pass.
         let cam_pos = camera.position();
         let visibility = own.storage(ctx, "sa visibility", n.max(1) as u64 * 4)?;
@@ -684,6 +709,8 @@ impl SunAwareResident {
             encoder = enc;
             light_record = Some(record);
         }
+
+        mark(&mut encoder, "shadow");
 
         // The networks' forward and their channels.
         let nets = &pools.networks;
@@ -734,6 +761,7 @@ impl SunAwareResident {
                 Some(phi_tape)
             }
         };
+        mark(&mut encoder, "phi-f");
         let multiply = model.config.shadow_refinement == ShadowRefinement::Multiply;
         let psi_parts = match (model.shadow.as_ref(), self.shadow_net.as_ref(), shadowed) {
             (Some(net), Some(psi), true) => {
@@ -784,6 +812,7 @@ impl SunAwareResident {
             }
             _ => None,
         };
+        mark(&mut encoder, "psi-f");
         self.encode_finite(&mut encoder, &chans, n * nc, "channels", &flags)?;
 
         // Camera pass, loss, backward.
@@ -802,6 +831,7 @@ impl SunAwareResident {
             capacity.map(|c| c.0),
         )?;
         let mut encoder = device.encoder;
+        mark(&mut encoder, "blend-f");
         let st = &device.state;
         let cap_u = own.uniform(
             ctx,
@@ -853,6 +883,7 @@ impl SunAwareResident {
         } else {
             d_image.clone()
         };
+        mark(&mut encoder, "loss");
         let rows = self.raster.encode_backward(
             st,
             device.tile_entries.unwrap_or(device.n_sort as usize),
@@ -860,6 +891,8 @@ impl SunAwareResident {
             &mut encoder,
             Some(&pools.raster),
         )?;
+
+        mark(&mut encoder, "blend-b");
 
         // Gradients: geometry and L_iso, then the networks' terms.
         let iso_factor = if model.config.variant.uses_isotropic_loss() {
@@ -940,6 +973,7 @@ impl SunAwareResident {
                 &b.grads,
             )?;
         }
+        mark(&mut encoder, "phi-b");
         if let Some((net, psi, tape)) = &psi_parts {
             let psi_d_out = nets.storage(ctx, "sa psi output gradient", n.max(1) as u64 * 4)?;
             let psi_d_in = nets.storage(
@@ -982,6 +1016,8 @@ impl SunAwareResident {
                 &b.grads,
             )?;
         }
+
+        mark(&mut encoder, "psi-b");
 
         // Checks, statistics, Adam.
         self.encode_finite(&mut encoder, &b.grads, off[8] as usize, "gradients", &flags)?;
@@ -1036,7 +1072,10 @@ impl SunAwareResident {
                 .encode_adam(&mut encoder, nets, "psi", psi, input.shadow_lr, &flags)?;
         }
 
-        // The report: flags, loss totals, the visible count, both entry counts, L_iso.
+        mark(&mut encoder, "optim");
+
+        // The report: flags, loss totals, the visible count, both entry counts, L_iso,
+        // the stage marks.
         let entry_count = own.storage(ctx, "sa entry count", 4)?;
         encoder.copy_buffer_to_buffer(&device.counts, 4 * n as u64, &entry_count, 0, 4);
         let light_count = match &light_record {
@@ -1047,6 +1086,10 @@ impl SunAwareResident {
                 zero
             }
         };
+        let clock_read = match clock {
+            Some(c) => c.resolve(&mut encoder),
+            None => (&partials, 4),
+        };
         let back = ctx.read_back(
             encoder,
             &[
@@ -1056,6 +1099,7 @@ impl SunAwareResident {
                 (&entry_count, 4),
                 (&light_count, 4),
                 (&partials, groups as u64 * 4),
+                clock_read,
             ],
         )?;
         drop((
@@ -1094,6 +1138,24 @@ impl SunAwareResident {
                 }
             }
         }
+        let mut stages = StepTimings::default();
+        if let Some(c) = clock {
+            for (label, ms) in c.stages_ms(&back[6]) {
+                let slot = match label {
+                    "project" => &mut stages.project_ms,
+                    "shadow" => &mut stages.shadow_pass_ms,
+                    "phi-f" => &mut stages.phi_forward_ms,
+                    "psi-f" => &mut stages.psi_forward_ms,
+                    "blend-f" => &mut stages.blend_forward_ms,
+                    "loss" => &mut stages.loss_ms,
+                    "blend-b" => &mut stages.blend_backward_ms,
+                    "phi-b" => &mut stages.phi_backward_ms,
+                    "psi-b" => &mut stages.psi_backward_ms,
+                    _ => &mut stages.optimizer_ms,
+                };
+                *slot += ms;
+            }
+        }
         let iso_sum: f64 = bytes_f32(&back[5]).iter().map(|&v| v as f64).sum();
         let iso = (iso_factor * iso_sum) as f32;
         let photometric = combine(totals[0], totals[1], model.config.lambda_dssim, Vec::new());
@@ -1109,6 +1171,7 @@ impl SunAwareResident {
             tile_entries: camera_entries as usize,
             light_entries: light_entries as usize,
             total_ms: 0.0,
+            stages,
         }))
     }
 

@@ -689,9 +689,10 @@ impl SunAwareTrainer {
                 position_lr,
                 skipped: report.refused,
                 device_sort_retries: report.sort_retries,
+                // Device stage times where the adapter has timestamp queries.
                 timings: StepTimings {
                     total_ms: report.total_ms,
-                    ..StepTimings::default()
+                    ..report.stages
                 },
             });
         }
