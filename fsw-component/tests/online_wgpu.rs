@@ -1,0 +1,132 @@
+//! The component's online trainer on the wgpu backend (feature `wgpu`): its rounds run as
+//! device-resident batches (`SunAwareTrainer::step_many`: one upload and one download per
+//! round, densification between rounds on the host copy). The same short synthetic
+//! sequence as `online_sequence.rs`, trained on the CPU and on the device, must reach the
+//! same held-out PSNR within 0.1 dB, with nothing skipped and the same rounds and
+//! densifications.
+//!
+//! Without an adapter the test prints a skip notice, unless `GS_REQUIRE_GPU=1` (CI), where
+//! a missing adapter fails.
+#![cfg(feature = "wgpu")]
+
+use fsw_component::keyframe::WindowConfig;
+use fsw_component::online::{Frame, Initialisation, OnlineConfig, OnlineTrainer};
+use gs_core::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
+use gs_core::sunaware::{BackendKind, LightConfig, Observation, SunAwareConfig, Variant};
+
+const W: u32 = 48;
+const H: u32 = 36;
+const PER_ORBIT: usize = 24;
+
+fn frame(scene: &SyntheticScene, id: u64) -> Frame {
+    let camera = orbit_camera(id as usize % PER_ORBIT, PER_ORBIT, 2.4, 0.6, W, H);
+    let sun = sun_direction(0.35 * id as f32, 0.9);
+    let (image, mask) = scene.render(&camera, sun).unwrap();
+    Frame {
+        id,
+        time_s: 5.0 * id as f64,
+        camera,
+        sun_dir_target: sun,
+        image,
+        mask: Some(mask),
+        eclipse: false,
+    }
+}
+
+fn held_out_psnr(t: &OnlineTrainer, scene: &SyntheticScene) -> f32 {
+    let ids = [1000u64, 1007, 1013];
+    ids.iter()
+        .map(|&id| {
+            let f = frame(scene, id);
+            let obs = Observation {
+                camera: f.camera,
+                sun_dir: f.sun_dir_target,
+                image: &f.image,
+                mask: f.mask.as_deref(),
+            };
+            t.trainer().evaluate(&obs, true).unwrap().psnr_db
+        })
+        .sum::<f32>()
+        / ids.len() as f32
+}
+
+#[test]
+fn online_rounds_on_the_device_match_the_cpu() {
+    let backend = match BackendKind::Wgpu.open() {
+        Ok(b) => b,
+        Err(e) => {
+            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
+            }
+            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
+            return;
+        }
+    };
+    let scene = SyntheticScene::plate_and_ball(12, 60).unwrap();
+    let (points, normals, colours) = scene.surface_samples(0.02, 11);
+    let init = Initialisation::SurfaceSamples {
+        points,
+        normals: Some(normals),
+        colours: Some(colours),
+    };
+    let config = OnlineConfig {
+        window: WindowConfig {
+            capacity: 6,
+            ..WindowConfig::default()
+        },
+        model: SunAwareConfig {
+            light: LightConfig {
+                resolution_px: 96,
+                ..LightConfig::default()
+            },
+            // Narrow Phi: the software driver runs the products on the CPU.
+            appearance_hidden_width: 32,
+            ..SunAwareConfig::for_variant(Variant::D)
+        },
+        densify_every_rounds: 5,
+        passes_per_round: 2,
+        ..OnlineConfig::default()
+    };
+    let run = |device: bool| {
+        let mut t = OnlineTrainer::new(config.clone(), &init, scene.scene_box).unwrap();
+        if device {
+            t.trainer_mut().set_backend(&backend).unwrap();
+            assert!(t.trainer().is_device_resident());
+        }
+        let start = std::time::Instant::now();
+        let (mut rounds, mut densified) = (0, 0);
+        for id in 0..20 {
+            t.offer(frame(&scene, id)).unwrap();
+            if let Some(r) = t.run_round_if_due().unwrap() {
+                assert!(r.mean_loss.is_finite(), "round {}", r.rounds);
+                assert_eq!(r.skipped_steps, 0);
+                rounds += 1;
+                densified += usize::from(r.densified.is_some());
+            }
+        }
+        let psnr = held_out_psnr(&t, &scene);
+        let gaussians = t.trainer().model.len();
+        (
+            psnr,
+            rounds,
+            densified,
+            gaussians,
+            start.elapsed().as_secs_f64(),
+        )
+    };
+    let cpu = run(false);
+    let gpu = run(true);
+    eprintln!(
+        "held-out PSNR cpu {:.3} dB ({} rounds, {} densified, {} Gaussians, {:.1} s), \
+         wgpu {:.3} dB ({} rounds, {} densified, {} Gaussians, {:.1} s; software driver)",
+        cpu.0, cpu.1, cpu.2, cpu.3, cpu.4, gpu.0, gpu.1, gpu.2, gpu.3, gpu.4
+    );
+    assert_eq!((cpu.1, cpu.2), (gpu.1, gpu.2), "rounds and densifications");
+    assert_eq!(cpu.1, 15);
+    assert!(
+        (cpu.0 - gpu.0).abs() <= 0.1,
+        "cpu {} dB vs wgpu {} dB",
+        cpu.0,
+        gpu.0
+    );
+}
