@@ -19,7 +19,7 @@
 //!   gradient. Each forward and each backward is one command buffer and one wait.
 //! - the resident path (the device-resident Sun-aware step): a [`DeviceNetwork`] keeps the
 //!   flat parameters, their gradient and the Adam moments on the device across steps;
-//!   [`GpuMlp::encode_forward`], [`GpuMlp::encode_backward`] and [`GpuMlp::encode_adam`]
+//!   `GpuMlp::encode_forward`, `GpuMlp::encode_backward` and `GpuMlp::encode_adam`
 //!   record into the caller's encoder on device buffers (never submitting or reading
 //!   back), with scratch from the caller's `Scratch` under labels `mlp {label} ...`.
 //!   [`DeviceBatch`], [`GpuMlp::run_forward_backward`] and [`GpuMlp::run_adam`] drive the
@@ -38,7 +38,7 @@
 //!   index, so a resident run with `count` live rows gives the host path's bits for
 //!   `count` rows;
 //! - the parameter gradient is overwritten by each backward, never accumulated;
-//! - Adam ([`GpuMlp::encode_adam`]) is `shaders/adam.wgsl` with one group covering the
+//! - Adam (`GpuMlp::encode_adam`) is `shaders/adam.wgsl` with one group covering the
 //!   whole vector: `sunaware::trainer::FlatAdam`'s rule (b1 0.9, b2 0.999,
 //!   `optim::ADAM_EPS`, step size and `1/sqrt(bias2)` in f64 on the host for step
 //!   `adam_step + 1`; moments update even at learning rate 0, as there), changing nothing
@@ -367,7 +367,7 @@ impl DeviceNetwork {
     }
 
     /// Flat parameter gradient (same layout), overwritten by each
-    /// [`GpuMlp::encode_backward`].
+    /// `GpuMlp::encode_backward`.
     pub fn grads(&self) -> &wgpu::Buffer {
         &self.grads
     }
@@ -985,7 +985,7 @@ impl GpuMlp {
         Ok(())
     }
 
-    /// [`GpuMlp::encode_forward`] then [`GpuMlp::encode_backward`] on `batch` as one
+    /// `GpuMlp::encode_forward` then `GpuMlp::encode_backward` on `batch` as one
     /// command buffer, submitted and waited for (no readback): the output and, when
     /// `input_gradient`, the input gradient land in `batch`, the parameter gradient in
     /// `net.grads()`. For tests and benchmarks outside the crate; its scratch is this
@@ -1030,7 +1030,7 @@ impl GpuMlp {
         Ok(())
     }
 
-    /// [`GpuMlp::encode_adam`] on the gradient as it stands, with the refusal flag set to
+    /// `GpuMlp::encode_adam` on the gradient as it stands, with the refusal flag set to
     /// `refuse`, submitted with a readback of the flag; marks the step applied when the
     /// flag reads 0, as the resident step does. Returns whether it applied. For tests.
     pub fn run_adam(

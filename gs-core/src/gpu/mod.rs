@@ -1,15 +1,14 @@
 //! wgpu compute backend (feature `wgpu`): the rasterizer's forward and backward passes
-//! ([`GpuRasterizer`]), the shadow pass's per-pixel visibility ([`GpuShadow`]), the MLPs'
-//! forward and backward ([`GpuMlp`]) and a tiled GEMM ([`GpuGemm`], unused by the MLPs,
-//! whose products are faster on software drivers without tiles) as WGSL compute kernels
-//! (`shaders/`), checked against the CPU path (`tests/gpu_parity.rs`,
-//! `tests/gpu_networks.rs`). `crate::train::Backend::Wgpu` trains the
-//! plain 3DGS model device-resident ([`ResidentModel`]: parameters, gradients, Adam
-//! moments, statistics, SH colour, the loss ([`GpuLoss`]) and Adam on the device,
-//! `tests/gpu_resident.rs`); through `crate::sunaware::SunAwareModel::set_backend` the
-//! Sun-aware trainer moves its camera pass and shadow pass here (`tests/gpu_sunaware.rs`),
-//! and, through [`GpuMlp`], the matrix products of its networks (Phi, Psi); their input
-//! assembly and every optimiser stay on the CPU.
+//! ([`GpuRasterizer`]), the shadow pass ([`GpuShadow`]), the MLPs' forward and backward
+//! ([`GpuMlp`]), the networks' input assembly and scatters ([`network_io`]) and a tiled
+//! GEMM ([`GpuGemm`], unused by the MLPs) as WGSL compute kernels (`shaders/`), checked
+//! against the CPU path (`tests/gpu_*.rs`). Both trainers train device-resident on it:
+//! `crate::train::Backend::Wgpu` the plain 3DGS model ([`ResidentModel`]), and
+//! `crate::sunaware::SunAwareTrainer` the Sun-aware model in every configuration
+//! ([`resident_sunaware::SunAwareResident`]: Gaussians, network weights, every Adam state
+//! and the statistics on the device, one submission per step); the hybrid Sun-aware path
+//! (rasterizer, shadow pass and network products here, the rest on the host) remains
+//! behind `SunAwareTrainer::set_device_resident(false)`.
 //!
 //! [`GpuContext::new`] opens a Vulkan adapter (the only backend compiled in, so wgpu can
 //! never fall back to OpenGL) and reports its name, backend and whether it has

@@ -26,7 +26,7 @@
 //!   or V of a listed Gaussian, a Gaussian at the camera centre, a list entry >= n), the
 //!   input kernels set `flags[0]` bit 0 instead; the gradient kernels write what they
 //!   compute (non-finite values included: the step's gradient check refuses them);
-//! - each `encode_*` has its own uniform in the [`Scratch`] pool ("netio ..." labels),
+//! - each `encode_*` has its own uniform in the `Scratch` pool ("netio ..." labels),
 //!   written through the queue: recording the same `encode_*` twice before one
 //!   submission makes both read the second call's uniform;
 //! - no float atomics: each listed Gaussian's rows have one writer, so results are

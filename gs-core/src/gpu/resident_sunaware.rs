@@ -31,7 +31,7 @@
 //! as on the CPU, which skips such a step.
 //!
 //! Each subsystem (rasterizer and loss, light pass, networks, this module's kernels) takes
-//! its per-step buffers from its own [`Scratch`] pool: pools key buffers and uniforms by
+//! its per-step buffers from its own `Scratch` pool: pools key buffers and uniforms by
 //! label, and a uniform written twice before one submission would hold only its last
 //! value.
 //!
