@@ -13,8 +13,13 @@
 mod common;
 
 use glam::Vec3;
-use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
-use gs_core::raster::{render, render_backward, GaussianView, PixelGrads, RasterSettings};
+use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer, GpuRenderOutput};
+use gs_core::raster::bin::{bin_tiles, PixelRect, TileGrid, TileSelection};
+use gs_core::raster::blend::{tile_contributions, AlphaMode, Splat, ENTRY_BLENDS};
+use gs_core::raster::{
+    camera_frame, depth_order, prepare_view, project_splats_with, render, render_backward,
+    GaussianGrads, GaussianView, PixelGrads, RasterSettings, RenderOutput,
+};
 use gs_core::rng::SplitMix64;
 use gs_core::{Camera, Intrinsics};
 
@@ -161,14 +166,25 @@ fn forward_parity(seed: u64, n_channels: usize, smooth: bool) {
     };
     let gpu = GpuRasterizer::new(ctx).unwrap();
     let scene = random_scene(seed, 2000, n_channels, smooth);
-    let cpu = render(&scene.camera, &scene.view(), &scene.settings).unwrap();
-    let out = gpu
-        .render(&scene.camera, &scene.view(), &scene.settings)
-        .unwrap();
+    let (cpu, _) = compare_forward(&gpu, &scene, &format!("seed {seed}"));
     // The scene is not trivial: most of the image is covered, some Gaussians are culled.
     let px = cpu.alpha.len();
     assert!(cpu.alpha.iter().filter(|&&a| a > 0.5).count() > px / 4);
     assert!(cpu.visible.iter().any(|v| !v));
+}
+
+/// `scene` rendered on both paths and compared with [`forward_parity`]'s tolerances;
+/// returns both renders.
+fn compare_forward(
+    gpu: &GpuRasterizer,
+    scene: &Scene,
+    label: &str,
+) -> (RenderOutput, GpuRenderOutput) {
+    let (n_channels, smooth) = (scene.n_channels, scene.settings.smooth_cutoff);
+    let cpu = render(&scene.camera, &scene.view(), &scene.settings).unwrap();
+    let out = gpu
+        .render(&scene.camera, &scene.view(), &scene.settings)
+        .unwrap();
     assert_eq!(out.tile_entries, cpu.tile_entry_count());
     assert_eq!(out.visible, cpu.visible);
     let max_depth = cpu.depth.iter().fold(0.0f32, |m, v| m.max(*v));
@@ -180,7 +196,7 @@ fn forward_parity(seed: u64, n_channels: usize, smooth: bool) {
         let worst = max_abs_diff(g, c);
         let n_off = count_above(g, c, 2e-5 * scale);
         eprintln!(
-            "seed {seed} nc {n_channels} smooth {smooth}: {name} max |gpu - cpu| {worst:.2e} \
+            "{label} nc {n_channels} smooth {smooth}: {name} max |gpu - cpu| {worst:.2e} \
              ({n_off} of {} above {:.1e})",
             c.len(),
             2e-5 * scale
@@ -197,6 +213,7 @@ fn forward_parity(seed: u64, n_channels: usize, smooth: bool) {
         .render(&scene.camera, &scene.view(), &scene.settings)
         .unwrap();
     assert!(again.color == out.color && again.alpha == out.alpha && again.depth == out.depth);
+    (cpu, out)
 }
 
 #[test]
@@ -236,7 +253,19 @@ fn grads_parity(seed: u64, n_channels: usize, smooth: bool, options: GpuOptions)
     };
     let gpu = GpuRasterizer::new(ctx).unwrap();
     let scene = random_scene(seed, 2000, n_channels, smooth);
-    let (dc, da, dd) = pixel_grads(&scene, seed ^ 0x5EED);
+    compare_grads(&gpu, &scene, seed, options);
+}
+
+/// `scene`'s gradients on both paths for random pixel gradients (from `seed`), compared
+/// with [`grads_parity`]'s tolerances; returns both.
+fn compare_grads(
+    gpu: &GpuRasterizer,
+    scene: &Scene,
+    seed: u64,
+    options: GpuOptions,
+) -> (GaussianGrads, GaussianGrads) {
+    let smooth = scene.settings.smooth_cutoff;
+    let (dc, da, dd) = pixel_grads(scene, seed ^ 0x5EED);
     let pg = PixelGrads {
         d_color: &dc,
         d_alpha: Some(&da),
@@ -305,6 +334,7 @@ fn grads_parity(seed: u64, n_channels: usize, smooth: bool, options: GpuOptions)
             c.len()
         );
     }
+    (cpu, g)
 }
 
 #[test]
@@ -611,64 +641,269 @@ fn sun_visibility_matches_cpu() {
     }
 }
 
-/// Random sort keys: tiles below `n_tiles` and order bits from a handful of values (so
-/// many keys tie on both), word 2 random (not ascending, so only a stable sort keeps the
-/// given order among ties), word 3 the key's position.
-fn sort_keys_input(seed: u64, len: usize, n_tiles: u32) -> Vec<[u32; 4]> {
-    let mut rng = SplitMix64::new(seed);
-    let orders: Vec<u32> = (0..7).map(|_| rng.next_u64() as u32).collect();
-    (0..len)
-        .map(|i| {
-            let r = rng.next_u64();
-            let tile = ((r >> 8) % n_tiles as u64) as u32;
-            // Mostly shared values (top bit set and clear among them), some all-random.
-            let order = if r & 7 == 0 {
-                (r >> 32) as u32
-            } else {
-                orders[((r >> 3) % 7) as usize]
-            };
-            [tile, order, rng.next_u64() as u32, i as u32]
-        })
-        .collect()
-}
-
+/// `RasterSettings::early_termination = false` (every pixel blends its whole list, down
+/// to T = 1.2e-38): images and gradients against the CPU with the tolerances above, on a
+/// scene where the switch changes many pixels.
 #[test]
-fn radix_sort_matches_a_stable_cpu_sort() {
+fn early_termination_off_matches_cpu() {
     let Some(ctx) = context(GpuOptions::default()) else {
         return;
     };
-    let raster = GpuRasterizer::new(ctx).unwrap();
-    // (buffer length, live keys on the device, tiles): empty, single, block edges (4096
-    // keys per workgroup), capacity above the count, 0 tile bits (an even pass count:
-    // 8), 9 and 12 tile bits (11 passes: the copy back), 13 (12 passes).
-    let cases = [
-        (0, 0, 5),
-        (1, 1, 5),
-        (1, 0, 5),
-        (700, 700, 1),
-        (4096, 4095, 300),
-        (4097, 4097, 4096),
-        (10007, 6001, 4096),
-        (50001, 50001, 5000),
-        (70000, 65537, 300),
-    ];
-    for (k, &(len, live, n_tiles)) in cases.iter().enumerate() {
-        let keys = sort_keys_input(100 + k as u64, len, n_tiles);
-        let mut expected = keys[..live].to_vec();
-        expected.sort_by_key(|key| (key[0], key[1]));
-        expected.extend_from_slice(&keys[live..]);
-        let got = raster.sort_keys(&keys, live, n_tiles).unwrap();
-        assert_eq!(got.len(), len);
-        let first_bad = got.iter().zip(&expected).position(|(a, b)| a != b);
+    let gpu = GpuRasterizer::new(ctx).unwrap();
+    let mut scene = random_scene(31, 2000, 3, false);
+    let stopped = render(&scene.camera, &scene.view(), &scene.settings).unwrap();
+    scene.settings.early_termination = false;
+    let (cpu, out) = compare_forward(&gpu, &scene, "early termination off");
+    // The switch matters here: with the stop a pixel keeps T >= 1e-4, without it the
+    // alpha of a pixel that stopped grows by about that much.
+    let changed = count_above(&cpu.alpha, &stopped.alpha, 2e-5);
+    eprintln!(
+        "{changed} of {} pixels change by more than 2e-5 (at most {:.2e})",
+        cpu.alpha.len(),
+        max_abs_diff(&cpu.alpha, &stopped.alpha)
+    );
+    assert!(changed > 100, "{changed} pixels changed");
+    assert!(count_above(&out.alpha, &stopped.alpha, 2e-5) >= changed / 2);
+    compare_grads(&gpu, &scene, 31, GpuOptions::default());
+}
+
+/// Seeded tile selection over `scene`'s image: about half the tiles, from a mask.
+fn holed_selection(scene: &Scene, seed: u64) -> TileSelection {
+    let (w, h) = (
+        scene.camera.intrinsics.width,
+        scene.camera.intrinsics.height,
+    );
+    let grid = TileGrid::new(w, h);
+    let mut rng = SplitMix64::new(seed);
+    let mut mask = vec![0.0f32; (w * h) as usize];
+    for t in 0..grid.n_tiles() {
+        if rng.next_u64() & 1 == 0 {
+            let r = grid.tile_rect(t);
+            mask[(r.y0 * w + r.x0) as usize] = 1.0;
+        }
+    }
+    let selection = TileSelection::from_mask(&mask, w, h, 0).unwrap();
+    let active = selection.active_count();
+    assert!(
+        active > 0 && active < grid.n_tiles(),
+        "{active} tiles active"
+    );
+    selection
+}
+
+/// `RasterSettings::blend_tiles` with holes: skipped tiles' pixels are the CPU's bits
+/// exactly (background, alpha 0, depth 0); active tiles are the GPU's own full render,
+/// bit for bit, and match the CPU with the tolerances above; gradients match the CPU's
+/// (which get nothing from skipped tiles) on both backward kernels.
+#[test]
+fn blend_tiles_match_cpu() {
+    let Some(ctx) = context(GpuOptions::default()) else {
+        return;
+    };
+    let gpu = GpuRasterizer::new(ctx).unwrap();
+    let mut scene = random_scene(32, 2000, 3, false);
+    let full = gpu
+        .render(&scene.camera, &scene.view(), &scene.settings)
+        .unwrap();
+    let selection = holed_selection(&scene, 32);
+    scene.settings.blend_tiles = Some(selection.clone());
+    let (cpu, out) = compare_forward(&gpu, &scene, "blend_tiles");
+    let grid = TileGrid::new(out.width, out.height);
+    let (w, nc) = (out.width as usize, out.n_channels);
+    let mut skipped_covered = 0;
+    for t in 0..grid.n_tiles() {
+        let r = grid.tile_rect(t);
+        for y in r.y0 as usize..r.y1 as usize {
+            for x in r.x0 as usize..r.x1 as usize {
+                let p = y * w + x;
+                let colour = |o: &[f32]| -> Vec<u32> {
+                    o[p * nc..p * nc + nc].iter().map(|v| v.to_bits()).collect()
+                };
+                if selection.is_active(t) {
+                    assert_eq!(colour(&out.color), colour(&full.color), "pixel {x},{y}");
+                    assert_eq!(out.alpha[p].to_bits(), full.alpha[p].to_bits());
+                    assert_eq!(out.depth[p].to_bits(), full.depth[p].to_bits());
+                } else {
+                    assert_eq!(colour(&out.color), colour(&cpu.color), "pixel {x},{y}");
+                    let bg: Vec<u32> = scene
+                        .settings
+                        .background
+                        .iter()
+                        .map(|v| v.to_bits())
+                        .collect();
+                    assert_eq!(colour(&out.color), bg);
+                    assert_eq!(out.alpha[p].to_bits(), 0.0f32.to_bits());
+                    assert_eq!(out.depth[p].to_bits(), 0.0f32.to_bits());
+                    assert_eq!(cpu.alpha[p].to_bits(), 0.0f32.to_bits());
+                    assert_eq!(cpu.depth[p].to_bits(), 0.0f32.to_bits());
+                    skipped_covered += usize::from(full.alpha[p] > 0.5);
+                }
+            }
+        }
+    }
+    // The skip hides real content.
+    assert!(
+        skipped_covered > 100,
+        "{skipped_covered} covered pixels skipped"
+    );
+    let (_, g) = compare_grads(&gpu, &scene, 32, GpuOptions::default());
+    // Gaussians seen only in skipped tiles get no gradient at all.
+    let full_grads = {
+        let full_settings = RasterSettings {
+            blend_tiles: None,
+            ..scene.settings.clone()
+        };
+        let (dc, da, dd) = pixel_grads(&scene, 32 ^ 0x5EED);
+        let pg = PixelGrads {
+            d_color: &dc,
+            d_alpha: Some(&da),
+            d_depth: Some(&dd),
+        };
+        let f = gpu
+            .render(&scene.camera, &scene.view(), &full_settings)
+            .unwrap();
+        gpu.render_backward(&scene.camera, &full_settings, &f, &pg)
+            .unwrap()
+    };
+    let silenced = (0..scene.opacity_logits.len())
+        .filter(|&i| g.d_opacity_logits[i] == 0.0 && full_grads.d_opacity_logits[i] != 0.0)
+        .count();
+    assert!(silenced > 20, "{silenced} Gaussians lost their gradient");
+    // The workgroup-reduction kernel (and the gather) skip the same tiles.
+    let Some(det) = context(GpuOptions {
+        deterministic: true,
+        ..GpuOptions::default()
+    }) else {
+        return;
+    };
+    compare_grads(
+        &GpuRasterizer::new(det).unwrap(),
+        &scene,
+        32,
+        GpuOptions {
+            deterministic: true,
+            ..GpuOptions::default()
+        },
+    );
+}
+
+/// Per Gaussian: blended into a pixel of an active tile of `selection`, from the CPU's own
+/// projection, depth order, bins and alpha-only tile walk (what
+/// `PreparedView::contributing` computes, tile by tile).
+fn cpu_contributing_in(scene: &Scene, selection: Option<&TileSelection>) -> Vec<bool> {
+    let s = &scene.settings;
+    let (w, h) = (
+        scene.camera.intrinsics.width,
+        scene.camera.intrinsics.height,
+    );
+    let frame = camera_frame(&scene.camera, s.near_m).unwrap();
+    let mode = AlphaMode {
+        smooth: s.smooth_cutoff,
+    };
+    let bare = GaussianView {
+        channels: &[],
+        n_channels: 0,
+        ..scene.view()
+    };
+    let projected = project_splats_with(&frame, &bare, mode, w, h, s.cull_outside_frustum);
+    let gaussian_of_rank = depth_order(&projected.splats);
+    let splats: Vec<Splat> = gaussian_of_rank
+        .iter()
+        .filter_map(|&g| projected.splats[g as usize])
+        .collect();
+    let rects: Vec<PixelRect> = splats.iter().map(|s| s.rect).collect();
+    let grid = TileGrid::new(w, h);
+    let bins = bin_tiles(&grid, &rects);
+    let mut out = vec![false; bare.len()];
+    for t in 0..grid.n_tiles() {
+        if selection.is_some_and(|sel| !sel.is_active(t)) {
+            continue;
+        }
+        let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
+        let mut flags = vec![0u8; list.len()];
+        tile_contributions(
+            &grid.tile_rect(t),
+            list,
+            &splats,
+            mode,
+            s.early_termination,
+            &mut flags,
+        );
+        for (&f, &rank) in flags.iter().zip(list) {
+            if f & ENTRY_BLENDS != 0 {
+                out[gaussian_of_rank[rank as usize] as usize] = true;
+            }
+        }
+    }
+    out
+}
+
+/// The device's contribution pass against the CPU's `PreparedView::contributing` on
+/// random views (camera positions and scenes), with early termination on and off and in
+/// smooth mode, and against the CPU's tile walk restricted to a selection's tiles.
+/// Exact equality: the pass evaluates alpha and the transmittance with the blend's
+/// operations, which agree with the CPU's on these scenes bit for bit (a fused multiply-add
+/// or an ulp in exp could move an alpha across 1/255 or a T across the stop and so flip a
+/// Gaussian seen in one pixel only; none does here, and the test would show it).
+#[test]
+fn contribution_flags_match_cpu() {
+    let Some(ctx) = context(GpuOptions::default()) else {
+        return;
+    };
+    let gpu = GpuRasterizer::new(ctx).unwrap();
+    for seed in 0..4u64 {
+        // Dense, so that many projected Gaussians hide behind others.
+        let mut scene = random_scene(40 + seed, 8000, 3, seed == 3);
+        let mut rng = SplitMix64::new(seed);
+        let eye = Vec3::new(
+            rng.uniform(-1.5, 1.5),
+            rng.uniform(-1.0, 1.0),
+            rng.uniform(-4.5, -3.0),
+        );
+        scene.camera = Camera::look_at(
+            scene.camera.intrinsics,
+            eye,
+            Vec3::new(rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        );
+        scene.settings.early_termination = seed != 1;
+        let view = scene.view();
+        let prepared = prepare_view(&scene.camera, &view, &scene.settings).unwrap();
+        let cpu = prepared.contributing();
+        let survived = prepared.survived();
+        let n_cpu = cpu.iter().filter(|&&c| c).count();
+        let n_survived = survived.iter().filter(|&&c| c).count();
+        eprintln!("view {seed}: {n_cpu} of {n_survived} projected Gaussians contribute");
         assert!(
-            first_bad.is_none(),
-            "len {len}, live {live}, {n_tiles} tiles: first difference at {first_bad:?}"
+            n_cpu > 100 && n_cpu + 20 < n_survived,
+            "{n_cpu} of {n_survived}"
+        );
+        // The reference walk is the CPU's own pass where no tile is left out.
+        assert_eq!(cpu_contributing_in(&scene, None), cpu);
+        let got = gpu
+            .contributing(&scene.camera, &view, &scene.settings)
+            .unwrap();
+        let differ: Vec<usize> = (0..cpu.len()).filter(|&g| got[g] != cpu[g]).collect();
+        assert!(
+            differ.is_empty(),
+            "view {seed}: Gaussians {differ:?} differ"
+        );
+
+        let selection = holed_selection(&scene, seed);
+        scene.settings.blend_tiles = Some(selection.clone());
+        let expected = cpu_contributing_in(&scene, Some(&selection));
+        let n_expected = expected.iter().filter(|&&c| c).count();
+        assert!(
+            n_expected > 50 && n_expected < n_cpu,
+            "{n_expected} of {n_cpu}"
+        );
+        let got = gpu
+            .contributing(&scene.camera, &scene.view(), &scene.settings)
+            .unwrap();
+        let differ: Vec<usize> = (0..cpu.len()).filter(|&g| got[g] != expected[g]).collect();
+        assert!(
+            differ.is_empty(),
+            "view {seed}, tiles: Gaussians {differ:?} differ"
         );
     }
-    let mut keys = sort_keys_input(7, 10, 3);
-    assert!(raster.sort_keys(&keys, 11, 3).is_err(), "live > length");
-    keys[9][0] = 3;
-    assert!(raster.sort_keys(&keys, 10, 3).is_err(), "tile >= n_tiles");
-    // Past the live keys a tile word is not read.
-    assert!(raster.sort_keys(&keys, 9, 3).is_ok());
 }

@@ -2,8 +2,7 @@
 //!
 //! Forward, all on the device: projection (one thread per Gaussian) -> exclusive prefix
 //! sum of the per-Gaussian tile counts -> key generation (tile, depth bits, Gaussian) ->
-//! stable radix sort of the live keys by (tile, depth) -> per-tile key ranges -> blending
-//! (one workgroup per 16x16 tile). The
+//! bitonic sort -> per-tile key ranges -> blending (one workgroup per 16x16 tile). The
 //! only mid-pass readback is the 4-byte entry count, which sizes the sort; the image, the
 //! per-pixel alpha and depth and the per-Gaussian radii come back at the end.
 //! Backward: per-tile back-to-front walk with per-key workgroup reductions and atomic
@@ -14,9 +13,8 @@
 //! - the same conventions and formulas as `crate::raster` (see the shaders' headers), so
 //!   outputs agree with it to float rounding, except where a rounding difference moves a
 //!   pixel across the 1/255 cutoff or the 1e-4 stop (see `tests/gpu_parity.rs`);
-//! - keys (tile, depth bits, Gaussian index) are written in Gaussian order and sorted
-//!   stably by (tile, depth bits), so each tile's list is the CPU's list in the CPU's
-//!   order; the forward is deterministic. The backward's atomic sums are
+//! - keys (tile, depth bits, Gaussian index) are unique, so each tile's list is the CPU's
+//!   list in the CPU's order; the forward is deterministic. The backward's atomic sums are
 //!   not (their order, and so the last bits of the gradients, vary from run to run)
 //!   unless [`super::GpuOptions::deterministic`] is set;
 //! - device buffers of a forward pass live in its [`GpuRenderOutput`] until backward.
@@ -33,7 +31,8 @@ use crate::camera::Camera;
 use crate::raster::bin::{TileGrid, TILE_PX};
 use crate::raster::blend::{AlphaMode, REC_CHANNELS};
 use crate::raster::{
-    camera_frame, BackwardTimings, GaussianGrads, GaussianView, PixelGrads, RasterSettings,
+    camera_frame, BackwardTimings, GaussianGrads, GaussianView, PixelGrads, RasterError,
+    RasterSettings,
 };
 
 /// Most channels the GPU kernels take (the backward's workgroup reduction holds
@@ -45,15 +44,13 @@ const PROJECT: &str = include_str!("shaders/project.wgsl");
 const SCAN_BLOCK: &str = include_str!("shaders/scan_block.wgsl");
 const SCAN_ADD: &str = include_str!("shaders/scan_add.wgsl");
 const KEYGEN: &str = include_str!("shaders/keygen.wgsl");
-const SORT_RADIX_COMMON: &str = include_str!("shaders/sort_radix_common.wgsl");
-const SORT_RADIX_COUNT: &str = include_str!("shaders/sort_radix_count.wgsl");
-const SORT_RADIX_SCAN: &str = include_str!("shaders/sort_radix_scan.wgsl");
-const SORT_RADIX_SCATTER: &str = include_str!("shaders/sort_radix_scatter.wgsl");
-const SORT_RADIX_COPY: &str = include_str!("shaders/sort_radix_copy.wgsl");
+const SORT_GLOBAL: &str = include_str!("shaders/sort_global.wgsl");
+const SORT_LOCAL: &str = include_str!("shaders/sort_local.wgsl");
 const RANGES: &str = include_str!("shaders/ranges.wgsl");
 const BLEND: &str = include_str!("shaders/blend.wgsl");
 const BLEND_BACKWARD: &str = include_str!("shaders/blend_backward.wgsl");
 const BLEND_BACKWARD_DIRECT: &str = include_str!("shaders/blend_backward_direct.wgsl");
+const CONTRIB: &str = include_str!("shaders/contrib.wgsl");
 const ACC_F32: &str = include_str!("shaders/acc_f32.wgsl");
 const ACC_CAS: &str = include_str!("shaders/acc_cas.wgsl");
 const ACC_RECORDS: &str = include_str!("shaders/acc_records.wgsl");
@@ -69,59 +66,8 @@ const GSTRIDE: usize = 11;
 pub(super) const SSTRIDE: usize = 12;
 /// Splats per batch staged in workgroup memory by the blend kernels (`BATCH` in WGSL).
 const BATCH: usize = 128;
-/// Bits of one radix sort digit (16 bins; `DIGITS` in sort_radix_common.wgsl).
-const RADIX_BITS: u32 = 4;
-/// Keys per radix sort workgroup (`BLOCK` in sort_radix_common.wgsl: 256 threads of 16).
-const RADIX_BLOCK: u64 = 4096;
-/// Order bits of a key (word 1: depth, or a receiver's limit), sorted in full.
-const ORDER_BITS: u32 = 32;
-
-/// Keys to sort on the device in place: `n_sort` vec4<u32> keys (tile, order bits, tie
-/// index, 0) of which the first `min(count[count_word], n_sort)` are live. The live keys
-/// end up ordered by (tile, order bits), stably, so keys written in ascending tie index
-/// come out ordered by (tile, order bits, tie index); the keys past them stay as they
-/// were (padding, see keygen.wgsl).
-pub(super) struct SortKeys<'a> {
-    pub keys: &'a wgpu::Buffer,
-    pub n_sort: u64,
-    pub count: &'a wgpu::Buffer,
-    pub count_word: u32,
-    /// Every live key's tile word is below this: only its bits are sorted.
-    pub n_tiles: u32,
-    /// Names this sort's uniforms, which must differ between sorts recorded into one
-    /// submission from one scratch pool.
-    pub label: &'a str,
-}
-
-/// The radix sort's kernels (sort_radix_*.wgsl, after sort_radix_common.wgsl).
-struct RadixPipelines {
-    count: wgpu::ComputePipeline,
-    scan: wgpu::ComputePipeline,
-    scatter: wgpu::ComputePipeline,
-    copy: wgpu::ComputePipeline,
-}
-
-impl RadixPipelines {
-    fn new(ctx: &GpuContext) -> Result<Self, GpuError> {
-        let build =
-            |label: &str, body: &str| ctx.pipeline(label, &format!("{SORT_RADIX_COMMON}\n{body}"));
-        Ok(Self {
-            count: build("sort_radix_count", SORT_RADIX_COUNT)?,
-            scan: build("sort_radix_scan", SORT_RADIX_SCAN)?,
-            scatter: build("sort_radix_scatter", SORT_RADIX_SCATTER)?,
-            copy: build("sort_radix_copy", SORT_RADIX_COPY)?,
-        })
-    }
-}
-
-/// The radix passes that sort keys of `n_tiles` tiles: (key word, shift), least
-/// significant digit first (the order bits, then the tile bits).
-fn radix_digits(n_tiles: u32) -> Vec<(u32, u32)> {
-    let tile_bits = u32::BITS - n_tiles.saturating_sub(1).leading_zeros();
-    let order = (0..ORDER_BITS / RADIX_BITS).map(|d| (1, d * RADIX_BITS));
-    let tile = (0..tile_bits.div_ceil(RADIX_BITS)).map(|d| (0, d * RADIX_BITS));
-    order.chain(tile).collect()
-}
+/// The local bitonic kernel sorts blocks of this many keys.
+pub(super) const SORT_BLOCK: u64 = 512;
 
 /// Constants the raster shaders expect before common.wgsl, then common.wgsl.
 pub(super) fn prelude(nc: usize) -> String {
@@ -143,6 +89,8 @@ pub(super) struct ChannelPipelines {
     pub(super) ranges: wgpu::ComputePipeline,
     blend: wgpu::ComputePipeline,
     blend_backward: wgpu::ComputePipeline,
+    /// The alpha-only walk of [`GpuRasterizer::encode_contributing`].
+    contrib: wgpu::ComputePipeline,
     project_backward: wgpu::ComputePipeline,
     /// Deterministic mode only: per-Gaussian sums of the per-entry records.
     gather: Option<wgpu::ComputePipeline>,
@@ -154,7 +102,8 @@ pub struct GpuRasterizer {
     pub(super) ctx: GpuContext,
     scan_block: wgpu::ComputePipeline,
     scan_add: wgpu::ComputePipeline,
-    radix: RadixPipelines,
+    sort_global: wgpu::ComputePipeline,
+    sort_local: wgpu::ComputePipeline,
     by_channels: Mutex<HashMap<usize, Arc<ChannelPipelines>>>,
 }
 
@@ -186,6 +135,8 @@ pub(super) struct ForwardState {
     pub(super) keys: wgpu::Buffer,
     pub(super) ranges: wgpu::Buffer,
     pub(super) px_state: wgpu::Buffer,
+    /// `RasterSettings::blend_tiles` as bits (see [`tile_mask_words`]).
+    pub(super) tile_mask: wgpu::Buffer,
     pub(super) pipelines: Arc<ChannelPipelines>,
     pub(super) grid: TileGrid,
 }
@@ -211,12 +162,30 @@ pub(super) struct DeviceForward {
     pub encoder: wgpu::CommandEncoder,
     /// The entry count, when it was read back (no `capacity`).
     pub tile_entries: Option<usize>,
-    /// Keys the sort's buffers hold: the entry count, or the capacity.
+    /// Keys the sort ran over (a power of two).
     pub n_sort: u64,
     /// Scanned tile counts: `counts[n]` is the entry count.
     pub counts: wgpu::Buffer,
     /// Uniforms the recorded sort reads, held until the caller submits.
     pub _sort_uniforms: Vec<wgpu::Buffer>,
+}
+
+/// A forward pass up to its blend (see [`GpuRasterizer::forward_device_prepare`]):
+/// projected, sorted and binned, the blend's outputs allocated. `state.chans` is the
+/// buffer the projection checked until [`GpuRasterizer::forward_device_blend`] sets the
+/// channels it blends.
+pub(super) struct DevicePrepared {
+    pub state: ForwardState,
+    /// `H * W * nc` colour, written by the blend.
+    pub color: wgpu::Buffer,
+    /// The entry count, when it was read back (no `capacity`).
+    pub tile_entries: Option<usize>,
+    /// Keys the sort ran over (a power of two).
+    pub n_sort: u64,
+    /// Scanned tile counts: `counts[n]` is the entry count.
+    pub counts: wgpu::Buffer,
+    /// Uniforms the recorded sort reads, held until the caller submits.
+    pub sort_uniforms: Vec<wgpu::Buffer>,
 }
 
 /// A GPU render: the same images and per-Gaussian data as [`crate::raster::RenderOutput`].
@@ -265,10 +234,35 @@ fn check_len(what: &str, expected: usize, got: usize) -> Result<(), GpuError> {
     }
 }
 
+/// A storage buffer holding `data` (from `scratch` when given: written through the queue,
+/// so it takes effect at the next submission).
+fn storage_data_in(
+    ctx: &GpuContext,
+    scratch: Option<&Scratch>,
+    label: &str,
+    data: &[u8],
+) -> Result<wgpu::Buffer, GpuError> {
+    match scratch {
+        Some(s) => {
+            let b = s.storage(ctx, label, data.len() as u64)?;
+            ctx.queue.write_buffer(&b, 0, data);
+            Ok(b)
+        }
+        None => Ok(ctx.storage_init(label, data)),
+    }
+}
+
 /// `Frame::n_entries` when the entry count stays on the device (common.wgsl).
 const ENTRIES_ON_DEVICE: u32 = u32::MAX;
 
-/// The frame uniform (layout of `Frame` in common.wgsl, 144 bytes).
+/// Words of the frame uniform (`Frame` in common.wgsl, 160 bytes).
+const FRAME_WORDS: usize = 40;
+/// Word of `Frame::stop` (then `tile_masked`).
+const FRAME_STOP_WORD: usize = 36;
+
+/// The frame uniform (layout of `Frame` in common.wgsl), with the blend's default
+/// switches: early termination on, every tile blended ([`with_blend_switches`] sets
+/// others).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn frame_bytes(
     frame: &crate::raster::project::CameraFrame,
@@ -280,7 +274,7 @@ pub(super) fn frame_bytes(
     n_sort: u32,
     background: &[f32],
 ) -> Vec<u8> {
-    let mut w = [0u32; 36];
+    let mut w = [0u32; FRAME_WORDS];
     for r in 0..3 {
         for c in 0..3 {
             w[4 * r + c] = frame.rot_cam_from_world[r][c].to_bits();
@@ -311,7 +305,38 @@ pub(super) fn frame_bytes(
     for (k, b) in background.iter().enumerate() {
         w[28 + k] = b.to_bits();
     }
+    w[FRAME_STOP_WORD] = AlphaMode { smooth }.stop(true).to_bits();
     u32_bytes(&w)
+}
+
+/// `frame` (from [`frame_bytes`]) with the blend's switches from `settings`: the stop
+/// transmittance (`RasterSettings::early_termination`) and whether the tile mask applies
+/// (`RasterSettings::blend_tiles`).
+pub(super) fn with_blend_switches(mut frame: Vec<u8>, settings: &RasterSettings) -> Vec<u8> {
+    let mode = AlphaMode {
+        smooth: settings.smooth_cutoff,
+    };
+    let stop = mode.stop(settings.early_termination).to_bits();
+    let masked = settings.blend_tiles.is_some() as u32;
+    let at = 4 * FRAME_STOP_WORD;
+    frame[at..at + 4].copy_from_slice(&stop.to_le_bytes());
+    frame[at + 4..at + 8].copy_from_slice(&masked.to_le_bytes());
+    frame
+}
+
+/// The tile mask words of `settings.blend_tiles` for `grid` (bit `t % 32` of word `t / 32`
+/// set: tile `t` is blended); one zero word without a selection (the kernels then never
+/// read it).
+fn tile_mask_words(settings: &RasterSettings, grid: &TileGrid) -> Vec<u32> {
+    let Some(selection) = &settings.blend_tiles else {
+        return vec![0];
+    };
+    let n_tiles = grid.n_tiles();
+    let mut words = vec![0u32; n_tiles.div_ceil(32).max(1)];
+    for t in (0..n_tiles).filter(|&t| selection.is_active(t)) {
+        words[t / 32] |= 1 << (t % 32);
+    }
+    words
 }
 
 impl GpuRasterizer {
@@ -320,7 +345,8 @@ impl GpuRasterizer {
         Ok(Self {
             scan_block: ctx.pipeline("scan_block", SCAN_BLOCK)?,
             scan_add: ctx.pipeline("scan_add", SCAN_ADD)?,
-            radix: RadixPipelines::new(&ctx)?,
+            sort_global: ctx.pipeline("sort_global", SORT_GLOBAL)?,
+            sort_local: ctx.pipeline("sort_local", SORT_LOCAL)?,
             by_channels: Mutex::new(HashMap::new()),
             ctx,
         })
@@ -366,6 +392,7 @@ impl GpuRasterizer {
             ranges: build("ranges", RANGES)?,
             blend: build("blend", BLEND)?,
             blend_backward: build("blend_backward", &format!("{acc}\n{blend_backward}"))?,
+            contrib: build("contrib", CONTRIB)?,
             project_backward: build("project_backward", PROJECT_BACKWARD)?,
             gather: if options.deterministic {
                 Some(build("gather", GATHER)?)
@@ -431,151 +458,110 @@ impl GpuRasterizer {
         Ok(())
     }
 
-    /// Stable LSD radix sort of `sort`'s live keys by (tile, order bits), 4 bits per
-    /// pass: per-block digit histograms, one prefix sum over them, a stable scatter into
-    /// a temporary buffer and back (and a copy of the live keys when the pass count is
-    /// odd). Deterministic: the histograms are integer sums and every key's destination
-    /// follows from its position. Temporaries from `scratch` ("sort radix ..."), held in
-    /// `keep` until submission.
+    /// Bitonic sort of `n_sort` (a power of two, >= 512) keys.
+    pub(super) fn encode_sort(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        keys: &wgpu::Buffer,
+        n_sort: u64,
+        keep: &mut Vec<wgpu::Buffer>,
+    ) {
+        // Without a scratch pool the uniforms are fresh buffers: nothing can fail.
+        let _ = self.encode_sort_in(encoder, keys, n_sort, keep, None);
+    }
+
+    /// [`Self::encode_sort`] with its per-stage uniforms from `scratch`.
     pub(super) fn encode_sort_in(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        sort: &SortKeys,
+        keys: &wgpu::Buffer,
+        n_sort: u64,
         keep: &mut Vec<wgpu::Buffer>,
         scratch: Option<&Scratch>,
     ) -> Result<(), GpuError> {
-        let ctx = &self.ctx;
-        let n_blocks = sort.n_sort.div_ceil(RADIX_BLOCK);
-        if sort.n_sort > u32::MAX as u64 / 2 {
-            return Err(GpuError::TooLarge(format!("{} sort keys", sort.n_sort)));
-        }
-        let temp = storage_in(ctx, scratch, "sort radix keys", sort.n_sort * 16)?;
-        let hist = storage_in(
-            ctx,
-            scratch,
-            "sort radix histograms",
-            n_blocks * (1 << RADIX_BITS) * 4,
-        )?;
-        let p = &self.radix;
-        let digits = radix_digits(sort.n_tiles);
-        let block_groups = groups_1d(n_blocks * 256);
-        let mut last_params = None;
-        for (pass, &(key_word, shift)) in digits.iter().enumerate() {
+        let mut index = 0u32;
+        let mut stage = |k: u64, j: u64, local: bool, full: bool| -> Result<(), GpuError> {
             let params = uniform_in(
-                ctx,
+                &self.ctx,
                 scratch,
-                &format!("sort radix {} pass {pass}", sort.label),
-                &u32_bytes(&[
-                    key_word,
-                    shift,
-                    n_blocks as u32,
-                    sort.n_sort as u32,
-                    sort.count_word,
-                    0,
-                    0,
-                    0,
-                ]),
+                &format!("sort stage {index}"),
+                &u32_bytes(&[k as u32, j as u32, n_sort as u32, full as u32]),
             )?;
-            let (src, dst) = if pass % 2 == 0 {
-                (sort.keys, &temp)
+            index += 1;
+            let pipeline = if local {
+                &self.sort_local
             } else {
-                (&temp, sort.keys)
+                &self.sort_global
             };
-            let count = ctx.bind_group(&p.count, &[&params, sort.count, src, &hist]);
-            let scan = ctx.bind_group_at(&p.scan, &[(0, &params), (2, &hist)]);
-            let scatter = ctx.bind_group(&p.scatter, &[&params, sort.count, src, &hist, dst]);
-            let mut cpass = encoder.begin_compute_pass(&Default::default());
-            cpass.set_pipeline(&p.count);
-            cpass.set_bind_group(0, &count, &[]);
-            cpass.dispatch_workgroups(block_groups.0, block_groups.1, 1);
-            drop(cpass);
-            let mut cpass = encoder.begin_compute_pass(&Default::default());
-            cpass.set_pipeline(&p.scan);
-            cpass.set_bind_group(0, &scan, &[]);
-            cpass.dispatch_workgroups(1, 1, 1);
-            drop(cpass);
-            let mut cpass = encoder.begin_compute_pass(&Default::default());
-            cpass.set_pipeline(&p.scatter);
-            cpass.set_bind_group(0, &scatter, &[]);
-            cpass.dispatch_workgroups(block_groups.0, block_groups.1, 1);
-            drop(cpass);
-            last_params = Some(params);
+            let bind = self.ctx.bind_group(pipeline, &[&params, keys]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            if local {
+                // One workgroup (256 threads) per 512 keys.
+                let (x, y) = groups_1d(n_sort / 2);
+                pass.dispatch_workgroups(x, y, 1);
+            } else {
+                let (x, y) = groups_1d(n_sort);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+            drop(pass);
+            keep.push(params);
+            Ok(())
+        };
+        stage(0, 0, true, true)?;
+        let mut k = 2 * SORT_BLOCK;
+        while k <= n_sort {
+            let mut j = k / 2;
+            while j >= SORT_BLOCK {
+                stage(k, j, false, false)?;
+                j /= 2;
+            }
+            stage(k, 0, true, false)?;
+            k *= 2;
         }
-        if let (true, Some(params)) = (digits.len() % 2 == 1, &last_params) {
-            let bind = ctx.bind_group(&p.copy, &[params, sort.count, &temp, sort.keys]);
-            let mut cpass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut cpass, &p.copy, &bind, sort.n_sort);
-        }
-        keep.extend(last_params);
-        keep.extend([temp, hist]);
         Ok(())
     }
 
-    /// Sorts `keys` on the device as a forward pass sorts its tile keys (see
-    /// [`Self::encode_sort_in`]): `keys.len()` is the sort's capacity, `live` (kept
-    /// on the device, as a pass without the entry-count readback keeps it) the number of
-    /// keys sorted, `n_tiles` a bound on their tile words. Returns the whole buffer: the
-    /// live keys sorted by (tile, order bits), stably, then the rest as given. For tests
-    /// and benchmarks.
-    pub fn sort_keys(
+    /// Projection, prefix sum (and the 4-byte entry-count readback), key generation,
+    /// sort, tile ranges and blending of `inputs`' device buffers:
+    /// [`Self::forward_device_prepare`] then [`Self::forward_device_blend`] with
+    /// `inputs.chans`. `encoder` may already hold work that fills them (it is submitted
+    /// first). Returns the forward's device state and an encoder with the sort and blend
+    /// recorded but not submitted, so the caller appends its own readbacks or kernels.
+    pub(super) fn forward_device(
         &self,
-        keys: &[[u32; 4]],
-        live: usize,
-        n_tiles: u32,
-    ) -> Result<Vec<[u32; 4]>, GpuError> {
-        if live > keys.len() {
-            return Err(GpuError::Invalid(format!(
-                "{live} live keys in a buffer of {}",
-                keys.len()
-            )));
-        }
-        if let Some(k) = keys[..live].iter().find(|k| k[0] >= n_tiles) {
-            return Err(GpuError::Invalid(format!(
-                "key tile {} not below the tile count {n_tiles}",
-                k[0]
-            )));
-        }
-        let ctx = &self.ctx;
-        let flat: Vec<u32> = keys.iter().flatten().copied().collect();
-        let buf = ctx.storage_init("sort keys", &u32_bytes(&flat));
-        let count = ctx.storage_init("sort live count", &u32_bytes(&[live as u32]));
-        let mut encoder = ctx.encoder("sort");
-        let mut keep = Vec::new();
-        let sort = SortKeys {
-            keys: &buf,
-            n_sort: keys.len() as u64,
-            count: &count,
-            count_word: 0,
-            n_tiles,
-            label: "keys",
-        };
-        self.encode_sort_in(&mut encoder, &sort, &mut keep, None)?;
-        // The buffer holds at least one key's bytes, even for no keys.
-        let back = ctx.read_back(encoder, &[(&buf, keys.len().max(1) as u64 * 16)])?;
-        Ok(bytes_u32(&back[0])
-            .chunks_exact(4)
-            .take(keys.len())
-            .map(|k| [k[0], k[1], k[2], k[3]])
-            .collect())
+        inputs: DeviceInputs,
+        encoder: wgpu::CommandEncoder,
+        scratch: Option<&Scratch>,
+        capacity: Option<u64>,
+    ) -> Result<DeviceForward, GpuError> {
+        let chans = inputs.chans.clone();
+        let (prepared, encoder) =
+            self.forward_device_prepare(inputs, encoder, scratch, capacity)?;
+        Ok(self.forward_device_blend(prepared, chans, encoder))
     }
 
-    /// Projection, prefix sum (and the 4-byte entry-count readback), key generation,
-    /// sort, tile ranges and blending of `inputs`' device buffers. `encoder` may already
-    /// hold work that fills them (it is submitted first). Returns the forward's device
-    /// state and an encoder with the sort and blend recorded but not submitted, so the
-    /// caller appends its own readbacks or kernels.
+    /// The forward up to its blend: projection, prefix sum (and, without `capacity`, the
+    /// 4-byte entry-count readback, which submits `encoder` and returns a fresh one), key
+    /// generation, sort and tile ranges, recorded into the returned encoder; also
+    /// uploads `settings.blend_tiles` and allocates the blend's outputs. `inputs.chans`
+    /// only serves the projection's finiteness check (a Gaussian with a non-finite
+    /// channel is culled, as on the CPU): a caller whose channels are not computed yet
+    /// passes finite placeholders (zeros) and checks the real ones itself. Record
+    /// [`Self::encode_contributing`] and then [`Self::forward_device_blend`] after it.
     ///
-    /// With `capacity` the entry count is not read back: the sort's buffers hold
-    /// `capacity` keys (it sorts the live ones) in the same encoder, and the caller checks the
-    /// scanned total (`DeviceForward::counts[n]`) against `n_sort` after the fact (keys
+    /// With `capacity` the entry count is not read back: the sort runs over
+    /// `capacity.next_power_of_two()` keys in the same encoder, and the caller checks the
+    /// scanned total (`DevicePrepared::counts[n]`) against `n_sort` after the fact (keys
     /// beyond it were dropped).
-    pub(super) fn forward_device(
+    pub(super) fn forward_device_prepare(
         &self,
         inputs: DeviceInputs,
         mut encoder: wgpu::CommandEncoder,
         scratch: Option<&Scratch>,
         capacity: Option<u64>,
-    ) -> Result<DeviceForward, GpuError> {
+    ) -> Result<(DevicePrepared, wgpu::CommandEncoder), GpuError> {
         let DeviceInputs {
             camera,
             settings,
@@ -591,8 +577,21 @@ impl GpuRasterizer {
         };
         let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
         let grid = TileGrid::new(width, height);
+        if let Some(selection) = &settings.blend_tiles {
+            if selection.image_size() != (width, height) {
+                return Err(GpuError::Raster(RasterError::InvalidSettings(
+                    "blend_tiles was built for another image size",
+                )));
+            }
+        }
         let pipelines = self.channel_pipelines(nc)?;
         let ctx = &self.ctx;
+        let tile_mask = storage_data_in(
+            ctx,
+            scratch,
+            "tile mask",
+            &u32_bytes(&tile_mask_words(settings, &grid)),
+        )?;
         let frame0 = uniform_in(
             ctx,
             scratch,
@@ -629,9 +628,10 @@ impl GpuRasterizer {
                 encoder.copy_buffer_to_buffer(&counts, 4 * n as u64, &total_buf, 0, 4);
                 let total = bytes_u32(&ctx.read_back(encoder, &[(&total_buf, 4)])?[0])[0] as u64;
                 keep.clear();
-                (Some(total), total, ctx.encoder("forward: sort and blend"))
+                let n_sort = total.next_power_of_two().max(SORT_BLOCK);
+                (Some(total), n_sort, ctx.encoder("forward: sort and blend"))
             }
-            Some(cap) => (None, cap, encoder),
+            Some(cap) => (None, cap.next_power_of_two().max(SORT_BLOCK), encoder),
         };
         if n_sort > u32::MAX as u64 / 2 {
             return Err(GpuError::TooLarge(format!("{n_sort} tile entries")));
@@ -641,15 +641,18 @@ impl GpuRasterizer {
             ctx,
             scratch,
             "frame",
-            &frame_bytes(
-                &frame,
-                mode.cutoff(),
-                &grid,
-                n as u32,
-                mode.smooth,
-                total.map_or(ENTRIES_ON_DEVICE, |t| t as u32),
-                n_sort as u32,
-                background,
+            &with_blend_switches(
+                frame_bytes(
+                    &frame,
+                    mode.cutoff(),
+                    &grid,
+                    n as u32,
+                    mode.smooth,
+                    total.map_or(ENTRIES_ON_DEVICE, |t| t as u32),
+                    n_sort as u32,
+                    background,
+                ),
+                settings,
             ),
         )?;
         let ranges = storage_in(ctx, scratch, "tile ranges", grid.n_tiles() as u64 * 8)?;
@@ -664,32 +667,14 @@ impl GpuRasterizer {
         // The sort's uniforms (and, without a readback, the scan's temporaries) must
         // outlive the submission: the state keeps them.
         let mut sort_uniforms = keep;
-        let sort = SortKeys {
-            keys: &keys,
-            n_sort,
-            count: &counts,
-            count_word: n as u32,
-            n_tiles: grid.n_tiles() as u32,
-            label: "tiles",
-        };
-        self.encode_sort_in(&mut encoder, &sort, &mut sort_uniforms, scratch)?;
+        self.encode_sort_in(&mut encoder, &keys, n_sort, &mut sort_uniforms, scratch)?;
         encoder.clear_buffer(&ranges, 0, None);
         {
             let bind = ctx.bind_group(&pipelines.ranges, &[&frame, &keys, &ranges]);
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &pipelines.ranges, &bind, n_sort);
         }
-        {
-            let bind = ctx.bind_group(
-                &pipelines.blend,
-                &[&frame, &keys, &ranges, &splats, &chans, &color, &px_state],
-            );
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&pipelines.blend);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(grid.tiles_x, grid.tiles_y, 1);
-        }
-        Ok(DeviceForward {
+        let prepared = DevicePrepared {
             state: ForwardState {
                 camera: *camera,
                 settings: settings.clone(),
@@ -702,26 +687,115 @@ impl GpuRasterizer {
                 keys,
                 ranges,
                 px_state,
+                tile_mask,
                 pipelines,
                 grid,
             },
             color,
-            encoder,
             tile_entries: total.map(|t| t as usize),
             n_sort,
             counts,
-            _sort_uniforms: sort_uniforms,
-        })
+            sort_uniforms,
+        };
+        Ok((prepared, encoder))
     }
 
-    /// Renders `gaussians` from `camera` (same inputs, checks and outputs as
-    /// [`crate::raster::render`]).
-    pub fn render(
+    /// Records the alpha-only walk of every blended tile of `prepared` (the blend's walk,
+    /// stop and tile mask, without channels): `out_flags[g]` (u32) becomes 1 for each
+    /// Gaussian `g` blended into at least one pixel, 0 for every other `g < n` (the
+    /// buffer is cleared first). These are the Gaussians whose channels the blend and its
+    /// backward read, as `crate::raster::PreparedView::contributing` on the CPU.
+    pub(super) fn encode_contributing(
         &self,
-        camera: &Camera,
+        prepared: &DevicePrepared,
+        encoder: &mut wgpu::CommandEncoder,
+        out_flags: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        let st = &prepared.state;
+        if out_flags.size() < st.n as u64 * 4 {
+            return Err(GpuError::Invalid(format!(
+                "contribution flags: {} bytes for {} Gaussians",
+                out_flags.size(),
+                st.n
+            )));
+        }
+        encoder.clear_buffer(out_flags, 0, None);
+        let p = &st.pipelines;
+        let bind = self.ctx.bind_group(
+            &p.contrib,
+            &[
+                &st.frame,
+                &st.keys,
+                &st.ranges,
+                &st.splats,
+                &st.tile_mask,
+                out_flags,
+            ],
+        );
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&p.contrib);
+        pass.set_bind_group(0, &bind, &[]);
+        pass.dispatch_workgroups(st.grid.tiles_x, st.grid.tiles_y, 1);
+        Ok(())
+    }
+
+    /// Records the blend of `prepared` with `chans` (`n * nc` f32, the channels the
+    /// backward reads too) into `encoder`: the rest of [`Self::forward_device`].
+    pub(super) fn forward_device_blend(
+        &self,
+        prepared: DevicePrepared,
+        chans: wgpu::Buffer,
+        mut encoder: wgpu::CommandEncoder,
+    ) -> DeviceForward {
+        let DevicePrepared {
+            mut state,
+            color,
+            tile_entries,
+            n_sort,
+            counts,
+            sort_uniforms,
+        } = prepared;
+        state.chans = chans;
+        {
+            let st = &state;
+            let bind = self.ctx.bind_group(
+                &st.pipelines.blend,
+                &[
+                    &st.frame,
+                    &st.keys,
+                    &st.ranges,
+                    &st.splats,
+                    &st.chans,
+                    &color,
+                    &st.px_state,
+                    &st.tile_mask,
+                ],
+            );
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&st.pipelines.blend);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(st.grid.tiles_x, st.grid.tiles_y, 1);
+        }
+        DeviceForward {
+            state,
+            color,
+            encoder,
+            tile_entries,
+            n_sort,
+            counts,
+            _sort_uniforms: sort_uniforms,
+        }
+    }
+
+    /// Checks `gaussians` and `settings` as [`crate::raster::render`] does and uploads
+    /// them: the forward's inputs (with the resolved background).
+    fn upload_view<'a>(
+        &self,
+        camera: &'a Camera,
         gaussians: &GaussianView,
-        settings: &RasterSettings,
-    ) -> Result<GpuRenderOutput, GpuError> {
+        settings: &'a RasterSettings,
+        background: &'a mut Vec<f32>,
+    ) -> Result<DeviceInputs<'a>, GpuError> {
         camera_frame(camera, settings.near_m)?;
         let n = gaussians.len();
         let nc = gaussians.n_channels;
@@ -749,7 +823,7 @@ impl GpuRasterizer {
         if n >= (u32::MAX as usize) / (GSTRIDE + SSTRIDE) {
             return Err(GpuError::TooLarge(format!("{n} Gaussians")));
         }
-        let background = if settings.background.is_empty() {
+        *background = if settings.background.is_empty() {
             vec![0.0; nc]
         } else {
             check_len(
@@ -762,10 +836,6 @@ impl GpuRasterizer {
             }
             settings.background.clone()
         };
-        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-        let ctx = &self.ctx;
-
-        let t0 = Instant::now();
         let mut packed = Vec::with_capacity(n * GSTRIDE);
         for i in 0..n {
             packed.extend_from_slice(&gaussians.means[3 * i..3 * i + 3]);
@@ -773,17 +843,63 @@ impl GpuRasterizer {
             packed.extend_from_slice(&gaussians.rotations[4 * i..4 * i + 4]);
             packed.push(gaussians.opacity_logits[i]);
         }
-        let gauss = ctx.storage_init("gaussians", &f32_bytes(&packed));
-        let chans = ctx.storage_init("channels", &f32_bytes(gaussians.channels));
-        let inputs = DeviceInputs {
+        let ctx = &self.ctx;
+        Ok(DeviceInputs {
             camera,
             settings,
             n,
             nc,
-            background: &background,
-            gauss,
-            chans,
+            background,
+            gauss: ctx.storage_init("gaussians", &f32_bytes(&packed)),
+            chans: ctx.storage_init("channels", &f32_bytes(gaussians.channels)),
+        })
+    }
+
+    /// Per Gaussian: blended into at least one pixel of a blended tile (the device's
+    /// contribution pass, [`Self::encode_contributing`]); the same list as
+    /// [`crate::raster::PreparedView::contributing`] of `prepare_view(camera, geometry,
+    /// settings)` where no tile is left out. The view's channels are ignored.
+    pub fn contributing(
+        &self,
+        camera: &Camera,
+        geometry: &GaussianView,
+        settings: &RasterSettings,
+    ) -> Result<Vec<bool>, GpuError> {
+        let bare = GaussianView {
+            channels: &[],
+            n_channels: 0,
+            ..*geometry
         };
+        let bare_settings = RasterSettings {
+            background: Vec::new(),
+            ..settings.clone()
+        };
+        let mut background = Vec::new();
+        let inputs = self.upload_view(camera, &bare, &bare_settings, &mut background)?;
+        let n = inputs.n;
+        let ctx = &self.ctx;
+        let (prepared, mut encoder) =
+            self.forward_device_prepare(inputs, ctx.encoder("contributing"), None, None)?;
+        let flags = ctx.storage("contribution flags", n as u64 * 4)?;
+        self.encode_contributing(&prepared, &mut encoder, &flags)?;
+        let back = ctx.read_back(encoder, &[(&flags, n as u64 * 4)])?;
+        Ok(bytes_u32(&back[0]).iter().map(|&f| f != 0).collect())
+    }
+
+    /// Renders `gaussians` from `camera` (same inputs, checks and outputs as
+    /// [`crate::raster::render`]).
+    pub fn render(
+        &self,
+        camera: &Camera,
+        gaussians: &GaussianView,
+        settings: &RasterSettings,
+    ) -> Result<GpuRenderOutput, GpuError> {
+        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+        let ctx = &self.ctx;
+        let t0 = Instant::now();
+        let mut background = Vec::new();
+        let inputs = self.upload_view(camera, gaussians, settings, &mut background)?;
+        let (n, nc) = (inputs.n, inputs.nc);
         let fwd = self.forward_device(inputs, ctx.encoder("forward: project"), None, None)?;
         let project_scan_ms = ms_since(t0);
         let t1 = Instant::now();
@@ -959,6 +1075,7 @@ impl GpuRasterizer {
                     &st.px_state,
                     px_grad,
                     records.as_ref().unwrap_or(&acc),
+                    &st.tile_mask,
                 ],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());

@@ -2,7 +2,10 @@
 // tile's depth-sorted keys front to back as raster::blend::blend_tile_forward does:
 // a splat is evaluated only inside its pixel rectangle, alpha = min(0.99, o exp(power))
 // is skipped below the cutoff, and a pixel stops before the splat that would take its
-// transmittance below 1e-4 (never in smooth mode). Keys are taken in batches of BATCH:
+// transmittance below `Frame::stop` (1e-4; 1.2e-38 with early termination off; never in
+// smooth mode). A tile the frame's tile mask leaves out blends nothing: its pixels get
+// the background, alpha 0, depth 0, T = 1 and `last` 0, as on the CPU. Keys are taken in
+// batches of BATCH:
 // the workgroup first copies the batch's splats into workgroup memory (one per thread),
 // then every pixel walks the batch; between batches it stops once all pixels have.
 // Outputs: colour (pixel-major, NC per pixel, background composited) and per pixel
@@ -16,6 +19,7 @@
 @group(0) @binding(4) var<storage, read> chans: array<f32>;
 @group(0) @binding(5) var<storage, read_write> out_color: array<f32>;
 @group(0) @binding(6) var<storage, read_write> out_px: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read> tile_mask: array<u32>;
 
 const BATCH: u32 = 128u;
 // Per batched splat: mean x, y, conic a, b, c, opacity, depth, then NCA channels.
@@ -31,12 +35,19 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3:
     let x = wid.x * TILE + l3.x;
     let y = wid.y * TILE + l3.y;
     let inside = x < fr.width && y < fr.height;
+    if fr.tile_masked != 0u && !tile_bit(tile, tile_mask[tile / 32u]) {
+        if inside {
+            let pix = y * fr.width + x;
+            for (var k = 0u; k < NC; k++) {
+                out_color[pix * NC + k] = background(k, fr);
+            }
+            out_px[pix] = vec4<f32>(0.0, 0.0, 1.0, bitcast<f32>(0u));
+        }
+        return;
+    }
     let range = ranges[tile];
     let smooth_mode = fr.smooth_mode != 0u;
-    var stop = TRANSMITTANCE_STOP;
-    if smooth_mode {
-        stop = 0.0;
-    }
+    let stop = fr.stop;
     var t_acc = 1.0;
     var acc: array<f32, NCA>;
     for (var k = 0u; k < NCA; k++) {

@@ -6,6 +6,9 @@
 // over the tile in workgroup memory and added to the Gaussian's accumulator with one
 // atomic add per value (`acc_add`, f32 atomics or a compare-and-swap loop).
 // Keys no pixel of the tile keeps are skipped after one barrier.
+// The walk starts from each pixel's `last` (from the forward), so it is the gradient of
+// the forward whichever stop that ran with (`Frame::stop`); tiles the frame's tile mask
+// leaves out return at once.
 
 @group(0) @binding(0) var<uniform> fr: Frame;
 @group(0) @binding(1) var<storage, read> keys: array<vec4<u32>>;
@@ -15,6 +18,8 @@
 @group(0) @binding(5) var<storage, read> px_state: array<vec4<f32>>;
 // Per pixel: d_color (NC), d_alpha, d_depth.
 @group(0) @binding(6) var<storage, read> px_grad: array<f32>;
+// Binding 7: the accumulator (acc_*.wgsl).
+@group(0) @binding(8) var<storage, read> tile_mask: array<u32>;
 
 var<workgroup> red: array<f32, RED_LEN>;
 var<workgroup> max_last: atomic<u32>;
@@ -24,6 +29,10 @@ var<workgroup> copy_u32: u32;
 @compute @workgroup_size(16, 16)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let tile = wid.x + wid.y * fr.tiles_x;
+    // A tile the mask leaves out blended nothing: no gradient reaches its entries.
+    if fr.tile_masked != 0u && !tile_bit(tile, tile_mask[tile / 32u]) {
+        return;
+    }
     let x = wid.x * TILE + l3.x;
     let y = wid.y * TILE + l3.y;
     let inside = x < fr.width && y < fr.height;

@@ -3,6 +3,9 @@
 // accumulator with atomics, walking its own list from its own `last`: no workgroup
 // memory and no barriers. Chosen where barriers are expensive (software drivers) and
 // for the CAS path's comparison.
+// The walk starts from each pixel's `last` (from the forward), so it is the gradient of
+// the forward whichever stop that ran with (`Frame::stop`); tiles the frame's tile mask
+// leaves out return at once.
 
 @group(0) @binding(0) var<uniform> fr: Frame;
 @group(0) @binding(1) var<storage, read> keys: array<vec4<u32>>;
@@ -12,11 +15,17 @@
 @group(0) @binding(5) var<storage, read> px_state: array<vec4<f32>>;
 // Per pixel: d_color (NC), d_alpha, d_depth.
 @group(0) @binding(6) var<storage, read> px_grad: array<f32>;
+// Binding 7: the accumulator (acc_*.wgsl).
+@group(0) @binding(8) var<storage, read> tile_mask: array<u32>;
 
 
 @compute @workgroup_size(16, 16)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) l3: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let tile = wid.x + wid.y * fr.tiles_x;
+    // A tile the mask leaves out blended nothing: no gradient reaches its entries.
+    if fr.tile_masked != 0u && !tile_bit(tile, tile_mask[tile / 32u]) {
+        return;
+    }
     let x = wid.x * TILE + l3.x;
     let y = wid.y * TILE + l3.y;
     let inside = x < fr.width && y < fr.height;

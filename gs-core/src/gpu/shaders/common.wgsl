@@ -26,6 +26,15 @@ struct Frame {
     n_sort: u32,
     bg0: vec4<f32>,
     bg1: vec4<f32>,
+    // The blend stops a pixel before a splat that would take its transmittance below
+    // this (raster::blend::AlphaMode::stop: 1e-4, or 1.2e-38 with early termination off,
+    // 0 in smooth mode).
+    stop: f32,
+    // 1: the kernels' `tile_mask` (one bit per tile, see tile_bit) selects the tiles to blend;
+    // 0: every tile is blended.
+    tile_masked: u32,
+    pad0: u32,
+    pad1: u32,
 }
 
 const TILE: u32 = 16u;
@@ -49,6 +58,12 @@ fn finite(x: f32) -> bool {
 
 fn finite3(v: vec3<f32>) -> bool {
     return finite(v.x) && finite(v.y) && finite(v.z);
+}
+
+// Tile `t`'s bit in its tile-mask word (`word` = mask[t / 32]; bit t % 32). The kernels
+// bind the mask themselves and read it only when `Frame::tile_masked` is 1.
+fn tile_bit(t: u32, word: u32) -> bool {
+    return ((word >> (t & 31u)) & 1u) != 0u;
 }
 
 fn background(k: u32, fr: Frame) -> f32 {

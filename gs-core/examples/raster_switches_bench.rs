@@ -1,0 +1,230 @@
+//! What the rasterizer's switches cost or save on the wgpu backend (feature `wgpu`):
+//! forward (`GpuRasterizer::render`), backward (`render_backward`) and the contribution
+//! pass (`GpuRasterizer::contributing`) with every tile blended, with a checkerboard
+//! `blend_tiles` selection (half the tiles), with no tile blended (what is left is the
+//! projection, sort, uploads and readbacks: subtracted from the others it gives the
+//! blend's and the contribution walk's own cost), and with early termination off.
+//!
+//! `cargo run --release -p gs-core --features wgpu --example raster_switches_bench --
+//! [--runs N] [--gaussians N] [--width W --height H]`
+//!
+//! Wall-clock medians after one warm-up, and this process's CPU time per call (all
+//! threads, the software driver's included), which on a shared machine says how much of
+//! the wall time was ours. On Mesa's software Vulkan driver (lavapipe) the kernels run on
+//! the CPU, so the CPU time is the device's work too.
+
+#[cfg(feature = "wgpu")]
+mod bench_util;
+
+#[cfg(feature = "wgpu")]
+fn main() {
+    bench::run();
+}
+
+#[cfg(not(feature = "wgpu"))]
+fn main() {
+    eprintln!("raster_switches_bench needs the `wgpu` feature (--features wgpu)");
+}
+
+#[cfg(feature = "wgpu")]
+mod bench {
+    use std::time::Instant;
+
+    use glam::Vec3;
+    use gs_core::gpu::{GpuContext, GpuRasterizer};
+    use gs_core::raster::bin::{TileGrid, TileSelection};
+    use gs_core::raster::{GaussianView, PixelGrads, RasterSettings};
+    use gs_core::rng::SplitMix64;
+    use gs_core::{Camera, Intrinsics};
+
+    use super::bench_util::{median, process_cpu_ms};
+
+    fn arg(args: &[String], name: &str) -> Option<usize> {
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1))
+            .and_then(|v| v.parse().ok())
+    }
+
+    struct Cloud {
+        means: Vec<f32>,
+        log_scales: Vec<f32>,
+        rotations: Vec<f32>,
+        opacity_logits: Vec<f32>,
+        channels: Vec<f32>,
+    }
+
+    impl Cloud {
+        fn view(&self) -> GaussianView<'_> {
+            GaussianView {
+                means: &self.means,
+                log_scales: &self.log_scales,
+                rotations: &self.rotations,
+                opacity_logits: &self.opacity_logits,
+                channels: &self.channels,
+                n_channels: 3,
+            }
+        }
+    }
+
+    /// `n` Gaussians in a 2 m ball at the origin, sized so neighbours overlap (as in
+    /// gpu_bench).
+    fn cloud(n: usize, seed: u64) -> Cloud {
+        let mut rng = SplitMix64::new(seed);
+        let sigma = 2.0 * (4.0 / n as f32).sqrt().min(0.05);
+        let mut c = Cloud {
+            means: Vec::with_capacity(3 * n),
+            log_scales: Vec::with_capacity(3 * n),
+            rotations: Vec::with_capacity(4 * n),
+            opacity_logits: Vec::with_capacity(n),
+            channels: Vec::with_capacity(3 * n),
+        };
+        for _ in 0..n {
+            let p = loop {
+                let p = Vec3::new(
+                    rng.uniform(-1.0, 1.0),
+                    rng.uniform(-1.0, 1.0),
+                    rng.uniform(-1.0, 1.0),
+                );
+                if p.length_squared() <= 1.0 {
+                    break p * 2.0;
+                }
+            };
+            c.means.extend(p.to_array());
+            for _ in 0..3 {
+                c.log_scales.push((sigma * rng.uniform(0.3, 1.5)).ln());
+            }
+            for _ in 0..4 {
+                c.rotations.push(rng.uniform(-1.0, 1.0));
+            }
+            c.opacity_logits.push(rng.uniform(-1.0, 3.0));
+            for _ in 0..3 {
+                c.channels.push(rng.uniform(0.0, 1.0));
+            }
+        }
+        c
+    }
+
+    /// Tiles whose `(tx + ty) % 2` is `parity`, or none.
+    fn selection(w: u32, h: u32, parity: Option<u32>) -> TileSelection {
+        let grid = TileGrid::new(w, h);
+        let mut mask = vec![0.0f32; (w * h) as usize];
+        if let Some(parity) = parity {
+            for t in 0..grid.n_tiles() as u32 {
+                if (t % grid.tiles_x + t / grid.tiles_x) % 2 == parity {
+                    let r = grid.tile_rect(t as usize);
+                    mask[(r.y0 * w + r.x0) as usize] = 1.0;
+                }
+            }
+        }
+        TileSelection::from_mask(&mask, w, h, 0).expect("mask of the image's size")
+    }
+
+    /// Median wall ms and mean process CPU ms of `runs` calls after one warm-up.
+    fn time<T>(runs: usize, mut f: impl FnMut() -> T) -> (f64, f64) {
+        std::hint::black_box(f());
+        let mut walls = Vec::with_capacity(runs);
+        let cpu0 = process_cpu_ms();
+        for _ in 0..runs {
+            let t = Instant::now();
+            std::hint::black_box(f());
+            walls.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        (median(walls), (process_cpu_ms() - cpu0) / runs as f64)
+    }
+
+    pub fn run() {
+        let args: Vec<String> = std::env::args().collect();
+        let runs = arg(&args, "--runs").unwrap_or(5).max(1);
+        let n = arg(&args, "--gaussians").unwrap_or(20_000);
+        let width = arg(&args, "--width").unwrap_or(480) as u32;
+        let height = arg(&args, "--height").unwrap_or(300) as u32;
+        let ctx = GpuContext::new().expect("a Vulkan adapter");
+        println!("GPU: {}", ctx.describe());
+        let gpu = GpuRasterizer::new(ctx).expect("rasterizer");
+        let c = cloud(n, 7);
+        let camera = Camera::look_at(
+            Intrinsics::from_fov_x(0.9, width, height),
+            Vec3::new(0.0, 0.0, -5.0),
+            Vec3::ZERO,
+            Vec3::Y,
+        );
+        let mut rng = SplitMix64::new(11);
+        let px = (width * height) as usize;
+        let d_color: Vec<f32> = (0..3 * px).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let d_alpha: Vec<f32> = (0..px).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let grads = PixelGrads {
+            d_color: &d_color,
+            d_alpha: Some(&d_alpha),
+            d_depth: None,
+        };
+        let base = RasterSettings::default();
+        let configs = [
+            ("all tiles", base.clone()),
+            (
+                "half the tiles",
+                RasterSettings {
+                    blend_tiles: Some(selection(width, height, Some(0))),
+                    ..base.clone()
+                },
+            ),
+            (
+                "no tile",
+                RasterSettings {
+                    blend_tiles: Some(selection(width, height, None)),
+                    ..base.clone()
+                },
+            ),
+            (
+                "early term. off",
+                RasterSettings {
+                    early_termination: false,
+                    ..base.clone()
+                },
+            ),
+        ];
+        println!(
+            "{n} Gaussians at {width}x{height}, {runs} runs: median wall ms / process CPU ms \
+             per call"
+        );
+        println!(
+            "{:<16} {:>17} {:>17} {:>17}",
+            "tiles", "forward", "backward", "contributing"
+        );
+        let mut rows = Vec::new();
+        for (name, settings) in &configs {
+            let fwd = time(runs, || {
+                gpu.render(&camera, &c.view(), settings).expect("render")
+            });
+            let out = gpu.render(&camera, &c.view(), settings).expect("render");
+            let bwd = time(runs, || {
+                gpu.render_backward(&camera, settings, &out, &grads)
+                    .expect("backward")
+            });
+            let contrib = time(runs, || {
+                gpu.contributing(&camera, &c.view(), settings)
+                    .expect("contributing")
+            });
+            let cell = |(w, c): (f64, f64)| format!("{w:8.1} /{c:8.1}");
+            println!(
+                "{name:<16} {:>17} {:>17} {:>17}",
+                cell(fwd),
+                cell(bwd),
+                cell(contrib)
+            );
+            rows.push([fwd, bwd, contrib]);
+        }
+        // Each pass's own cost: the run minus the run that blends no tile (process CPU);
+        // `pass` 0 forward, 1 backward, 2 contribution walk.
+        let own = |config: usize, pass: usize| rows[config][pass].1 - rows[2][pass].1;
+        let (blend_all, blend_half) = (own(0, 0), own(1, 0));
+        let (back_all, back_half) = (own(0, 1), own(1, 1));
+        let (walk_all, walk_half) = (own(0, 2), own(1, 2));
+        println!(
+            "own CPU ms (minus the no-tile run): blend {blend_all:.1} all / {blend_half:.1} half, \
+             backward blend {back_all:.1} / {back_half:.1}, contribution walk {walk_all:.1} / \
+             {walk_half:.1} ({:.0}% of the forward blend)",
+            100.0 * walk_all / blend_all
+        );
+    }
+}
