@@ -2,7 +2,8 @@
 //!
 //! Forward, all on the device: projection (one thread per Gaussian) -> exclusive prefix
 //! sum of the per-Gaussian tile counts -> key generation (tile, depth bits, Gaussian) ->
-//! bitonic sort -> per-tile key ranges -> blending (one workgroup per 16x16 tile). The
+//! stable radix sort of the live keys by (tile, depth) -> per-tile key ranges -> blending
+//! (one workgroup per 16x16 tile). The
 //! only mid-pass readback is the 4-byte entry count, which sizes the sort; the image, the
 //! per-pixel alpha and depth and the per-Gaussian radii come back at the end.
 //! Backward: per-tile back-to-front walk with per-key workgroup reductions and atomic
@@ -13,8 +14,9 @@
 //! - the same conventions and formulas as `crate::raster` (see the shaders' headers), so
 //!   outputs agree with it to float rounding, except where a rounding difference moves a
 //!   pixel across the 1/255 cutoff or the 1e-4 stop (see `tests/gpu_parity.rs`);
-//! - keys (tile, depth bits, Gaussian index) are unique, so each tile's list is the CPU's
-//!   list in the CPU's order; the forward is deterministic. The backward's atomic sums are
+//! - keys (tile, depth bits, Gaussian index) are written in Gaussian order and sorted
+//!   stably by (tile, depth bits), so each tile's list is the CPU's list in the CPU's
+//!   order; the forward is deterministic. The backward's atomic sums are
 //!   not (their order, and so the last bits of the gradients, vary from run to run)
 //!   unless [`super::GpuOptions::deterministic`] is set;
 //! - device buffers of a forward pass live in its [`GpuRenderOutput`] until backward.
@@ -44,8 +46,11 @@ const PROJECT: &str = include_str!("shaders/project.wgsl");
 const SCAN_BLOCK: &str = include_str!("shaders/scan_block.wgsl");
 const SCAN_ADD: &str = include_str!("shaders/scan_add.wgsl");
 const KEYGEN: &str = include_str!("shaders/keygen.wgsl");
-const SORT_GLOBAL: &str = include_str!("shaders/sort_global.wgsl");
-const SORT_LOCAL: &str = include_str!("shaders/sort_local.wgsl");
+const SORT_RADIX_COMMON: &str = include_str!("shaders/sort_radix_common.wgsl");
+const SORT_RADIX_COUNT: &str = include_str!("shaders/sort_radix_count.wgsl");
+const SORT_RADIX_SCAN: &str = include_str!("shaders/sort_radix_scan.wgsl");
+const SORT_RADIX_SCATTER: &str = include_str!("shaders/sort_radix_scatter.wgsl");
+const SORT_RADIX_COPY: &str = include_str!("shaders/sort_radix_copy.wgsl");
 const RANGES: &str = include_str!("shaders/ranges.wgsl");
 const BLEND: &str = include_str!("shaders/blend.wgsl");
 const BLEND_BACKWARD: &str = include_str!("shaders/blend_backward.wgsl");
@@ -66,8 +71,59 @@ const GSTRIDE: usize = 11;
 pub(super) const SSTRIDE: usize = 12;
 /// Splats per batch staged in workgroup memory by the blend kernels (`BATCH` in WGSL).
 const BATCH: usize = 128;
-/// The local bitonic kernel sorts blocks of this many keys.
-pub(super) const SORT_BLOCK: u64 = 512;
+/// Bits of one radix sort digit (16 bins; `DIGITS` in sort_radix_common.wgsl).
+const RADIX_BITS: u32 = 4;
+/// Keys per radix sort workgroup (`BLOCK` in sort_radix_common.wgsl: 256 threads of 16).
+const RADIX_BLOCK: u64 = 4096;
+/// Order bits of a key (word 1: depth, or a receiver's limit), sorted in full.
+const ORDER_BITS: u32 = 32;
+
+/// Keys to sort on the device in place: `n_sort` vec4<u32> keys (tile, order bits, tie
+/// index, 0) of which the first `min(count[count_word], n_sort)` are live. The live keys
+/// end up ordered by (tile, order bits), stably, so keys written in ascending tie index
+/// come out ordered by (tile, order bits, tie index); the keys past them stay as they
+/// were (padding, see keygen.wgsl).
+pub(super) struct SortKeys<'a> {
+    pub keys: &'a wgpu::Buffer,
+    pub n_sort: u64,
+    pub count: &'a wgpu::Buffer,
+    pub count_word: u32,
+    /// Every live key's tile word is below this: only its bits are sorted.
+    pub n_tiles: u32,
+    /// Names this sort's uniforms, which must differ between sorts recorded into one
+    /// submission from one scratch pool.
+    pub label: &'a str,
+}
+
+/// The radix sort's kernels (sort_radix_*.wgsl, after sort_radix_common.wgsl).
+struct RadixPipelines {
+    count: wgpu::ComputePipeline,
+    scan: wgpu::ComputePipeline,
+    scatter: wgpu::ComputePipeline,
+    copy: wgpu::ComputePipeline,
+}
+
+impl RadixPipelines {
+    fn new(ctx: &GpuContext) -> Result<Self, GpuError> {
+        let build =
+            |label: &str, body: &str| ctx.pipeline(label, &format!("{SORT_RADIX_COMMON}\n{body}"));
+        Ok(Self {
+            count: build("sort_radix_count", SORT_RADIX_COUNT)?,
+            scan: build("sort_radix_scan", SORT_RADIX_SCAN)?,
+            scatter: build("sort_radix_scatter", SORT_RADIX_SCATTER)?,
+            copy: build("sort_radix_copy", SORT_RADIX_COPY)?,
+        })
+    }
+}
+
+/// The radix passes that sort keys of `n_tiles` tiles: (key word, shift), least
+/// significant digit first (the order bits, then the tile bits).
+fn radix_digits(n_tiles: u32) -> Vec<(u32, u32)> {
+    let tile_bits = u32::BITS - n_tiles.saturating_sub(1).leading_zeros();
+    let order = (0..ORDER_BITS / RADIX_BITS).map(|d| (1, d * RADIX_BITS));
+    let tile = (0..tile_bits.div_ceil(RADIX_BITS)).map(|d| (0, d * RADIX_BITS));
+    order.chain(tile).collect()
+}
 
 /// Constants the raster shaders expect before common.wgsl, then common.wgsl.
 pub(super) fn prelude(nc: usize) -> String {
@@ -102,8 +158,7 @@ pub struct GpuRasterizer {
     pub(super) ctx: GpuContext,
     scan_block: wgpu::ComputePipeline,
     scan_add: wgpu::ComputePipeline,
-    sort_global: wgpu::ComputePipeline,
-    sort_local: wgpu::ComputePipeline,
+    radix: RadixPipelines,
     by_channels: Mutex<HashMap<usize, Arc<ChannelPipelines>>>,
 }
 
@@ -162,7 +217,7 @@ pub(super) struct DeviceForward {
     pub encoder: wgpu::CommandEncoder,
     /// The entry count, when it was read back (no `capacity`).
     pub tile_entries: Option<usize>,
-    /// Keys the sort ran over (a power of two).
+    /// Keys the sort's buffers hold: the entry count, or the capacity.
     pub n_sort: u64,
     /// Scanned tile counts: `counts[n]` is the entry count.
     pub counts: wgpu::Buffer,
@@ -180,7 +235,7 @@ pub(super) struct DevicePrepared {
     pub color: wgpu::Buffer,
     /// The entry count, when it was read back (no `capacity`).
     pub tile_entries: Option<usize>,
-    /// Keys the sort ran over (a power of two).
+    /// Keys the sort's buffers hold: the entry count, or the capacity.
     pub n_sort: u64,
     /// Scanned tile counts: `counts[n]` is the entry count.
     pub counts: wgpu::Buffer,
@@ -345,8 +400,7 @@ impl GpuRasterizer {
         Ok(Self {
             scan_block: ctx.pipeline("scan_block", SCAN_BLOCK)?,
             scan_add: ctx.pipeline("scan_add", SCAN_ADD)?,
-            sort_global: ctx.pipeline("sort_global", SORT_GLOBAL)?,
-            sort_local: ctx.pipeline("sort_local", SORT_LOCAL)?,
+            radix: RadixPipelines::new(&ctx)?,
             by_channels: Mutex::new(HashMap::new()),
             ctx,
         })
@@ -458,69 +512,132 @@ impl GpuRasterizer {
         Ok(())
     }
 
-    /// Bitonic sort of `n_sort` (a power of two, >= 512) keys.
-    pub(super) fn encode_sort(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        keys: &wgpu::Buffer,
-        n_sort: u64,
-        keep: &mut Vec<wgpu::Buffer>,
-    ) {
-        // Without a scratch pool the uniforms are fresh buffers: nothing can fail.
-        let _ = self.encode_sort_in(encoder, keys, n_sort, keep, None);
-    }
-
-    /// [`Self::encode_sort`] with its per-stage uniforms from `scratch`.
+    /// Stable LSD radix sort of `sort`'s live keys by (tile, order bits), 4 bits per
+    /// pass: per-block digit histograms, one prefix sum over them, a stable scatter into
+    /// a temporary buffer and back (and a copy of the live keys when the pass count is
+    /// odd). Deterministic: the histograms are integer sums and every key's destination
+    /// follows from its position. Temporaries from `scratch` ("sort radix ..."), held in
+    /// `keep` until submission.
     pub(super) fn encode_sort_in(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        keys: &wgpu::Buffer,
-        n_sort: u64,
+        sort: &SortKeys,
         keep: &mut Vec<wgpu::Buffer>,
         scratch: Option<&Scratch>,
     ) -> Result<(), GpuError> {
-        let mut index = 0u32;
-        let mut stage = |k: u64, j: u64, local: bool, full: bool| -> Result<(), GpuError> {
-            let params = uniform_in(
-                &self.ctx,
-                scratch,
-                &format!("sort stage {index}"),
-                &u32_bytes(&[k as u32, j as u32, n_sort as u32, full as u32]),
-            )?;
-            index += 1;
-            let pipeline = if local {
-                &self.sort_local
-            } else {
-                &self.sort_global
-            };
-            let bind = self.ctx.bind_group(pipeline, &[&params, keys]);
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(pipeline);
-            pass.set_bind_group(0, &bind, &[]);
-            if local {
-                // One workgroup (256 threads) per 512 keys.
-                let (x, y) = groups_1d(n_sort / 2);
-                pass.dispatch_workgroups(x, y, 1);
-            } else {
-                let (x, y) = groups_1d(n_sort);
-                pass.dispatch_workgroups(x, y, 1);
-            }
-            drop(pass);
-            keep.push(params);
-            Ok(())
-        };
-        stage(0, 0, true, true)?;
-        let mut k = 2 * SORT_BLOCK;
-        while k <= n_sort {
-            let mut j = k / 2;
-            while j >= SORT_BLOCK {
-                stage(k, j, false, false)?;
-                j /= 2;
-            }
-            stage(k, 0, true, false)?;
-            k *= 2;
+        let ctx = &self.ctx;
+        let n_blocks = sort.n_sort.div_ceil(RADIX_BLOCK);
+        if sort.n_sort > u32::MAX as u64 / 2 {
+            return Err(GpuError::TooLarge(format!("{} sort keys", sort.n_sort)));
         }
+        let temp = storage_in(ctx, scratch, "sort radix keys", sort.n_sort * 16)?;
+        let hist = storage_in(
+            ctx,
+            scratch,
+            "sort radix histograms",
+            n_blocks * (1 << RADIX_BITS) * 4,
+        )?;
+        let p = &self.radix;
+        let digits = radix_digits(sort.n_tiles);
+        let block_groups = groups_1d(n_blocks * 256);
+        let mut last_params = None;
+        for (pass, &(key_word, shift)) in digits.iter().enumerate() {
+            let params = uniform_in(
+                ctx,
+                scratch,
+                &format!("sort radix {} pass {pass}", sort.label),
+                &u32_bytes(&[
+                    key_word,
+                    shift,
+                    n_blocks as u32,
+                    sort.n_sort as u32,
+                    sort.count_word,
+                    0,
+                    0,
+                    0,
+                ]),
+            )?;
+            let (src, dst) = if pass % 2 == 0 {
+                (sort.keys, &temp)
+            } else {
+                (&temp, sort.keys)
+            };
+            let count = ctx.bind_group(&p.count, &[&params, sort.count, src, &hist]);
+            let scan = ctx.bind_group_at(&p.scan, &[(0, &params), (2, &hist)]);
+            let scatter = ctx.bind_group(&p.scatter, &[&params, sort.count, src, &hist, dst]);
+            let mut cpass = encoder.begin_compute_pass(&Default::default());
+            cpass.set_pipeline(&p.count);
+            cpass.set_bind_group(0, &count, &[]);
+            cpass.dispatch_workgroups(block_groups.0, block_groups.1, 1);
+            drop(cpass);
+            let mut cpass = encoder.begin_compute_pass(&Default::default());
+            cpass.set_pipeline(&p.scan);
+            cpass.set_bind_group(0, &scan, &[]);
+            cpass.dispatch_workgroups(1, 1, 1);
+            drop(cpass);
+            let mut cpass = encoder.begin_compute_pass(&Default::default());
+            cpass.set_pipeline(&p.scatter);
+            cpass.set_bind_group(0, &scatter, &[]);
+            cpass.dispatch_workgroups(block_groups.0, block_groups.1, 1);
+            drop(cpass);
+            last_params = Some(params);
+        }
+        if let (true, Some(params)) = (digits.len() % 2 == 1, &last_params) {
+            let bind = ctx.bind_group(&p.copy, &[params, sort.count, &temp, sort.keys]);
+            let mut cpass = encoder.begin_compute_pass(&Default::default());
+            dispatch_1d(&mut cpass, &p.copy, &bind, sort.n_sort);
+        }
+        keep.extend(last_params);
+        keep.extend([temp, hist]);
         Ok(())
+    }
+
+    /// Sorts `keys` on the device as a forward pass sorts its tile keys (see
+    /// [`Self::encode_sort_in`]): `keys.len()` is the sort's capacity, `live` (kept
+    /// on the device, as a pass without the entry-count readback keeps it) the number of
+    /// keys sorted, `n_tiles` a bound on their tile words. Returns the whole buffer: the
+    /// live keys sorted by (tile, order bits), stably, then the rest as given. For tests
+    /// and benchmarks.
+    pub fn sort_keys(
+        &self,
+        keys: &[[u32; 4]],
+        live: usize,
+        n_tiles: u32,
+    ) -> Result<Vec<[u32; 4]>, GpuError> {
+        if live > keys.len() {
+            return Err(GpuError::Invalid(format!(
+                "{live} live keys in a buffer of {}",
+                keys.len()
+            )));
+        }
+        if let Some(k) = keys[..live].iter().find(|k| k[0] >= n_tiles) {
+            return Err(GpuError::Invalid(format!(
+                "key tile {} not below the tile count {n_tiles}",
+                k[0]
+            )));
+        }
+        let ctx = &self.ctx;
+        let flat: Vec<u32> = keys.iter().flatten().copied().collect();
+        let buf = ctx.storage_init("sort keys", &u32_bytes(&flat));
+        let count = ctx.storage_init("sort live count", &u32_bytes(&[live as u32]));
+        let mut encoder = ctx.encoder("sort");
+        let mut keep = Vec::new();
+        let sort = SortKeys {
+            keys: &buf,
+            n_sort: keys.len() as u64,
+            count: &count,
+            count_word: 0,
+            n_tiles,
+            label: "keys",
+        };
+        self.encode_sort_in(&mut encoder, &sort, &mut keep, None)?;
+        // The buffer holds at least one key's bytes, even for no keys.
+        let back = ctx.read_back(encoder, &[(&buf, keys.len().max(1) as u64 * 16)])?;
+        Ok(bytes_u32(&back[0])
+            .chunks_exact(4)
+            .take(keys.len())
+            .map(|k| [k[0], k[1], k[2], k[3]])
+            .collect())
     }
 
     /// Projection, prefix sum (and the 4-byte entry-count readback), key generation,
@@ -551,8 +668,8 @@ impl GpuRasterizer {
     /// passes finite placeholders (zeros) and checks the real ones itself. Record
     /// [`Self::encode_contributing`] and then [`Self::forward_device_blend`] after it.
     ///
-    /// With `capacity` the entry count is not read back: the sort runs over
-    /// `capacity.next_power_of_two()` keys in the same encoder, and the caller checks the
+    /// With `capacity` the entry count is not read back: the sort's buffers hold
+    /// `capacity` keys (it sorts the live ones) in the same encoder, and the caller checks the
     /// scanned total (`DevicePrepared::counts[n]`) against `n_sort` after the fact (keys
     /// beyond it were dropped).
     pub(super) fn forward_device_prepare(
@@ -628,10 +745,9 @@ impl GpuRasterizer {
                 encoder.copy_buffer_to_buffer(&counts, 4 * n as u64, &total_buf, 0, 4);
                 let total = bytes_u32(&ctx.read_back(encoder, &[(&total_buf, 4)])?[0])[0] as u64;
                 keep.clear();
-                let n_sort = total.next_power_of_two().max(SORT_BLOCK);
-                (Some(total), n_sort, ctx.encoder("forward: sort and blend"))
+                (Some(total), total, ctx.encoder("forward: sort and blend"))
             }
-            Some(cap) => (None, cap.next_power_of_two().max(SORT_BLOCK), encoder),
+            Some(cap) => (None, cap, encoder),
         };
         if n_sort > u32::MAX as u64 / 2 {
             return Err(GpuError::TooLarge(format!("{n_sort} tile entries")));
@@ -667,7 +783,15 @@ impl GpuRasterizer {
         // The sort's uniforms (and, without a readback, the scan's temporaries) must
         // outlive the submission: the state keeps them.
         let mut sort_uniforms = keep;
-        self.encode_sort_in(&mut encoder, &keys, n_sort, &mut sort_uniforms, scratch)?;
+        let sort = SortKeys {
+            keys: &keys,
+            n_sort,
+            count: &counts,
+            count_word: n as u32,
+            n_tiles: grid.n_tiles() as u32,
+            label: "tiles",
+        };
+        self.encode_sort_in(&mut encoder, &sort, &mut sort_uniforms, scratch)?;
         encoder.clear_buffer(&ranges, 0, None);
         {
             let bind = ctx.bind_group(&pipelines.ranges, &[&frame, &keys, &ranges]);

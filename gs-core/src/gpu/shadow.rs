@@ -1,6 +1,6 @@
 //! The shadow pass on the GPU: per-Gaussian Sun visibility `V_i`
 //! (`sunaware::light::sun_visibility`) from the packed device parameters, recordable into
-//! a caller's command encoder ([`GpuShadow::encode_sun_visibility`], for the
+//! a caller's command encoder (`GpuShadow::encode_sun_visibility`, for the
 //! device-resident Sun-aware step), and its host wrappers ([`GpuShadow::sun_visibility`]
 //! from a `GaussianModel`, [`GpuShadow::visibility_from_splats`] from CPU splats).
 //!
@@ -8,7 +8,7 @@
 //! the camera centre, the scene box and the config). One thread per Gaussian projects it
 //! into the light image (shaders/shadow_project.wgsl: `light_splats`, perspective through
 //! the rasterizer's projection or `ortho_splat`, and its receiver limit from
-//! `light_axis_sigmas_m`); then the rasterizer's prefix sum, key generation, bitonic sort
+//! `light_axis_sigmas_m`); then the rasterizer's prefix sum, key generation, radix sort
 //! and tile ranges bin and depth-sort the splats, each tile's receivers are sorted by
 //! their depth limit (entries no pixel of the tile can receive at sort last), every pixel
 //! walks its receivers and occluders, and the weights are summed per Gaussian with integer
@@ -31,7 +31,7 @@
 
 use std::sync::{Arc, Mutex};
 
-use super::raster::{frame_bytes, prelude, GpuRasterizer, SORT_BLOCK, SSTRIDE};
+use super::raster::{frame_bytes, prelude, GpuRasterizer, SortKeys, SSTRIDE};
 use super::{bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuError, Scratch};
 use crate::model::{Param, ParamSet};
 use crate::nn::SceneBox;
@@ -82,7 +82,7 @@ impl std::fmt::Debug for GpuShadow {
 pub struct ShadowRecord {
     /// Word 0: the light pass's tile entries (written by the recorded commands).
     pub entry_count: wgpu::Buffer,
-    /// Keys the sorts ran over (a power of two, at least 512).
+    /// Keys the sorts' buffers hold: the entry count, or the capacity.
     pub n_sort: u64,
     /// The entry count, when it was read back (no capacity given).
     pub tile_entries: Option<u64>,
@@ -127,7 +127,7 @@ pub struct PackedVisibility {
     pub n_sort: u64,
 }
 
-/// The host wrappers' light inputs (see [`GpuShadow::encode_sun_visibility`]).
+/// The host wrappers' light inputs (see `GpuShadow::encode_sun_visibility`).
 struct HostLight<'a> {
     sun_dir: glam::Vec3,
     camera_centre: glam::Vec3,
@@ -301,10 +301,10 @@ impl GpuShadow {
     /// values as `sunaware::light::sun_visibility` (a Gaussian with a non-finite parameter
     /// is culled: `V = 1`).
     ///
-    /// `capacity`: `Some(c)` sizes the sorts for `c` entries (rounded up to a power of
-    /// two, at least 512) with no readback; if the entry count exceeds that, the recorded
-    /// commands set `flags[0]` bit 1 (value 2) and `V` is not valid: the caller redoes the
-    /// step with the count from [`ShadowRecord::entry_count`]. `None` submits `encoder` up
+    /// `capacity`: `Some(c)` sizes the sorts for `c` entries with no readback; if the
+    /// entry count exceeds that, the recorded commands set `flags[0]` bit 1 (value 2) and
+    /// `V` is not valid: the caller redoes the step with the count from
+    /// [`ShadowRecord::entry_count`]. `None` submits `encoder` up
     /// to the count, reads its 4 bytes back and records the rest into a fresh encoder.
     /// Returns the encoder to continue recording into. `flags` is only ever or-ed into.
     /// One recorded pass per submission: the pass's uniforms (from `scratch` and from this
@@ -467,10 +467,9 @@ impl GpuShadow {
             None => {
                 let back = ctx.read_back(encoder, &[(&entry_count, 4)])?;
                 let total = bytes_u32(&back[0])[0] as u64;
-                let n_sort = total.next_power_of_two().max(SORT_BLOCK);
-                (Some(total), n_sort, ctx.encoder("shadow: sort and walk"))
+                (Some(total), total, ctx.encoder("shadow: sort and walk"))
             }
-            Some(cap) => (None, cap.next_power_of_two().max(SORT_BLOCK), encoder),
+            Some(cap) => (None, cap, encoder),
         };
         if n_sort > u32::MAX as u64 / 2 {
             return Err(GpuError::TooLarge(format!("{n_sort} tile entries")));
@@ -529,15 +528,20 @@ impl GpuShadow {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &pipelines.keygen, &bind, n_sort.max(n as u64));
         }
-        let mut sort = |encoder: &mut wgpu::CommandEncoder, keys: &wgpu::Buffer| match sort_scratch
-        {
-            Some(_) => raster.encode_sort_in(encoder, keys, n_sort, &mut keep, sort_scratch),
-            None => {
-                raster.encode_sort(encoder, keys, n_sort, &mut keep);
-                Ok(())
-            }
+        // Both sorts read the live count from the scanned tile counts; their uniforms are
+        // labelled apart (they share `sort_scratch` within one submission).
+        let mut sort = |encoder: &mut wgpu::CommandEncoder, keys: &wgpu::Buffer, label: &str| {
+            let sort = SortKeys {
+                keys,
+                n_sort,
+                count: inputs.counts,
+                count_word: n as u32,
+                n_tiles: grid.n_tiles() as u32,
+                label,
+            };
+            raster.encode_sort_in(encoder, &sort, &mut keep, sort_scratch)
         };
-        sort(&mut encoder, &keys)?;
+        sort(&mut encoder, &keys, "shadow occluders")?;
         encoder.clear_buffer(&ranges, 0, None);
         encoder.clear_buffer(&sums, 0, None);
         {
@@ -553,7 +557,7 @@ impl GpuShadow {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.receiver_keys, &bind, n_sort);
         }
-        sort(&mut encoder, &receivers)?;
+        sort(&mut encoder, &receivers, "shadow receivers")?;
         {
             let bind = ctx.bind_group_at(
                 &self.visibility,
