@@ -111,11 +111,14 @@ pub struct TrainingConfig {
     pub min_view_angle_deg: f64,
     /// Worker threads of the trainer (fixed for bit-identical results).
     pub threads: usize,
-    /// Where the rasterizer, the shadow pass and the networks' products run: "cpu" (default)
-    /// or "wgpu" (needs the cargo feature `wgpu` and a Vulkan adapter; either missing stops
-    /// the start with an error, never a silent fallback). Adam and the networks' input
-    /// assembly stay on the CPU.
+    /// Where training runs: "cpu" (default) or "wgpu" (needs the cargo feature `wgpu` and a
+    /// Vulkan adapter; either missing stops the start with an error, never a silent
+    /// fallback). On "wgpu" a round's steps run device-resident (docs/gpu.md).
     pub backend: String,
+    /// On "wgpu": bit-identical results run to run (default `true`, so a replay of the
+    /// same telemetry gives the same model), or `false` for the float-atomic backward,
+    /// faster where the device's atomics are, whose last bits vary from run to run.
+    pub gpu_deterministic: bool,
     /// Width of the appearance network's (Phi's) hidden layers. Default 128, the
     /// recommended preset's (docs/runtime-vs-error.md: about half the training CPU of the
     /// paper's 256 at -0.10..+0.06 dB on the three simulated targets).
@@ -216,6 +219,7 @@ impl Default for TrainingConfig {
             min_view_angle_deg: window.min_view_angle_deg,
             threads: 2,
             backend: "cpu".to_string(),
+            gpu_deterministic: true,
             appearance_hidden_width: 128,
             encoding_frequencies: 2,
             mlp_precision: "f32".to_string(),

@@ -98,7 +98,7 @@ pub fn build_learner(
                 .backend()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?;
             settings.backend = kind
-                .open()
+                .open_with(config.training.gpu_deterministic)
                 .map_err(|e| RuntimeError::Config(format!("training.backend: {e}")))?;
             settings.online.model = config
                 .model_config()

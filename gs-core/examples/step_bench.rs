@@ -30,7 +30,7 @@
 //!
 //! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
 //! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]
-//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu] [--hybrid] [--default-malloc]`
+//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu] [--hybrid] [--gpu-atomic] [--default-malloc]`
 //!
 //! `--backend cpu,wgpu` measures each configuration on each listed backend (default `cpu`;
 //! `wgpu` needs `--features wgpu` and a Vulkan adapter). On `wgpu` the trainer is
@@ -40,7 +40,8 @@
 //! camera pass, the shadow pass and the network products on the GPU, input assembly and
 //! Adam on the host, per-stage timings). On a software Vulkan driver (Mesa's lavapipe) the
 //! wgpu rows are CPU timings of the GPU kernels, not GPU timings; the adapter is printed
-//! with the results.
+//! with the results. The wgpu backend opens deterministic (`BackendKind::open`, as the
+//! component does); `--gpu-atomic` uses the float-atomic backward instead.
 //!
 //! The process keeps freed memory as the component and the simulator do
 //! (`gs_core::heap::retain_freed_memory`); `--default-malloc` keeps glibc's defaults.
@@ -406,7 +407,12 @@ fn measure(
     let model = SunAwareModel::new(gaussians, scene_box, config.clone())
         .map_err(|e| format!("model: {e}"))?;
     let mut trainer = SunAwareTrainer::new(model);
-    let opened = backend.open().map_err(|e| e.to_string())?;
+    // The float-atomic backward (last bits vary run to run) with --gpu-atomic; the
+    // component's default is the deterministic one.
+    let deterministic = !std::env::args().any(|a| a == "--gpu-atomic");
+    let opened = backend
+        .open_with(deterministic)
+        .map_err(|e| e.to_string())?;
     if let Some(adapter) = adapter_of(&opened) {
         eprintln!("step_bench: backend wgpu on {adapter}");
     }

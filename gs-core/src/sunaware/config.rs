@@ -130,16 +130,31 @@ impl BackendKind {
     }
 
     /// Opens the backend: `Cpu` always succeeds; `Wgpu` opens a Vulkan adapter and compiles
-    /// the rasterizer's pipelines. No adapter, or no `wgpu` feature, is an error, never a
-    /// silent fallback to the CPU.
+    /// the rasterizer's pipelines, with bit-identical results from run to run (the
+    /// rasterizer's backward sums per-entry records in tile order instead of with float
+    /// atomics: `gpu::GpuOptions::deterministic`). No adapter, or no `wgpu` feature, is an
+    /// error, never a silent fallback to the CPU.
     pub fn open(self) -> Result<crate::train::Backend, SunAwareError> {
+        self.open_with(true)
+    }
+
+    /// [`BackendKind::open`], choosing on `wgpu` between bit-identical runs
+    /// (`deterministic`) and the float-atomic backward, whose last bits vary from run to
+    /// run (no effect on the CPU, which is always deterministic).
+    pub fn open_with(self, deterministic: bool) -> Result<crate::train::Backend, SunAwareError> {
         self.check_compiled_in()?;
         match self {
-            BackendKind::Cpu => Ok(crate::train::Backend::Cpu),
+            BackendKind::Cpu => {
+                let _ = deterministic;
+                Ok(crate::train::Backend::Cpu)
+            }
             #[cfg(feature = "wgpu")]
             BackendKind::Wgpu => {
                 let open = || -> Result<crate::train::Backend, crate::gpu::GpuError> {
-                    let ctx = crate::gpu::GpuContext::new()?;
+                    let ctx = crate::gpu::GpuContext::with_options(crate::gpu::GpuOptions {
+                        deterministic,
+                        ..crate::gpu::GpuOptions::default()
+                    })?;
                     let raster = crate::gpu::GpuRasterizer::new(ctx)?;
                     Ok(crate::train::Backend::Wgpu(std::sync::Arc::new(raster)))
                 };
