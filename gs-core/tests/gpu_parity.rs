@@ -969,3 +969,41 @@ fn contribution_flags_match_cpu() {
         );
     }
 }
+
+/// The switches' inputs are checked as on the CPU: a tile selection built for another
+/// image size is an error (render and contribution pass), and an empty model has no
+/// contribution flags.
+#[test]
+fn switch_inputs_are_checked() {
+    let Some(ctx) = context(GpuOptions::default()) else {
+        return;
+    };
+    let gpu = GpuRasterizer::new(ctx).unwrap();
+    let mut scene = random_scene(33, 50, 3, false);
+    let (w, h) = (
+        scene.camera.intrinsics.width,
+        scene.camera.intrinsics.height,
+    );
+    let wrong = TileSelection::from_mask(&vec![1.0; (w * 2 * h) as usize], w * 2, h, 0).unwrap();
+    scene.settings.blend_tiles = Some(wrong);
+    assert!(render(&scene.camera, &scene.view(), &scene.settings).is_err());
+    assert!(gpu
+        .render(&scene.camera, &scene.view(), &scene.settings)
+        .is_err());
+    assert!(gpu
+        .contributing(&scene.camera, &scene.view(), &scene.settings)
+        .is_err());
+    scene.settings.blend_tiles = None;
+    let empty = GaussianView {
+        means: &[],
+        log_scales: &[],
+        rotations: &[],
+        opacity_logits: &[],
+        channels: &[],
+        n_channels: 3,
+    };
+    let flags = gpu
+        .contributing(&scene.camera, &empty, &scene.settings)
+        .unwrap();
+    assert!(flags.is_empty());
+}
