@@ -1007,3 +1007,80 @@ fn switch_inputs_are_checked() {
         .unwrap();
     assert!(flags.is_empty());
 }
+
+/// What the contribution flags promise the device-resident step: the blend and its
+/// backward never read the channels of a Gaussian without a flag. With 1e30 in those
+/// channels (any use would overflow), the image and every gradient are the same bits
+/// (deterministic backward), with and without a tile selection; the flagged channels'
+/// gradients are zero for the others.
+#[test]
+fn unflagged_channels_are_never_read() {
+    let options = GpuOptions {
+        deterministic: true,
+        ..GpuOptions::default()
+    };
+    let Some(ctx) = context(options) else {
+        return;
+    };
+    let gpu = GpuRasterizer::new(ctx).unwrap();
+    let mut scene = random_scene(34, 5000, 3, false);
+    for with_tiles in [false, true] {
+        if with_tiles {
+            scene.settings.blend_tiles = Some(holed_selection(&scene, 34));
+        }
+        let flags = gpu
+            .contributing(&scene.camera, &scene.view(), &scene.settings)
+            .unwrap();
+        let hidden = flags.iter().filter(|&&f| !f).count();
+        assert!(hidden > 500, "{hidden} Gaussians without a flag");
+        let mut poisoned = Scene {
+            channels: scene.channels.clone(),
+            means: scene.means.clone(),
+            log_scales: scene.log_scales.clone(),
+            rotations: scene.rotations.clone(),
+            opacity_logits: scene.opacity_logits.clone(),
+            camera: scene.camera,
+            settings: scene.settings.clone(),
+            n_channels: scene.n_channels,
+        };
+        for (g, &f) in flags.iter().enumerate() {
+            if !f {
+                poisoned.channels[3 * g..3 * g + 3].fill(1e30);
+            }
+        }
+        let (dc, da, dd) = pixel_grads(&scene, 34);
+        let pg = PixelGrads {
+            d_color: &dc,
+            d_alpha: Some(&da),
+            d_depth: Some(&dd),
+        };
+        let run = |s: &Scene| {
+            let f = gpu.render(&s.camera, &s.view(), &s.settings).unwrap();
+            let g = gpu
+                .render_backward(&s.camera, &s.settings, &f, &pg)
+                .unwrap();
+            (f, g)
+        };
+        let (f0, g0) = run(&scene);
+        let (f1, g1) = run(&poisoned);
+        let bits = |v: &[f32]| -> Vec<u32> { v.iter().map(|x| x.to_bits()).collect() };
+        assert_eq!(bits(&f0.color), bits(&f1.color), "tiles {with_tiles}");
+        assert_eq!(bits(&f0.alpha), bits(&f1.alpha));
+        assert_eq!(bits(&f0.depth), bits(&f1.depth));
+        for (a, b) in [
+            (&g0.d_means, &g1.d_means),
+            (&g0.d_log_scales, &g1.d_log_scales),
+            (&g0.d_rotations, &g1.d_rotations),
+            (&g0.d_opacity_logits, &g1.d_opacity_logits),
+            (&g0.d_channels, &g1.d_channels),
+            (&g0.mean2d_grad_ndc, &g1.mean2d_grad_ndc),
+        ] {
+            assert_eq!(bits(a), bits(b), "tiles {with_tiles}");
+        }
+        for (g, &f) in flags.iter().enumerate() {
+            if !f {
+                assert!(g0.d_channels[3 * g..3 * g + 3].iter().all(|&v| v == 0.0));
+            }
+        }
+    }
+}
