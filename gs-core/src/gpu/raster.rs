@@ -540,7 +540,7 @@ impl GpuRasterizer {
         let p = &self.radix;
         let digits = radix_digits(sort.n_tiles);
         let block_groups = groups_1d(n_blocks * 256);
-        let mut last_params = None;
+        let mut uniforms = Vec::with_capacity(digits.len());
         for (pass, &(key_word, shift)) in digits.iter().enumerate() {
             let params = uniform_in(
                 ctx,
@@ -580,14 +580,14 @@ impl GpuRasterizer {
             cpass.set_bind_group(0, &scatter, &[]);
             cpass.dispatch_workgroups(block_groups.0, block_groups.1, 1);
             drop(cpass);
-            last_params = Some(params);
+            uniforms.push(params);
         }
-        if let (true, Some(params)) = (digits.len() % 2 == 1, &last_params) {
+        if let (true, Some(params)) = (digits.len() % 2 == 1, uniforms.last()) {
             let bind = ctx.bind_group(&p.copy, &[params, sort.count, &temp, sort.keys]);
             let mut cpass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut cpass, &p.copy, &bind, sort.n_sort);
         }
-        keep.extend(last_params);
+        keep.extend(uniforms);
         keep.extend([temp, hist]);
         Ok(())
     }
