@@ -388,6 +388,10 @@ fn resident_step_parity(variant: Variant) {
         );
     }
     assert_eq!(c.visible, g.visible, "visible lists differ in size");
+    // The device's network list honours the masked-tile skip, the CPU's does not (its
+    // extra rows get zero gradient): at most the CPU's rows.
+    eprintln!("network rows cpu {} gpu {}", c.network_rows, g.network_rows);
+    assert!(g.network_rows > 0 && g.network_rows <= c.network_rows);
     assert_eq!(gpu.steps, 1);
     assert_eq!(gpu.adam.step, 1);
     let groups: &[Param] = if variant == Variant::A {
@@ -458,6 +462,48 @@ fn resident_step_b_matches_the_cpu_step() {
 #[test]
 fn resident_step_a_matches_the_cpu_step() {
     resident_step_parity(Variant::A);
+}
+
+/// With the non-contributing skip on and the masked-tile skip off, the device's network
+/// batch is exactly the CPU's (`PreparedView::contributing`, from the device's alpha-only
+/// walk), smaller than the visible list on a view where Gaussians hide each other; with the
+/// skip off it is the visible list.
+#[test]
+fn resident_network_rows_are_the_cpu_contributing_gaussians() {
+    let Some(backend) = gpu_backend() else {
+        return;
+    };
+    let (mut start, obs) = setup_with_width(Variant::D, 3, 32);
+    start.config.skip_masked_background_tiles = false;
+    // Large, nearly opaque Gaussians: the front ones stop the pixels (T < 1e-4), so the
+    // ones behind are never read.
+    let params = &mut start.gaussians.params;
+    params.get_mut(Param::OpacityLogit).fill(6.0);
+    for s in params.get_mut(Param::LogScale) {
+        *s += 1.0;
+    }
+    let observations = observations(&obs);
+    for skip in [true, false] {
+        start.config.skip_noncontributing_in_mlp = skip;
+        let mut cpu = SunAwareTrainer::new(start.clone());
+        let mut gpu = SunAwareTrainer::new(start.clone());
+        gpu.set_backend(&backend).unwrap();
+        for o in &observations {
+            let c = cpu.step(o, 0.0).unwrap();
+            let g = gpu.step(o, 0.0).unwrap();
+            eprintln!(
+                "skip {skip}: visible {} / {}, network rows {} / {}",
+                c.visible, g.visible, c.network_rows, g.network_rows
+            );
+            assert_eq!(c.visible, g.visible);
+            assert_eq!(c.network_rows, g.network_rows);
+            if skip {
+                assert!(g.network_rows < g.visible, "the skip skipped nothing");
+            } else {
+                assert_eq!(g.network_rows, g.visible);
+            }
+        }
+    }
 }
 
 /// `steps` steps over 6 views on the CPU (one `step` each) and device-resident (through

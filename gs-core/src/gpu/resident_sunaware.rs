@@ -5,17 +5,20 @@
 //!
 //! A step, in recording order:
 //! 1. the rasterizer rows from the packed parameters (`resident_pack`, no SH colour);
-//! 2. the visible list: the rasterizer's projection with zero channels, survivors flagged
-//!    (`sa_survive`), numbered by the prefix sum, listed in index order with their count
-//!    on the device (`sa_list`): the CPU's visible list, which is the networks' batch
-//!    (the non-contributing skip needs the CPU's alpha pass, so the batch is every
-//!    visible Gaussian, as on the hybrid wgpu path);
+//! 2. the camera pass up to its blend (`GpuRasterizer::forward_device_prepare`:
+//!    projection, prefix sum, keys, sort, tile ranges; the channels are not needed yet);
+//!    the visible Gaussians (projection survivors, `sa_survive`) counted, and the
+//!    networks' batch listed in index order with its count on the device (`sa_list`):
+//!    with `skip_noncontributing_in_mlp` the Gaussians the blend reads (the device's
+//!    alpha-only walk, `encode_contributing`: exactly the CPU's `contributing` list),
+//!    else the visible ones. With `skip_masked_background_tiles` and a mask, the camera
+//!    pass blends only the tiles the masked loss reads (the CPU step's selection);
 //! 3. (c-d) the shadow pass `V` from the packed parameters ([`GpuShadow`]);
 //! 4. (a) SH colour in step 1 instead (`resident_pack`, the plain trainer's kernel, whose
 //!    `resident_grads` then gives the SH and geometry gradients in step 6);
 //!    (b-d) Phi's input, forward, and scatter into channels 0..3; (c-d) Psi's, into channel 3
 //!    (`V * P` or `P`) ([`NetworkIo`], [`GpuMlp`]); the channels are checked finite;
-//! 5. the rasterizer's forward with those channels, `RGB * S` (`sa_compose`), the masked
+//! 5. the blend with those channels, `RGB * S` (`sa_compose`), the masked
 //!    L1 + SSIM loss and its image gradient ([`GpuLoss`]), `d(RGB, S)`
 //!    (`sa_compose_backward`), the rasterizer's backward;
 //! 6. the geometry gradients and `L_iso` (`sa_grads`), then Phi's and Psi's backward and
@@ -45,7 +48,7 @@ use std::sync::Arc;
 use super::loss::{combine, pixel_weights, GpuLoss};
 use super::mlp::{DeviceNetwork, GpuMlp};
 use super::network_io::NetworkIo;
-use super::raster::{frame_bytes, DeviceInputs, GpuRasterizer, SSTRIDE};
+use super::raster::{DeviceInputs, GpuRasterizer};
 use super::resident::{
     adam_words, offsets, pack, pad4, step_words, unpack, ADAM, GSTRIDE, RECENT_STEPS,
     REFUSED_NONFINITE, REFUSED_OVERFLOW, RESIDENT_COLOUR, RESIDENT_COMMON, RESIDENT_GRADS,
@@ -58,12 +61,10 @@ use super::{
 };
 use crate::camera::Camera;
 use crate::densify::DensifyStats;
-use crate::loss::ImageShape;
+use crate::loss::{ImageShape, SSIM_WINDOW};
 use crate::model::{Param, ParamSet};
 use crate::optim::{Adam, GroupRates};
-use crate::raster::bin::TileGrid;
-use crate::raster::blend::AlphaMode;
-use crate::raster::camera_frame;
+use crate::raster::bin::TileSelection;
 use crate::regularizer::IsoReduction;
 use crate::sunaware::config::ShadowRefinement;
 use crate::sunaware::trainer::FlatAdam;
@@ -147,8 +148,11 @@ pub struct SunAwareStepReport {
     pub l1: f32,
     pub ssim: f32,
     pub iso: f32,
-    /// Gaussians that survived the projection (the networks' rows).
+    /// Gaussians that survived the projection.
     pub visible: usize,
+    /// The networks' rows: the Gaussians the blend reads with
+    /// `skip_noncontributing_in_mlp`, else `visible`.
+    pub network_rows: usize,
     /// (tile, Gaussian) pairs blended in the camera pass and in the light pass.
     pub tile_entries: usize,
     pub light_entries: usize,
@@ -204,6 +208,8 @@ struct CachedTarget {
     key: (usize, usize, usize, usize),
     target: wgpu::Buffer,
     weights: wgpu::Buffer,
+    /// The tiles the masked loss reads (`skip_masked_background_tiles`), from the mask.
+    tiles: Option<TileSelection>,
 }
 
 /// Keyframes a batch keeps on the device at most (beyond it the oldest upload is reused).
@@ -392,7 +398,7 @@ impl SunAwareResident {
         target: &[f32],
         mask: Option<&[f32]>,
         shape: ImageShape,
-    ) -> Result<(wgpu::Buffer, wgpu::Buffer), GpuError> {
+    ) -> Result<(wgpu::Buffer, wgpu::Buffer, Option<TileSelection>), GpuError> {
         let key = (
             target.as_ptr() as usize,
             target.len(),
@@ -400,9 +406,23 @@ impl SunAwareResident {
             mask.map_or(0, |m| m.len()),
         );
         if let Some(c) = self.targets.iter().find(|c| c.key == key) {
-            return Ok((c.target.clone(), c.weights.clone()));
+            return Ok((c.target.clone(), c.weights.clone(), c.tiles.clone()));
         }
         let weights = pixel_weights(mask, shape)?;
+        // The masked loss's tiles: the mask dilated by the SSIM window's half width, as
+        // the CPU step's `masked_background_tiles` (every other pixel has zero gradient).
+        let tiles = match mask {
+            Some(m) => Some(
+                TileSelection::from_mask(
+                    m,
+                    shape.width as u32,
+                    shape.height as u32,
+                    (SSIM_WINDOW / 2) as u32,
+                )
+                .map_err(|e| GpuError::Invalid(format!("mask: {e}")))?,
+            ),
+            None => None,
+        };
         let ctx = self.raster.context();
         let (target_buf, weights_buf) = if self.targets.len() >= MAX_CACHED_TARGETS {
             let old = self.targets.remove(0);
@@ -431,8 +451,9 @@ impl SunAwareResident {
             key,
             target: target_buf.clone(),
             weights: weights_buf.clone(),
+            tiles: tiles.clone(),
         });
-        Ok((target_buf, weights_buf))
+        Ok((target_buf, weights_buf, tiles))
     }
 
     /// Copies the device state into the trainer's parts (same shapes as uploaded).
@@ -566,7 +587,12 @@ impl SunAwareResident {
                 input.target.len()
             )));
         }
-        let (target, pixel_weights_buf) = self.target_buffers(input.target, input.mask, shape)?;
+        let (target, pixel_weights_buf, mask_tiles) =
+            self.target_buffers(input.target, input.mask, shape)?;
+        let mut settings = settings;
+        if model.config.skip_masked_background_tiles {
+            settings.blend_tiles = mask_tiles;
+        }
         let phi_parts = match (model.appearance.as_ref(), self.appearance.as_ref()) {
             (Some(net), Some(phi)) => Some((net, phi)),
             (None, _) => None,
@@ -597,9 +623,9 @@ impl SunAwareResident {
         let gauss = own.storage(ctx, "sa gauss", n as u64 * GSTRIDE * 4)?;
         let zero_chans = own.storage(ctx, "sa zero channels", (n * nc) as u64 * 4)?;
         let chans = own.storage(ctx, "sa channels", (n * nc) as u64 * 4)?;
-        let pre_splats = own.storage(ctx, "sa visible splats", (n * SSTRIDE) as u64 * 4)?;
-        let pre_counts = own.storage(ctx, "sa visible tile counts", (n as u64 + 1) * 4)?;
-        let survive = own.storage(ctx, "sa survivors", (n as u64 + 1) * 4)?;
+        let visible_member = own.storage(ctx, "sa visible flags", (n as u64 + 1) * 4)?;
+        let network_member = own.storage(ctx, "sa network flags", (n as u64 + 1) * 4)?;
+        let visible_count = own.storage(ctx, "sa visible count", 4)?;
         let list = own.storage(ctx, "sa list", n.max(1) as u64 * 4)?;
         let count = own.storage(ctx, "sa count", 4)?;
         let mut encoder = ctx.encoder("sa step");
@@ -616,7 +642,6 @@ impl SunAwareResident {
         encoder.clear_buffer(&flags, 0, None);
         encoder.clear_buffer(&zero_chans, 0, None);
         encoder.clear_buffer(&chans, 0, None);
-        encoder.clear_buffer(&pre_counts, 0, None);
         encoder.clear_buffer(&list, 0, None);
         let mut keep = Vec::new();
         {
@@ -632,53 +657,50 @@ impl SunAwareResident {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.pack, &bind, n as u64);
         }
-        // The visible list: the rasterizer's own projection (zero channels are finite, so
-        // only geometry culls), its survivors numbered in index order.
+        // The camera pass up to its blend: projection (zero channels are finite, so only
+        // geometry culls; the real channels are checked below), prefix sum, keys, sort,
+        // tile ranges. The networks run before the blend, which needs their channels.
+        let (prepared, mut encoder) = self.raster.forward_device_prepare(
+            DeviceInputs {
+                camera,
+                settings: &settings,
+                n,
+                nc,
+                background: &settings.background,
+                gauss,
+                chans: zero_chans,
+            },
+            encoder,
+            Some(&pools.raster),
+            capacity.map(|c| c.0),
+        )?;
+        // The visible list (survivors of the projection, index order, counted on the
+        // device) and, with the non-contributing skip, the networks' list: the Gaussians
+        // the blend reads (the device's alpha-only walk, the CPU's `contributing`).
         {
-            let frame = camera_frame(camera, settings.near_m).map_err(GpuError::Raster)?;
-            let mode = AlphaMode {
-                smooth: settings.smooth_cutoff,
-            };
-            let grid = TileGrid::new(camera.intrinsics.width, camera.intrinsics.height);
-            let frame_u = own.uniform(
-                ctx,
-                "sa visible frame",
-                &frame_bytes(
-                    &frame,
-                    mode.cutoff(),
-                    &grid,
-                    n as u32,
-                    mode.smooth,
-                    0,
-                    0,
-                    &settings.background,
-                ),
-            )?;
-            let project = &self.raster.channel_pipelines(nc)?.project;
             let bind = ctx.bind_group(
-                project,
-                &[&frame_u, &gauss, &zero_chans, &pre_splats, &pre_counts],
+                &self.pipelines.survive,
+                &[&n_u, &prepared.state.splats, &visible_member],
             );
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch_1d(&mut pass, project, &bind, n as u64);
-        }
-        {
-            let bind = ctx.bind_group(&self.pipelines.survive, &[&n_u, &pre_splats, &survive]);
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.survive, &bind, n as u64 + 1);
         }
-        self.raster.encode_scan_in(
-            &mut encoder,
-            &survive,
-            n as u64 + 1,
-            &mut keep,
-            Some(own),
-            0,
-        )?;
+        let visible_scan =
+            self.encode_numbering(&mut encoder, &visible_member, n, "visible", &mut keep)?;
+        encoder.copy_buffer_to_buffer(&visible_scan, 4 * n as u64, &visible_count, 0, 4);
+        let (member, scanned) = if model.config.skip_noncontributing_in_mlp {
+            self.raster
+                .encode_contributing(&prepared, &mut encoder, &network_member)?;
+            let scanned =
+                self.encode_numbering(&mut encoder, &network_member, n, "network", &mut keep)?;
+            (&network_member, scanned)
+        } else {
+            (&visible_member, visible_scan)
+        };
         {
             let bind = ctx.bind_group(
                 &self.pipelines.list,
-                &[&n_u, &pre_splats, &survive, &list, &count],
+                &[&n_u, member, &scanned, &list, &count],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.list, &bind, n as u64 + 1);
@@ -816,20 +838,7 @@ impl SunAwareResident {
         self.encode_finite(&mut encoder, &chans, n * nc, "channels", &flags)?;
 
         // Camera pass, loss, backward.
-        let device = self.raster.forward_device(
-            DeviceInputs {
-                camera,
-                settings: &settings,
-                n,
-                nc,
-                background: &settings.background,
-                gauss,
-                chans,
-            },
-            encoder,
-            Some(&pools.raster),
-            capacity.map(|c| c.0),
-        )?;
+        let device = self.raster.forward_device_blend(prepared, chans, encoder);
         let mut encoder = device.encoder;
         mark(&mut encoder, "blend-f");
         let st = &device.state;
@@ -1096,6 +1105,7 @@ impl SunAwareResident {
                 (&flags, 8),
                 (&loss_buffers.totals, 8),
                 (&count, 4),
+                (&visible_count, 4),
                 (&entry_count, 4),
                 (&light_count, 4),
                 (&partials, groups as u64 * 4),
@@ -1112,9 +1122,10 @@ impl SunAwareResident {
         ));
         let flag_words = bytes_u32(&back[0]);
         let totals = bytes_f32(&back[1]);
-        let visible = bytes_u32(&back[2])[0] as usize;
-        let camera_entries = bytes_u32(&back[3])[0] as u64;
-        let light_entries = bytes_u32(&back[4])[0] as u64;
+        let network_rows = bytes_u32(&back[2])[0] as usize;
+        let visible = bytes_u32(&back[3])[0] as usize;
+        let camera_entries = bytes_u32(&back[4])[0] as u64;
+        let light_entries = bytes_u32(&back[5])[0] as u64;
         if self.recent_entries.len() == RECENT_STEPS {
             self.recent_entries.pop_front();
         }
@@ -1140,7 +1151,7 @@ impl SunAwareResident {
         }
         let mut stages = StepTimings::default();
         if let Some(c) = clock {
-            for (label, ms) in c.stages_ms(&back[6]) {
+            for (label, ms) in c.stages_ms(&back[7]) {
                 let slot = match label {
                     "project" => &mut stages.project_ms,
                     "shadow" => &mut stages.shadow_pass_ms,
@@ -1156,7 +1167,7 @@ impl SunAwareResident {
                 *slot += ms;
             }
         }
-        let iso_sum: f64 = bytes_f32(&back[5]).iter().map(|&v| v as f64).sum();
+        let iso_sum: f64 = bytes_f32(&back[6]).iter().map(|&v| v as f64).sum();
         let iso = (iso_factor * iso_sum) as f32;
         let photometric = combine(totals[0], totals[1], model.config.lambda_dssim, Vec::new());
         Ok(Attempt::Done(SunAwareStepReport {
@@ -1168,11 +1179,35 @@ impl SunAwareResident {
             ssim: photometric.ssim,
             iso,
             visible,
+            network_rows,
             tile_entries: camera_entries as usize,
             light_entries: light_entries as usize,
             total_ms: 0.0,
             stages,
         }))
+    }
+
+    /// Records the numbering of the Gaussians flagged in `member` (`n + 1` u32, 0 or 1, the
+    /// last 0): the exclusive prefix sum of a copy, so `scanned[i]` is flagged Gaussian
+    /// `i`'s row and `scanned[n]` their count. `member` is left as it is.
+    fn encode_numbering(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        member: &wgpu::Buffer,
+        n: usize,
+        what: &str,
+        keep: &mut Vec<wgpu::Buffer>,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let ctx = self.raster.context();
+        let own = &self.pools.own;
+        let bytes = (n as u64 + 1) * 4;
+        let scanned = own.storage(ctx, &format!("sa {what} numbering"), bytes)?;
+        encoder.copy_buffer_to_buffer(member, 0, &scanned, 0, bytes);
+        // Every numbering of a step has the same length, so the scan's pooled uniforms
+        // hold the same values each time.
+        self.raster
+            .encode_scan_in(encoder, &scanned, n as u64 + 1, keep, Some(own), 0)?;
+        Ok(scanned)
     }
 
     /// Records the finiteness check of the first `len` values of `data`.

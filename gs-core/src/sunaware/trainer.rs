@@ -684,7 +684,7 @@ impl SunAwareTrainer {
                 ssim: report.ssim,
                 iso: report.iso,
                 visible: report.visible,
-                network_rows: report.visible,
+                network_rows: report.network_rows,
                 gaussians: self.model.len(),
                 position_lr,
                 skipped: report.refused,

@@ -1,6 +1,7 @@
-// Visible list of the Sun-aware resident step, part 2: survivor i goes to row scanned[i]
-// of the list (ascending Gaussian indices, the CPU's visible list), and the count
-// (scanned[n]) to count[0], where the network kernels read it.
+// The networks' list of the Sun-aware resident step: flagged Gaussian i (member[i] = 1: a
+// survivor of the projection, or a Gaussian the blend reads) goes to row scanned[i] of the
+// list (ascending indices, the CPU's list), and the count (scanned[n], the exclusive prefix
+// sum's total) to count[0], where the network kernels read it.
 
 struct Count {
     n: u32,
@@ -10,7 +11,7 @@ struct Count {
 }
 
 @group(0) @binding(0) var<uniform> c: Count;
-@group(0) @binding(1) var<storage, read> splats: array<f32>;
+@group(0) @binding(1) var<storage, read> member: array<u32>;
 @group(0) @binding(2) var<storage, read> scanned: array<u32>;
 @group(0) @binding(3) var<storage, read_write> list: array<u32>;
 @group(0) @binding(4) var<storage, read_write> count: array<u32>;
@@ -24,7 +25,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if i >= c.n {
         return;
     }
-    if splats[12u * i + 7u] >= 0.0 {
+    if member[i] != 0u {
         list[scanned[i]] = i;
     }
 }

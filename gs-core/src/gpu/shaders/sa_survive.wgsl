@@ -1,4 +1,4 @@
-// Visible list of the Sun-aware resident step, part 1: flag[i] = 1 where the projection
+// Visible Gaussians of the Sun-aware resident step: flag[i] = 1 where the projection
 // kept Gaussian i (splat radius >= 0; culled splats carry -1, the CPU's `None`), and
 // flag[n] = 0, so the exclusive prefix sum numbers the survivors in index order and its
 // last value is their count.
