@@ -91,7 +91,8 @@ pub(super) struct SortKeys<'a> {
     /// Every live key's tile word is below this: only its bits are sorted.
     pub n_tiles: u32,
     /// Names this sort's uniforms, which must differ between sorts recorded into one
-    /// submission from one scratch pool.
+    /// submission from one scratch pool. (The temporary key and histogram buffers are
+    /// shared by every sort of a pool: sorts recorded one after the other run in order.)
     pub label: &'a str,
 }
 
@@ -1229,3 +1230,23 @@ impl GpuRasterizer {
 
 /// Tile edge, pixels (the WGSL `TILE` constant must match).
 const _: () = assert!(TILE_PX == 16);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn radix_digits_cover_the_order_bits_then_the_tile_bits() {
+        let order: Vec<(u32, u32)> = (0..8).map(|d| (1, 4 * d)).collect();
+        assert_eq!(radix_digits(0), order);
+        assert_eq!(radix_digits(1), order);
+        // (tiles, tile digits): 2..=16 tiles need 1 to 4 bits, 17 need 5.
+        for (n_tiles, tile_digits) in [(2, 1), (16, 1), (17, 2), (4096, 3), (4097, 4)] {
+            let digits = radix_digits(n_tiles);
+            assert_eq!(digits[..8], order[..], "{n_tiles} tiles");
+            let tile: Vec<(u32, u32)> = (0..tile_digits).map(|d| (0, 4 * d)).collect();
+            assert_eq!(digits[8..], tile[..], "{n_tiles} tiles");
+        }
+        assert_eq!(radix_digits(u32::MAX).len(), 16);
+    }
+}
