@@ -102,7 +102,7 @@ impl std::fmt::Debug for BackendSlot {
 fn from_gpu(e: crate::gpu::GpuError) -> SunAwareError {
     match e {
         crate::gpu::GpuError::Raster(r) => SunAwareError::Raster(r),
-        other => SunAwareError::Config(format!("wgpu backend: {other}")),
+        other => SunAwareError::Gpu(other.to_string()),
     }
 }
 

@@ -605,7 +605,7 @@ impl SunAwareTrainer {
         batch: &[(Observation, f32)],
     ) -> Result<Vec<StepStats>, SunAwareError> {
         use crate::gpu::resident_sunaware::{SunAwareResident, SunAwareStepInput};
-        let gpu = |e: crate::gpu::GpuError| SunAwareError::Config(format!("wgpu backend: {e}"));
+        let gpu = |e: crate::gpu::GpuError| SunAwareError::Gpu(e.to_string());
         let mut suns = Vec::with_capacity(batch.len());
         for (obs, progress) in batch {
             obs.validate()?;
@@ -623,7 +623,7 @@ impl SunAwareTrainer {
             suns.push(obs.sun_dir.normalize());
         }
         let Some((raster, shadow, networks)) = self.model.gpu_parts() else {
-            return Err(SunAwareError::Config("no wgpu backend set".into()));
+            return Err(SunAwareError::Gpu("no wgpu backend set".into()));
         };
         let engine = match &self.resident.engine {
             Some(e) => e.clone(),
@@ -637,7 +637,7 @@ impl SunAwareTrainer {
         };
         let mut engine = engine
             .lock()
-            .map_err(|_| SunAwareError::Config("resident engine lock poisoned".into()))?;
+            .map_err(|_| SunAwareError::Gpu("resident engine lock poisoned".into()))?;
         engine
             .upload(
                 &self.model,
@@ -725,7 +725,7 @@ impl SunAwareTrainer {
             let mut stats = self.step_many(&[(*obs, lr_progress_in_round)])?;
             return stats
                 .pop()
-                .ok_or_else(|| SunAwareError::Config("a batch of one gave no step".into()));
+                .ok_or_else(|| SunAwareError::Gpu("a batch of one gave no step".into()));
         }
         obs.validate()?;
         if !lr_progress_in_round.is_finite() {
