@@ -493,9 +493,10 @@ impl ResidentModel {
     /// wait for the entry count before sorting).
     pub fn step(&mut self, input: &ResidentStepInput) -> Result<ResidentStepReport, GpuError> {
         // The sort is sized from the recent steps' largest entry count with a little head
-        // room (it runs over the next power of two, so more head room can double its
-        // work), so the step needs no mid-step readback; a step that outgrows it is redone
-        // at the exact count (nothing was applied: the overflow refuses it).
+        // room (head room costs key memory, not sort work: the radix sort reads the live
+        // count on the device), so the step needs no mid-step readback; a step that
+        // outgrows it is redone at the exact count (nothing was applied: the overflow
+        // refuses it).
         let capacity = self.recent_entries.iter().max().map(|&e| e + e / 16 + 256);
         let report = self.step_with_capacity(input, capacity)?;
         if report.sort_overflow {

@@ -1,6 +1,7 @@
 // Key generation: one thread per Gaussian writes one (tile, depth bits, Gaussian) key per
 // tile its rectangle touches, at its scanned offset, in tile row-major order. Threads
-// past the Gaussians fill the padding of the sort buffer with keys that sort last.
+// past the Gaussians fill the padding of the sort buffer (tile 0xffffffff); the radix
+// sort leaves the padding where it is, after the live keys.
 // Depths are >= near > 0, so their bit patterns order like the values.
 // `fr.n_entries == ENTRIES_ON_DEVICE`: the entry count was not read back; it is the
 // scanned total at offsets[fr.n], and keys past the sort's capacity (`fr.n_sort`) are

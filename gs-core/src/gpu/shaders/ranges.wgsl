@@ -1,7 +1,7 @@
 // Tile ranges: after the sort, tile t owns keys[ranges[t].x .. ranges[t].y] (cleared to
 // zero beforehand, so tiles without keys are empty). The padding keys (tile 0xffffffff)
-// sort last and end the list, so the kernel needs no entry count: it runs over the sort's
-// n_sort keys.
+// stay after the sorted live keys and end the list, so the kernel needs no entry count:
+// it runs over the sort's n_sort keys.
 
 @group(0) @binding(0) var<uniform> fr: Frame;
 @group(0) @binding(1) var<storage, read> keys: array<vec4<u32>>;

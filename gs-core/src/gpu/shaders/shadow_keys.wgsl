@@ -2,7 +2,7 @@
 // (tile, limit as an order-preserving u32, e): sorted, each tile's receivers come in
 // increasing limit, ties by list position, as the CPU's receiver order. Padding keys
 // (past the entry count, or tile 0xffffffff where the count stayed on the device:
-// `fr.n_entries == ENTRIES_ON_DEVICE`) sort last. Entries whose centre is beyond the
+// `fr.n_entries == ENTRIES_ON_DEVICE`) stay after the sorted live keys. Entries whose centre is beyond the
 // footprint radius of every pixel of their tile are no pixel's receivers there: their
 // limit bits are NOT_A_RECEIVER, so they follow the tile's receivers and end its walk
 // (the walk would skip them at every pixel; they are still occluders, in `keys`).
