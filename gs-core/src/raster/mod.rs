@@ -70,14 +70,14 @@ pub struct RasterSettings {
     /// could no longer rebuild the transmittance). A stopped pixel has `T * (1 - alpha) <
     /// 1e-4` with alpha <= 0.99, so `T < 0.01`: the image with it on differs from the one
     /// without by at most `T` times the largest `|channel - background|` per pixel.
-    /// Ignored in smooth mode (which never stops) and by the wgpu rasterizer.
+    /// Ignored in smooth mode (which never stops). The wgpu rasterizer honours it.
     pub early_termination: bool,
     /// Tiles to blend; `None`: every tile. Tiles left out get the background (alpha 0,
     /// depth 0) and no gradient. For a loss whose gradient is zero outside a foreground
     /// mask and its neighbourhood ([`bin::TileSelection::from_mask`] with the loss's reach),
     /// the loss, the image where the loss reads it and every gradient are the same bits
     /// as with `None`. Must be built for this image size (else
-    /// [`RasterError::InvalidSettings`]). Ignored by the wgpu rasterizer.
+    /// [`RasterError::InvalidSettings`]). The wgpu rasterizer honours it.
     pub blend_tiles: Option<TileSelection>,
 }
 
