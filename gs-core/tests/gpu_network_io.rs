@@ -1,5 +1,5 @@
 //! The networks' input assembly and output scatter on the device (`gpu::network_io`,
-//! through `NetworkIoProbe`) against the CPU: `AppearanceNet::{assemble_input,
+//! `NetworkIo::encode_*` recorded from here) against the CPU: `AppearanceNet::{assemble_input,
 //! scatter_input_grad}`, `ShadowNet::{assemble_input, scatter_input_grad}` and the channel
 //! routing of `SunAwareModel::{forward, backward}` (written out here as the model does
 //! it). Random Gaussians, some listed (ascending, with gaps; the list buffer's tail past
@@ -17,8 +17,8 @@
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1` (CI).
 #![cfg(feature = "wgpu")]
 
-use gs_core::gpu::network_io::{packed_offsets, NetworkIoProbe};
-use gs_core::gpu::{GpuContext, GpuError};
+use gs_core::gpu::network_io::{packed_offsets, NetworkIo, NetworkIoProbe};
+use gs_core::gpu::{GpuContext, GpuError, Scratch};
 use gs_core::model::Param;
 use gs_core::nn::{AppearanceNet, PositionalEncoding, SceneBox, ShadowNet};
 use gs_core::rng::SplitMix64;
@@ -40,11 +40,22 @@ const ENCODING_TOL: f32 = 1.0 / 2_097_152.0;
 /// addition round a few more ulps: 4 * 2^-21.
 const MEAN_GRAD_TOL: f32 = 4.0 / 2_097_152.0;
 
-fn probe() -> Option<NetworkIoProbe> {
+/// The kernels, the scratch pool they record with, and host-side buffer helpers.
+struct Rig {
+    io: NetworkIo,
+    scratch: Scratch,
+    probe: NetworkIoProbe,
+}
+
+fn rig() -> Option<Rig> {
     match GpuContext::new() {
         Ok(ctx) => {
             eprintln!("GPU: {}", ctx.describe());
-            Some(NetworkIoProbe::new(&ctx).unwrap())
+            Some(Rig {
+                io: NetworkIo::new(&ctx).unwrap(),
+                scratch: Scratch::default(),
+                probe: NetworkIoProbe::new(&ctx),
+            })
         }
         Err(e) => {
             if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
@@ -189,7 +200,9 @@ fn compare_rows(
 
 #[test]
 fn phi_input_matches_the_cpu_rows() {
-    let Some(probe) = probe() else { return };
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
     let mut worst = 0.0f32;
     for (seed, n, f_dim, freqs, keep) in [
         (1, 700, 8, 4, 0.6),
@@ -214,12 +227,11 @@ fn phi_input_matches_the_cpu_rows() {
             let input = probe.buffer_f32("input", &junk(seed, n * width));
             let flags = probe.buffer_u32("flags", &[0]);
             let mut enc = probe.encoder();
-            probe
-                .phi_input(
-                    &mut enc, &net, &b.params, &s.offsets, n, &b.list, &b.count, SUN, CAMERA,
-                    &input, &flags,
-                )
-                .unwrap();
+            io.encode_phi_input(
+                &mut enc, &scratch, &net, &b.params, &s.offsets, n, &b.list, &b.count, SUN, CAMERA,
+                &input, &flags,
+            )
+            .unwrap();
             let gpu = probe.finish_f32(enc, &[(&input, n * width)]).unwrap();
             let view_start = f_dim + 6 * freqs;
             worst = worst.max(compare_rows(
@@ -237,31 +249,31 @@ fn phi_input_matches_the_cpu_rows() {
 }
 
 /// Runs Phi's input assembly on `s` and returns flags[0].
-fn phi_flags(probe: &NetworkIoProbe, s: &Scene, net: &AppearanceNet) -> u32 {
+fn phi_flags(rig: &Rig, s: &Scene, net: &AppearanceNet) -> u32 {
+    let Rig { io, scratch, probe } = rig;
     let b = upload(probe, s, s.count);
     let input = probe.buffer_f32("input", &vec![0.0; s.n * net.input_width()]);
     let flags = probe.buffer_u32("flags", &[0]);
     let mut enc = probe.encoder();
-    probe
-        .phi_input(
-            &mut enc, net, &b.params, &s.offsets, s.n, &b.list, &b.count, SUN, CAMERA, &input,
-            &flags,
-        )
-        .unwrap();
+    io.encode_phi_input(
+        &mut enc, scratch, net, &b.params, &s.offsets, s.n, &b.list, &b.count, SUN, CAMERA, &input,
+        &flags,
+    )
+    .unwrap();
     probe.finish_f32(enc, &[]).unwrap();
     probe.read_u32(&flags, 1).unwrap()[0]
 }
 
 #[test]
 fn phi_input_flags_what_the_cpu_refuses() {
-    let Some(probe) = probe() else { return };
+    let Some(rig) = rig() else { return };
     let base = Scene::new(4, 300, 8, 6, 0.5);
     let net = phi_net(&base, 4);
     let listed = base.live()[7] as usize;
     let unlisted = (0..base.n).find(|g| !base.is_listed()[*g]).unwrap();
     let f0 = base.offsets[Param::Feature.index()] as usize;
     let mean_at = |g: usize| 3 * g;
-    assert_eq!(phi_flags(&probe, &base, &net), 0);
+    assert_eq!(phi_flags(&rig, &base, &net), 0);
 
     // A NaN feature of a listed Gaussian: the CPU refuses, the device flags.
     let mut s = Scene::new(4, 300, 8, 6, 0.5);
@@ -276,11 +288,11 @@ fn phi_input_flags_what_the_cpu_refuses() {
         &mut cpu,
     );
     assert!(cpu_err.is_err());
-    assert_eq!(phi_flags(&probe, &s, &net), 1, "NaN feature");
+    assert_eq!(phi_flags(&rig, &s, &net), 1, "NaN feature");
     // An infinite mean.
     let mut s = Scene::new(4, 300, 8, 6, 0.5);
     s.params[mean_at(listed) + 1] = f32::INFINITY;
-    assert_eq!(phi_flags(&probe, &s, &net), 1, "infinite mean");
+    assert_eq!(phi_flags(&rig, &s, &net), 1, "infinite mean");
     // A listed Gaussian at the camera centre.
     let mut s = Scene::new(4, 300, 8, 6, 0.5);
     s.params[mean_at(listed)..mean_at(listed) + 3].copy_from_slice(&CAMERA);
@@ -294,7 +306,7 @@ fn phi_input_flags_what_the_cpu_refuses() {
     );
     assert!(cpu_err.is_err());
     assert_eq!(
-        phi_flags(&probe, &s, &net),
+        phi_flags(&rig, &s, &net),
         1,
         "Gaussian at the camera centre"
     );
@@ -302,16 +314,18 @@ fn phi_input_flags_what_the_cpu_refuses() {
     let mut s = Scene::new(4, 300, 8, 6, 0.5);
     s.params[f0 + unlisted * 8] = f32::NAN;
     s.params[mean_at(unlisted)..mean_at(unlisted) + 3].copy_from_slice(&CAMERA);
-    assert_eq!(phi_flags(&probe, &s, &net), 0, "unlisted faults");
+    assert_eq!(phi_flags(&rig, &s, &net), 0, "unlisted faults");
     // A list entry out of range inside count.
     let mut s = Scene::new(4, 300, 8, 6, 0.5);
     s.list[3] = s.n as u32;
-    assert_eq!(phi_flags(&probe, &s, &net), 1, "list entry out of range");
+    assert_eq!(phi_flags(&rig, &s, &net), 1, "list entry out of range");
 }
 
 #[test]
 fn phi_scatter_and_output_gradient_route_rows() {
-    let Some(probe) = probe() else { return };
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
     for nc in [3usize, 4] {
         let s = Scene::new(10 + nc as u64, 600, 8, 6, 0.55);
         let n = s.n;
@@ -325,12 +339,14 @@ fn phi_scatter_and_output_gradient_route_rows() {
             let rows_buf = probe.buffer_f32("rows", &rows);
             let d_out = probe.buffer_f32("d_out", &junk(23, n * 3));
             let mut enc = probe.encoder();
-            probe
-                .phi_scatter(&mut enc, n, nc, &b.list, &b.count, &out_buf, &chans)
-                .unwrap();
-            probe
-                .phi_d_output(&mut enc, n, nc, &b.list, &b.count, &rows_buf, &d_out)
-                .unwrap();
+            io.encode_phi_scatter(
+                &mut enc, &scratch, n, nc, &b.list, &b.count, &out_buf, &chans,
+            )
+            .unwrap();
+            io.encode_phi_d_output(
+                &mut enc, &scratch, n, nc, &b.list, &b.count, &rows_buf, &d_out,
+            )
+            .unwrap();
             let gpu = probe
                 .finish_f32(enc, &[(&chans, n * nc), (&d_out, n * 3)])
                 .unwrap();
@@ -365,7 +381,9 @@ fn code_scale(d_code: &[f32], freqs: usize, factor: f32) -> f32 {
 
 #[test]
 fn phi_input_gradient_matches_the_cpu_scatter() {
-    let Some(probe) = probe() else { return };
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
     let mut worst = 0.0f32;
     for (seed, n, f_dim, freqs, keep) in [(30, 700, 8, 4, 0.6), (31, 90, 72, 6, 0.8)] {
         let s = Scene::new(seed, n, f_dim, 6, keep);
@@ -378,12 +396,11 @@ fn phi_input_gradient_matches_the_cpu_scatter() {
             let d_in = probe.buffer_f32("d_input", &d_input);
             let grads = probe.buffer_f32("grads", &grads0);
             let mut enc = probe.encoder();
-            probe
-                .phi_input_grad(
-                    &mut enc, &net, &b.params, &s.offsets, n, &b.list, &b.count, CAMERA, &d_in,
-                    &grads,
-                )
-                .unwrap();
+            io.encode_phi_input_grad(
+                &mut enc, &scratch, &net, &b.params, &s.offsets, n, &b.list, &b.count, CAMERA,
+                &d_in, &grads,
+            )
+            .unwrap();
             let gpu = probe.finish_f32(enc, &[(&grads, grads0.len())]).unwrap();
             let gpu = &gpu[0];
             // The model: features of listed rows are written (the rasterizer leaves the
@@ -446,7 +463,9 @@ fn visibility(seed: u64, n: usize) -> Vec<f32> {
 
 #[test]
 fn psi_input_matches_the_cpu_rows() {
-    let Some(probe) = probe() else { return };
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
     let mut worst = 0.0f32;
     // The last case has the most frequencies (a full Sun code) and means hundreds of box
     // widths outside the box: arguments 2^15 p beyond 2^21, where the CPU reduces in f64.
@@ -483,22 +502,22 @@ fn psi_input_matches_the_cpu_rows() {
             let input = probe.buffer_f32("input", &junk(seed, n * width));
             let flags = probe.buffer_u32("flags", &[0]);
             let mut enc = probe.encoder();
-            probe
-                .psi_input(
-                    &mut enc,
-                    &net,
-                    &scene_box(),
-                    &b.params,
-                    &s.offsets,
-                    n,
-                    &b.list,
-                    &b.count,
-                    SUN,
-                    &vis_buf,
-                    &input,
-                    &flags,
-                )
-                .unwrap();
+            io.encode_psi_input(
+                &mut enc,
+                &scratch,
+                &net,
+                &scene_box(),
+                &b.params,
+                &s.offsets,
+                n,
+                &b.list,
+                &b.count,
+                SUN,
+                &vis_buf,
+                &input,
+                &flags,
+            )
+            .unwrap();
             let gpu = probe.finish_f32(enc, &[(&input, n * width)]).unwrap();
             let (code_start, code_end) = (1 + 6 * freqs, 1 + 12 * freqs);
             worst = worst.max(compare_rows(
@@ -516,35 +535,36 @@ fn psi_input_matches_the_cpu_rows() {
 }
 
 /// Runs Psi's input assembly on `s` with `vis` and returns flags[0].
-fn psi_flags(probe: &NetworkIoProbe, s: &Scene, net: &ShadowNet, vis: &[f32]) -> u32 {
+fn psi_flags(rig: &Rig, s: &Scene, net: &ShadowNet, vis: &[f32]) -> u32 {
+    let Rig { io, scratch, probe } = rig;
     let b = upload(probe, s, s.count);
     let vis_buf = probe.buffer_f32("visibility", vis);
     let input = probe.buffer_f32("input", &vec![0.0; s.n * net.input_width()]);
     let flags = probe.buffer_u32("flags", &[0]);
     let mut enc = probe.encoder();
-    probe
-        .psi_input(
-            &mut enc,
-            net,
-            &scene_box(),
-            &b.params,
-            &s.offsets,
-            s.n,
-            &b.list,
-            &b.count,
-            SUN,
-            &vis_buf,
-            &input,
-            &flags,
-        )
-        .unwrap();
+    io.encode_psi_input(
+        &mut enc,
+        scratch,
+        net,
+        &scene_box(),
+        &b.params,
+        &s.offsets,
+        s.n,
+        &b.list,
+        &b.count,
+        SUN,
+        &vis_buf,
+        &input,
+        &flags,
+    )
+    .unwrap();
     probe.finish_f32(enc, &[]).unwrap();
     probe.read_u32(&flags, 1).unwrap()[0]
 }
 
 #[test]
 fn psi_input_flags_what_the_cpu_refuses() {
-    let Some(probe) = probe() else { return };
+    let Some(rig) = rig() else { return };
     let fresh = || Scene::new(42, 300, 8, 6, 0.5);
     let base = fresh();
     let net = psi_net(&base, 4);
@@ -552,7 +572,7 @@ fn psi_input_flags_what_the_cpu_refuses() {
     let listed = base.live()[11] as usize;
     let unlisted = (0..base.n).find(|g| !base.is_listed()[*g]).unwrap();
     let l0 = base.offsets[Param::ShadowLatent.index()] as usize;
-    assert_eq!(psi_flags(&probe, &base, &net, &vis), 0);
+    assert_eq!(psi_flags(&rig, &base, &net, &vis), 0);
 
     let mut bad_vis = vis.clone();
     bad_vis[listed] = f32::NAN;
@@ -567,13 +587,13 @@ fn psi_input_flags_what_the_cpu_refuses() {
         &mut cpu,
     );
     assert!(cpu_err.is_err());
-    assert_eq!(psi_flags(&probe, &base, &net, &bad_vis), 1, "NaN V");
+    assert_eq!(psi_flags(&rig, &base, &net, &bad_vis), 1, "NaN V");
     let mut s = fresh();
     s.params[l0 + listed * 6 + 5] = f32::NEG_INFINITY;
-    assert_eq!(psi_flags(&probe, &s, &net, &vis), 1, "infinite latent");
+    assert_eq!(psi_flags(&rig, &s, &net, &vis), 1, "infinite latent");
     let mut s = fresh();
     s.params[3 * listed + 2] = f32::NAN;
-    assert_eq!(psi_flags(&probe, &s, &net, &vis), 1, "NaN mean");
+    assert_eq!(psi_flags(&rig, &s, &net, &vis), 1, "NaN mean");
     // Faults of an unlisted Gaussian are not read.
     let mut s = fresh();
     let mut unlisted_vis = vis.clone();
@@ -581,7 +601,7 @@ fn psi_input_flags_what_the_cpu_refuses() {
     s.params[l0 + unlisted * 6] = f32::NAN;
     s.params[3 * unlisted] = f32::INFINITY;
     assert_eq!(
-        psi_flags(&probe, &s, &net, &unlisted_vis),
+        psi_flags(&rig, &s, &net, &unlisted_vis),
         0,
         "unlisted faults"
     );
@@ -589,7 +609,9 @@ fn psi_input_flags_what_the_cpu_refuses() {
 
 #[test]
 fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
-    let Some(probe) = probe() else { return };
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
     let nc = 4;
     let s = Scene::new(50, 600, 8, 6, 0.55);
     let n = s.n;
@@ -607,16 +629,14 @@ fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
             let rows_buf = probe.buffer_f32("rows", &rows);
             let d_out = probe.buffer_f32("d_out", &junk(55, n));
             let mut enc = probe.encoder();
-            probe
-                .psi_scatter(
-                    &mut enc, n, nc, &b.list, &b.count, &vis_buf, &out_buf, multiply, &chans,
-                )
-                .unwrap();
-            probe
-                .psi_d_output(
-                    &mut enc, n, nc, &b.list, &b.count, &vis_buf, &rows_buf, multiply, &d_out,
-                )
-                .unwrap();
+            io.encode_psi_scatter(
+                &mut enc, &scratch, n, nc, &b.list, &b.count, &vis_buf, &out_buf, multiply, &chans,
+            )
+            .unwrap();
+            io.encode_psi_d_output(
+                &mut enc, &scratch, n, nc, &b.list, &b.count, &vis_buf, &rows_buf, multiply, &d_out,
+            )
+            .unwrap();
             let gpu = probe
                 .finish_f32(enc, &[(&chans, n * nc), (&d_out, n)])
                 .unwrap();
@@ -644,7 +664,9 @@ fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
 
 #[test]
 fn psi_input_gradient_matches_the_cpu_scatter() {
-    let Some(probe) = probe() else { return };
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
     let mut worst = 0.0f32;
     let (box_min, box_max) = (scene_box().min_m(), scene_box().max_m());
     let extent_inv: Vec<f32> = (0..3).map(|a| 1.0 / (box_max[a] - box_min[a])).collect();
@@ -659,20 +681,20 @@ fn psi_input_gradient_matches_the_cpu_scatter() {
             let d_in = probe.buffer_f32("d_input", &d_input);
             let grads = probe.buffer_f32("grads", &grads0);
             let mut enc = probe.encoder();
-            probe
-                .psi_input_grad(
-                    &mut enc,
-                    &net,
-                    &scene_box(),
-                    &b.params,
-                    &s.offsets,
-                    n,
-                    &b.list,
-                    &b.count,
-                    &d_in,
-                    &grads,
-                )
-                .unwrap();
+            io.encode_psi_input_grad(
+                &mut enc,
+                &scratch,
+                &net,
+                &scene_box(),
+                &b.params,
+                &s.offsets,
+                n,
+                &b.list,
+                &b.count,
+                &d_in,
+                &grads,
+            )
+            .unwrap();
             let gpu = probe.finish_f32(enc, &[(&grads, grads0.len())]).unwrap();
             let gpu = &gpu[0];
             // The model: listed latents are written, means gain the chain rule.
@@ -727,7 +749,9 @@ fn psi_input_gradient_matches_the_cpu_scatter() {
 
 #[test]
 fn bad_host_arguments_are_rejected_before_recording() {
-    let Some(probe) = probe() else { return };
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
     let s = Scene::new(70, 100, 8, 6, 0.5);
     let n = s.n;
     let phi = phi_net(&s, 4);
@@ -748,8 +772,8 @@ fn bad_host_arguments_are_rejected_before_recording() {
                   sun: [f32; 3],
                   cam: [f32; 3],
                   input: &wgpu::Buffer| {
-        probe.phi_input(
-            enc, &phi, &b.params, offsets, n, &b.list, &b.count, sun, cam, input, &flags,
+        io.encode_phi_input(
+            enc, &scratch, &phi, &b.params, offsets, n, &b.list, &b.count, sun, cam, input, &flags,
         )
     };
     phi_in(&mut enc, &s.offsets, SUN, CAMERA, &phi_input).unwrap();
@@ -775,35 +799,36 @@ fn bad_host_arguments_are_rejected_before_recording() {
     let more = packed_offsets(&s.dims, n + 1).unwrap();
     invalid(phi_in(&mut enc, &more, SUN, CAMERA, &phi_input), "rows");
     invalid(
-        probe.phi_scatter(&mut enc, n, 5, &b.list, &b.count, &short, &chans4),
+        io.encode_phi_scatter(&mut enc, &scratch, n, 5, &b.list, &b.count, &short, &chans4),
         "5 channels",
     );
     invalid(
-        probe.phi_scatter(&mut enc, n, 4, &b.list, &b.count, &short, &chans4),
+        io.encode_phi_scatter(&mut enc, &scratch, n, 4, &b.list, &b.count, &short, &chans4),
         "short Phi output",
     );
     invalid(
-        probe.phi_d_output(&mut enc, n, 4, &b.list, &b.count, &short, &chans4),
+        io.encode_phi_d_output(&mut enc, &scratch, n, 4, &b.list, &b.count, &short, &chans4),
         "short rows",
     );
     invalid(
-        probe.psi_scatter(
-            &mut enc, n, 3, &b.list, &b.count, &vis, &short, true, &chans4,
+        io.encode_psi_scatter(
+            &mut enc, &scratch, n, 3, &b.list, &b.count, &vis, &short, true, &chans4,
         ),
         "Psi with 3 channels",
     );
     let tiny = probe.buffer_f32("tiny", &vec![0.5; n / 2]);
     invalid(
-        probe.psi_d_output(
-            &mut enc, n, 4, &b.list, &b.count, &tiny, &rows, true, &short,
+        io.encode_psi_d_output(
+            &mut enc, &scratch, n, 4, &b.list, &b.count, &tiny, &rows, true, &short,
         ),
         "short visibility",
     );
     let psi_d_input = probe.buffer_f32("psi d_input", &vec![0.0; n * psi.input_width()]);
     let grads = probe.buffer_f32("grads", &s.params);
     let psi_grad = |enc: &mut wgpu::CommandEncoder, offsets: &[u32; 9], d_input: &wgpu::Buffer| {
-        probe.psi_input_grad(
+        io.encode_psi_input_grad(
             enc,
+            &scratch,
             &psi,
             &scene_box(),
             &b.params,

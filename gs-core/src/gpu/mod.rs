@@ -393,13 +393,16 @@ impl GpuContext {
     }
 }
 
-/// Device buffers reused across steps, keyed by role (the resident path's per-step
-/// scratch: splats, keys, tile ranges, images, accumulators, uniforms). A storage buffer
-/// grows, with 50% head room, when a step needs more; kernels read only the extent they
-/// are told (uniform counts), and every buffer a kernel does not overwrite entirely is
-/// cleared in the command stream, as a fresh zeroed buffer would be.
+/// The per-step buffer pool that the recording functions (`encode_*`) take: device
+/// buffers reused across steps, keyed by role (splats, keys, tile ranges, images,
+/// accumulators, uniforms). Make one with `Scratch::default()` and pass it to every
+/// recording of a step. A storage buffer grows, with 50% head room, when a step needs
+/// more; kernels read only the extent they are told (uniform counts), and every buffer a
+/// kernel does not overwrite entirely is cleared in the command stream, as a fresh zeroed
+/// buffer would be. A uniform is written through the queue, so two recordings under the
+/// same label before one submission both read the second one's.
 #[derive(Debug, Default)]
-pub(crate) struct Scratch {
+pub struct Scratch {
     buffers: std::sync::Mutex<std::collections::HashMap<String, wgpu::Buffer>>,
 }
 

@@ -307,7 +307,7 @@ impl NetworkIo {
     /// feature or mean, or a Gaussian at the camera centre (view distance not > 0 and
     /// finite), sets `flags` bit 0.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn encode_phi_input(
+    pub fn encode_phi_input(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         scratch: &Scratch,
@@ -363,7 +363,7 @@ impl NetworkIo {
     /// = output[r * 3 + k]`, k < 3, for r < count, g = list[r]; other Gaussians' channels
     /// are not touched. `nc` is 3 or 4.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn encode_phi_scatter(
+    pub fn encode_phi_scatter(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         scratch: &Scratch,
@@ -402,7 +402,7 @@ impl NetworkIo {
     /// nc)`): `d_out[r * 3 + k] = rows[g * (13 + nc) + 13 + k]` for r < count, g = list[r];
     /// 0 for rows `>= count`.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn encode_phi_d_output(
+    pub fn encode_phi_d_output(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         scratch: &Scratch,
@@ -442,7 +442,7 @@ impl NetworkIo {
     /// columns, and the view-direction chain rule of its view columns,
     /// `-(d_view - (d_view . v) v) / |c - mu_g|`, is ADDED to the Mean row g.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn encode_phi_input_grad(
+    pub fn encode_phi_input_grad(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         scratch: &Scratch,
@@ -496,7 +496,7 @@ impl NetworkIo {
     /// (n f32), p_g the mean normalised over `scene_box`; rows `>= count` are written as 0.
     /// A non-finite V, mean or latent sets `flags` bit 0.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn encode_psi_input(
+    pub fn encode_psi_input(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         scratch: &Scratch,
@@ -556,7 +556,7 @@ impl NetworkIo {
     /// P_r` when `multiply` (ShadowRefinement::Multiply), else `P_r`, for r < count, g =
     /// list[r]; other Gaussians' channels are not touched. `nc` must be 4.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn encode_psi_scatter(
+    pub fn encode_psi_scatter(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         scratch: &Scratch,
@@ -599,7 +599,7 @@ impl NetworkIo {
     /// gradient) times V_g when `multiply`, for r < count, g = list[r]; 0 for rows
     /// `>= count`. `nc` must be 4.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn encode_psi_d_output(
+    pub fn encode_psi_d_output(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         scratch: &Scratch,
@@ -643,7 +643,7 @@ impl NetworkIo {
     /// latent columns, and the chain rule of its position columns through the encoding and
     /// the box normalisation is ADDED to the Mean row g. The V column gets nothing.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn encode_psi_input_grad(
+    pub fn encode_psi_input_grad(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         scratch: &Scratch,
@@ -705,36 +705,31 @@ fn check_channels(nc: usize, allowed: &[usize]) -> Result<(), GpuError> {
     }
 }
 
-/// [`NetworkIo`] with its own scratch pool, for tests and diagnostics outside the crate
-/// (the pool type is crate-private): host data into device buffers, each `encode_*`
-/// recorded into an encoder as the step would, then one submission and readback. Each
-/// method is the `NetworkIo::encode_*` of the same name without the `scratch` argument.
+/// Host data into device buffers and back, for tests and diagnostics outside the crate
+/// that record [`NetworkIo`]'s `encode_*` functions (the context's buffer helpers are
+/// crate-private): buffers from host slices, an encoder, one submission and readback.
 #[derive(Debug)]
 pub struct NetworkIoProbe {
-    io: NetworkIo,
-    scratch: Scratch,
+    ctx: GpuContext,
 }
 
 impl NetworkIoProbe {
-    pub fn new(ctx: &GpuContext) -> Result<Self, GpuError> {
-        Ok(Self {
-            io: NetworkIo::new(ctx)?,
-            scratch: Scratch::default(),
-        })
+    pub fn new(ctx: &GpuContext) -> Self {
+        Self { ctx: ctx.clone() }
     }
 
     /// A storage buffer holding `data` (at least 16 bytes).
     pub fn buffer_f32(&self, label: &str, data: &[f32]) -> wgpu::Buffer {
-        self.io.ctx.storage_init(label, &f32_bytes(data))
+        self.ctx.storage_init(label, &f32_bytes(data))
     }
 
     /// A storage buffer holding `data` (at least 16 bytes).
     pub fn buffer_u32(&self, label: &str, data: &[u32]) -> wgpu::Buffer {
-        self.io.ctx.storage_init(label, &u32_bytes(data))
+        self.ctx.storage_init(label, &u32_bytes(data))
     }
 
     pub fn encoder(&self) -> wgpu::CommandEncoder {
-        self.io.ctx.encoder("netio probe")
+        self.ctx.encoder("netio probe")
     }
 
     /// Submits `encoder` and reads back the first `len` f32 of each buffer.
@@ -748,7 +743,6 @@ impl NetworkIoProbe {
             .map(|(b, len)| (*b, *len as u64 * 4))
             .collect();
         Ok(self
-            .io
             .ctx
             .read_back(encoder, &ranges)?
             .iter()
@@ -759,215 +753,8 @@ impl NetworkIoProbe {
     /// The first `len` u32 of `buffer` (after everything submitted so far).
     pub fn read_u32(&self, buffer: &wgpu::Buffer, len: usize) -> Result<Vec<u32>, GpuError> {
         let bytes = self
-            .io
             .ctx
             .read_back(self.encoder(), &[(buffer, len as u64 * 4)])?;
         Ok(bytes_u32(&bytes[0]))
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub fn phi_input(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        net: &AppearanceNet,
-        params: &wgpu::Buffer,
-        offsets: &[u32; 9],
-        n: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
-        sun_dir: [f32; 3],
-        camera_centre: [f32; 3],
-        input: &wgpu::Buffer,
-        flags: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        self.io.encode_phi_input(
-            encoder,
-            &self.scratch,
-            net,
-            params,
-            offsets,
-            n,
-            list,
-            count,
-            sun_dir,
-            camera_centre,
-            input,
-            flags,
-        )
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub fn phi_scatter(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        n: usize,
-        nc: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
-        output: &wgpu::Buffer,
-        chans: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        self.io
-            .encode_phi_scatter(encoder, &self.scratch, n, nc, list, count, output, chans)
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub fn phi_d_output(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        n: usize,
-        nc: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
-        rows: &wgpu::Buffer,
-        d_out: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        self.io
-            .encode_phi_d_output(encoder, &self.scratch, n, nc, list, count, rows, d_out)
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub fn phi_input_grad(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        net: &AppearanceNet,
-        params: &wgpu::Buffer,
-        offsets: &[u32; 9],
-        n: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
-        camera_centre: [f32; 3],
-        d_input: &wgpu::Buffer,
-        grads: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        self.io.encode_phi_input_grad(
-            encoder,
-            &self.scratch,
-            net,
-            params,
-            offsets,
-            n,
-            list,
-            count,
-            camera_centre,
-            d_input,
-            grads,
-        )
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub fn psi_input(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        net: &ShadowNet,
-        scene_box: &SceneBox,
-        params: &wgpu::Buffer,
-        offsets: &[u32; 9],
-        n: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
-        sun_dir: [f32; 3],
-        visibility: &wgpu::Buffer,
-        input: &wgpu::Buffer,
-        flags: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        self.io.encode_psi_input(
-            encoder,
-            &self.scratch,
-            net,
-            scene_box,
-            params,
-            offsets,
-            n,
-            list,
-            count,
-            sun_dir,
-            visibility,
-            input,
-            flags,
-        )
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub fn psi_scatter(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        n: usize,
-        nc: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
-        visibility: &wgpu::Buffer,
-        output: &wgpu::Buffer,
-        multiply: bool,
-        chans: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        self.io.encode_psi_scatter(
-            encoder,
-            &self.scratch,
-            n,
-            nc,
-            list,
-            count,
-            visibility,
-            output,
-            multiply,
-            chans,
-        )
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub fn psi_d_output(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        n: usize,
-        nc: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
-        visibility: &wgpu::Buffer,
-        rows: &wgpu::Buffer,
-        multiply: bool,
-        d_out: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        self.io.encode_psi_d_output(
-            encoder,
-            &self.scratch,
-            n,
-            nc,
-            list,
-            count,
-            visibility,
-            rows,
-            multiply,
-            d_out,
-        )
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub fn psi_input_grad(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        net: &ShadowNet,
-        scene_box: &SceneBox,
-        params: &wgpu::Buffer,
-        offsets: &[u32; 9],
-        n: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
-        d_input: &wgpu::Buffer,
-        grads: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        self.io.encode_psi_input_grad(
-            encoder,
-            &self.scratch,
-            net,
-            scene_box,
-            params,
-            offsets,
-            n,
-            list,
-            count,
-            d_input,
-            grads,
-        )
     }
 }
