@@ -76,16 +76,92 @@ struct ResidentPipelines {
     loss: GpuLoss,
 }
 
-/// Device buffers sized for `capacity` Gaussians.
-struct Buffers {
-    capacity: usize,
-    params: wgpu::Buffer,
-    grads: wgpu::Buffer,
-    m: wgpu::Buffer,
-    v: wgpu::Buffer,
-    stats: wgpu::Buffer,
-    /// `[refused, dropped]` counters of the last step.
-    flags: wgpu::Buffer,
+/// The Gaussians' device state, sized for `capacity` Gaussians: the packed parameters,
+/// a gradient of the same layout, both Adam moments and the densification statistics
+/// (`grad_accum`, `visible_count`, `max_radius_px`, `n` each: resident_stats.wgsl). The
+/// plain and the Sun-aware resident trainers both keep their Gaussians in one.
+pub(super) struct GaussianBuffers {
+    pub capacity: usize,
+    pub params: wgpu::Buffer,
+    pub grads: wgpu::Buffer,
+    pub m: wgpu::Buffer,
+    pub v: wgpu::Buffer,
+    pub stats: wgpu::Buffer,
+}
+
+impl GaussianBuffers {
+    /// Buffers for `capacity` rows of `dims` (labels start with `label`).
+    pub(super) fn allocate(
+        ctx: &GpuContext,
+        label: &str,
+        dims: &[usize; Param::COUNT],
+        capacity: usize,
+    ) -> Result<Self, GpuError> {
+        let values = (row_width(dims) * capacity).max(1) as u64 * 4;
+        Ok(Self {
+            capacity,
+            params: ctx.storage(&format!("{label} params"), values)?,
+            grads: ctx.storage(&format!("{label} grads"), values)?,
+            m: ctx.storage(&format!("{label} adam m"), values)?,
+            v: ctx.storage(&format!("{label} adam v"), values)?,
+            stats: ctx.storage(
+                &format!("{label} densify stats"),
+                capacity.max(1) as u64 * 12,
+            )?,
+        })
+    }
+
+    /// Writes the host's parameters, moments and statistics (the caller checked their
+    /// shapes against each other and that they fit the capacity).
+    pub(super) fn write(
+        &self,
+        ctx: &GpuContext,
+        params: &ParamSet,
+        adam: &Adam,
+        stats: &DensifyStats,
+    ) {
+        let q = &ctx.queue;
+        q.write_buffer(&self.params, 0, &pad4(f32_bytes(&pack(params))));
+        q.write_buffer(&self.m, 0, &pad4(f32_bytes(&pack(&adam.m))));
+        q.write_buffer(&self.v, 0, &pad4(f32_bytes(&pack(&adam.v))));
+        let mut words: Vec<u32> = stats.grad_accum.iter().map(|v| v.to_bits()).collect();
+        words.extend_from_slice(&stats.visible_count);
+        words.extend(stats.max_radius_px.iter().map(|v| v.to_bits()));
+        q.write_buffer(&self.stats, 0, &pad4(u32_bytes(&words)));
+    }
+
+    /// Reads the first `params.len()` rows back into the host's parameters, moments and
+    /// statistics (shapes checked by the caller; `adam.step` is the caller's to set).
+    pub(super) fn read(
+        &self,
+        ctx: &GpuContext,
+        params: &mut ParamSet,
+        adam: &mut Adam,
+        stats: &mut DensifyStats,
+    ) -> Result<(), GpuError> {
+        let n = params.len();
+        let values = (row_width(&params.dims()) * n) as u64 * 4;
+        let back = ctx.read_back(
+            ctx.encoder("resident download"),
+            &[
+                (&self.params, values),
+                (&self.m, values),
+                (&self.v, values),
+                (&self.stats, n as u64 * 12),
+            ],
+        )?;
+        unpack(&bytes_f32(&back[0]), params);
+        unpack(&bytes_f32(&back[1]), &mut adam.m);
+        unpack(&bytes_f32(&back[2]), &mut adam.v);
+        let words = bytes_u32(&back[3]);
+        stats.grad_accum = words[..n].iter().map(|w| f32::from_bits(*w)).collect();
+        stats.visible_count = words[n..2 * n].to_vec();
+        stats.max_radius_px = words[2 * n..3 * n]
+            .iter()
+            .map(|w| f32::from_bits(*w))
+            .collect();
+        Ok(())
+    }
 }
 
 /// One step's inputs (see [`ResidentModel::step`]).
@@ -145,7 +221,9 @@ pub struct ResidentModel {
     pipelines: ResidentPipelines,
     dims: [usize; Param::COUNT],
     n: usize,
-    buffers: Buffers,
+    buffers: GaussianBuffers,
+    /// `[refused, dropped]` counters of the last step.
+    flags: wgpu::Buffer,
     images: Option<ImageBuffers>,
     /// Per-step scratch of the rasterizer, the loss and the kernels' uniforms, reused.
     scratch: Scratch,
@@ -234,13 +312,16 @@ impl ResidentModel {
             overflow: ctx.pipeline("resident_overflow", RESIDENT_OVERFLOW)?,
             loss: GpuLoss::new(ctx, CHANNELS)?,
         };
-        let buffers = Self::allocate(ctx, &params.dims(), params.len().max(1))?;
+        let buffers =
+            GaussianBuffers::allocate(ctx, "resident", &params.dims(), params.len().max(1))?;
+        let flags = ctx.storage("resident step flags", 8)?;
         let mut out = Self {
             raster,
             pipelines,
             dims: params.dims(),
             n: 0,
             buffers,
+            flags,
             images: None,
             scratch: Scratch::default(),
             recent_entries: std::collections::VecDeque::new(),
@@ -251,23 +332,6 @@ impl ResidentModel {
         };
         out.upload(params, adam, stats)?;
         Ok(out)
-    }
-
-    fn allocate(
-        ctx: &GpuContext,
-        dims: &[usize; Param::COUNT],
-        capacity: usize,
-    ) -> Result<Buffers, GpuError> {
-        let values = (row_width(dims) * capacity) as u64 * 4;
-        Ok(Buffers {
-            capacity,
-            params: ctx.storage("resident params", values)?,
-            grads: ctx.storage("resident grads", values)?,
-            m: ctx.storage("resident adam m", values)?,
-            v: ctx.storage("resident adam v", values)?,
-            stats: ctx.storage("resident densify stats", capacity as u64 * 12)?,
-            flags: ctx.storage("resident step flags", 8)?,
-        })
     }
 
     pub fn len(&self) -> usize {
@@ -330,16 +394,9 @@ impl ResidentModel {
         let ctx = self.raster.context();
         if n > self.buffers.capacity {
             let capacity = n.saturating_add(n / 2);
-            self.buffers = Self::allocate(ctx, &self.dims, capacity)?;
+            self.buffers = GaussianBuffers::allocate(ctx, "resident", &self.dims, capacity)?;
         }
-        let q = &ctx.queue;
-        q.write_buffer(&self.buffers.params, 0, &pad4(f32_bytes(&pack(params))));
-        q.write_buffer(&self.buffers.m, 0, &pad4(f32_bytes(&pack(&adam.m))));
-        q.write_buffer(&self.buffers.v, 0, &pad4(f32_bytes(&pack(&adam.v))));
-        let mut words: Vec<u32> = stats.grad_accum.iter().map(|v| v.to_bits()).collect();
-        words.extend_from_slice(&stats.visible_count);
-        words.extend(stats.max_radius_px.iter().map(|v| v.to_bits()));
-        q.write_buffer(&self.buffers.stats, 0, &pad4(u32_bytes(&words)));
+        self.buffers.write(ctx, params, adam, stats);
         self.n = n;
         self.adam_step = adam.step;
         (self.beta1, self.beta2, self.eps) = (adam.beta1, adam.beta2, adam.eps);
@@ -362,29 +419,8 @@ impl ResidentModel {
             )));
         }
         self.check_shapes(params, adam, stats)?;
-        let values = (row_width(&self.dims) * self.n) as u64 * 4;
-        let ctx = self.raster.context();
-        let b = &self.buffers;
-        let back = ctx.read_back(
-            ctx.encoder("resident download"),
-            &[
-                (&b.params, values),
-                (&b.m, values),
-                (&b.v, values),
-                (&b.stats, self.n as u64 * 12),
-            ],
-        )?;
-        unpack(&bytes_f32(&back[0]), params);
-        unpack(&bytes_f32(&back[1]), &mut adam.m);
-        unpack(&bytes_f32(&back[2]), &mut adam.v);
-        let words = bytes_u32(&back[3]);
-        let n = self.n;
-        stats.grad_accum = words[..n].iter().map(|w| f32::from_bits(*w)).collect();
-        stats.visible_count = words[n..2 * n].to_vec();
-        stats.max_radius_px = words[2 * n..3 * n]
-            .iter()
-            .map(|w| f32::from_bits(*w))
-            .collect();
+        self.buffers
+            .read(self.raster.context(), params, adam, stats)?;
         adam.step = self.adam_step;
         Ok(())
     }
@@ -428,7 +464,7 @@ impl ResidentModel {
     pub fn adam_step_on_grads(&mut self, rates: &GroupRates) -> Result<bool, GpuError> {
         let ctx = self.raster.context();
         let mut encoder = ctx.encoder("resident adam");
-        encoder.clear_buffer(&self.buffers.flags, 0, None);
+        encoder.clear_buffer(&self.flags, 0, None);
         // The finiteness check of a plain Adam step: the grads kernel's flag, here from
         // the host (the buffer is small next to the kernels' work only in tests).
         let grads_back = ctx.read_back(
@@ -466,7 +502,7 @@ impl ResidentModel {
         let b = &self.buffers;
         let bind = ctx.bind_group(
             &self.pipelines.adam,
-            &[&uniform, &b.params, &b.grads, &b.m, &b.v, &b.flags],
+            &[&uniform, &b.params, &b.grads, &b.m, &b.v, &self.flags],
         );
         let mut pass = encoder.begin_compute_pass(&Default::default());
         dispatch_1d(&mut pass, &self.pipelines.adam, &bind, words[8] as u64);
@@ -609,7 +645,7 @@ impl ResidentModel {
         let mut encoder = device.encoder;
         let st = &device.state;
         let b = &self.buffers;
-        encoder.clear_buffer(&b.flags, 0, None);
+        encoder.clear_buffer(&self.flags, 0, None);
         encoder.clear_buffer(&images.px_grad, 0, None);
         let cap = self.scratch.uniform(
             ctx,
@@ -617,7 +653,10 @@ impl ResidentModel {
             &u32_bytes(&[n as u32, device.n_sort as u32, 0, 0]),
         )?;
         {
-            let bind = ctx.bind_group(&self.pipelines.overflow, &[&cap, &device.counts, &b.flags]);
+            let bind = ctx.bind_group(
+                &self.pipelines.overflow,
+                &[&cap, &device.counts, &self.flags],
+            );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.pipelines.overflow);
             pass.set_bind_group(0, &bind, &[]);
@@ -632,7 +671,7 @@ impl ResidentModel {
             &images.target,
             &images.weights,
             &images.px_grad,
-            &b.flags,
+            &self.flags,
             Some(&self.scratch),
         )?;
         let rows = self.raster.encode_backward(
@@ -645,7 +684,7 @@ impl ResidentModel {
         {
             let bind = ctx.bind_group(
                 &self.pipelines.grads,
-                &[&step, &b.params, &rows, &b.grads, &b.flags],
+                &[&step, &b.params, &rows, &b.grads, &self.flags],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.grads, &bind, n as u64);
@@ -653,7 +692,7 @@ impl ResidentModel {
         {
             let bind = ctx.bind_group(
                 &self.pipelines.stats,
-                &[&step, &rows, &st.splats, &b.flags, &b.stats],
+                &[&step, &rows, &st.splats, &self.flags, &b.stats],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.stats, &bind, n as u64);
@@ -663,7 +702,11 @@ impl ResidentModel {
         encoder.copy_buffer_to_buffer(&device.counts, 4 * n as u64, &entry_count, 0, 4);
         let back = ctx.read_back(
             encoder,
-            &[(&b.flags, 8), (&loss_buffers.totals, 8), (&entry_count, 4)],
+            &[
+                (&self.flags, 8),
+                (&loss_buffers.totals, 8),
+                (&entry_count, 4),
+            ],
         )?;
         drop((adam_uniform, loss_buffers, cap));
         let flags = bytes_u32(&back[0]);

@@ -50,7 +50,7 @@ use super::mlp::{DeviceNetwork, GpuMlp};
 use super::network_io::NetworkIo;
 use super::raster::{DeviceInputs, GpuRasterizer};
 use super::resident::{
-    adam_words, offsets, pack, pad4, step_words, unpack, ADAM, GSTRIDE, RECENT_STEPS,
+    adam_words, offsets, pad4, step_words, GaussianBuffers, ADAM, GSTRIDE, RECENT_STEPS,
     REFUSED_NONFINITE, REFUSED_OVERFLOW, RESIDENT_COLOUR, RESIDENT_COMMON, RESIDENT_GRADS,
     RESIDENT_OVERFLOW, RESIDENT_PACK, RESIDENT_STATS,
 };
@@ -95,17 +95,6 @@ struct Pipelines {
     adam: wgpu::ComputePipeline,
     overflow: wgpu::ComputePipeline,
     loss: GpuLoss,
-}
-
-/// Per-Gaussian device state, sized for `capacity` Gaussians.
-struct Buffers {
-    capacity: usize,
-    params: wgpu::Buffer,
-    grads: wgpu::Buffer,
-    m: wgpu::Buffer,
-    v: wgpu::Buffer,
-    /// `grad_accum`, `visible_count`, `max_radius_px`, `n` each (resident_stats.wgsl).
-    stats: wgpu::Buffer,
 }
 
 /// Every per-step scratch pool (see the module header: one per subsystem).
@@ -176,7 +165,7 @@ pub struct SunAwareResident {
     pipelines: Pipelines,
     dims: [usize; Param::COUNT],
     n: usize,
-    buffers: Buffers,
+    buffers: GaussianBuffers,
     appearance: Option<DeviceNetwork>,
     shadow_net: Option<DeviceNetwork>,
     pools: Pools,
@@ -252,7 +241,7 @@ impl SunAwareResident {
         };
         let io = NetworkIo::new(ctx)?;
         let dims = [0; Param::COUNT];
-        let buffers = Self::allocate(ctx, &dims, 1)?;
+        let buffers = GaussianBuffers::allocate(ctx, "sa", &dims, 1)?;
         let clock = StageClock::new(ctx, 16);
         Ok(Self {
             raster,
@@ -273,22 +262,6 @@ impl SunAwareResident {
             beta1: 0.9,
             beta2: 0.999,
             eps: crate::optim::ADAM_EPS,
-        })
-    }
-
-    fn allocate(
-        ctx: &super::GpuContext,
-        dims: &[usize; Param::COUNT],
-        capacity: usize,
-    ) -> Result<Buffers, GpuError> {
-        let values = (dims.iter().sum::<usize>() * capacity).max(1) as u64 * 4;
-        Ok(Buffers {
-            capacity,
-            params: ctx.storage("sa params", values)?,
-            grads: ctx.storage("sa grads", values)?,
-            m: ctx.storage("sa adam m", values)?,
-            v: ctx.storage("sa adam v", values)?,
-            stats: ctx.storage("sa densify stats", capacity as u64 * 12)?,
         })
     }
 
@@ -332,17 +305,10 @@ impl SunAwareResident {
         let ctx = self.raster.context();
         if n > self.buffers.capacity || dims != self.dims {
             let capacity = n.saturating_add(n / 2).max(1);
-            self.buffers = Self::allocate(ctx, &dims, capacity)?;
+            self.buffers = GaussianBuffers::allocate(ctx, "sa", &dims, capacity)?;
         }
         self.dims = dims;
-        let q = &ctx.queue;
-        q.write_buffer(&self.buffers.params, 0, &pad4(f32_bytes(&pack(params))));
-        q.write_buffer(&self.buffers.m, 0, &pad4(f32_bytes(&pack(&adam.m))));
-        q.write_buffer(&self.buffers.v, 0, &pad4(f32_bytes(&pack(&adam.v))));
-        let mut words: Vec<u32> = stats.grad_accum.iter().map(|v| v.to_bits()).collect();
-        words.extend_from_slice(&stats.visible_count);
-        words.extend(stats.max_radius_px.iter().map(|v| v.to_bits()));
-        q.write_buffer(&self.buffers.stats, 0, &pad4(u32_bytes(&words)));
+        self.buffers.write(ctx, params, adam, stats);
         self.appearance = Self::network(
             ctx,
             self.appearance.take(),
@@ -467,34 +433,15 @@ impl SunAwareResident {
     ) -> Result<(), GpuError> {
         let n = self.n;
         let params = &mut model.gaussians.params;
-        if params.len() != n || params.dims() != self.dims || adam.m.len() != n {
+        let same = |set: &ParamSet| set.len() == n && set.dims() == self.dims;
+        if !same(params) || !same(&adam.m) || !same(&adam.v) {
             return Err(GpuError::Invalid(format!(
                 "host model has {} rows, the device {n}",
                 params.len()
             )));
         }
-        let values = (self.dims.iter().sum::<usize>() * n) as u64 * 4;
         let ctx = self.raster.context();
-        let b = &self.buffers;
-        let back = ctx.read_back(
-            ctx.encoder("sa download"),
-            &[
-                (&b.params, values),
-                (&b.m, values),
-                (&b.v, values),
-                (&b.stats, n as u64 * 12),
-            ],
-        )?;
-        unpack(&bytes_f32(&back[0]), params);
-        unpack(&bytes_f32(&back[1]), &mut adam.m);
-        unpack(&bytes_f32(&back[2]), &mut adam.v);
-        let words = bytes_u32(&back[3]);
-        stats.grad_accum = words[..n].iter().map(|w| f32::from_bits(*w)).collect();
-        stats.visible_count = words[n..2 * n].to_vec();
-        stats.max_radius_px = words[2 * n..3 * n]
-            .iter()
-            .map(|w| f32::from_bits(*w))
-            .collect();
+        self.buffers.read(ctx, params, adam, stats)?;
         adam.step = self.adam_step;
         if let (Some(net), Some(host)) = (&self.appearance, model.appearance.as_mut()) {
             net.download(
