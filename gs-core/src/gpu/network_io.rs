@@ -278,7 +278,8 @@ impl NetworkIo {
     }
 
     /// Writes `uniform` to its scratch slot and records one pass of `pipeline` over `n`
-    /// rows with `uniform` at binding 0 and `buffers` at 1, 2, ...
+    /// rows with `uniform` at binding 0 and `buffers` at 1, 2, ... (`list` and `count`
+    /// first: the bindings netio_common.wgsl declares for every kernel).
     #[allow(clippy::too_many_arguments)]
     fn record(
         &self,
@@ -348,7 +349,7 @@ impl NetworkIo {
         if n == 0 {
             return Ok(());
         }
-        let buffers = [params, list, count, input, flags];
+        let buffers = [list, count, params, input, flags];
         self.record(
             encoder,
             scratch,
@@ -480,7 +481,7 @@ impl NetworkIo {
         if n == 0 {
             return Ok(());
         }
-        let buffers = [params, list, count, d_input, grads];
+        let buffers = [list, count, params, d_input, grads];
         self.record(
             encoder,
             scratch,
@@ -541,7 +542,7 @@ impl NetworkIo {
         if n == 0 {
             return Ok(());
         }
-        let buffers = [params, list, count, visibility, input, flags];
+        let buffers = [list, count, params, visibility, input, flags];
         self.record(
             encoder,
             scratch,
@@ -683,7 +684,7 @@ impl NetworkIo {
         if n == 0 {
             return Ok(());
         }
-        let buffers = [params, list, count, d_input, grads];
+        let buffers = [list, count, params, d_input, grads];
         self.record(
             encoder,
             scratch,

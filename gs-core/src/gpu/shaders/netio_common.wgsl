@@ -1,6 +1,8 @@
-// Shared by the network input/output kernels (gpu/network_io.rs): the uniform, the
-// packed parameter layout's group offsets, and `sin(pi x)`, `cos(pi x)` and the
-// positional encoding ported operation for operation from nn/encoding.rs.
+// Shared by the network input/output kernels (gpu/network_io.rs), prepended to each: the
+// uniform, the bindings every kernel has (uniform, list, count: bindings 0-2; each kernel
+// declares its own buffers from binding 3 on), the row-to-Gaussian lookup, the packed
+// parameter layout's group offsets, and `sin(pi x)`, `cos(pi x)` and the positional
+// encoding ported operation for operation from nn/encoding.rs.
 
 struct NetIo {
     // Start of each parameter group in the packed buffers (Param order).
@@ -27,6 +29,29 @@ struct NetIo {
     // gamma_L of the unit Sun direction (6L values, computed on the host by the CPU
     // encoding: the same bits as the CPU rows).
     sun: array<vec4<f32>, 24>,
+}
+
+@group(0) @binding(0) var<uniform> u: NetIo;
+@group(0) @binding(1) var<storage, read> list: array<u32>;
+@group(0) @binding(2) var<storage, read> count: array<u32>;
+
+// Row of this invocation (dispatch_1d's grid of 256-wide groups, folded to 1-D).
+fn row_of(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
+    return gid.x + gid.y * nwg.x * 256u;
+}
+
+// Row r is live when r < count (count[0], read as at most n).
+fn is_live(r: u32) -> bool {
+    return r < min(count[0], u.n);
+}
+
+// The Gaussian of row r: list[r] for a live row (which may itself be out of range, >= n),
+// n for a dead row.
+fn listed_gaussian(r: u32) -> u32 {
+    if is_live(r) {
+        return list[r];
+    }
+    return u.n;
 }
 
 const G_MEAN: u32 = 0u;

@@ -4,29 +4,22 @@
 // feature or mean, a Gaussian at the camera centre (distance not > 0 and finite) or a
 // list entry out of range sets flags[0] bit 0 (where the CPU returns an error).
 
-@group(0) @binding(0) var<uniform> u: NetIo;
-@group(0) @binding(1) var<storage, read> params: array<f32>;
-@group(0) @binding(2) var<storage, read> list: array<u32>;
-@group(0) @binding(3) var<storage, read> count: array<u32>;
+@group(0) @binding(3) var<storage, read> params: array<f32>;
 @group(0) @binding(4) var<storage, read_write> input: array<f32>;
 @group(0) @binding(5) var<storage, read_write> flags: array<atomic<u32>>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let r = gid.x + gid.y * nwg.x * 256u;
+    let r = row_of(gid, nwg);
     if r >= u.n {
         return;
     }
     let base = r * u.width;
-    let live = min(count[0], u.n);
-    var g = u.n;
-    if r < live {
-        g = list[r];
-        if g >= u.n {
+    let g = listed_gaussian(r);
+    if g >= u.n {
+        if is_live(r) {
             atomicOr(&flags[0], 1u);
         }
-    }
-    if g >= u.n {
         for (var c = 0u; c < u.width; c++) {
             input[base + c] = 0.0;
         }

@@ -4,20 +4,14 @@
 // columns, -(d_view - (d_view . v) v) / |c - mu|. The list has no repeats (ascending), so
 // each Gaussian's rows have one writer.
 
-@group(0) @binding(0) var<uniform> u: NetIo;
-@group(0) @binding(1) var<storage, read> params: array<f32>;
-@group(0) @binding(2) var<storage, read> list: array<u32>;
-@group(0) @binding(3) var<storage, read> count: array<u32>;
+@group(0) @binding(3) var<storage, read> params: array<f32>;
 @group(0) @binding(4) var<storage, read> d_input: array<f32>;
 @group(0) @binding(5) var<storage, read_write> grads: array<f32>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let r = gid.x + gid.y * nwg.x * 256u;
-    if r >= min(count[0], u.n) {
-        return;
-    }
-    let g = list[r];
+    let r = row_of(gid, nwg);
+    let g = listed_gaussian(r);
     if g >= u.n {
         return;
     }

@@ -3,30 +3,23 @@
 // p_g = (mu_g - box_min) / extent - 0.5 per axis; rows r >= count are zeros. A
 // non-finite V, mean or latent, or a list entry out of range, sets flags[0] bit 0.
 
-@group(0) @binding(0) var<uniform> u: NetIo;
-@group(0) @binding(1) var<storage, read> params: array<f32>;
-@group(0) @binding(2) var<storage, read> list: array<u32>;
-@group(0) @binding(3) var<storage, read> count: array<u32>;
+@group(0) @binding(3) var<storage, read> params: array<f32>;
 @group(0) @binding(4) var<storage, read> visibility: array<f32>;
 @group(0) @binding(5) var<storage, read_write> input: array<f32>;
 @group(0) @binding(6) var<storage, read_write> flags: array<atomic<u32>>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let r = gid.x + gid.y * nwg.x * 256u;
+    let r = row_of(gid, nwg);
     if r >= u.n {
         return;
     }
     let base = r * u.width;
-    let live = min(count[0], u.n);
-    var g = u.n;
-    if r < live {
-        g = list[r];
-        if g >= u.n {
+    let g = listed_gaussian(r);
+    if g >= u.n {
+        if is_live(r) {
             atomicOr(&flags[0], 1u);
         }
-    }
-    if g >= u.n {
         for (var c = 0u; c < u.width; c++) {
             input[base + c] = 0.0;
         }

@@ -2,20 +2,14 @@
 // g = list[r], chans[g * nc + 3] = V_g * P_r under ShadowRefinement::Multiply, else P_r.
 // Other Gaussians' channels are not touched.
 
-@group(0) @binding(0) var<uniform> u: NetIo;
-@group(0) @binding(1) var<storage, read> list: array<u32>;
-@group(0) @binding(2) var<storage, read> count: array<u32>;
 @group(0) @binding(3) var<storage, read> visibility: array<f32>;
 @group(0) @binding(4) var<storage, read> output: array<f32>;
 @group(0) @binding(5) var<storage, read_write> chans: array<f32>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let r = gid.x + gid.y * nwg.x * 256u;
-    if r >= min(count[0], u.n) {
-        return;
-    }
-    let g = list[r];
+    let r = row_of(gid, nwg);
+    let g = listed_gaussian(r);
     if g >= u.n {
         return;
     }
