@@ -17,71 +17,16 @@
 
 use std::time::Instant;
 
+mod bench_util;
+use bench_util::{arg, random_cloud, Cloud};
+
 use glam::Vec3;
 use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
-use gs_core::raster::{render, render_backward, GaussianView, PixelGrads, RasterSettings};
+use gs_core::raster::{render, render_backward, PixelGrads, RasterSettings};
 use gs_core::rng::SplitMix64;
 use gs_core::sh::rgb_to_sh_dc;
 use gs_core::train::{Backend, TrainConfig, TrainView, Trainer};
 use gs_core::{Camera, GaussianModel, Intrinsics, ModelLayout, Param};
-
-struct Cloud {
-    means: Vec<f32>,
-    log_scales: Vec<f32>,
-    rotations: Vec<f32>,
-    opacity_logits: Vec<f32>,
-    channels: Vec<f32>,
-}
-
-impl Cloud {
-    fn view(&self) -> GaussianView<'_> {
-        GaussianView {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            rotations: &self.rotations,
-            opacity_logits: &self.opacity_logits,
-            channels: &self.channels,
-            n_channels: 3,
-        }
-    }
-}
-
-/// `n` Gaussians in a 2 m ball at 5 m, sized so neighbours overlap.
-fn cloud(n: usize, seed: u64) -> Cloud {
-    let mut rng = SplitMix64::new(seed);
-    let sigma = 2.0 * (4.0 / n as f32).sqrt().min(0.05);
-    let mut c = Cloud {
-        means: Vec::with_capacity(3 * n),
-        log_scales: Vec::with_capacity(3 * n),
-        rotations: Vec::with_capacity(4 * n),
-        opacity_logits: Vec::with_capacity(n),
-        channels: Vec::with_capacity(3 * n),
-    };
-    for _ in 0..n {
-        let p = loop {
-            let p = Vec3::new(
-                rng.uniform(-1.0, 1.0),
-                rng.uniform(-1.0, 1.0),
-                rng.uniform(-1.0, 1.0),
-            );
-            if p.length_squared() <= 1.0 {
-                break p * 2.0;
-            }
-        };
-        c.means.extend(p.to_array());
-        for _ in 0..3 {
-            c.log_scales.push((sigma * rng.uniform(0.3, 1.5)).ln());
-        }
-        for _ in 0..4 {
-            c.rotations.push(rng.uniform(-1.0, 1.0));
-        }
-        c.opacity_logits.push(rng.uniform(-1.0, 3.0));
-        for _ in 0..3 {
-            c.channels.push(rng.uniform(0.0, 1.0));
-        }
-    }
-    c
-}
 
 /// The cloud as a degree-0 SH model (colours as the DC terms).
 fn cloud_model(c: &Cloud) -> GaussianModel {
@@ -187,13 +132,6 @@ mod libc_rusage {
     }
 }
 
-fn arg(args: &[String], name: &str) -> Option<usize> {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let runs = arg(&args, "--runs").unwrap_or(5).max(1);
@@ -242,7 +180,7 @@ fn main() {
         "cpu s"
     );
     for n in sizes {
-        let c = cloud(n, 1);
+        let c = random_cloud(n, 1);
         let view = c.view();
         let px = (width * height) as usize;
         let mut rng = SplitMix64::new(2);

@@ -17,12 +17,11 @@
 use std::time::Instant;
 
 mod bench_util;
-use bench_util::{median, peak_rss_mb, process_cpu_ms};
+use bench_util::{median, peak_rss_mb, process_cpu_ms, Cloud};
 
 use glam::{Quat, Vec3};
 use gs_core::raster::{
-    render, render_backward_with, render_with, GaussianView, PixelGrads, RasterSettings,
-    RasterWorkspace,
+    render, render_backward_with, render_with, PixelGrads, RasterSettings, RasterWorkspace,
 };
 use gs_core::rng::SplitMix64;
 use gs_core::{Camera, Intrinsics};
@@ -76,40 +75,13 @@ fn satellite_faces() -> Vec<Face> {
     faces
 }
 
-struct Scene {
-    means: Vec<f32>,
-    log_scales: Vec<f32>,
-    rotations: Vec<f32>,
-    opacity_logits: Vec<f32>,
-    channels: Vec<f32>,
-}
-
-impl Scene {
-    fn view(&self) -> GaussianView<'_> {
-        GaussianView {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            rotations: &self.rotations,
-            opacity_logits: &self.opacity_logits,
-            channels: &self.channels,
-            n_channels: 3,
-        }
-    }
-}
-
-fn satellite_scene(n: usize, seed: u64) -> Scene {
+fn satellite_scene(n: usize, seed: u64) -> Cloud {
     let faces = satellite_faces();
     let total_area: f32 = faces.iter().map(Face::area).sum();
     let mut rng = SplitMix64::new(seed);
     // Tangent sigma so that neighbours overlap (mean spacing sqrt(area / n)).
     let spacing = (total_area / n as f32).sqrt();
-    let mut s = Scene {
-        means: Vec::with_capacity(3 * n),
-        log_scales: Vec::with_capacity(3 * n),
-        rotations: Vec::with_capacity(4 * n),
-        opacity_logits: Vec::with_capacity(n),
-        channels: Vec::with_capacity(3 * n),
-    };
+    let mut s = Cloud::with_capacity(n);
     for _ in 0..n {
         let mut pick = rng.uniform(0.0, total_area);
         let mut face = &faces[0];
@@ -157,7 +129,7 @@ fn camera_at(distance_m: f32, width: u32, height: u32) -> Camera {
     )
 }
 
-fn coverage(scene: &Scene, cam: &Camera) -> f32 {
+fn coverage(scene: &Cloud, cam: &Camera) -> f32 {
     let out = render(cam, &scene.view(), &RasterSettings::default()).expect("render");
     out.alpha.iter().filter(|&&a| a > 0.5).count() as f32 / out.alpha.len() as f32
 }

@@ -13,18 +13,10 @@
 //! the wall time was ours. On Mesa's software Vulkan driver (lavapipe) the kernels run on
 //! the CPU, so the CPU time is the device's work too.
 
-#[cfg(feature = "wgpu")]
+#[macro_use]
 mod bench_util;
 
-#[cfg(feature = "wgpu")]
-fn main() {
-    bench::run();
-}
-
-#[cfg(not(feature = "wgpu"))]
-fn main() {
-    eprintln!("raster_switches_bench needs the `wgpu` feature (--features wgpu)");
-}
+wgpu_main!("raster_switches_bench");
 
 #[cfg(feature = "wgpu")]
 mod bench {
@@ -33,77 +25,11 @@ mod bench {
     use glam::Vec3;
     use gs_core::gpu::{GpuContext, GpuRasterizer};
     use gs_core::raster::bin::{TileGrid, TileSelection};
-    use gs_core::raster::{GaussianView, PixelGrads, RasterSettings};
+    use gs_core::raster::{PixelGrads, RasterSettings};
     use gs_core::rng::SplitMix64;
     use gs_core::{Camera, Intrinsics};
 
-    use super::bench_util::{median, process_cpu_ms};
-
-    fn arg(args: &[String], name: &str) -> Option<usize> {
-        args.iter()
-            .position(|a| a == name)
-            .and_then(|i| args.get(i + 1))
-            .and_then(|v| v.parse().ok())
-    }
-
-    struct Cloud {
-        means: Vec<f32>,
-        log_scales: Vec<f32>,
-        rotations: Vec<f32>,
-        opacity_logits: Vec<f32>,
-        channels: Vec<f32>,
-    }
-
-    impl Cloud {
-        fn view(&self) -> GaussianView<'_> {
-            GaussianView {
-                means: &self.means,
-                log_scales: &self.log_scales,
-                rotations: &self.rotations,
-                opacity_logits: &self.opacity_logits,
-                channels: &self.channels,
-                n_channels: 3,
-            }
-        }
-    }
-
-    /// `n` Gaussians in a 2 m ball at the origin, sized so neighbours overlap (as in
-    /// gpu_bench).
-    fn cloud(n: usize, seed: u64) -> Cloud {
-        let mut rng = SplitMix64::new(seed);
-        let sigma = 2.0 * (4.0 / n as f32).sqrt().min(0.05);
-        let mut c = Cloud {
-            means: Vec::with_capacity(3 * n),
-            log_scales: Vec::with_capacity(3 * n),
-            rotations: Vec::with_capacity(4 * n),
-            opacity_logits: Vec::with_capacity(n),
-            channels: Vec::with_capacity(3 * n),
-        };
-        for _ in 0..n {
-            let p = loop {
-                let p = Vec3::new(
-                    rng.uniform(-1.0, 1.0),
-                    rng.uniform(-1.0, 1.0),
-                    rng.uniform(-1.0, 1.0),
-                );
-                if p.length_squared() <= 1.0 {
-                    break p * 2.0;
-                }
-            };
-            c.means.extend(p.to_array());
-            for _ in 0..3 {
-                c.log_scales.push((sigma * rng.uniform(0.3, 1.5)).ln());
-            }
-            for _ in 0..4 {
-                c.rotations.push(rng.uniform(-1.0, 1.0));
-            }
-            c.opacity_logits.push(rng.uniform(-1.0, 3.0));
-            for _ in 0..3 {
-                c.channels.push(rng.uniform(0.0, 1.0));
-            }
-        }
-        c
-    }
+    use super::bench_util::{arg, median, process_cpu_ms, random_cloud};
 
     /// Tiles whose `(tx + ty) % 2` is `parity`, or none.
     fn selection(w: u32, h: u32, parity: Option<u32>) -> TileSelection {
@@ -142,7 +68,7 @@ mod bench {
         let ctx = GpuContext::new().expect("a Vulkan adapter");
         println!("GPU: {}", ctx.describe());
         let gpu = GpuRasterizer::new(ctx).expect("rasterizer");
-        let c = cloud(n, 7);
+        let c = random_cloud(n, 7);
         let camera = Camera::look_at(
             Intrinsics::from_fov_x(0.9, width, height),
             Vec3::new(0.0, 0.0, -5.0),

@@ -14,18 +14,10 @@
 //! the wall time was ours. On Mesa's software Vulkan driver (lavapipe) the GPU columns
 //! measure a CPU emulation of a GPU.
 
-#[cfg(feature = "wgpu")]
+#[macro_use]
 mod bench_util;
 
-#[cfg(feature = "wgpu")]
-fn main() {
-    bench::run();
-}
-
-#[cfg(not(feature = "wgpu"))]
-fn main() {
-    eprintln!("shadow_bench needs the `wgpu` feature (--features wgpu)");
-}
+wgpu_main!("shadow_bench");
 
 #[cfg(feature = "wgpu")]
 mod bench {
@@ -40,16 +32,9 @@ mod bench {
     use gs_core::sunaware::light;
     use gs_core::{GaussianModel, ModelLayout, Param};
 
-    use super::bench_util::{median, process_cpu_ms};
+    use super::bench_util::{arg, median, process_cpu_ms};
 
     const NEAR_M: f32 = 0.01;
-
-    fn arg(args: &[String], name: &str) -> Option<usize> {
-        args.iter()
-            .position(|a| a == name)
-            .and_then(|i| args.get(i + 1))
-            .and_then(|v| v.parse().ok())
-    }
 
     /// Flat Gaussians on the faces of a cube (60%) and anywhere in the box (40%), as in
     /// tests/gpu_shadow.rs, with the Sun-aware layout's extra groups.

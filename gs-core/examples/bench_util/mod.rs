@@ -1,10 +1,107 @@
-//! What the benchmark examples (`step_bench`, `raster_bench`, `loss_bench`) measure besides
-//! wall time: process CPU time, the resident-memory high-water mark, medians. Linux `/proc`
-//! only; elsewhere the readings are NaN (printed as such), never an error.
+//! What the benchmark examples measure besides wall time: process CPU time, the
+//! resident-memory high-water mark, medians (Linux `/proc` only; elsewhere the readings
+//! are NaN, printed as such, never an error); and the setup several of them share: a
+//! `--name N` argument, the random Gaussian cloud of the rasterizer benchmarks, and the
+//! `main` of an example that needs the `wgpu` feature ([`wgpu_main!`]).
 //!
-//! Included with `mod bench_util;` (a folder without `main.rs`, so cargo does not take it
-//! for an example of its own). Not every example uses every function.
-#![allow(dead_code)]
+//! Included with `#[macro_use] mod bench_util;` (a folder without `main.rs`, so cargo
+//! does not take it for an example of its own). Not every example uses every item.
+#![allow(dead_code, unused_macros)]
+
+use gs_core::raster::GaussianView;
+use gs_core::rng::SplitMix64;
+
+/// The `main` of an example whose benchmark (`bench::run`) needs the `wgpu` feature:
+/// runs it with the feature, says what is missing without.
+macro_rules! wgpu_main {
+    ($name:literal) => {
+        #[cfg(feature = "wgpu")]
+        fn main() {
+            bench::run();
+        }
+
+        #[cfg(not(feature = "wgpu"))]
+        fn main() {
+            eprintln!(concat!(
+                $name,
+                " needs the `wgpu` feature (--features wgpu)"
+            ));
+        }
+    };
+}
+
+/// The value after `name` in `args`, parsed as a count (None if absent or not a number).
+pub fn arg(args: &[String], name: &str) -> Option<usize> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+}
+
+/// Gaussians as the rasterizer's parameter arrays, RGB channels.
+pub struct Cloud {
+    pub means: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub rotations: Vec<f32>,
+    pub opacity_logits: Vec<f32>,
+    pub channels: Vec<f32>,
+}
+
+impl Cloud {
+    /// Room for `n` Gaussians, none yet.
+    pub fn with_capacity(n: usize) -> Self {
+        Self {
+            means: Vec::with_capacity(3 * n),
+            log_scales: Vec::with_capacity(3 * n),
+            rotations: Vec::with_capacity(4 * n),
+            opacity_logits: Vec::with_capacity(n),
+            channels: Vec::with_capacity(3 * n),
+        }
+    }
+
+    pub fn view(&self) -> GaussianView<'_> {
+        GaussianView {
+            means: &self.means,
+            log_scales: &self.log_scales,
+            rotations: &self.rotations,
+            opacity_logits: &self.opacity_logits,
+            channels: &self.channels,
+            n_channels: 3,
+        }
+    }
+}
+
+/// `n` Gaussians uniform in a 2 m ball at the origin, sized so neighbours overlap;
+/// random rotations, opacities and colours.
+pub fn random_cloud(n: usize, seed: u64) -> Cloud {
+    let mut rng = SplitMix64::new(seed);
+    let sigma = 2.0 * (4.0 / n as f32).sqrt().min(0.05);
+    let mut c = Cloud::with_capacity(n);
+    for _ in 0..n {
+        let p = loop {
+            let p = glam::Vec3::new(
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+            );
+            if p.length_squared() <= 1.0 {
+                break p * 2.0;
+            }
+        };
+        c.means.extend(p.to_array());
+        for _ in 0..3 {
+            c.log_scales.push((sigma * rng.uniform(0.3, 1.5)).ln());
+        }
+        for _ in 0..4 {
+            c.rotations.push(rng.uniform(-1.0, 1.0));
+        }
+        c.opacity_logits.push(rng.uniform(-1.0, 3.0));
+        for _ in 0..3 {
+            c.channels.push(rng.uniform(0.0, 1.0));
+        }
+    }
+    c
+}
 
 /// CPU time of every thread of this process so far, ms (from /proc/self/task/*/schedstat).
 /// The benchmark machine may be shared, so CPU time is reported beside wall time.
