@@ -22,6 +22,7 @@ use gs_core::gpu::mlp::{DeviceBatch, DeviceNetwork};
 use gs_core::gpu::{GpuContext, GpuError, GpuMlp};
 use gs_core::nn::{HiddenActivation, Init, Mlp, TapeMode};
 use gs_core::rng::SplitMix64;
+use gs_core::sunaware::trainer::FlatAdam;
 
 fn device() -> Option<Arc<GpuMlp>> {
     match GpuContext::new() {
@@ -445,32 +446,6 @@ fn resident_network_matches_the_cpu_on_the_live_rows() {
     }
 }
 
-/// `sunaware::trainer::FlatAdam::apply` (private there), reproduced operation for
-/// operation in f32 as written there.
-struct FlatAdamReference {
-    m: Vec<f32>,
-    v: Vec<f32>,
-    step: u64,
-}
-
-impl FlatAdamReference {
-    fn apply(&mut self, params: &mut [f32], grads: &[f32], lr: f32) {
-        let (b1, b2, eps) = (0.9f32, 0.999f32, gs_core::optim::ADAM_EPS);
-        self.step += 1;
-        let t = self.step as i32;
-        let bias1 = 1.0 - (b1 as f64).powi(t);
-        let bias2 = 1.0 - (b2 as f64).powi(t);
-        let step_size = (lr as f64 / bias1) as f32;
-        let inv_sqrt_bias2 = (1.0 / bias2.sqrt()) as f32;
-        for i in 0..params.len() {
-            self.m[i] = b1 * self.m[i] + (1.0 - b1) * grads[i];
-            self.v[i] = b2 * self.v[i] + (1.0 - b2) * grads[i] * grads[i];
-            let denom = self.v[i].sqrt() * inv_sqrt_bias2 + eps;
-            params[i] -= step_size * self.m[i] / denom;
-        }
-    }
-}
-
 /// Values of magnitude 1e-20 to 1e3 times `scale`, both signs.
 fn random_magnitudes(len: usize, rng: &mut SplitMix64, scale: f32) -> Vec<f32> {
     (0..len)
@@ -501,6 +476,30 @@ fn state_bits(state: &(Vec<f32>, Vec<f32>, Vec<f32>)) -> Vec<u32> {
         .collect()
 }
 
+/// `FlatAdam::apply` (the reference of the device Adam below) refuses lengths that
+/// differ and changes nothing then; its first step moves each parameter by the learning
+/// rate against the gradient's sign (m / sqrt(v) = sign(g) after bias correction).
+#[test]
+fn flat_adam_refuses_mismatched_lengths() {
+    let mut adam = FlatAdam::new(3);
+    let mut params = [1.0f32, 2.0, 3.0];
+    assert!(
+        adam.apply(&mut params, &[0.5; 2], 1e-3).is_err(),
+        "short gradient"
+    );
+    assert!(
+        adam.apply(&mut params[..2], &[0.5; 2], 1e-3).is_err(),
+        "moments longer than the parameters"
+    );
+    assert_eq!(params, [1.0, 2.0, 3.0]);
+    assert_eq!(adam, FlatAdam::new(3));
+    adam.apply(&mut params, &[0.5, -0.5, 0.5], 1e-3).unwrap();
+    assert_eq!(adam.step, 1);
+    for (x, expected) in params.iter().zip([0.999f32, 2.001, 2.999]) {
+        assert!((x - expected).abs() < 1e-6, "{x} vs {expected}");
+    }
+}
+
 /// The device Adam step (`GpuMlp::encode_adam`) against FlatAdam's rule, from moments
 /// and a step counter of a run in progress: four steps (learning rates 1e-3, 5e-4 and 0,
 /// where the moments still move) and a refused one (flags[0] set) between them, which
@@ -520,7 +519,7 @@ fn resident_adam_matches_flat_adam() {
     let mut mlp = network_with_biases(&[19, 32, 32, 32, 1], HiddenActivation::LeakyRelu, 7);
     let n = mlp.num_params();
     let mut rng = SplitMix64::new(70);
-    let mut reference = FlatAdamReference {
+    let mut reference = FlatAdam {
         m: random_magnitudes(n, &mut rng, 1e-2),
         v: random_magnitudes(n, &mut rng, 1e-4)
             .iter()
@@ -549,7 +548,7 @@ fn resident_adam_matches_flat_adam() {
             continue;
         }
         let before = mlp.params().to_vec();
-        reference.apply(mlp.params_mut(), &grads, lr);
+        reference.apply(mlp.params_mut(), &grads, lr).unwrap();
         assert!(gpu.run_adam(&mut net, lr, false).unwrap());
         for i in 0..n {
             sum_dx[i] += (mlp.params()[i] - before[i]).abs();

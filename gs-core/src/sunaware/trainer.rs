@@ -257,8 +257,27 @@ impl FlatAdam {
         }
     }
 
-    /// One step; the caller has checked `grads` for finiteness and length.
-    fn apply(&mut self, params: &mut [f32], grads: &[f32], lr: f32) {
+    /// One Adam step of `params` with `grads` at learning rate `lr` (the step counter
+    /// first incremented). The caller has checked `grads` for finiteness; `params`,
+    /// `grads` and both moments must have the same length, else `OptimError::Shape` and
+    /// nothing changes.
+    pub fn apply(
+        &mut self,
+        params: &mut [f32],
+        grads: &[f32],
+        lr: f32,
+    ) -> Result<(), crate::optim::OptimError> {
+        let moment_rows = self.m.len().min(self.v.len());
+        if grads.len() != params.len()
+            || self.m.len() != params.len()
+            || self.v.len() != params.len()
+        {
+            return Err(crate::optim::OptimError::Shape {
+                params_rows: params.len(),
+                grads_rows: grads.len(),
+                moment_rows,
+            });
+        }
         let (b1, b2, eps) = (0.9f32, 0.999f32, crate::optim::ADAM_EPS);
         self.step += 1;
         let t = self.step as i32;
@@ -272,6 +291,7 @@ impl FlatAdam {
             let denom = self.v[i].sqrt() * inv_sqrt_bias2 + eps;
             params[i] -= step_size * self.m[i] / denom;
         }
+        Ok(())
     }
 }
 
@@ -772,12 +792,12 @@ impl SunAwareTrainer {
         if let Some(net) = &mut self.model.appearance {
             let lr = self.model.config.lr.appearance_mlp;
             self.appearance_adam
-                .apply(net.mlp.params_mut(), &grads.appearance, lr);
+                .apply(net.mlp.params_mut(), &grads.appearance, lr)?;
         }
         if let Some(net) = &mut self.model.shadow {
             let lr = self.model.config.lr.shadow_mlp;
             self.shadow_adam
-                .apply(net.mlp.params_mut(), &grads.shadow, lr);
+                .apply(net.mlp.params_mut(), &grads.shadow, lr)?;
         }
         self.densify_stats
             .accumulate(&grads.mean2d_grad_ndc, pass.visible(), pass.radii_px())?;
