@@ -40,6 +40,7 @@ use crate::nn::{AppearanceNet, SceneBox, ShadowNet};
 
 const NETIO_COMMON: &str = include_str!("shaders/netio_common.wgsl");
 const NETIO_ENCODING_BACKWARD: &str = include_str!("shaders/netio_encoding_backward.wgsl");
+const NETIO_INPUT_ROWS: &str = include_str!("shaders/netio_input_rows.wgsl");
 const NETIO_PHI_INPUT: &str = include_str!("shaders/netio_phi_input.wgsl");
 const NETIO_PHI_SCATTER: &str = include_str!("shaders/netio_phi_scatter.wgsl");
 const NETIO_PHI_D_OUTPUT: &str = include_str!("shaders/netio_phi_d_output.wgsl");
@@ -249,9 +250,10 @@ impl NetworkIo {
     /// Compiles the eight kernels on `ctx`'s device.
     pub fn new(ctx: &GpuContext) -> Result<Self, GpuError> {
         let common = format!("{NETIO_COMMON}\n");
+        let rows = format!("{common}{NETIO_INPUT_ROWS}\n");
         let grad = format!("{common}{NETIO_ENCODING_BACKWARD}\n");
         Ok(Self {
-            phi_input: ctx.pipeline("netio_phi_input", &format!("{common}{NETIO_PHI_INPUT}"))?,
+            phi_input: ctx.pipeline("netio_phi_input", &format!("{rows}{NETIO_PHI_INPUT}"))?,
             phi_scatter: ctx
                 .pipeline("netio_phi_scatter", &format!("{common}{NETIO_PHI_SCATTER}"))?,
             phi_d_output: ctx.pipeline(
@@ -262,7 +264,7 @@ impl NetworkIo {
                 "netio_phi_input_grad",
                 &format!("{grad}{NETIO_PHI_INPUT_GRAD}"),
             )?,
-            psi_input: ctx.pipeline("netio_psi_input", &format!("{common}{NETIO_PSI_INPUT}"))?,
+            psi_input: ctx.pipeline("netio_psi_input", &format!("{rows}{NETIO_PSI_INPUT}"))?,
             psi_scatter: ctx
                 .pipeline("netio_psi_scatter", &format!("{common}{NETIO_PSI_SCATTER}"))?,
             psi_d_output: ctx.pipeline(
@@ -542,7 +544,7 @@ impl NetworkIo {
         if n == 0 {
             return Ok(());
         }
-        let buffers = [list, count, params, visibility, input, flags];
+        let buffers = [list, count, params, input, flags, visibility];
         self.record(
             encoder,
             scratch,

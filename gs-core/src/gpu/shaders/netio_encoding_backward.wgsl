@@ -1,4 +1,10 @@
-// Included by the input-gradient kernels (after netio_common.wgsl), which bind `d_input`.
+// Prepended to the input-gradient kernels (netio_phi_input_grad, netio_psi_input_grad),
+// after netio_common.wgsl: their shared bindings (the packed parameters, the input rows'
+// gradient, the packed gradient) and the encoding's backward.
+
+@group(0) @binding(3) var<storage, read> params: array<f32>;
+@group(0) @binding(4) var<storage, read> d_input: array<f32>;
+@group(0) @binding(5) var<storage, read_write> grads: array<f32>;
 
 // d p_c of gamma_L at p_c (sines and cosines recomputed, the same bits as encoding.rs
 // `backward_from_code` on `encode_unchecked`'s output): sum over k of

@@ -4,27 +4,17 @@
 // feature or mean, a Gaussian at the camera centre (distance not > 0 and finite) or a
 // list entry out of range sets flags[0] bit 0 (where the CPU returns an error).
 
-@group(0) @binding(3) var<storage, read> params: array<f32>;
-@group(0) @binding(4) var<storage, read_write> input: array<f32>;
-@group(0) @binding(5) var<storage, read_write> flags: array<atomic<u32>>;
-
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let r = row_of(gid, nwg);
     if r >= u.n {
         return;
     }
-    let base = r * u.width;
-    let g = listed_gaussian(r);
+    let g = input_row_gaussian(r);
     if g >= u.n {
-        if is_live(r) {
-            atomicOr(&flags[0], 1u);
-        }
-        for (var c = 0u; c < u.width; c++) {
-            input[base + c] = 0.0;
-        }
         return;
     }
+    let base = r * u.width;
     var ok = true;
     let fo = goff(u, G_FEATURE) + g * u.dim;
     for (var j = 0u; j < u.dim; j++) {

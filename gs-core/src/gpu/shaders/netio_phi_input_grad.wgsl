@@ -4,10 +4,6 @@
 // columns, -(d_view - (d_view . v) v) / |c - mu|. The list has no repeats (ascending), so
 // each Gaussian's rows have one writer.
 
-@group(0) @binding(3) var<storage, read> params: array<f32>;
-@group(0) @binding(4) var<storage, read> d_input: array<f32>;
-@group(0) @binding(5) var<storage, read_write> grads: array<f32>;
-
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let r = row_of(gid, nwg);

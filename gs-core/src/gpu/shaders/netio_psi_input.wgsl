@@ -3,10 +3,7 @@
 // p_g = (mu_g - box_min) / extent - 0.5 per axis; rows r >= count are zeros. A
 // non-finite V, mean or latent, or a list entry out of range, sets flags[0] bit 0.
 
-@group(0) @binding(3) var<storage, read> params: array<f32>;
-@group(0) @binding(4) var<storage, read> visibility: array<f32>;
-@group(0) @binding(5) var<storage, read_write> input: array<f32>;
-@group(0) @binding(6) var<storage, read_write> flags: array<atomic<u32>>;
+@group(0) @binding(6) var<storage, read> visibility: array<f32>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
@@ -14,17 +11,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if r >= u.n {
         return;
     }
-    let base = r * u.width;
-    let g = listed_gaussian(r);
+    let g = input_row_gaussian(r);
     if g >= u.n {
-        if is_live(r) {
-            atomicOr(&flags[0], 1u);
-        }
-        for (var c = 0u; c < u.width; c++) {
-            input[base + c] = 0.0;
-        }
         return;
     }
+    let base = r * u.width;
     let v = visibility[g];
     var ok = finite(v);
     input[base] = v;

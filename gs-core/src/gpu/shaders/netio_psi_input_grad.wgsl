@@ -4,10 +4,6 @@
 // d p / d mu = 1 / extent per axis. The V column gets no gradient. The list has no
 // repeats (ascending), so each Gaussian's rows have one writer.
 
-@group(0) @binding(3) var<storage, read> params: array<f32>;
-@group(0) @binding(4) var<storage, read> d_input: array<f32>;
-@group(0) @binding(5) var<storage, read_write> grads: array<f32>;
-
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let r = row_of(gid, nwg);
