@@ -20,7 +20,6 @@ wgpu_main!("raster_switches_bench");
 
 #[cfg(feature = "wgpu")]
 mod bench {
-    use std::time::Instant;
 
     use glam::Vec3;
     use gs_core::gpu::{GpuContext, GpuRasterizer};
@@ -29,7 +28,7 @@ mod bench {
     use gs_core::rng::SplitMix64;
     use gs_core::{Camera, Intrinsics};
 
-    use super::bench_util::{arg, median, process_cpu_ms, random_cloud};
+    use super::bench_util::{arg, random_cloud, time_calls};
 
     /// Tiles whose `(tx + ty) % 2` is `parity`, or none.
     fn selection(w: u32, h: u32, parity: Option<u32>) -> TileSelection {
@@ -44,19 +43,6 @@ mod bench {
             }
         }
         TileSelection::from_mask(&mask, w, h, 0).expect("mask of the image's size")
-    }
-
-    /// Median wall ms and mean process CPU ms of `runs` calls after one warm-up.
-    fn time<T>(runs: usize, mut f: impl FnMut() -> T) -> (f64, f64) {
-        std::hint::black_box(f());
-        let mut walls = Vec::with_capacity(runs);
-        let cpu0 = process_cpu_ms();
-        for _ in 0..runs {
-            let t = Instant::now();
-            std::hint::black_box(f());
-            walls.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        (median(walls), (process_cpu_ms() - cpu0) / runs as f64)
     }
 
     pub fn run() {
@@ -119,18 +105,20 @@ mod bench {
         );
         let mut rows = Vec::new();
         for (name, settings) in &configs {
-            let fwd = time(runs, || {
+            let (fwd_wall, fwd_cpu, out) = time_calls(runs, || {
                 gpu.render(&camera, &c.view(), settings).expect("render")
             });
-            let out = gpu.render(&camera, &c.view(), settings).expect("render");
-            let bwd = time(runs, || {
+            let fwd = (fwd_wall, fwd_cpu);
+            let (bwd_wall, bwd_cpu, _) = time_calls(runs, || {
                 gpu.render_backward(&camera, settings, &out, &grads)
                     .expect("backward")
             });
-            let contrib = time(runs, || {
+            let bwd = (bwd_wall, bwd_cpu);
+            let (contrib_wall, contrib_cpu, _) = time_calls(runs, || {
                 gpu.contributing(&camera, &c.view(), settings)
                     .expect("contributing")
             });
+            let contrib = (contrib_wall, contrib_cpu);
             let cell = |(w, c): (f64, f64)| format!("{w:8.1} /{c:8.1}");
             println!(
                 "{name:<16} {:>17} {:>17} {:>17}",

@@ -22,7 +22,6 @@ wgpu_main!("shadow_bench");
 #[cfg(feature = "wgpu")]
 mod bench {
     use std::sync::Arc;
-    use std::time::Instant;
 
     use glam::Vec3;
     use gs_core::gpu::{GpuContext, GpuRasterizer, GpuShadow};
@@ -32,7 +31,7 @@ mod bench {
     use gs_core::sunaware::light;
     use gs_core::{GaussianModel, ModelLayout, Param};
 
-    use super::bench_util::{arg, median, process_cpu_ms};
+    use super::bench_util::{arg, time_calls};
 
     const NEAR_M: f32 = 0.01;
 
@@ -79,20 +78,6 @@ mod bench {
         model
     }
 
-    /// Median wall ms and mean process CPU ms per call of `f` over `runs` (one warm-up).
-    fn time(runs: usize, mut f: impl FnMut() -> Vec<f32>) -> (f64, f64, Vec<f32>) {
-        let out = f();
-        let mut walls = Vec::with_capacity(runs);
-        let cpu0 = process_cpu_ms();
-        for _ in 0..runs {
-            let t = Instant::now();
-            std::hint::black_box(f());
-            walls.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        let cpu = (process_cpu_ms() - cpu0) / runs as f64;
-        (median(walls), cpu, out)
-    }
-
     pub fn run() {
         let args: Vec<String> = std::env::args().collect();
         let runs = arg(&args, "--runs").unwrap_or(10).max(1);
@@ -117,11 +102,11 @@ mod bench {
                 resolution_px: side,
                 ..LightConfig::default()
             };
-            let cpu = time(runs, || {
+            let cpu = time_calls(runs, || {
                 light::sun_visibility(&model, sun, centre, &scene_box, &config, NEAR_M)
                     .expect("cpu")
             });
-            let old = time(runs, || {
+            let old = time_calls(runs, || {
                 let lc = light::light_camera(sun, centre, &scene_box, &config).expect("light");
                 let splats = light::light_splats(&model, &lc, NEAR_M).expect("splats");
                 let margin: Vec<f32> = light::light_axis_sigmas_m(&model, &lc)
@@ -138,35 +123,25 @@ mod bench {
                     )
                     .expect("old path")
             });
-            let device = time(runs, || {
+            let device = time_calls(runs, || {
                 shadow
                     .sun_visibility(&model, sun, centre, &scene_box, &config, NEAR_M)
                     .expect("device")
             });
-            let entries = shadow
-                .sun_visibility_packed(
+            let packed = |capacity| {
+                shadow.sun_visibility_packed(
                     &model.params,
                     sun,
                     centre,
                     &scene_box,
                     &config,
                     NEAR_M,
-                    None,
+                    capacity,
                 )
-                .expect("count")
-                .tile_entries;
-            let capacity = time(runs, || {
-                let r = shadow
-                    .sun_visibility_packed(
-                        &model.params,
-                        sun,
-                        centre,
-                        &scene_box,
-                        &config,
-                        NEAR_M,
-                        Some(entries),
-                    )
-                    .expect("capacity");
+            };
+            let entries = packed(None).expect("count").tile_entries;
+            let capacity = time_calls(runs, || {
+                let r = packed(Some(entries)).expect("capacity");
                 assert_eq!(r.flags, 0, "capacity overflow");
                 r.visibility
             });

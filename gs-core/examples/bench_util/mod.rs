@@ -140,6 +140,21 @@ pub fn reset_peak_rss() -> bool {
     std::fs::write("/proc/self/clear_refs", "5").is_ok()
 }
 
+/// Median wall ms and mean process CPU ms per call of `f` over `runs` calls after one
+/// warm-up call, and the warm-up's result.
+pub fn time_calls<T>(runs: usize, mut f: impl FnMut() -> T) -> (f64, f64, T) {
+    let out = f();
+    let mut walls = Vec::with_capacity(runs);
+    let cpu0 = process_cpu_ms();
+    for _ in 0..runs {
+        let t = std::time::Instant::now();
+        std::hint::black_box(f());
+        walls.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let cpu = (process_cpu_ms() - cpu0) / runs as f64;
+    (median(walls), cpu, out)
+}
+
 /// The median (the upper one of an even count); NaN for no values.
 pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
