@@ -379,6 +379,29 @@ fn code_scale(d_code: &[f32], freqs: usize, factor: f32) -> f32 {
     sum * factor
 }
 
+/// `group` (`dim` floats per Gaussian) with the rows of the `live` Gaussians zeroed: the
+/// input-gradient scatter sets those rows (the rasterizer leaves the group zero and the
+/// CPU's scatter adds into it).
+fn listed_rows_cleared(group: &[f32], dim: usize, live: &[u32]) -> Vec<f32> {
+    let mut out = group.to_vec();
+    for &g in live {
+        out[g as usize * dim..(g as usize + 1) * dim].fill(0.0);
+    }
+    out
+}
+
+/// `gpu` equals `want` bit for bit everywhere but the means of the Gaussians listed in
+/// `s` (when `count > 0`), which the callers compare within tolerance.
+fn assert_bits_but_listed_means(what: &str, gpu: &[f32], want: &[f32], s: &Scene, count: usize) {
+    let listed = s.is_listed();
+    let is_listed_mean = |i: usize| i < 3 * s.n && listed[i / 3] && count > 0;
+    for (i, (&a, &w)) in gpu.iter().zip(want).enumerate() {
+        if !is_listed_mean(i) {
+            assert_eq!(a.to_bits(), w.to_bits(), "{what}[{i}]: {a} vs {w}");
+        }
+    }
+}
+
 #[test]
 fn phi_input_gradient_matches_the_cpu_scatter() {
     let Some(Rig { io, scratch, probe }) = rig() else {
@@ -407,10 +430,7 @@ fn phi_input_gradient_matches_the_cpu_scatter() {
             // group zero, the scatter adds into it); means gain the chain rule.
             let live = &s.list[..count];
             let f0 = s.offsets[Param::Feature.index()] as usize;
-            let mut d_features = grads0[f0..f0 + n * f_dim].to_vec();
-            for &g in live {
-                d_features[g as usize * f_dim..(g as usize + 1) * f_dim].fill(0.0);
-            }
+            let mut d_features = listed_rows_cleared(&grads0[f0..f0 + n * f_dim], f_dim, live);
             let mut d_means = grads0[..3 * n].to_vec();
             net.scatter_input_grad(
                 live,
@@ -423,14 +443,7 @@ fn phi_input_gradient_matches_the_cpu_scatter() {
             .unwrap();
             let mut want = grads0.clone();
             want[f0..f0 + n * f_dim].copy_from_slice(&d_features);
-            // Everything but the listed means bit for bit.
-            let listed = s.is_listed();
-            let is_listed_mean = |i: usize| i < 3 * n && listed[i / 3] && count > 0;
-            for (i, (&a, &w)) in gpu.iter().zip(&want).enumerate() {
-                if !is_listed_mean(i) {
-                    assert_eq!(a.to_bits(), w.to_bits(), "Phi grads[{i}]: {a} vs {w}");
-                }
-            }
+            assert_bits_but_listed_means("Phi grads", gpu, &want, &s, count);
             let view_start = f_dim + 6 * freqs;
             for (r, &g) in live.iter().enumerate() {
                 let g = g as usize;
@@ -700,10 +713,7 @@ fn psi_input_gradient_matches_the_cpu_scatter() {
             // The model: listed latents are written, means gain the chain rule.
             let live = &s.list[..count];
             let l0 = s.offsets[Param::ShadowLatent.index()] as usize;
-            let mut d_latents = grads0[l0..l0 + n * l_dim].to_vec();
-            for &g in live {
-                d_latents[g as usize * l_dim..(g as usize + 1) * l_dim].fill(0.0);
-            }
+            let mut d_latents = listed_rows_cleared(&grads0[l0..l0 + n * l_dim], l_dim, live);
             let mut d_means = grads0[..3 * n].to_vec();
             net.scatter_input_grad(
                 live,
@@ -716,13 +726,7 @@ fn psi_input_gradient_matches_the_cpu_scatter() {
             .unwrap();
             let mut want = grads0.clone();
             want[l0..l0 + n * l_dim].copy_from_slice(&d_latents);
-            let listed = s.is_listed();
-            let is_listed_mean = |i: usize| i < 3 * n && listed[i / 3] && count > 0;
-            for (i, (&a, &w)) in gpu.iter().zip(&want).enumerate() {
-                if !is_listed_mean(i) {
-                    assert_eq!(a.to_bits(), w.to_bits(), "Psi grads[{i}]: {a} vs {w}");
-                }
-            }
+            assert_bits_but_listed_means("Psi grads", gpu, &want, &s, count);
             let two_l = 2 * freqs;
             let code_start = 1 + 6 * freqs;
             for (r, &g) in live.iter().enumerate() {
