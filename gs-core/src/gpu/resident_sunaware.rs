@@ -148,11 +148,13 @@ pub struct SunAwareStepReport {
     /// Wall time of the step, recording and waiting included, ms.
     pub total_ms: f64,
     /// Device time per stage from timestamp queries, where the adapter has them (else
-    /// zeros; `total_ms` is always set): `project_ms` the rasterizer rows and the
-    /// visible list, `blend_forward_ms` the camera pass's projection, sort and blend,
+    /// zeros; `total_ms` is always set): `project_ms` the rasterizer rows, the camera
+    /// pass's projection, sort and binning and the networks' list (contribution pass
+    /// included), `shadow_pass_ms` the light pass, `phi_forward_ms`/`psi_forward_ms` the
+    /// networks' input assembly, forward and scatter, `blend_forward_ms` the blend,
     /// `loss_ms` `RGB * S`, the loss and its backward, `blend_backward_ms` the whole
     /// rasterizer backward, `phi_backward_ms` the geometry gradients and Phi's backward,
-    /// `optimizer_ms` the checks, statistics and every Adam step.
+    /// `psi_backward_ms` Psi's, `optimizer_ms` the checks, statistics and every Adam step.
     pub stages: StepTimings,
 }
 
