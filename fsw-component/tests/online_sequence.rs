@@ -5,35 +5,13 @@
 //! skips are switched off), and that bad frames are errors.
 
 use fsw_component::keyframe::WindowConfig;
-use fsw_component::online::{
-    Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason,
-};
+use fsw_component::online::{Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason};
 use glam::Vec3;
-use gs_core::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
+use gs_core::sunaware::synthetic::{orbit_camera, SyntheticScene};
 use gs_core::sunaware::{LightConfig, SunAwareConfig, Variant};
 
-const W: u32 = 48;
-const H: u32 = 36;
-/// Camera steps per orbit: 15 degrees apart, more than the 10 degree keyframe threshold.
-const PER_ORBIT: usize = 24;
-
-fn frame(scene: &SyntheticScene, id: u64, eclipse: bool) -> Frame {
-    let camera = orbit_camera(id as usize % PER_ORBIT, PER_ORBIT, 2.4, 0.6, W, H);
-    let sun = sun_direction(0.35 * id as f32, 0.9);
-    let (mut image, mask) = scene.render(&camera, sun).unwrap();
-    if eclipse {
-        image.fill(0.0);
-    }
-    Frame {
-        id,
-        time_s: 5.0 * id as f64,
-        camera,
-        sun_dir_target: sun,
-        image,
-        mask: Some(mask),
-        eclipse,
-    }
-}
+mod online_support;
+use online_support::{frame, held_out_psnr, H, PER_ORBIT, W};
 
 fn config(capacity: usize) -> OnlineConfig {
     OnlineConfig {
@@ -60,23 +38,6 @@ fn surface_init(scene: &SyntheticScene) -> Initialisation {
         normals: Some(normals),
         colours: Some(colours),
     }
-}
-
-fn held_out_psnr(t: &OnlineTrainer, scene: &SyntheticScene) -> f32 {
-    let ids = [1000u64, 1007, 1013];
-    ids.iter()
-        .map(|&id| {
-            let f = frame(scene, id, false);
-            let obs = gs_core::sunaware::Observation {
-                camera: f.camera,
-                sun_dir: f.sun_dir_target,
-                image: &f.image,
-                mask: f.mask.as_deref(),
-            };
-            t.trainer().evaluate(&obs, true).unwrap().psnr_db
-        })
-        .sum::<f32>()
-        / ids.len() as f32
 }
 
 #[test]

@@ -10,45 +10,12 @@
 #![cfg(feature = "wgpu")]
 
 use fsw_component::keyframe::WindowConfig;
-use fsw_component::online::{Frame, Initialisation, OnlineConfig, OnlineTrainer};
-use gs_core::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
-use gs_core::sunaware::{BackendKind, LightConfig, Observation, SunAwareConfig, Variant};
+use fsw_component::online::{Initialisation, OnlineConfig, OnlineTrainer};
+use gs_core::sunaware::synthetic::SyntheticScene;
+use gs_core::sunaware::{BackendKind, LightConfig, SunAwareConfig, Variant};
 
-const W: u32 = 48;
-const H: u32 = 36;
-const PER_ORBIT: usize = 24;
-
-fn frame(scene: &SyntheticScene, id: u64) -> Frame {
-    let camera = orbit_camera(id as usize % PER_ORBIT, PER_ORBIT, 2.4, 0.6, W, H);
-    let sun = sun_direction(0.35 * id as f32, 0.9);
-    let (image, mask) = scene.render(&camera, sun).unwrap();
-    Frame {
-        id,
-        time_s: 5.0 * id as f64,
-        camera,
-        sun_dir_target: sun,
-        image,
-        mask: Some(mask),
-        eclipse: false,
-    }
-}
-
-fn held_out_psnr(t: &OnlineTrainer, scene: &SyntheticScene) -> f32 {
-    let ids = [1000u64, 1007, 1013];
-    ids.iter()
-        .map(|&id| {
-            let f = frame(scene, id);
-            let obs = Observation {
-                camera: f.camera,
-                sun_dir: f.sun_dir_target,
-                image: &f.image,
-                mask: f.mask.as_deref(),
-            };
-            t.trainer().evaluate(&obs, true).unwrap().psnr_db
-        })
-        .sum::<f32>()
-        / ids.len() as f32
-}
+mod online_support;
+use online_support::{frame, held_out_psnr};
 
 #[test]
 fn online_rounds_on_the_device_match_the_cpu() {
@@ -96,7 +63,7 @@ fn online_rounds_on_the_device_match_the_cpu() {
         let start = std::time::Instant::now();
         let (mut rounds, mut densified) = (0, 0);
         for id in 0..20 {
-            t.offer(frame(&scene, id)).unwrap();
+            t.offer(frame(&scene, id, false)).unwrap();
             if let Some(r) = t.run_round_if_due().unwrap() {
                 assert!(r.mean_loss.is_finite(), "round {}", r.rounds);
                 assert_eq!(r.skipped_steps, 0);

@@ -134,21 +134,7 @@ fn sunaware_step_gradients_match_cpu() {
         return;
     };
     let (mut cpu_model, obs) = setup(Variant::D, 2);
-    // Random rotations and anisotropic scales: the initial Gaussians are isotropic, whose
-    // rotation gradients vanish.
-    let mut rng = SplitMix64::new(4);
-    let n = cpu_model.len();
-    let params = &mut cpu_model.gaussians.params;
-    for i in 0..n {
-        let q: Vec<f32> = (0..4).map(|_| rng.normal()).collect();
-        let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-        for (r, v) in params.row_mut(Param::Rotation, i).iter_mut().zip(&q) {
-            *r = v / norm;
-        }
-        for s in params.row_mut(Param::LogScale, i) {
-            *s += rng.uniform(-0.5, 0.5);
-        }
-    }
+    randomise_shapes(&mut cpu_model, 4);
     let mut gpu_model = cpu_model.clone();
     gpu_model.set_backend(&backend).unwrap();
     assert!(matches!(gpu_model.backend(), Backend::Wgpu(_)));

@@ -71,6 +71,7 @@ use crate::sunaware::trainer::FlatAdam;
 use crate::sunaware::StepTimings;
 use crate::sunaware::SunAwareModel;
 
+const SA_COMMON: &str = include_str!("shaders/sa_common.wgsl");
 const SA_SURVIVE: &str = include_str!("shaders/sa_survive.wgsl");
 const SA_LIST: &str = include_str!("shaders/sa_list.wgsl");
 const SA_COMPOSE: &str = include_str!("shaders/sa_compose.wgsl");
@@ -226,16 +227,19 @@ impl SunAwareResident {
                 "sa pack",
                 &format!("{common}{RESIDENT_COLOUR}\n{RESIDENT_PACK}"),
             )?,
-            survive: ctx.pipeline("sa survive", SA_SURVIVE)?,
-            list: ctx.pipeline("sa list", SA_LIST)?,
-            compose: ctx.pipeline("sa compose", SA_COMPOSE)?,
-            compose_backward: ctx.pipeline("sa compose backward", SA_COMPOSE_BACKWARD)?,
+            survive: ctx.pipeline("sa survive", &format!("{SA_COMMON}\n{SA_SURVIVE}"))?,
+            list: ctx.pipeline("sa list", &format!("{SA_COMMON}\n{SA_LIST}"))?,
+            compose: ctx.pipeline("sa compose", &format!("{SA_COMMON}\n{SA_COMPOSE}"))?,
+            compose_backward: ctx.pipeline(
+                "sa compose backward",
+                &format!("{SA_COMMON}\n{SA_COMPOSE_BACKWARD}"),
+            )?,
             grads: ctx.pipeline("sa grads", &format!("{common}{SA_GRADS}"))?,
             sh_grads: ctx.pipeline(
                 "sa sh grads",
                 &format!("{common}{RESIDENT_COLOUR}\n{RESIDENT_GRADS}"),
             )?,
-            finite: ctx.pipeline("sa finite", &format!("{common}{SA_FINITE}"))?,
+            finite: ctx.pipeline("sa finite", &format!("{common}{SA_COMMON}\n{SA_FINITE}"))?,
             stats: ctx.pipeline("sa stats", &format!("{common}{RESIDENT_STATS}"))?,
             adam: ctx.pipeline("sa adam", ADAM)?,
             overflow: ctx.pipeline("sa overflow", RESIDENT_OVERFLOW)?,

@@ -3,14 +3,7 @@
 // (4 channels, alpha, depth: stride 6): dRGB = d * S, dS = sum_c d_c RGB_c (in channel
 // order, as on the CPU); no alpha or depth gradient.
 
-struct Pixels {
-    count: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
-}
-
-@group(0) @binding(0) var<uniform> px: Pixels;
+@group(0) @binding(0) var<uniform> px: Count;
 @group(0) @binding(1) var<storage, read> color: array<f32>;
 @group(0) @binding(2) var<storage, read> d_image: array<f32>;
 @group(0) @binding(3) var<storage, read_write> d_color: array<f32>;
@@ -18,7 +11,7 @@ struct Pixels {
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let p = gid.x + gid.y * nwg.x * 256u;
-    if p >= px.count {
+    if p >= px.n {
         return;
     }
     let s = color[4u * p + 3u];

@@ -2,21 +2,14 @@
 // infinite: the Sun-aware resident step's check of its channels and of every gradient
 // before Adam, as the CPU trainer's `first_non_finite` checks.
 
-struct Len {
-    len: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
-}
-
-@group(0) @binding(0) var<uniform> u: Len;
+@group(0) @binding(0) var<uniform> u: Count;
 @group(0) @binding(1) var<storage, read> data: array<f32>;
 @group(0) @binding(2) var<storage, read_write> flags: array<atomic<u32>>;
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = gid.x + gid.y * nwg.x * 256u;
-    if i >= u.len {
+    if i >= u.n {
         return;
     }
     if !is_finite(data[i]) {

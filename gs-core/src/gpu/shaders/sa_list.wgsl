@@ -3,13 +3,6 @@
 // list (ascending indices, the CPU's list), and the count (scanned[n], the exclusive prefix
 // sum's total) to count[0], where the network kernels read it.
 
-struct Count {
-    n: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
-}
-
 @group(0) @binding(0) var<uniform> c: Count;
 @group(0) @binding(1) var<storage, read> member: array<u32>;
 @group(0) @binding(2) var<storage, read> scanned: array<u32>;

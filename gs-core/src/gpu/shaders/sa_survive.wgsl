@@ -3,13 +3,6 @@
 // flag[n] = 0, so the exclusive prefix sum numbers the survivors in index order and its
 // last value is their count.
 
-struct Count {
-    n: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
-}
-
 @group(0) @binding(0) var<uniform> c: Count;
 @group(0) @binding(1) var<storage, read> splats: array<f32>;
 @group(0) @binding(2) var<storage, read_write> flag: array<u32>;
