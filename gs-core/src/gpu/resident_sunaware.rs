@@ -4,7 +4,8 @@
 //! command buffer with one small readback ([`SunAwareResident::step`]).
 //!
 //! A step, in recording order:
-//! 1. the rasterizer rows from the packed parameters (`resident_pack`, no SH colour);
+//! 1. the rasterizer rows from the packed parameters (`resident_pack`; SH colour only in
+//!    configuration (a));
 //! 2. the camera pass up to its blend (`GpuRasterizer::forward_device_prepare`:
 //!    projection, prefix sum, keys, sort, tile ranges; the channels are not needed yet);
 //!    the visible Gaussians (projection survivors, `sa_survive`) counted, and the
@@ -38,10 +39,10 @@
 //! label, and a uniform written twice before one submission would hold only its last
 //! value.
 //!
-//! Invariants: the CPU path is the reference (`tests/gpu_sunaware_resident.rs` compares
-//! one step's parameters and a short training's PSNR); the host copy is brought up to
-//! date only by [`SunAwareResident::download`]; a refused step changes nothing on the
-//! device and is reported as refused.
+//! Invariants: the CPU path is the reference (`tests/gpu_sunaware.rs` compares one step's
+//! gradients, through Adam's first moments, and short trainings' PSNR); the host copy is
+//! brought up to date only by [`SunAwareResident::download`]; a refused step changes
+//! nothing on the device and is reported as refused.
 
 use std::sync::Arc;
 
