@@ -245,3 +245,43 @@ fn project_forward(fr: Frame, mean: vec3<f32>, log_scale: vec3<f32>, q: vec4<f32
     p.opacity = opacity;
     return p;
 }
+
+fn to_px(v: f32, hi: u32) -> u32 {
+    return u32(clamp(v, 0.0, f32(hi)));
+}
+
+// Radius of a splat out to q_max: sqrt(q_max * largest eigenvalue of its 2D covariance
+// (xx, xy, yy)), as raster::project_splats.
+fn splat_radius(cov2: vec3<f32>, q_max: f32) -> f32 {
+    let mid = 0.5 * (cov2.x + cov2.z);
+    let lambda_max = mid + sqrt(max(mid * mid - (cov2.x * cov2.z - cov2.y * cov2.y), 0.0));
+    return sqrt(q_max * lambda_max);
+}
+
+// Pixel rectangle (x0, y0, x1, y1) of a splat, raster::splat_rect: the extent
+// sqrt(q_max * variance) along each axis, widened by 0.1% and 0.01 px, clamped to the
+// image; empty when x0 >= x1 or y0 >= y1.
+fn splat_rect(mean_px: vec2<f32>, cov2: vec3<f32>, q_max: f32, width: u32, height: u32) -> vec4<u32> {
+    let ext_x = sqrt(q_max * cov2.x) * 1.001 + 0.01;
+    let ext_y = sqrt(q_max * cov2.z) * 1.001 + 0.01;
+    return vec4<u32>(
+        to_px(floor(mean_px.x - ext_x - 0.5), width),
+        to_px(floor(mean_px.y - ext_y - 0.5), height),
+        to_px(floor(mean_px.x + ext_x - 0.5) + 1.0, width),
+        to_px(floor(mean_px.y + ext_y - 0.5) + 1.0, height),
+    );
+}
+
+// A splat's SSTRIDE-float row: mean x, y, conic a, b, c, opacity, depth, radius, then the
+// rectangle's four corners as bits.
+fn splat_row(mean_px: vec2<f32>, conic: vec3<f32>, opacity: f32, depth: f32, radius: f32, rect: vec4<u32>) -> array<f32, 12> {
+    return array<f32, 12>(
+        mean_px.x, mean_px.y, conic.x, conic.y, conic.z, opacity, depth, radius,
+        bitcast<f32>(rect.x), bitcast<f32>(rect.y), bitcast<f32>(rect.z), bitcast<f32>(rect.w),
+    );
+}
+
+// Tiles a pixel rectangle touches.
+fn rect_tiles(rect: vec4<u32>) -> u32 {
+    return ((rect.z + TILE - 1u) / TILE - rect.x / TILE) * ((rect.w + TILE - 1u) / TILE - rect.y / TILE);
+}

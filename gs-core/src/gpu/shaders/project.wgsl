@@ -7,10 +7,6 @@
 @group(0) @binding(3) var<storage, read_write> splats: array<f32>;
 @group(0) @binding(4) var<storage, read_write> counts: array<u32>;
 
-fn to_px(v: f32, hi: u32) -> u32 {
-    return u32(clamp(v, 0.0, f32(hi)));
-}
-
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = gid.x + gid.y * nwg.x * 256u;
@@ -34,36 +30,14 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         return;
     }
     let q_max = 2.0 * log(p.opacity / fr.cutoff);
-    let xx = p.cov2.x;
-    let xy = p.cov2.y;
-    let yy = p.cov2.z;
-    let mid = 0.5 * (xx + yy);
-    let lambda_max = mid + sqrt(max(mid * mid - (xx * yy - xy * xy), 0.0));
-    let radius = sqrt(q_max * lambda_max);
-    let ext_x = sqrt(q_max * xx) * 1.001 + 0.01;
-    let ext_y = sqrt(q_max * yy) * 1.001 + 0.01;
-    let x0 = to_px(floor(p.mean_px.x - ext_x - 0.5), fr.width);
-    let y0 = to_px(floor(p.mean_px.y - ext_y - 0.5), fr.height);
-    let x1 = to_px(floor(p.mean_px.x + ext_x - 0.5) + 1.0, fr.width);
-    let y1 = to_px(floor(p.mean_px.y + ext_y - 0.5) + 1.0, fr.height);
-    if x0 >= x1 || y0 >= y1 || !finite(radius) {
+    let radius = splat_radius(p.cov2, q_max);
+    let rect = splat_rect(p.mean_px, p.cov2, q_max, fr.width, fr.height);
+    if rect.x >= rect.z || rect.y >= rect.w || !finite(radius) {
         return;
     }
-    splats[sb] = p.mean_px.x;
-    splats[sb + 1u] = p.mean_px.y;
-    splats[sb + 2u] = p.conic.x;
-    splats[sb + 3u] = p.conic.y;
-    splats[sb + 4u] = p.conic.z;
-    splats[sb + 5u] = p.opacity;
-    splats[sb + 6u] = p.t_cam.z;
-    splats[sb + 7u] = radius;
-    splats[sb + 8u] = bitcast<f32>(x0);
-    splats[sb + 9u] = bitcast<f32>(y0);
-    splats[sb + 10u] = bitcast<f32>(x1);
-    splats[sb + 11u] = bitcast<f32>(y1);
-    let tx0 = x0 / TILE;
-    let ty0 = y0 / TILE;
-    let tx1 = (x1 + TILE - 1u) / TILE;
-    let ty1 = (y1 + TILE - 1u) / TILE;
-    counts[i] = (tx1 - tx0) * (ty1 - ty0);
+    let row = splat_row(p.mean_px, p.conic, p.opacity, p.t_cam.z, radius, rect);
+    for (var k = 0u; k < 12u; k++) {
+        splats[sb + k] = row[k];
+    }
+    counts[i] = rect_tiles(rect);
 }

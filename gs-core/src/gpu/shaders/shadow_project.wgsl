@@ -40,10 +40,6 @@ struct LightSplat {
     depth: f32,
 }
 
-fn to_px(v: f32, hi: u32) -> u32 {
-    return u32(clamp(v, 0.0, f32(hi)));
-}
-
 // Columns of the rotation matrix of a unit quaternion [w, x, y, z] (light.rs quat_to_mat:
 // column c is (r[0][c], r[1][c], r[2][c])).
 struct Cols {
@@ -168,36 +164,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
     // raster::splat_rect (and, for perspective, project_splats' radius check).
     let q_max = 2.0 * log(s.opacity / fr.cutoff);
-    let xx = s.cov2.x;
-    let xy = s.cov2.y;
-    let yy = s.cov2.z;
     if sp.orthographic == 0u {
-        let mid = 0.5 * (xx + yy);
-        let lambda_max = mid + sqrt(max(mid * mid - (xx * yy - xy * xy), 0.0));
-        radius = sqrt(q_max * lambda_max);
+        radius = splat_radius(s.cov2, q_max);
     }
-    let ext_x = sqrt(q_max * xx) * 1.001 + 0.01;
-    let ext_y = sqrt(q_max * yy) * 1.001 + 0.01;
-    let x0 = to_px(floor(s.mean_px.x - ext_x - 0.5), fr.width);
-    let y0 = to_px(floor(s.mean_px.y - ext_y - 0.5), fr.height);
-    let x1 = to_px(floor(s.mean_px.x + ext_x - 0.5) + 1.0, fr.width);
-    let y1 = to_px(floor(s.mean_px.y + ext_y - 0.5) + 1.0, fr.height);
-    if x0 >= x1 || y0 >= y1 || !finite(radius) {
+    let rect = splat_rect(s.mean_px, s.cov2, q_max, fr.width, fr.height);
+    if rect.x >= rect.z || rect.y >= rect.w || !finite(radius) {
         return;
     }
-    splats[sb] = s.mean_px.x;
-    splats[sb + 1u] = s.mean_px.y;
-    splats[sb + 2u] = s.conic.x;
-    splats[sb + 3u] = s.conic.y;
-    splats[sb + 4u] = s.conic.z;
-    splats[sb + 5u] = s.opacity;
-    splats[sb + 6u] = s.depth;
-    splats[sb + 7u] = radius;
-    splats[sb + 8u] = bitcast<f32>(x0);
-    splats[sb + 9u] = bitcast<f32>(y0);
-    splats[sb + 10u] = bitcast<f32>(x1);
-    splats[sb + 11u] = bitcast<f32>(y1);
+    let row = splat_row(s.mean_px, s.conic, s.opacity, s.depth, radius, rect);
+    for (var k = 0u; k < 12u; k++) {
+        splats[sb + k] = row[k];
+    }
     let margin = axis_sigma(ls, q) * sp.extent_sigmas;
     limits[i] = s.depth - sp.depth_bias - max(margin, 0.0);
-    counts[i] = ((x1 + TILE - 1u) / TILE - x0 / TILE) * ((y1 + TILE - 1u) / TILE - y0 / TILE);
+    counts[i] = rect_tiles(rect);
 }
