@@ -822,7 +822,7 @@ impl SunAwareModel {
     }
 
     /// True when the camera pass runs on the GPU.
-    fn gpu_active(&self) -> bool {
+    pub(crate) fn gpu_active(&self) -> bool {
         #[cfg(feature = "wgpu")]
         return self.backend.gpu.is_some();
         #[cfg(not(feature = "wgpu"))]

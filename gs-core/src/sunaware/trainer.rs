@@ -549,12 +549,7 @@ impl SunAwareTrainer {
 
     /// True when steps run device-resident: the wgpu backend with residency on.
     pub fn is_device_resident(&self) -> bool {
-        #[cfg(feature = "wgpu")]
-        {
-            !self.resident.hybrid && self.model.gpu_parts().is_some()
-        }
-        #[cfg(not(feature = "wgpu"))]
-        false
+        !self.resident.hybrid && self.model.gpu_active()
     }
 
     /// Target size used for the position rate and the clone/split boundary, metres.
