@@ -82,11 +82,23 @@ async fn serve(interface: String) -> Result<(), TransportError> {
     }
 }
 
+const USAGE: &str = "usage: can_echo_peer <interface>
+
+Opens an FD SocketCAN transport on <interface> (e.g. vcan0), prints READY, echoes frames
+(ID bit 28 flipped, data reversed), answers burst requests, and exits 0 on the stop frame
+after one STATS line (see the source's header for the IDs).
+
+  -h, --help   this text";
+
 fn main() -> ExitCode {
     let Some(interface) = std::env::args().nth(1) else {
-        eprintln!("usage: can_echo_peer <interface>");
+        eprintln!("{USAGE}");
         return ExitCode::from(2);
     };
+    if interface == "--help" || interface == "-h" {
+        println!("{USAGE}");
+        return ExitCode::SUCCESS;
+    }
     let runtime = match tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()

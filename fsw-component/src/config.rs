@@ -9,6 +9,7 @@
 use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use crate::sync::SyncConfig;
 use glam::DQuat;
+use gs_core::fpmode::DenormalMode;
 use gs_core::nn::MatmulPrecision;
 use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, Variant};
 use serde::{Deserialize, Serialize};
@@ -129,6 +130,11 @@ pub struct TrainingConfig {
     /// The networks' matrix products: "f32" (default) or "bf16" (AVX-512 BF16 only; a CPU
     /// without it fails validation).
     pub mlp_precision: String,
+    /// Subnormal floats on the trainer's threads: "flush-to-zero" (default; x86 FTZ + DAZ,
+    /// aarch64 FZ; with "ieee" the step took about 1.46x the CPU time on an Intel Xeon) or
+    /// "ieee" (gradual underflow). Deterministic either way; the two differ in the last
+    /// bits. `GS_DENORMALS` overrides it in the binary (`gs_core::fpmode`).
+    pub denormals: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -223,6 +229,7 @@ impl Default for TrainingConfig {
             appearance_hidden_width: 128,
             encoding_frequencies: 2,
             mlp_precision: "f32".to_string(),
+            denormals: DenormalMode::default().name().to_string(),
         }
     }
 }
@@ -373,6 +380,7 @@ impl ComponentConfig {
         }
         self.backend()?;
         self.model_config()?;
+        self.denormals()?;
         if self.checkpoint.path.as_os_str().is_empty() {
             return Err(invalid("checkpoint.path", "must not be empty"));
         }
@@ -462,6 +470,14 @@ impl ComponentConfig {
         kind.check_compiled_in()
             .map_err(|e| invalid("training.backend", e.to_string()))?;
         Ok(kind)
+    }
+
+    /// The trainer threads' denormal mode named by `training.denormals`.
+    pub fn denormals(&self) -> Result<DenormalMode, ConfigError> {
+        self.training
+            .denormals
+            .parse()
+            .map_err(|e: String| invalid("training.denormals", e))
     }
 
     /// The Sun-aware model's settings: the variant and the `[training]` model keys over
@@ -655,6 +671,10 @@ mod tests {
             "training.passes_per_round"
         );
         assert_eq!(
+            invalid_key("[training]\ndenormals = \"fast\"\n"),
+            "training.denormals"
+        );
+        assert_eq!(
             invalid_key("[checkpoint]\npath = \"\"\n"),
             "checkpoint.path"
         );
@@ -667,6 +687,26 @@ mod tests {
         assert_eq!(
             message,
             "config key `node.node_id`: 128 is above the Cyphal maximum 127"
+        );
+    }
+
+    #[test]
+    fn training_denormals_parse_and_name_the_values() {
+        assert_eq!(
+            ComponentConfig::default().denormals().unwrap(),
+            DenormalMode::FlushToZero
+        );
+        let ieee = parse("[training]\ndenormals = \"ieee\"\n").unwrap();
+        assert_eq!(ieee.denormals().unwrap(), DenormalMode::Ieee);
+        let message = parse("[training]\ndenormals = \"FTZ\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains("training.denormals")
+                && message.contains("\"FTZ\"")
+                && message.contains("flush-to-zero")
+                && message.contains("ieee"),
+            "{message}"
         );
     }
 

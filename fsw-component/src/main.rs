@@ -8,17 +8,32 @@
 //! nearest-keyframe baseline (cheap and exact, used by the bus tests).
 //! Live mode prints one `listening frames=ADDR telemetry=ADDR` line on stdout once the sockets
 //! are bound (useful with port 0), then runs until SIGINT or SIGTERM. Replay mode exits when
-//! the logs are processed, printing a summary line. Exit status 2 for usage errors, 1 for
-//! configuration, transport or replay errors, each with a message on stderr.
+//! the logs are processed, printing a summary line. `--help` prints the usage and exits 0.
+//! Exit status 2 for usage errors (a bad `GS_DENORMALS` included), 1 for configuration,
+//! transport or replay errors, each with a message on stderr.
+//!
+//! `GS_DENORMALS=ftz|ieee`, read once at start, overrides `[training] denormals` (the
+//! trainer threads' denormal mode, `gs_core::fpmode`), so a measurement can compare the two
+//! without editing the config; the override is reported on stderr.
 
 use fsw_component::config::ComponentConfig;
 use fsw_component::runtime::{self, LearnerKind, ReplaySpeed};
+use gs_core::fpmode::{self, DenormalMode};
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 const USAGE: &str = "usage: fsw-component [--config PATH] [--learner sunaware|nearest] \
 [--record DIR] [--replay LOG]... [--replay-speed X|max]";
+
+const FLAGS: &str = "
+  --config PATH          component configuration (default config/component.toml)
+  --learner KIND         sunaware (default: the Sun-aware online trainer) or nearest
+                         (the nearest-keyframe baseline)
+  --record DIR           record the received bus traffic to DIR (live mode)
+  --replay LOG           replay a candump or UDP recording instead of listening (repeatable)
+  --replay-speed X|max   replay time scale (default 1; max or 0: as fast as possible)
+  -h, --help             this text";
 
 #[derive(Debug)]
 struct Options {
@@ -27,15 +42,19 @@ struct Options {
     replay: Vec<PathBuf>,
     speed: ReplaySpeed,
     learner: LearnerKind,
+    /// `GS_DENORMALS`, when set: replaces `[training] denormals`.
+    denormals: Option<DenormalMode>,
 }
 
-fn parse(args: &[String]) -> Result<Options, String> {
+/// The options, or None for `--help`.
+fn parse(args: &[String]) -> Result<Option<Options>, String> {
     let mut options = Options {
         config: PathBuf::from("config/component.toml"),
         record: None,
         replay: Vec::new(),
         speed: ReplaySpeed::Scaled(1.0),
         learner: LearnerKind::SunAware,
+        denormals: None,
     };
     let mut it = args.iter();
     while let Some(flag) = it.next() {
@@ -59,18 +78,29 @@ fn parse(args: &[String]) -> Result<Options, String> {
                 };
             }
             "--learner" => options.learner = value()?.parse()?,
-            "--help" | "-h" => return Err(String::new()),
+            "--help" | "-h" => return Ok(None),
             other => return Err(format!("unknown argument {other:?}")),
         }
     }
     if options.record.is_some() && !options.replay.is_empty() {
         return Err("--record and --replay exclude each other".into());
     }
-    Ok(options)
+    options.denormals = fpmode::mode_from_env()?;
+    Ok(Some(options))
 }
 
 async fn run(options: Options) -> Result<(), String> {
-    let config = ComponentConfig::load(&options.config).map_err(|e| e.to_string())?;
+    let mut config = ComponentConfig::load(&options.config).map_err(|e| e.to_string())?;
+    if let Some(mode) = options.denormals {
+        if config.denormals().map_err(|e| e.to_string())? != mode {
+            eprintln!(
+                "fsw-component: {}={mode} overrides [training] denormals = {:?}",
+                fpmode::ENV_VAR,
+                config.training.denormals
+            );
+        }
+        config.training.denormals = mode.name().to_string();
+    }
     let learner = runtime::build_learner(&config, options.learner).map_err(|e| e.to_string())?;
     if !options.replay.is_empty() {
         let summary = runtime::run_replay(&config, learner, &options.replay, options.speed)
@@ -112,11 +142,17 @@ fn main() -> ExitCode {
     gs_core::heap::retain_freed_memory();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let options = match parse(&args) {
-        Ok(o) => o,
+        Ok(Some(o)) => o,
+        Ok(None) => {
+            println!(
+                "{USAGE}\n{FLAGS}\n\n{}\n{:25}(overrides [training] denormals)",
+                fpmode::ENV_HELP,
+                ""
+            );
+            return ExitCode::SUCCESS;
+        }
         Err(why) => {
-            if !why.is_empty() {
-                eprintln!("fsw-component: {why}");
-            }
+            eprintln!("fsw-component: {why}");
             eprintln!("{USAGE}");
             return ExitCode::from(2);
         }

@@ -202,6 +202,9 @@ impl Engine {
                     .then(|| Duration::from_secs(config.checkpoint.period_s)),
             },
             config.training.threads,
+            config
+                .denormals()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?,
         )
         .map_err(|source| RuntimeError::Io {
             what: "start the trainer thread".into(),

@@ -17,13 +17,16 @@
 //! the frame and runs a round if one is due; the rounds a sequence of frames triggers are
 //! therefore a function of that sequence alone (replay equals live). The model's parallel
 //! work runs on the worker's own rayon pool of `training.threads` threads, never on the
-//! bus side's threads, and a fixed count keeps results bit-identical.
+//! bus side's threads, and a fixed count keeps results bit-identical. The trainer thread
+//! and every pool worker run in `training.denormals`' mode (`gs_core::fpmode`), set as
+//! each starts: the bus side's threads keep IEEE arithmetic.
 
 use crate::checkpoint;
 use crate::imagemetrics;
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, RoundSummary, ViewRequest,
 };
+use gs_core::fpmode::{self, DenormalMode};
 use interfaces::messages::{
     AckStatus, CommandAck, ErrorCode, EventKind, FrameHeader, PixelFormat, PredictionSource,
 };
@@ -265,14 +268,16 @@ enum Job {
 
 impl Worker {
     /// Starts the thread that owns `learner`; the model's parallel work runs on its own pool
-    /// of `threads` threads (results are bit-identical for a given thread count).
+    /// of `threads` threads (results are bit-identical for a given thread count and
+    /// `denormals` mode, which the thread and the pool's workers set as they start).
     pub fn start(
         learner: Box<dyn Learner>,
         limits: QueueLimits,
         checkpoints: CheckpointSettings,
         threads: usize,
+        denormals: DenormalMode,
     ) -> std::io::Result<Self> {
-        let pool = rayon::ThreadPoolBuilder::new()
+        let pool = fpmode::pool_builder(denormals)
             .num_threads(threads.max(1))
             .thread_name(|i| format!("trainer-{i}"))
             .build()
@@ -290,7 +295,10 @@ impl Worker {
         let thread_shared = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
             .name("trainer".into())
-            .spawn(move || pool.install(|| run(learner, &thread_shared, &checkpoints)))?;
+            .spawn(move || {
+                fpmode::set_for_current_thread(denormals);
+                pool.install(|| run(learner, &thread_shared, &checkpoints))
+            })?;
         Ok(Self {
             shared,
             thread: Some(thread),
@@ -577,6 +585,7 @@ fn run_frame(learner: &mut dyn Learner, shared: &WorkerShared, job: FrameJob) {
 mod tests {
     use super::*;
     use crate::keyframe::WindowConfig;
+    use crate::learner::PredictedImage;
     use crate::nearest_learner::NearestKeyframeLearner;
 
     fn limits() -> QueueLimits {
@@ -642,6 +651,7 @@ mod tests {
                 period: None,
             },
             1,
+            DenormalMode::FlushToZero,
         )
         .unwrap();
         let shared = Arc::clone(&worker.shared);
@@ -661,6 +671,70 @@ mod tests {
             detail: 0
         })));
         assert!(dir.join("ckpt.bin").exists());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// The baseline learner, noting on `save` the denormal mode of the thread it runs on
+    /// and of every worker of the pool it runs in.
+    struct ModeProbe {
+        inner: NearestKeyframeLearner,
+        seen: Arc<Mutex<Vec<DenormalMode>>>,
+    }
+
+    impl Learner for ModeProbe {
+        fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
+            self.inner.offer(frame)
+        }
+        fn run_round_if_due(&mut self) -> Option<RoundSummary> {
+            self.inner.run_round_if_due()
+        }
+        fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
+            self.inner.predict(view)
+        }
+        fn reset(&mut self) {
+            self.inner.reset()
+        }
+        fn save(&self) -> Vec<u8> {
+            let mut seen = lock(&self.seen);
+            seen.push(fpmode::current());
+            seen.extend(rayon::broadcast(|_| fpmode::current()));
+            self.inner.save()
+        }
+        fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
+            self.inner.load(bytes)
+        }
+        fn stats(&self) -> LearnerStats {
+            self.inner.stats()
+        }
+    }
+
+    #[test]
+    fn the_model_runs_in_the_configured_denormal_mode() {
+        let dir = std::env::temp_dir().join(format!("fsw-worker-fp-{}", std::process::id()));
+        for mode in [DenormalMode::Ieee, DenormalMode::FlushToZero] {
+            let seen = Arc::new(Mutex::new(Vec::new()));
+            let probe = ModeProbe {
+                inner: NearestKeyframeLearner::new(WindowConfig::default()),
+                seen: Arc::clone(&seen),
+            };
+            let checkpoints = CheckpointSettings {
+                path: dir.join("ckpt.bin"),
+                period: None,
+            };
+            let worker = Worker::start(Box::new(probe), limits(), checkpoints, 2, mode).unwrap();
+            let save = CommandJob {
+                sequence: 1,
+                opcode: 3,
+                command: ModelCommand::SaveCheckpoint,
+            };
+            worker.shared.push_command(save).unwrap();
+            worker.finish();
+            let seen = lock(&seen).clone();
+            assert_eq!(seen.len(), 3, "the model's thread and both pool workers");
+            if fpmode::is_supported() {
+                assert!(seen.iter().all(|&m| m == mode), "{mode}: {seen:?}");
+            }
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -10,11 +10,14 @@
 //! - `summary.txt`: the printed summary.
 //!
 //! Usage: `cargo run --release -p gs-core --example fit_synthetic [-- --iterations N
-//! --size W H --out DIR --seed S]`.
+//! --size W H --out DIR --seed S]` (`--help` lists them).
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
+
+mod bench_util;
+use bench_util::{exit_if_help, init_threads};
 
 use glam::{Quat, Vec3};
 use gs_core::init::{inverse_sigmoid, random_in_sphere, SplitMix64};
@@ -31,6 +34,15 @@ struct Args {
     seed: u64,
 }
 
+const USAGE: &str = "\
+usage: cargo run --release -p gs-core --example fit_synthetic -- [FLAGS]
+
+  --iterations N   training iterations (default 3000; the schedules scale with it)
+  --size W H       image width and height in pixels (default 128 96)
+  --out DIR        output folder (default out/fit_synthetic)
+  --seed S         seed of the scene, the start and the training (default 7)
+  -h, --help       this text";
+
 fn parse_args() -> Result<Args, String> {
     let mut a = Args {
         iterations: 3000,
@@ -40,6 +52,7 @@ fn parse_args() -> Result<Args, String> {
         seed: 7,
     };
     let argv: Vec<String> = std::env::args().skip(1).collect();
+    exit_if_help(&argv, USAGE);
     let mut i = 0;
     let num = |s: Option<&String>, what: &str| -> Result<u64, String> {
         s.ok_or(format!("{what} needs a value"))?
@@ -176,6 +189,7 @@ fn mean(scores: &[ViewScore]) -> (f32, f32) {
 
 fn run() -> Result<(), String> {
     let args = parse_args()?;
+    init_threads("fit_synthetic", None);
     std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
     let mut rng = SplitMix64::new(args.seed);
     let gt = satellite(&mut rng);
@@ -213,6 +227,7 @@ fn run() -> Result<(), String> {
         background: black,
         ..TrainConfig::default()
     };
+    println!("{}", gs_core::machine::header_line());
     println!(
         "fit_synthetic: {} ground-truth Gaussians, {} train + {} held-out views of {}x{}, \
          start from {} random Gaussians, {} iterations, {} threads",

@@ -18,7 +18,7 @@
 use std::time::Instant;
 
 mod bench_util;
-use bench_util::{arg, random_cloud, Cloud};
+use bench_util::{arg, exit_if_help, init_threads, random_cloud, Cloud};
 
 use glam::Vec3;
 use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
@@ -132,8 +132,23 @@ mod libc_rusage {
     }
 }
 
+const USAGE: &str = "\
+usage: cargo run --release -p gs-core --features wgpu --example gpu_bench -- [FLAGS]
+
+  --runs N         timed runs per size after one warm-up (default 5)
+  --width W        image width in pixels (default 960)
+  --height H       image height in pixels (default 600)
+  --gaussians N    one cloud size instead of 10000, 50000, 100000
+  --cas            force the compare-and-swap gradient accumulation
+  --reduce         per-tile workgroup reductions in the backward
+  --deterministic  the fixed-order backward
+  --train          also time training steps per backend (steps per second)
+  -h, --help       this text";
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    exit_if_help(&args, USAGE);
+    init_threads("gpu_bench", None);
     let runs = arg(&args, "--runs").unwrap_or(5).max(1);
     let width = arg(&args, "--width").unwrap_or(960) as u32;
     let height = arg(&args, "--height").unwrap_or(600) as u32;
@@ -153,6 +168,7 @@ fn main() {
             std::process::exit(1);
         }
     };
+    println!("{}", gs_core::machine::header_line());
     println!("adapter: {}", ctx.describe());
     println!(
         "image {width}x{height}, {runs} runs (median ms), rayon threads {}",

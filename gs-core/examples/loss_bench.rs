@@ -19,7 +19,7 @@
 use std::time::Instant;
 
 mod bench_util;
-use bench_util::{median, process_cpu_ms};
+use bench_util::{arg_str, exit_if_help, init_threads, median, process_cpu_ms};
 
 use glam::{Quat, Vec3};
 use gs_core::loss::{photometric_loss, ssim, ImageShape};
@@ -78,35 +78,39 @@ fn time(repeats: usize, mut f: impl FnMut()) -> (f64, f64) {
     (median(wall), median(cpu))
 }
 
-fn arg<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .map(|s| s.as_str())
-}
+const USAGE: &str = "\
+usage: cargo run --release -p gs-core --example loss_bench -- [FLAGS]
+
+  --image WxH      image size of the loss (default 960x600)
+  --gaussians N    Gaussians of the shadow pass (default 100000)
+  --threads N      rayon threads (default 2)
+  --repeats N      timed calls per stage after one warm-up (default 9)
+  --only STAGE     loss or shadow: one stage only
+  --mask           a loss mask (half the image weighted 0.5)
+  --no-reference   skip the f64 SSIM printed beside the loss
+  -h, --help       this text";
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let (w, h) = arg(&args, "--image")
+    exit_if_help(&args, USAGE);
+    let (w, h) = arg_str(&args, "--image")
         .and_then(|s| s.split_once('x'))
         .and_then(|(a, b)| Some((a.parse::<usize>().ok()?, b.parse::<usize>().ok()?)))
         .unwrap_or((960, 600));
-    let n: usize = arg(&args, "--gaussians")
+    let n: usize = arg_str(&args, "--gaussians")
         .and_then(|s| s.parse().ok())
         .unwrap_or(100_000);
-    let threads: usize = arg(&args, "--threads")
+    let threads: usize = arg_str(&args, "--threads")
         .and_then(|s| s.parse().ok())
         .unwrap_or(2);
-    let repeats: usize = arg(&args, "--repeats")
+    let repeats: usize = arg_str(&args, "--repeats")
         .and_then(|s| s.parse().ok())
         .unwrap_or(9)
         .max(1);
-    let only = arg(&args, "--only");
+    let only = arg_str(&args, "--only");
     let masked = args.iter().any(|a| a == "--mask");
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build_global()
-        .expect("thread pool");
+    init_threads("loss_bench", Some(threads));
+    println!("{}", gs_core::machine::header_line());
     println!("loss_bench: {threads} threads, median of {repeats} calls after one warm-up (ms)");
     println!("{:>28} {:>9} {:>9}", "stage", "wall", "cpu");
     let row = |name: &str, (wall, cpu): (f64, f64)| println!("{name:>28} {wall:>9.2} {cpu:>9.2}");

@@ -17,6 +17,9 @@
 
 use std::time::Instant;
 
+mod bench_util;
+use bench_util::{arg_str, exit_if_help, init_threads, json_machine_fields};
+
 use gs_core::nn::mlp::BLOCK_ROWS;
 use gs_core::nn::{
     AppearanceNet, MatmulPrecision, Mlp, PositionalEncoding, Products, ShadowNet, TapeMode,
@@ -148,22 +151,31 @@ struct Net {
     mlp: Mlp,
 }
 
-fn arg_value<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
-    let i = args.iter().position(|a| a == name)?;
-    args.get(i + 1).map(String::as_str)
-}
+const USAGE: &str = "\
+usage: cargo run --release -p gs-core --example mlp_bench -- [FLAGS]
+
+  --json           one JSON object per line instead of the tables
+  --quick          10K rows only, one repetition unless --reps
+  --reps N         repetitions, the minimum is kept (default 3)
+  --mlp-only       skip the GEMM table
+  --net NAME       phi or psi: keep one network
+  --precision P    f32 or bf16 products (bf16 needs AVX-512 BF16; default f32)
+  --width N        Phi's hidden width (default 256)
+  -h, --help       this text";
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    exit_if_help(&args, USAGE);
+    let mode = init_threads("mlp_bench", None);
     let json = args.iter().any(|a| a == "--json");
     let quick = args.iter().any(|a| a == "--quick");
     let mlp_only = args.iter().any(|a| a == "--mlp-only");
-    let reps = arg_value(&args, "--reps")
+    let reps = arg_str(&args, "--reps")
         .and_then(|v| v.parse::<usize>().ok())
         .unwrap_or(if quick { 1 } else { 3 })
         .max(1);
-    let net_filter = arg_value(&args, "--net");
-    let precision = match arg_value(&args, "--precision").unwrap_or("f32") {
+    let net_filter = arg_str(&args, "--net");
+    let precision = match arg_str(&args, "--precision").unwrap_or("f32") {
         "f32" => MatmulPrecision::F32,
         "bf16" => MatmulPrecision::Bf16,
         other => {
@@ -178,7 +190,7 @@ fn main() {
             std::process::exit(2);
         }
     };
-    let phi_width = arg_value(&args, "--width")
+    let phi_width = arg_str(&args, "--width")
         .and_then(|v| v.parse::<usize>().ok())
         .unwrap_or(256);
     let row_counts: &[usize] = if quick {
@@ -209,11 +221,18 @@ fn main() {
     let pools: Vec<(usize, rayon::ThreadPool)> = [1usize, 2]
         .iter()
         .map(|&t| {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build();
+            // The global pool's denormal mode on these pools too (their workers compute).
+            let pool = gs_core::fpmode::pool_builder(mode).num_threads(t).build();
             (t, pool.expect("thread pool"))
         })
         .collect();
 
+    let machine = json_machine_fields();
+    if json {
+        eprintln!("{}", gs_core::machine::header_line());
+    } else {
+        println!("{}", gs_core::machine::header_line());
+    }
     if !mlp_only {
         if !json {
             println!("GEMM (row-blocked, {BLOCK_ROWS} rows per block), GFLOP/s");
@@ -245,7 +264,7 @@ fn main() {
                     rates.push(gflops);
                     if json {
                         println!(
-                            "{{\"kind\":\"gemm\",\"product\":\"{}\",\"rows\":{rows},\"k\":{k},\"n\":{n},\"threads\":{threads},\"seconds\":{t:.6},\"gflops\":{gflops:.2}}}",
+                            "{{\"kind\":\"gemm\",{machine},\"product\":\"{}\",\"rows\":{rows},\"k\":{k},\"n\":{n},\"threads\":{threads},\"seconds\":{t:.6},\"gflops\":{gflops:.2}}}",
                             product.name()
                         );
                     }
@@ -339,7 +358,7 @@ fn main() {
                 let (gf_fwd, gf_bwd) = (flops_fwd / t_fwd / 1e9, 2.0 * flops_fwd / t_bwd / 1e9);
                 if json {
                     println!(
-                        "{{\"kind\":\"mlp\",\"net\":\"{}\",\"rows\":{rows},\"threads\":{threads},\"forward_s\":{t_fwd:.6},\"inference_s\":{t_infer:.6},\"forward_floor_s\":{ff:.6},\"backward_s\":{t_bwd:.6},\"backward_floor_s\":{fb:.6},\"forward_gflops\":{gf_fwd:.2},\"backward_gflops\":{gf_bwd:.2}}}",
+                        "{{\"kind\":\"mlp\",{machine},\"net\":\"{}\",\"rows\":{rows},\"threads\":{threads},\"forward_s\":{t_fwd:.6},\"inference_s\":{t_infer:.6},\"forward_floor_s\":{ff:.6},\"backward_s\":{t_bwd:.6},\"backward_floor_s\":{fb:.6},\"forward_gflops\":{gf_fwd:.2},\"backward_gflops\":{gf_bwd:.2}}}",
                         net.name
                     );
                 } else {

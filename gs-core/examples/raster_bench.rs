@@ -17,7 +17,10 @@
 use std::time::Instant;
 
 mod bench_util;
-use bench_util::{median, peak_rss_mb, process_cpu_ms, Cloud};
+use bench_util::{
+    arg, exit_if_help, init_threads, json_machine_fields, median, peak_rss_mb, process_cpu_ms,
+    Cloud,
+};
 
 use glam::{Quat, Vec3};
 use gs_core::raster::{
@@ -239,25 +242,25 @@ fn bench(n: usize, width: u32, height: u32, distance_m: f32, runs: usize) -> Row
     }
 }
 
+const USAGE: &str = "\
+usage: cargo run --release -p gs-core --example raster_bench -- [FLAGS]
+
+  --json          one JSON object per configuration on stdout, the table on stderr
+  --runs N        timed runs per configuration after one warm-up (default 7)
+  --quick         10K Gaussians at 480x300 only
+  --gaussians N   one size instead of 10000, 50000, 100000
+  --width W       keep the resolution of this width (480 or 960)
+  -h, --help      this text";
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    exit_if_help(&args, USAGE);
+    init_threads("raster_bench", None);
     let json = args.iter().any(|a| a == "--json");
     let quick = args.iter().any(|a| a == "--quick");
-    let runs = args
-        .iter()
-        .position(|a| a == "--runs")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse::<usize>().ok())
-        .unwrap_or(7)
-        .max(1);
+    let runs = arg(&args, "--runs").unwrap_or(7).max(1);
     let threads = rayon::current_num_threads();
     let distance_m = calibrate_distance();
-    let arg_value = |name: &str| {
-        args.iter()
-            .position(|a| a == name)
-            .and_then(|i| args.get(i + 1))
-            .and_then(|v| v.parse::<usize>().ok())
-    };
     let mut sizes: Vec<usize> = if quick {
         vec![10_000]
     } else {
@@ -268,14 +271,14 @@ fn main() {
     } else {
         vec![(480, 300), (960, 600)]
     };
-    if let Some(n) = arg_value("--gaussians") {
+    if let Some(n) = arg(&args, "--gaussians") {
         sizes = vec![n];
     }
-    if let Some(w) = arg_value("--width") {
+    if let Some(w) = arg(&args, "--width") {
         resolutions.retain(|r| r.0 as usize == w);
     }
 
-    let mut table = String::new();
+    let mut table = format!("{}\n", gs_core::machine::header_line());
     table += &format!(
         "raster_bench: satellite scene at {distance_m:.2} m, {threads} threads, median of {runs} runs (ms)\n"
     );
@@ -308,8 +311,8 @@ fn main() {
             );
             if json {
                 println!(
-                    "{{\"gaussians\":{},\"width\":{},\"height\":{},\"threads\":{},\"forward_ms\":{:.3},\"backward_ms\":{:.3},\"peak_rss_mb\":{:.1},\"visible\":{},\"coverage\":{:.3},\"tile_entries_per_gaussian\":{:.3},\"project_ms\":{:.3},\"sort_bin_ms\":{:.3},\"blend_ms\":{:.3},\"backward_blend_ms\":{:.3},\"backward_reduce_project_ms\":{:.3},\"cpu_ms\":{:.3},\"runs\":{}}}",
-                    r.gaussians, r.width, r.height, threads, r.forward_ms, r.backward_ms, rss,
+                    "{{\"gaussians\":{},\"width\":{},\"height\":{},\"threads\":{},{},\"forward_ms\":{:.3},\"backward_ms\":{:.3},\"peak_rss_mb\":{:.1},\"visible\":{},\"coverage\":{:.3},\"tile_entries_per_gaussian\":{:.3},\"project_ms\":{:.3},\"sort_bin_ms\":{:.3},\"blend_ms\":{:.3},\"backward_blend_ms\":{:.3},\"backward_reduce_project_ms\":{:.3},\"cpu_ms\":{:.3},\"runs\":{}}}",
+                    r.gaussians, r.width, r.height, threads, json_machine_fields(), r.forward_ms, r.backward_ms, rss,
                     r.visible, r.coverage, r.tile_entries_per_gaussian, r.project_ms, r.sort_bin_ms,
                     r.blend_ms, r.backward_blend_ms, r.backward_reduce_project_ms, r.cpu_ms, runs
                 );

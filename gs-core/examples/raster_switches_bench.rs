@@ -16,7 +16,16 @@
 #[macro_use]
 mod bench_util;
 
-wgpu_main!("raster_switches_bench");
+const USAGE: &str = "\
+usage: cargo run --release -p gs-core --features wgpu --example raster_switches_bench -- [FLAGS]
+
+  --runs N        timed calls per pass after one warm-up (default 5)
+  --gaussians N   Gaussians in the random cloud (default 20000)
+  --width W       image width in pixels (default 480)
+  --height H      image height in pixels (default 300)
+  -h, --help      this text";
+
+wgpu_main!("raster_switches_bench", USAGE);
 
 #[cfg(feature = "wgpu")]
 mod bench {
@@ -52,6 +61,7 @@ mod bench {
         let width = arg(&args, "--width").unwrap_or(480) as u32;
         let height = arg(&args, "--height").unwrap_or(300) as u32;
         let ctx = GpuContext::new().expect("a Vulkan adapter");
+        println!("{}", gs_core::machine::header_line());
         println!("GPU: {}", ctx.describe());
         let gpu = GpuRasterizer::new(ctx).expect("rasterizer");
         let c = random_cloud(n, 7);

@@ -17,7 +17,15 @@
 #[macro_use]
 mod bench_util;
 
-wgpu_main!("shadow_bench");
+const USAGE: &str = "\
+usage: cargo run --release -p gs-core --features wgpu --example shadow_bench -- [FLAGS]
+
+  --runs N        timed calls per path after one warm-up (default 10)
+  --gaussians N   Gaussians of the test model (default 10000)
+  --side PX       light image side in pixels (default 256)
+  -h, --help      this text";
+
+wgpu_main!("shadow_bench", USAGE);
 
 #[cfg(feature = "wgpu")]
 mod bench {
@@ -84,6 +92,7 @@ mod bench {
         let n = arg(&args, "--gaussians").unwrap_or(10_000);
         let side = arg(&args, "--side").unwrap_or(256) as u32;
         let ctx = GpuContext::new().expect("a Vulkan adapter");
+        println!("{}", gs_core::machine::header_line());
         println!("GPU: {}", ctx.describe());
         let shadow = GpuShadow::new(Arc::new(GpuRasterizer::new(ctx).expect("rasterizer")))
             .expect("shadow pipelines");

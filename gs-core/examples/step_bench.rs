@@ -44,7 +44,9 @@
 //! component does); `--gpu-atomic` uses the float-atomic backward instead.
 //!
 //! The process keeps freed memory as the component and the simulator do
-//! (`gs_core::heap::retain_freed_memory`); `--default-malloc` keeps glibc's defaults.
+//! (`gs_core::heap::retain_freed_memory`); `--default-malloc` keeps glibc's defaults. Its
+//! threads run in the denormal mode the binaries train in (`GS_DENORMALS`, default
+//! flush-to-zero; `gs_core::fpmode`), printed in the header with the CPU.
 //!
 //! `--set` changes settings of `SunAwareConfig` (defaults otherwise): the speed switches
 //! (`NAME=on|off`), `mlp_precision=f32|bf16` and `appearance_hidden_width=N`; `--ab SWITCH`
@@ -59,7 +61,9 @@
 use std::time::Instant;
 
 mod bench_util;
-use bench_util::{median, peak_rss_mb, process_cpu_ms, reset_peak_rss};
+use bench_util::{
+    arg_str, exit_if_help, json_machine_fields, median, peak_rss_mb, process_cpu_ms, reset_peak_rss,
+};
 
 use glam::{Quat, Vec3};
 use gs_core::model::{GaussianModel, Param};
@@ -563,8 +567,8 @@ fn print_step(m: &Measured, json: bool, scene_name: &str, threads: usize, repeat
             .map(|(name, ms)| format!("\"{name}_ms\":{ms:.3}"))
             .collect();
         println!(
-            "{{\"kind\":\"step\",\"settings\":\"{}\",\"scene\":\"{scene_name}\",\"gaussians\":{},\"width\":{},\"height\":{},\"threads\":{threads},\"repeats\":{repeats},\"visible\":{},\"rows\":{},{},\"other_ms\":{:.3},\"step_ms\":{:.3},\"cpu_ms\":{:.3},\"peak_rss_mb\":{:.1}}}",
-            m.label, m.gaussians, m.width, m.height, m.visible, m.rows, stages.join(","),
+            "{{\"kind\":\"step\",{},\"settings\":\"{}\",\"scene\":\"{scene_name}\",\"gaussians\":{},\"width\":{},\"height\":{},\"threads\":{threads},\"repeats\":{repeats},\"visible\":{},\"rows\":{},{},\"other_ms\":{:.3},\"step_ms\":{:.3},\"cpu_ms\":{:.3},\"peak_rss_mb\":{:.1}}}",
+            json_machine_fields(), m.label, m.gaussians, m.width, m.height, m.visible, m.rows, stages.join(","),
             m.other_ms, s.total_ms, m.cpu_ms, m.peak_rss_mb
         );
         for net in &m.nets {
@@ -749,11 +753,6 @@ impl Measured {
     }
 }
 
-fn arg_value<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
-    let i = args.iter().position(|a| a == name)?;
-    args.get(i + 1).map(String::as_str)
-}
-
 fn parse_list<T>(text: &str, parse: impl Fn(&str) -> Option<T>) -> Result<Vec<T>, String> {
     text.split(',')
         .map(|s| parse(s.trim()).ok_or_else(|| format!("cannot parse {s:?}")))
@@ -775,8 +774,28 @@ fn pass_miss(ok: bool) -> &'static str {
     }
 }
 
+const USAGE: &str = "\
+usage: cargo run --release -p gs-core --example step_bench -- [FLAGS]
+
+  --json                 one JSON object per line instead of the tables
+  --sizes N,...          Gaussian counts (default 10000,50000,100000)
+  --images WxH,...       image sizes (default 480x300,960x600)
+  --threads N            rayon threads (default: rayon's, one per CPU)
+  --repeats N            measured steps after one warm-up (default 5)
+  --scene KIND           volume (default) or surface
+  --set NAME=VALUE,...   SunAwareConfig settings: speed switches (on|off),
+                         mlp_precision=f32|bf16, appearance_hidden_width=N
+  --ab SWITCH            every size and image twice, the switch off then on
+  --backend B,...        cpu (default) and/or wgpu (needs --features wgpu)
+  --hybrid               on wgpu: the older host/device split, per-stage timings
+  --gpu-atomic           on wgpu: the float-atomic backward instead of the deterministic one
+  --default-malloc       keep glibc's allocator defaults
+  --child-variant I      internal: measure one configuration in this process
+  -h, --help             this text";
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    exit_if_help(&args, USAGE);
     // As the component and the simulator run the step (gs_core::heap); `--default-malloc`
     // keeps glibc's defaults, to measure what the setting buys. Children inherit the flag.
     if !args.iter().any(|a| a == "--default-malloc") {
@@ -790,18 +809,18 @@ fn main() {
 
 fn run(args: &[String]) -> Result<(), String> {
     let json = args.iter().any(|a| a == "--json");
-    let sizes = match arg_value(args, "--sizes") {
+    let sizes = match arg_str(args, "--sizes") {
         Some(v) => parse_list(v, |s| s.parse::<usize>().ok().filter(|&n| n > 0))?,
         None => vec![10_000, 50_000, 100_000],
     };
-    let images = match arg_value(args, "--images") {
+    let images = match arg_str(args, "--images") {
         Some(v) => parse_list(v, |s| {
             let (w, h) = s.split_once('x')?;
             Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)).filter(|&(w, h)| w > 0 && h > 0)
         })?,
         None => vec![(480, 300), (960, 600)],
     };
-    let repeats = match arg_value(args, "--repeats") {
+    let repeats = match arg_str(args, "--repeats") {
         Some(v) => v
             .parse::<usize>()
             .ok()
@@ -809,25 +828,25 @@ fn run(args: &[String]) -> Result<(), String> {
             .ok_or("--repeats needs a positive integer")?,
         None => 5,
     };
-    let kind = match arg_value(args, "--scene").unwrap_or("volume") {
+    let kind = match arg_str(args, "--scene").unwrap_or("volume") {
         "volume" => SceneKind::Volume,
         "surface" => SceneKind::Surface,
         other => return Err(format!("--scene {other:?}: expected volume or surface")),
     };
-    if let Some(v) = arg_value(args, "--threads") {
-        let t = v
-            .parse::<usize>()
-            .ok()
-            .filter(|&t| t > 0)
-            .ok_or("--threads needs a positive integer")?;
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(t)
-            .build_global()
-            .map_err(|e| format!("thread pool: {e}"))?;
-    }
+    let threads = match arg_str(args, "--threads") {
+        Some(v) => Some(
+            v.parse::<usize>()
+                .ok()
+                .filter(|&t| t > 0)
+                .ok_or("--threads needs a positive integer")?,
+        ),
+        None => None,
+    };
+    // The denormal mode the binaries train with (GS_DENORMALS, inherited by the children).
+    gs_core::fpmode::init_from_env(threads)?;
     let threads = rayon::current_num_threads();
     let mut config = SunAwareConfig::for_variant(Variant::D);
-    if let Some(v) = arg_value(args, "--set") {
+    if let Some(v) = arg_str(args, "--set") {
         for item in v.split(',') {
             let (name, value) = item
                 .split_once('=')
@@ -838,14 +857,14 @@ fn run(args: &[String]) -> Result<(), String> {
     // Each measured configuration: a label and its settings. With `--ab NAME` every size
     // and image runs with the switch off, then on (the rest as set), in the same run.
     let mut settings = vec![("as set".to_string(), config.clone())];
-    if let Some(name) = arg_value(args, "--ab") {
+    if let Some(name) = arg_str(args, "--ab") {
         let mut off = config.clone();
         set_switch(&mut off, name, false)?;
         let mut on = config.clone();
         set_switch(&mut on, name, true)?;
         settings = vec![(format!("{name}=off"), off), (format!("{name}=on"), on)];
     }
-    let backends = match arg_value(args, "--backend") {
+    let backends = match arg_str(args, "--backend") {
         Some(v) => parse_list(v, |s| s.parse::<BackendKind>().ok())?,
         None => vec![BackendKind::Cpu],
     };
@@ -871,7 +890,10 @@ fn run(args: &[String]) -> Result<(), String> {
         "surface"
     };
 
-    if !json {
+    if json {
+        eprintln!("{}", gs_core::machine::header_line());
+    } else {
+        println!("{}", gs_core::machine::header_line());
         println!(
             "step_bench: configuration d, {scene_name} scene, {threads} threads, median of {repeats} steps after one warm-up (ms)"
         );
@@ -890,7 +912,7 @@ fn run(args: &[String]) -> Result<(), String> {
             "cpu", "rss MB"
         );
     }
-    if let Some(v) = arg_value(args, "--child-variant") {
+    if let Some(v) = arg_str(args, "--child-variant") {
         // One configuration in this (fresh) process: its peak RSS is its own.
         let i = v
             .parse::<usize>()

@@ -5,12 +5,14 @@
 
 pub mod camera;
 pub mod densify;
+pub mod fpmode;
 #[cfg(feature = "wgpu")]
 pub mod gpu;
 pub mod heap;
 pub mod hull;
 pub mod init;
 pub mod loss;
+pub mod machine;
 pub mod model;
 pub mod nn;
 pub mod optim;

@@ -5,6 +5,9 @@
 //! target under a few Sun directions (and one eclipse frame with Earth fill) to look at.
 //!
 //! Run: `cargo run --release -p sim-harness --example render_bench [-- --png DIR [--png-range 0.5]]`
+//!
+//! The header names the CPU and the threads' denormal mode (`GS_DENORMALS`, default
+//! flush-to-zero, as the simulator binary sets it: `gs_core::fpmode`).
 
 use glam::Vec3;
 use sim_harness::raytrace::{
@@ -66,8 +69,23 @@ fn median_ms(mut samples: Vec<f64>) -> f64 {
     samples[samples.len() / 2]
 }
 
+const USAGE: &str = "\
+usage: cargo run --release -p sim-harness --example render_bench -- [FLAGS]
+
+  --png DIR        also write frames of every target under a few Sun directions to DIR
+  --png-range F    distance of those frames as a fraction of the framing range (default 1)
+  -h, --help       this text";
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    if args.iter().any(|a| a == "--help" || a == "-h") {
+        println!("{USAGE}\n\n{}", gs_core::fpmode::ENV_HELP);
+        return;
+    }
+    if let Err(e) = gs_core::fpmode::init_from_env(None) {
+        eprintln!("render_bench: {e}");
+        std::process::exit(2);
+    }
     let png_dir = args
         .iter()
         .position(|a| a == "--png")
@@ -87,6 +105,7 @@ fn main() {
             std::process::exit(1);
         }
     }
+    println!("{}", gs_core::machine::header_line());
     println!("threads: {}", rayon::current_num_threads());
     println!(
         "{:<10} {:>10} {:>10} {:>8} {:>14} {:>14} {:>16}",

@@ -25,6 +25,9 @@
 //! the component's bus logs (`can.log`, `udp.rec`) for `fsw-component --replay`;
 //! `sim-harness play --dataset DIR --udp HOST:PORT [--telemetry-udp HOST:PORT] [--can IFACE]
 //! [--speed X|max]` plays it onto the live bus (see `sim_harness::busfeed`).
+//!
+//! Every subcommand runs its threads in the denormal mode `GS_DENORMALS=ftz|ieee` asks for
+//! (default flush-to-zero, `gs_core::fpmode`).
 
 use clap::{Parser, Subcommand};
 use sim_harness::busfeed::{
@@ -56,7 +59,8 @@ use std::path::{Path, PathBuf};
 #[derive(Parser)]
 #[command(
     name = "sim-harness",
-    about = "Rendezvous simulator with ray-traced ground truth"
+    about = "Rendezvous simulator with ray-traced ground truth",
+    after_help = gs_core::fpmode::ENV_HELP
 )]
 struct Cli {
     #[command(subcommand)]
@@ -635,7 +639,14 @@ fn main() {
     // Training steps allocate the same large buffers again and again: keep them mapped
     // (gs_core::heap; same results, less page faulting).
     gs_core::heap::retain_freed_memory();
-    if let Err(e) = run(Cli::parse()) {
+    let cli = Cli::parse();
+    // The main thread and rayon's global pool train and render: both in the denormal mode
+    // GS_DENORMALS asks for (default flush-to-zero; gs_core::fpmode), set before any work.
+    if let Err(e) = gs_core::fpmode::init_from_env(None) {
+        eprintln!("error: {e}");
+        std::process::exit(2);
+    }
+    if let Err(e) = run(cli) {
         eprintln!("error: {e}");
         std::process::exit(1);
     }

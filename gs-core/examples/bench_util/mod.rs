@@ -1,8 +1,10 @@
 //! What the benchmark examples measure besides wall time: process CPU time, the
 //! resident-memory high-water mark, medians (Linux `/proc` only; elsewhere the readings
-//! are NaN, printed as such, never an error); and the setup several of them share: a
-//! `--name N` argument, the random Gaussian cloud of the rasterizer benchmarks, and the
-//! `main` of an example that needs the `wgpu` feature ([`wgpu_main!`]).
+//! are NaN, printed as such, never an error); and the setup several of them share:
+//! `--help`, `--name VALUE` arguments, the denormal mode of their threads (`GS_DENORMALS`,
+//! as the binaries do: [`init_threads`]), the machine fields of their JSON lines, the
+//! random Gaussian cloud of the rasterizer benchmarks, and the `main` of an example that
+//! needs the `wgpu` feature ([`wgpu_main!`]).
 //!
 //! Included with `#[macro_use] mod bench_util;` (a folder without `main.rs`, so cargo
 //! does not take it for an example of its own). Not every example uses every item.
@@ -12,16 +14,22 @@ use gs_core::raster::GaussianView;
 use gs_core::rng::SplitMix64;
 
 /// The `main` of an example whose benchmark (`bench::run`) needs the `wgpu` feature:
-/// runs it with the feature, says what is missing without.
+/// `--help` prints `$usage` either way; with the feature it sets the threads' denormal
+/// mode ([`init_threads`]) and runs the benchmark, without it says what is missing.
 macro_rules! wgpu_main {
-    ($name:literal) => {
+    ($name:literal, $usage:expr) => {
         #[cfg(feature = "wgpu")]
         fn main() {
+            let args: Vec<String> = std::env::args().skip(1).collect();
+            crate::bench_util::exit_if_help(&args, $usage);
+            crate::bench_util::init_threads($name, None);
             bench::run();
         }
 
         #[cfg(not(feature = "wgpu"))]
         fn main() {
+            let args: Vec<String> = std::env::args().skip(1).collect();
+            crate::bench_util::exit_if_help(&args, $usage);
             eprintln!(concat!(
                 $name,
                 " needs the `wgpu` feature (--features wgpu)"
@@ -30,12 +38,61 @@ macro_rules! wgpu_main {
     };
 }
 
+/// With `--help` or `-h` among `args`: prints `usage` (and the environment every example
+/// reads) on stdout and exits 0, before any work is done.
+pub fn exit_if_help(args: &[String], usage: &str) {
+    if args.iter().any(|a| a == "--help" || a == "-h") {
+        println!("{}\n\n{}", usage.trim_end(), gs_core::fpmode::ENV_HELP);
+        std::process::exit(0);
+    }
+}
+
+/// Sets the denormal mode `GS_DENORMALS` asks for (default flush-to-zero) on this thread
+/// and on every worker of rayon's global pool, which it builds with `threads` workers
+/// (rayon's default for `None`), so a benchmark times the arithmetic the binaries run.
+/// A bad value or an already built pool ends the process with status 2.
+pub fn init_threads(name: &str, threads: Option<usize>) -> gs_core::fpmode::DenormalMode {
+    gs_core::fpmode::init_from_env(threads).unwrap_or_else(|e| {
+        eprintln!("{name}: {e}");
+        std::process::exit(2);
+    })
+}
+
+/// The value after `name` in `args` (None if absent).
+pub fn arg_str<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
+    let i = args.iter().position(|a| a == name)?;
+    args.get(i + 1).map(String::as_str)
+}
+
 /// The value after `name` in `args`, parsed as a count (None if absent or not a number).
 pub fn arg(args: &[String], name: &str) -> Option<usize> {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
+    arg_str(args, name).and_then(|v| v.parse().ok())
+}
+
+/// `"cpu":"...","denormals":"..."`, to put into a JSON line: which machine and arithmetic
+/// the numbers beside them come from (`gs_core::machine`).
+pub fn json_machine_fields() -> String {
+    format!(
+        "\"cpu\":{},\"denormals\":\"{}\"",
+        json_string(&gs_core::machine::cpu_description()),
+        gs_core::fpmode::current()
+    )
+}
+
+/// `text` as a JSON string literal, quotes included.
+pub fn json_string(text: &str) -> String {
+    let mut out = String::with_capacity(text.len() + 2);
+    out.push('"');
+    for c in text.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if (c as u32) < 0x20 => out.push_str(&format!("\\u{:04x}", c as u32)),
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
 }
 
 /// Gaussians as the rasterizer's parameter arrays, RGB channels.

@@ -1,0 +1,98 @@
+//! What machine a measurement ran on, for the benchmarks' headers and JSON: the CPU model,
+//! how many CPUs this process may use, the instruction-set extensions the fast paths pick
+//! at run time (AVX2, AVX-512F, AVX-512 BF16 on x86_64), and the calling thread's denormal
+//! mode ([`crate::fpmode`]). A timing without these cannot be compared with another.
+//!
+//! Reads `/proc/cpuinfo` on Linux; elsewhere the model falls back to the architecture's
+//! name. Never fails.
+
+use crate::fpmode;
+
+/// One line: CPU model, CPUs available, the extensions that matter, e.g.
+/// `Intel(R) Xeon(R) Processor, 2 CPUs available, avx2 avx512f avx512bf16`
+/// (a missing extension is listed as `no-avx512bf16`).
+pub fn cpu_description() -> String {
+    let model = cpu_model().unwrap_or_else(|| std::env::consts::ARCH.to_string());
+    // What this process may use (affinity, cgroup quota), not the machine's total.
+    let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
+    let features = isa_features();
+    if features.is_empty() {
+        format!("{model}, {cpus} CPUs available")
+    } else {
+        format!("{model}, {cpus} CPUs available, {features}")
+    }
+}
+
+/// The benchmarks' header line: [`cpu_description`] and the calling thread's denormal mode
+/// (the binaries set the same mode on every training thread).
+pub fn header_line() -> String {
+    format!(
+        "cpu: {}; denormals: {}",
+        cpu_description(),
+        fpmode::current()
+    )
+}
+
+/// The first "model name" of /proc/cpuinfo (x86), or its "Hardware"/"CPU part" on arm.
+fn cpu_model() -> Option<String> {
+    let text = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    ["model name", "Hardware", "CPU part"]
+        .iter()
+        .find_map(|key| {
+            text.lines().find_map(|line| {
+                let (k, v) = line.split_once(':')?;
+                (k.trim() == *key && !v.trim().is_empty()).then(|| v.trim().to_string())
+            })
+        })
+}
+
+/// The run-time-detected extensions the rasterizer, the loss and the networks choose
+/// their code by; empty off x86_64.
+fn isa_features() -> String {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let found = [
+            ("avx2", std::arch::is_x86_feature_detected!("avx2")),
+            ("avx512f", std::arch::is_x86_feature_detected!("avx512f")),
+            (
+                "avx512bf16",
+                std::arch::is_x86_feature_detected!("avx512bf16"),
+            ),
+        ];
+        found
+            .iter()
+            .map(|&(name, present)| {
+                if present {
+                    name.to_string()
+                } else {
+                    format!("no-{name}")
+                }
+            })
+            .collect::<Vec<_>>()
+            .join(" ")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        String::new()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn description_names_the_cpu_count_and_the_extensions() {
+        let d = cpu_description();
+        assert!(d.contains(" CPUs available"), "{d}");
+        assert!(!d.starts_with(','), "{d}");
+        if cfg!(target_arch = "x86_64") {
+            assert!(d.contains("avx512bf16"), "{d}");
+        }
+        let line = header_line();
+        assert!(
+            line.starts_with("cpu: ") && line.contains("; denormals: "),
+            "{line}"
+        );
+    }
+}
