@@ -147,6 +147,10 @@ fn shadow_channel_gradients_match_finite_differences() {
     for refinement in [ShadowRefinement::Replace, ShadowRefinement::Multiply] {
         check_shadow_channel(&scene_with(Variant::C, refinement));
     }
+    // V' = 2 V Psi: the gain enters Psi's output gradient.
+    let mut doubled = scene_with(Variant::C, ShadowRefinement::Multiply);
+    doubled.config.shadow_gain = 2.0;
+    check_shadow_channel(&doubled);
 }
 
 fn check_shadow_channel(model: &SunAwareModel) {

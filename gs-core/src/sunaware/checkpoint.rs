@@ -56,7 +56,7 @@ use super::model::SunAwareModel;
 use super::trainer::{FlatAdam, SunAwareTrainer};
 
 pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
-pub const VERSION: u32 = 3;
+pub const VERSION: u32 = 4;
 /// Oldest version [`from_bytes`] reads.
 pub const OLDEST_READABLE_VERSION: u32 = 1;
 
@@ -219,6 +219,7 @@ fn write_config(w: &mut Writer, c: &SunAwareConfig) {
         ShadowRefinement::Multiply => 1,
     });
     w.u64(c.appearance_hidden_width as u64);
+    w.f32(c.shadow_gain);
 }
 
 fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareError> {
@@ -311,6 +312,12 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
             r.usize("appearance hidden width")?
         } else {
             crate::nn::appearance::DEFAULT_APPEARANCE_HIDDEN_WIDTH
+        },
+        // Before version 4, V' = V * Psi.
+        shadow_gain: if version >= 4 {
+            r.f32("shadow gain")?
+        } else {
+            1.0
         },
         ..SunAwareConfig::default()
     };
@@ -554,21 +561,43 @@ mod tests {
     }
 
     #[test]
+    fn shadow_gain_round_trips_and_versions_before_4_mean_1() {
+        let config = SunAwareConfig {
+            shadow_gain: 2.0,
+            ..SunAwareConfig::for_variant(Variant::D)
+        };
+        let mut w = Writer(Vec::new());
+        write_config(&mut w, &config);
+        let bytes = w.0;
+        assert_eq!(read(&bytes, 4).unwrap().shadow_gain, 2.0);
+        assert_eq!(read(&bytes[..bytes.len() - 4], 3).unwrap().shadow_gain, 1.0);
+        // A gain the model refuses is refused on load too.
+        let mut bad = bytes.clone();
+        let at = bad.len() - 4;
+        bad[at..].copy_from_slice(&f32::NAN.to_le_bytes());
+        let err = read(&bad, 4).unwrap_err().to_string();
+        assert!(err.contains("shadow gain"), "{err}");
+    }
+
+    #[test]
     fn shadow_refinement_round_trips_and_version_1_means_replace() {
         for refinement in [ShadowRefinement::Replace, ShadowRefinement::Multiply] {
             let bytes = config_bytes(refinement);
-            assert_eq!(read(&bytes, 3).unwrap().shadow_refinement, refinement);
-            // A version-2 config section ends before the hidden width (8 bytes), a
-            // version-1 section also before the refinement byte.
-            let v2 = read(&bytes[..bytes.len() - 8], 2).unwrap();
+            assert_eq!(read(&bytes, 4).unwrap().shadow_refinement, refinement);
+            // A version-3 config section ends before the shadow gain (4 bytes), a version-2
+            // one also before the hidden width (8 bytes), a version-1 one also before the
+            // refinement byte.
+            let v3 = read(&bytes[..bytes.len() - 4], 3).unwrap();
+            assert_eq!(v3.shadow_refinement, refinement);
+            let v2 = read(&bytes[..bytes.len() - 12], 2).unwrap();
             assert_eq!(v2.shadow_refinement, refinement);
-            let v1 = read(&bytes[..bytes.len() - 9], 1).unwrap();
+            let v1 = read(&bytes[..bytes.len() - 13], 1).unwrap();
             assert_eq!(v1.shadow_refinement, ShadowRefinement::Replace);
         }
         let mut bad = config_bytes(ShadowRefinement::Multiply);
-        let at = bad.len() - 9;
+        let at = bad.len() - 13;
         bad[at] = 7;
-        let err = read(&bad, 3).unwrap_err().to_string();
+        let err = read(&bad, 4).unwrap_err().to_string();
         assert!(err.contains("shadow refinement"), "{err}");
     }
 
@@ -580,12 +609,13 @@ mod tests {
             ..SunAwareConfig::for_variant(Variant::D)
         };
         write_config(&mut w, &config);
-        let bytes = w.0;
-        assert_eq!(read(&bytes, 3).unwrap().appearance_hidden_width, 64);
+        // The version-3 section: without the trailing shadow gain (4 bytes).
+        let bytes = &w.0[..w.0.len() - 4];
+        assert_eq!(read(bytes, 3).unwrap().appearance_hidden_width, 64);
         let v2 = read(&bytes[..bytes.len() - 8], 2).unwrap();
         assert_eq!(v2.appearance_hidden_width, 256);
         // A stored width outside the validated range is a checkpoint error, not a model.
-        let mut bad = bytes.clone();
+        let mut bad = bytes.to_vec();
         let at = bad.len() - 8;
         bad[at..].copy_from_slice(&0u64.to_le_bytes());
         let err = read(&bad, 3).unwrap_err().to_string();

@@ -73,7 +73,11 @@ pub fn baked_colours(
         let refined = psi.mlp.forward(&input, n)?;
         let multiply = model.config.shadow_refinement == ShadowRefinement::Multiply;
         for ((c, s), v_i) in rgb.chunks_exact_mut(3).zip(&refined).zip(&vis) {
-            let shadow = if multiply { s * v_i } else { *s };
+            let shadow = if multiply {
+                model.config.shadow_gain * s * v_i
+            } else {
+                *s
+            };
             for v in c {
                 *v *= shadow;
             }

@@ -456,6 +456,13 @@ impl SunAwareModel {
             }
             #[cfg(feature = "wgpu")]
             crate::train::Backend::Wgpu(raster) => {
+                let gain = self.config.shadow_gain;
+                if self.config.variant.uses_shadow() && gain != 1.0 {
+                    return Err(SunAwareError::Config(format!(
+                        "the wgpu backend supports shadow_gain = 1 only (this model has \
+                         {gain}): train configurations c-d with another gain on the CPU"
+                    )));
+                }
                 let shadow = crate::gpu::GpuShadow::new(raster.clone()).map_err(from_gpu)?;
                 let networks =
                     Arc::new(crate::gpu::GpuMlp::new(raster.context().clone()).map_err(from_gpu)?);
@@ -746,10 +753,11 @@ impl SunAwareModel {
                 net.forward_train_into(&batch, TapeMode::Recompute, &mut forward)?;
                 refined = vec![0.0f32; n];
                 let multiply = self.config.shadow_refinement == ShadowRefinement::Multiply;
+                let gain = self.config.shadow_gain;
                 for (r, &g) in network_list.iter().enumerate() {
                     let g = g as usize;
                     let v = if multiply {
-                        vis[g] * forward.output[r]
+                        gain * vis[g] * forward.output[r]
                     } else {
                         forward.output[r]
                     };
@@ -1011,15 +1019,17 @@ impl SunAwareModel {
         let mut d_shadow = Vec::new();
         if let (Some(net), Some(psi)) = (&self.shadow, &pass.psi) {
             let multiply = self.config.shadow_refinement == ShadowRefinement::Multiply;
+            let gain = self.config.shadow_gain;
             let d_out: Vec<f32> = pass
                 .network_list
                 .iter()
                 .map(|&gi| {
                     let gi = gi as usize;
-                    // d V' / d Psi is V under Multiply; V itself is data (no gradient).
+                    // d V' / d Psi is gain * V under Multiply; V itself is data (no
+                    // gradient).
                     let d = g.d_channels[gi * nc + 3];
                     if multiply {
-                        d * pass.visibility[gi]
+                        d * gain * pass.visibility[gi]
                     } else {
                         d
                     }
