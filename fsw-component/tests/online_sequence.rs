@@ -302,3 +302,50 @@ fn bad_frames_are_errors_and_random_init_works() {
     };
     assert!(OnlineTrainer::new(config(3), &bad, scene.scene_box).is_err());
 }
+
+#[test]
+fn replay_memory_keeps_a_bounded_sample_of_evicted_keyframes_and_trains_on_it() {
+    let scene = SyntheticScene::plate_and_ball(6, 20).unwrap();
+    let replay = |capacity: usize, steps: usize| OnlineConfig {
+        replay_capacity: capacity,
+        replay_steps_per_round: steps,
+        ..config(4)
+    };
+    let mut t = OnlineTrainer::new(replay(3, 2), &surface_init(&scene), scene.scene_box).unwrap();
+    let mut evicted = Vec::new();
+    let mut last = None;
+    for id in 0..12 {
+        if let OfferReport::Added {
+            evicted: Some(gone),
+        } = t.offer(frame(&scene, id, false)).unwrap()
+        {
+            evicted.push(gone);
+        }
+        if let Some(r) = t.run_round_if_due().unwrap() {
+            last = Some(r);
+        }
+    }
+    assert!(evicted.len() > 3, "the window evicted {evicted:?}");
+    assert_eq!(t.replay_len(), 3, "bounded by the capacity");
+    let r = last.expect("rounds ran");
+    // W window steps, then the replay steps, on frames the window no longer holds.
+    assert_eq!(r.trained_ids.len(), 4 + 2);
+    let window: Vec<u64> = t.window().keyframes().iter().map(|k| k.id).collect();
+    for id in &r.trained_ids[4..] {
+        assert!(
+            evicted.contains(id) && !window.contains(id),
+            "replayed {id}"
+        );
+    }
+    // Without a memory the round is the paper's: W steps.
+    let mut plain =
+        OnlineTrainer::new(replay(0, 2), &surface_init(&scene), scene.scene_box).unwrap();
+    let mut steps = 0;
+    for id in 0..12 {
+        plain.offer(frame(&scene, id, false)).unwrap();
+        if let Some(r) = plain.run_round_if_due().unwrap() {
+            steps = r.trained_ids.len();
+        }
+    }
+    assert_eq!((plain.replay_len(), steps), (0, 4));
+}
