@@ -169,9 +169,9 @@ pub fn black_baseline<'a>(
     Ok(summarise(per_view))
 }
 
-/// Up to `max` lit sequence frames, evenly spaced in time: views the model trained on.
-pub fn seen_views(scene: &SceneData, max: usize) -> Vec<&ViewData> {
-    let lit: Vec<&ViewData> = scene.frames.iter().filter(|v| !v.eclipse).collect();
+/// Up to `max` lit frames of `frames` (time order), evenly spaced: views the model trained on.
+pub fn seen_views<'a>(frames: &[&'a ViewData], max: usize) -> Vec<&'a ViewData> {
+    let lit: Vec<&ViewData> = frames.iter().copied().filter(|v| !v.eclipse).collect();
     if lit.len() <= max {
         return lit;
     }

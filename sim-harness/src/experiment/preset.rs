@@ -4,11 +4,12 @@
 //!
 //! Invariants: unknown fields are errors; `validate` checks every value's range and names the
 //! bad field; `apply` changes only the scenario fields the preset names (resolution, cadence,
-//! duration, evaluation views, ray-tracing samples) and re-validates the scenario.
+//! duration, evaluation views, ray-tracing samples, Earth-albedo fill when named) and
+//! re-validates the scenario.
 
 use crate::scenario::{Scenario, ScenarioError};
 use gs_core::nn::MatmulPrecision;
-use gs_core::sunaware::{BackendKind, SunAwareError};
+use gs_core::sunaware::{BackendKind, SunAwareError, SunAwareRates};
 use serde::Deserialize;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -152,6 +153,91 @@ pub struct Preset {
     /// Arithmetic of the networks' matrix products: "f32" or "bf16" (a CPU with AVX-512
     /// BF16; elsewhere the run's configuration is refused).
     pub mlp_precision: String,
+    /// `V' = shadow_gain * V * Psi` in configurations (c)-(d) (`SunAwareConfig`; gs-core's
+    /// default 1; the wgpu backend supports only 1).
+    pub shadow_gain: f32,
+    /// Evicted keyframes kept for replay (0: none, the paper; `OnlineConfig`).
+    pub replay_capacity: usize,
+    /// Steps per round on replayed keyframes.
+    pub replay_steps_per_round: usize,
+    /// Earth-albedo fill of the ray-traced frames (fraction of the Sun's irradiance under a
+    /// fully lit Earth; None: the scenario's). The model has no input for the Earth's
+    /// direction, so this light is one it cannot predict (see `docs/results/accuracy.md`).
+    pub earth_albedo: Option<f64>,
+    /// Every this many sequence frames one is withheld from training and scored at the end
+    /// (the accuracy ladder's L1, held-out trajectory frames; 0: none withheld).
+    pub holdout_every: u32,
+    /// Learning rates that replace gs-core's defaults (`SunAwareRates`); unnamed ones keep
+    /// the default.
+    pub rates: RateOverrides,
+    /// Steps between SH degree increments in configuration (a) (gs-core default: 1000).
+    pub sh_degree_interval: Option<u64>,
+    /// Applied steps before densification may add Gaussians (gs-core default: 500).
+    pub densify_from_step: Option<u64>,
+}
+
+/// `[rates]` of a preset: any of `gs_core::sunaware::SunAwareRates`' fields.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RateOverrides {
+    pub position_init: Option<f32>,
+    pub position_final: Option<f32>,
+    pub sh_dc: Option<f32>,
+    pub sh_rest: Option<f32>,
+    pub opacity: Option<f32>,
+    pub scale: Option<f32>,
+    pub rotation: Option<f32>,
+    pub feature: Option<f32>,
+    pub shadow_latent: Option<f32>,
+    pub appearance_mlp: Option<f32>,
+    pub shadow_mlp: Option<f32>,
+}
+
+impl RateOverrides {
+    /// `base` with the named rates replaced.
+    pub fn applied_to(&self, base: SunAwareRates) -> SunAwareRates {
+        let pick = |o: Option<f32>, d: f32| o.unwrap_or(d);
+        SunAwareRates {
+            position_init: pick(self.position_init, base.position_init),
+            position_final: pick(self.position_final, base.position_final),
+            sh_dc: pick(self.sh_dc, base.sh_dc),
+            sh_rest: pick(self.sh_rest, base.sh_rest),
+            opacity: pick(self.opacity, base.opacity),
+            scale: pick(self.scale, base.scale),
+            rotation: pick(self.rotation, base.rotation),
+            feature: pick(self.feature, base.feature),
+            shadow_latent: pick(self.shadow_latent, base.shadow_latent),
+            appearance_mlp: pick(self.appearance_mlp, base.appearance_mlp),
+            shadow_mlp: pick(self.shadow_mlp, base.shadow_mlp),
+        }
+    }
+
+    /// Every named rate finite and >= 0; the error names the rate.
+    fn validate(&self) -> Result<(), PresetError> {
+        let named = [
+            ("position_init", self.position_init),
+            ("position_final", self.position_final),
+            ("sh_dc", self.sh_dc),
+            ("sh_rest", self.sh_rest),
+            ("opacity", self.opacity),
+            ("scale", self.scale),
+            ("rotation", self.rotation),
+            ("feature", self.feature),
+            ("shadow_latent", self.shadow_latent),
+            ("appearance_mlp", self.appearance_mlp),
+            ("shadow_mlp", self.shadow_mlp),
+        ];
+        for (name, value) in named {
+            if let Some(v) = value {
+                if !(v.is_finite() && v >= 0.0) {
+                    return Err(PresetError::Invalid(format!(
+                        "rates.{name} {v} must be finite and >= 0"
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Default for Preset {
@@ -199,6 +285,14 @@ impl Default for Preset {
             skip_masked_background_tiles: true,
             appearance_hidden_width: 256,
             mlp_precision: "f32".into(),
+            shadow_gain: 1.0,
+            replay_capacity: 0,
+            replay_steps_per_round: 0,
+            earth_albedo: None,
+            holdout_every: 0,
+            rates: RateOverrides::default(),
+            sh_degree_interval: None,
+            densify_from_step: None,
         }
     }
 }
@@ -268,6 +362,10 @@ impl Preset {
     /// Checks every value; the error names the field.
     pub fn validate(&self) -> Result<(), PresetError> {
         let bad = |m: String| Err(PresetError::Invalid(m));
+        self.rates.validate()?;
+        if self.sh_degree_interval == Some(0) {
+            return bad("sh_degree_interval must be positive".into());
+        }
         if self.downsample == 0 || self.downsample > 64 {
             return bad(format!("downsample {} is outside 1..=64", self.downsample));
         }
@@ -375,6 +473,9 @@ impl Preset {
         s.sequence.frames = self.frames;
         s.sequence.eval_views = self.eval_views;
         s.render.samples_per_pixel = self.samples_per_pixel;
+        if let Some(albedo) = self.earth_albedo {
+            s.render.earth_albedo = albedo;
+        }
         s.validate().map_err(PresetError::Scenario)?;
         Ok(s)
     }

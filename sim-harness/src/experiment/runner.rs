@@ -12,9 +12,10 @@
 //! spent inside training rounds (densification included) and `step_ms` that time divided by
 //! the steps applied.
 
-use super::data::SceneData;
+use super::data::{SceneData, ViewData};
 use super::evaluate::{
-    black_baseline, camera_of, evaluate_model, evaluate_views, seen_views, sun_of, EvalSummary,
+    black_baseline, camera_of, evaluate_model, evaluate_views, seen_views, summarise, sun_of,
+    EvalSummary,
 };
 use super::preset::{InitKind, Preset};
 use crate::raytrace::linear_to_srgb8;
@@ -61,6 +62,20 @@ pub struct RunOutcome {
     pub black_eval: EvalSummary,
     /// An all-black render on the same training frames as `seen`.
     pub black_seen: EvalSummary,
+    /// Accuracy ladder L0: the keyframes in the window at the end (fitting, without
+    /// forgetting), and an all-black render on them.
+    pub window_fit: EvalSummary,
+    pub black_window: EvalSummary,
+    /// Accuracy ladder L1: lit frames of the same rendezvous that training never received
+    /// (every `Preset::holdout_every`-th frame; empty when 0), and an all-black render on
+    /// them.
+    pub held_out: EvalSummary,
+    pub black_held_out: EvalSummary,
+    /// Accuracy ladder L2 split by coverage: the evaluation views whose viewpoint lies within
+    /// `COVERED_VIEW_DEG` of a frame training received (the rest show sides of the target
+    /// training never saw), and an all-black render on them.
+    pub eval_covered: EvalSummary,
+    pub black_eval_covered: EvalSummary,
     pub gaussians: usize,
     pub rounds: u64,
     pub steps: u64,
@@ -83,6 +98,44 @@ pub struct RunOutcome {
     /// sRGB renders of the first evaluation views (for figures).
     #[serde(skip)]
     pub renders: Vec<Vec<u8>>,
+}
+
+/// An evaluation view counts as covered when its viewpoint is within this angle of a
+/// viewpoint training received (`RunOutcome::eval_covered`), degrees.
+pub const COVERED_VIEW_DEG: f64 = 30.0;
+
+/// Whether sequence frame `i` is withheld from training for the held-out rung (L1).
+pub fn is_held_out(preset: &Preset, i: usize) -> bool {
+    let every = preset.holdout_every as usize;
+    every > 0 && i % every == every - 1
+}
+
+/// One line with the accuracy ladder, masked PSNR first (the target's own pixels), each
+/// rung beside its all-black score, and a warning on any rung that does not beat black.
+pub fn ladder_line(label: &str, o: &RunOutcome) -> String {
+    let rungs = [
+        ("L0 window", &o.window_fit, &o.black_window),
+        ("L0 seen", &o.seen, &o.black_seen),
+        ("L1 held-out", &o.held_out, &o.black_held_out),
+        ("L2 eval", &o.eval, &o.black_eval),
+        ("L2 covered views", &o.eval_covered, &o.black_eval_covered),
+    ];
+    let mut line = format!("{label}: masked PSNR (all-black)");
+    for (name, model, black) in rungs {
+        if model.views == 0 {
+            continue;
+        }
+        let flag = if model.masked_psnr_db <= black.masked_psnr_db {
+            " BELOW BLACK"
+        } else {
+            ""
+        };
+        line.push_str(&format!(
+            "; {name} {:.2} ({:.2}) dB{flag}, full {:.2} ({:.2})",
+            model.masked_psnr_db, black.masked_psnr_db, model.psnr_db, black.psnr_db
+        ));
+    }
+    line
 }
 
 /// The scene box of the target: its vertex bounds grown by 5 % on each side.
@@ -115,6 +168,14 @@ pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
     model.appearance_hidden_width = preset.appearance_hidden_width;
     // `Preset::validate` refuses any other name.
     model.mlp_precision = preset.mlp_precision_kind().unwrap_or_default();
+    model.lr = preset.rates.applied_to(model.lr);
+    model.shadow_gain = preset.shadow_gain;
+    if let Some(interval) = preset.sh_degree_interval {
+        model.sh_degree_interval = interval;
+    }
+    if let Some(from) = preset.densify_from_step {
+        model.densify_from_step = from;
+    }
     OnlineConfig {
         window: WindowConfig {
             capacity: preset.window,
@@ -128,6 +189,8 @@ pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
         // eclipse frames are flagged by the simulator and skipped above.
         skip_unlit: preset.skip_unlit,
         shuffle_seed: preset.seed,
+        replay_capacity: preset.replay_capacity,
+        replay_steps_per_round: preset.replay_steps_per_round,
         // Extra rounds on an unchanged window only when the preset asks for them (the
         // runner counts them per change; the trainer alone would refuse a repeat).
         require_window_change: preset.rounds_per_window_change <= 1 && preset.skip_unchanged_window,
@@ -239,6 +302,9 @@ pub fn run_config(
     // `init = "hull"` with `hull_recarve`: carve with each new keyframe, prune outside.
     let mut hull_pruner = super::ablation_init::HullPruner::for_preset(scene, preset)?;
     for i in 0..scene.frames.len() {
+        if is_held_out(preset, i) {
+            continue;
+        }
         let generation_before = trainer.window().generation();
         trainer.offer(training_frame_with_mask(scene, i, preset.masked_loss))?;
         if let Some(pruner) = hull_pruner.as_mut() {
@@ -307,9 +373,59 @@ pub fn run_config(
     }
     let eval_started = Instant::now();
     let (eval, renders) = evaluate_model(&trainer.trainer().model, scene, keep_renders)?;
-    let seen_frames = seen_views(scene, 20);
-    let (seen, _) = evaluate_views(&trainer.trainer().model, &scene.intrinsics, &seen_frames, 0)?;
+    let offered: Vec<&ViewData> = scene
+        .frames
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !is_held_out(preset, *i))
+        .map(|(_, v)| v)
+        .collect();
+    let seen_frames = seen_views(&offered, 20);
+    let window_ids: Vec<u64> = trainer.window().keyframes().iter().map(|k| k.id).collect();
+    let window_frames: Vec<&ViewData> = scene
+        .frames
+        .iter()
+        .filter(|v| window_ids.contains(&(v.index as u64)))
+        .collect();
+    let held_frames: Vec<&ViewData> = scene
+        .frames
+        .iter()
+        .enumerate()
+        .filter(|(i, v)| is_held_out(preset, *i) && !v.eclipse)
+        .map(|(_, v)| v)
+        .collect();
+    let (window_fit, _) = evaluate_views(
+        &trainer.trainer().model,
+        &scene.intrinsics,
+        &window_frames,
+        0,
+    )?;
+    let (held_out, _) =
+        evaluate_views(&trainer.trainer().model, &scene.intrinsics, &held_frames, 0)?;
+    let trained_dirs: Vec<glam::DVec3> = offered
+        .iter()
+        .filter(|v| !v.eclipse)
+        .map(|v| v.view_dir_target())
+        .collect();
+    let covered: Vec<usize> = scene
+        .eval
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| {
+            let dir = v.view_dir_target();
+            trained_dirs
+                .iter()
+                .any(|t| t.angle_between(dir).to_degrees() <= COVERED_VIEW_DEG)
+        })
+        .map(|(i, _)| i)
+        .collect();
     let black_eval = black_baseline(&scene.intrinsics, &scene.eval)?;
+    let subset = |s: &EvalSummary| summarise(covered.iter().map(|&i| s.per_view[i]).collect());
+    let eval_covered = subset(&eval);
+    let black_eval_covered = subset(&black_eval);
+    let black_window = black_baseline(&scene.intrinsics, window_frames.iter().copied())?;
+    let black_held_out = black_baseline(&scene.intrinsics, held_frames.iter().copied())?;
+    let (seen, _) = evaluate_views(&trainer.trainer().model, &scene.intrinsics, &seen_frames, 0)?;
     let black_seen = black_baseline(&scene.intrinsics, seen_frames.iter().copied())?;
     let eval_s = eval_started.elapsed().as_secs_f64();
     let t = trainer.trainer();
@@ -342,7 +458,14 @@ pub fn run_config(
         seen,
         black_eval,
         black_seen,
+        window_fit,
+        black_window,
+        held_out,
+        black_held_out,
+        eval_covered,
+        black_eval_covered,
     };
+    progress(&ladder_line(&label, &outcome));
     progress(&format!(
         "{label}: PSNR {:.2} dB, SSIM {:.4} (masked {:.2} dB / {:.4}; seen views {:.2} dB, all-black there {:.2} dB; all-black {:.2} dB), {} Gaussians, {} rounds, {} steps, train {:.0} s ({:.1} ms/step), eval {:.0} s",
         outcome.eval.psnr_db,

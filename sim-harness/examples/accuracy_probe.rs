@@ -1,0 +1,254 @@
+//! The accuracy work's measuring tool, on the demo's scenario and preset (with overrides):
+//! - default: the offline reference, the same model trained on all lit frames at once (a
+//!   random frame per step, one long schedule, densifying in the first half), masked PSNR on
+//!   those frames as it goes: what the representation can fit without the online procedure;
+//! - `--online 1`: the online procedure (`experiment::runner::run_config`), its ladder line;
+//! - `--noise-ref SPP`: the ground truth's own Monte Carlo noise, masked PSNR of the frames
+//!   at the preset's samples per pixel against the same frames at SPP (the ceiling any model
+//!   scored against that ground truth meets).
+//!
+//! `docs/results/accuracy.md` shows what it measured.
+
+const USAGE: &str = "accuracy_probe: the accuracy ladder's measurements on the demo scenario
+
+usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
+  --config a|b|c|d     configuration (default a)
+  --tumble DEG_S       target tumble rate (default: the scenario's; 0: a static target)
+  --spp N              ray-tracing samples per pixel (default: the preset's)
+  --earth F            Earth-albedo fill (default: the preset's)
+  --extra TOML         preset lines appended to the demo preset (\\n for new lines)
+  --max-gaussians N    densification cap
+  --steps N            offline steps (default 3000)
+  --densify-every N    offline: densify every N steps in the first half (default 100)
+  --masked 1           offline: masked loss
+  --png PATH           offline: truth | render for four training frames
+  --png-eval 1         offline: the figure shows evaluation views instead
+  --online 1           run the online procedure instead (--rounds R, --window W)
+  --noise-ref SPP      measure the ground truth's noise against SPP samples per pixel";
+
+use gs_core::sunaware::trainer::Observation;
+use gs_core::sunaware::Variant;
+use sim_harness::experiment::data::render_scene;
+use sim_harness::experiment::demo::DEMO_PRESET;
+use sim_harness::experiment::evaluate::{black_baseline, camera_of, evaluate_views, sun_of};
+use sim_harness::experiment::preset::Preset;
+use sim_harness::experiment::runner::{online_config, scene_box, try_initialisation};
+use sim_harness::scenario::Scenario;
+
+fn arg(name: &str) -> Option<String> {
+    let args: Vec<String> = std::env::args().collect();
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1).cloned())
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    if std::env::args().any(|a| a == "--help" || a == "-h") {
+        println!("{USAGE}\n\n{}", gs_core::fpmode::ENV_HELP);
+        return Ok(());
+    }
+    gs_core::heap::retain_freed_memory();
+    gs_core::fpmode::init_from_env(None)?;
+    let steps: u64 = arg("--steps").map_or(Ok(3000), |s| s.parse())?;
+    let variant: Variant = arg("--config").unwrap_or("a".into()).parse()?;
+    let masked = arg("--masked").is_some_and(|s| s == "1");
+    let extra = arg("--extra").unwrap_or_default().replace("\\n", "\n");
+    let mut preset = Preset::from_toml_str(&format!("{DEMO_PRESET}\n{extra}\n"), "demo")?;
+    let mut scenario = preset.apply(&Scenario::from_toml_str(
+        sim_harness::experiment::demo::DEMO_SCENARIO,
+        std::path::Path::new("."),
+    )?)?;
+    if let Some(rate) = arg("--tumble") {
+        scenario.attitude.tumble_rate_deg_s = rate.parse()?;
+    }
+    if let Some(spp) = arg("--spp") {
+        scenario.render.samples_per_pixel = spp.parse()?;
+    }
+    if let Some(e) = arg("--earth") {
+        scenario.render.earth_albedo = e.parse()?;
+    }
+    let spp = scenario.render.samples_per_pixel;
+    if let Some(m) = arg("--max-gaussians") {
+        preset.max_gaussians = m.parse()?;
+    }
+    let scene = render_scene(&scenario, preset.init_points as usize, &mut |m| {
+        eprintln!("{m}")
+    })?;
+    if let Some(ref_spp) = arg("--noise-ref") {
+        let mut reference = scenario.clone();
+        reference.render.samples_per_pixel = ref_spp.parse()?;
+        let ref_scene = render_scene(&reference, 10, &mut |m| eprintln!("{m}"))?;
+        let shape = gs_core::loss::ImageShape::new(
+            scene.intrinsics.width as usize,
+            scene.intrinsics.height as usize,
+            3,
+        );
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for (a, b) in scene.frames.iter().zip(&ref_scene.frames) {
+            if a.eclipse {
+                continue;
+            }
+            let mask = b.mask_f32();
+            let p = gs_core::sunaware::trainer::masked_psnr(
+                &a.rgb_f32(),
+                &b.rgb_f32(),
+                Some(&mask),
+                shape,
+            )?;
+            sum += p as f64;
+            n += 1;
+        }
+        eprintln!(
+            "ground truth at {spp} spp against {ref_spp} spp: masked PSNR {:.2} dB over {n} lit frames",
+            sum / n as f64
+        );
+        return Ok(());
+    }
+    if arg("--online").is_some_and(|s| s == "1") {
+        if let Some(r) = arg("--rounds") {
+            preset.rounds_per_window_change = r.parse()?;
+        }
+        if let Some(w) = arg("--window") {
+            preset.window = w.parse()?;
+        }
+        let (o, trainer) =
+            sim_harness::experiment::runner::run_config(&scene, &preset, variant, 0, &mut |m| {
+                eprintln!("{m}")
+            })?;
+        eprintln!(
+            "{} | {} steps {:.0} s",
+            sim_harness::experiment::runner::ladder_line(&format!("online {variant}"), &o),
+            o.steps,
+            o.train_s
+        );
+        // L2 per view against how far its Sun and viewpoint are from every trained frame's.
+        let trained: Vec<&sim_harness::experiment::data::ViewData> = scene
+            .frames
+            .iter()
+            .enumerate()
+            .filter(|(i, v)| {
+                !v.eclipse && !sim_harness::experiment::runner::is_held_out(&preset, *i)
+            })
+            .map(|(_, v)| v)
+            .collect();
+        let nearest_deg =
+            |a: glam::DVec3,
+             f: &dyn Fn(&sim_harness::experiment::data::ViewData) -> glam::DVec3| {
+                trained
+                    .iter()
+                    .map(|v| a.angle_between(f(v)).to_degrees())
+                    .fold(f64::INFINITY, f64::min)
+            };
+        let black = black_baseline(&scene.intrinsics, scene.eval.iter())?;
+        for (view, (m, b)) in scene
+            .eval
+            .iter()
+            .zip(o.eval.per_view.iter().zip(&black.per_view))
+        {
+            eprintln!(
+                "eval view {:3}: masked {:6.2} dB (black {:6.2}); nearest trained Sun {:5.1} deg, view {:5.1} deg",
+                view.index,
+                m.masked_psnr_db,
+                b.masked_psnr_db,
+                nearest_deg(view.sun_dir_target, &|v| v.sun_dir_target),
+                nearest_deg(view.view_dir_target(), &|v| v.view_dir_target()),
+            );
+        }
+        let _ = trainer;
+        return Ok(());
+    }
+    let mut online = fsw_component::online::OnlineTrainer::new(
+        online_config(&preset, variant),
+        &try_initialisation(&scene, &preset)?,
+        scene_box(&scene)?,
+    )?;
+    let lit: Vec<usize> = (0..scene.frames.len())
+        .filter(|&i| !scene.frames[i].eclipse)
+        .collect();
+    let views: Vec<_> = lit.iter().map(|&i| &scene.frames[i]).collect();
+    let black = black_baseline(&scene.intrinsics, views.iter().copied())?;
+    eprintln!(
+        "{} lit frames, black masked {:.2} dB full {:.2} dB",
+        lit.len(),
+        black.masked_psnr_db,
+        black.psnr_db
+    );
+    let images: Vec<Vec<f32>> = views.iter().map(|v| v.rgb_f32()).collect();
+    let masks: Vec<Vec<f32>> = views.iter().map(|v| v.mask_f32()).collect();
+    let densify_every = arg("--densify-every").map_or(Ok(100u64), |s| s.parse())?;
+    let mut rng = 12345u64;
+    let t = online.trainer_mut();
+    for step in 0..steps {
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let k = ((rng >> 33) as usize) % views.len();
+        let obs = Observation {
+            camera: camera_of(&scene.intrinsics, views[k]),
+            sun_dir: sun_of(views[k]),
+            image: &images[k],
+            mask: masked.then_some(&masks[k][..]),
+        };
+        let progress = step as f32 / steps as f32;
+        t.step(&obs, progress)?;
+        if (step + 1) % densify_every == 0 && step < steps / 2 {
+            let r = t.densify_and_prune()?;
+            let _ = r;
+        }
+        if (step + 1) % (steps / 6).max(1) == 0 {
+            let (s, _) = evaluate_views(&t.model, &scene.intrinsics, &views, 0)?;
+            eprintln!(
+                "step {}: seen masked {:.2} dB full {:.2} dB, {} Gaussians",
+                step + 1,
+                s.masked_psnr_db,
+                s.psnr_db,
+                t.model.len()
+            );
+        }
+    }
+    let eval_views: Vec<_> = scene.eval.iter().collect();
+    let (e, _) = evaluate_views(&t.model, &scene.intrinsics, &eval_views, 0)?;
+    let black_eval = black_baseline(&scene.intrinsics, eval_views.iter().copied())?;
+    eprintln!(
+        "offline reference: evaluation views masked {:.2} dB (black {:.2}), full {:.2} dB (black {:.2})",
+        e.masked_psnr_db, black_eval.masked_psnr_db, e.psnr_db, black_eval.psnr_db
+    );
+    let use_eval = arg("--png-eval").is_some_and(|s| s == "1");
+    let views = if use_eval { eval_views } else { views };
+    if let Some(png) = arg("--png") {
+        let (w, h) = (
+            scene.intrinsics.width as usize,
+            scene.intrinsics.height as usize,
+        );
+        let picks: Vec<usize> = (0..4).map(|i| i * views.len() / 4).collect();
+        let mut out = vec![0u8; 3 * (2 * w) * (h * picks.len())];
+        for (row, &k) in picks.iter().enumerate() {
+            let render = t
+                .model
+                .render(&camera_of(&scene.intrinsics, views[k]), sun_of(views[k]))?
+                .image;
+            let render8 = sim_harness::experiment::evaluate::to_rgb8(&render);
+            for y in 0..h {
+                for x in 0..w {
+                    let dst = 3 * ((row * h + y) * 2 * w + x);
+                    let src = 3 * (y * w + x);
+                    out[dst..dst + 3].copy_from_slice(&views[k].rgb8[src..src + 3]);
+                    out[dst + 3 * w..dst + 3 * w + 3].copy_from_slice(&render8[src..src + 3]);
+                }
+            }
+        }
+        let up = sim_harness::experiment::figure::upscale_rgb(
+            (2 * w) as u32,
+            (h * picks.len()) as u32,
+            &out,
+            3,
+        );
+        sim_harness::dataset::files::write_png_rgb(
+            std::path::Path::new(&png),
+            (6 * w) as u32,
+            (3 * h * picks.len()) as u32,
+            &up,
+        )?;
+    }
+    Ok(())
+}
