@@ -684,3 +684,20 @@ fn a_resident_sort_overflow_is_redone() {
     assert_eq!(a_near.loss.to_bits(), b_near.loss.to_bits());
     assert_eq!(a_near.visible, b_near.visible);
 }
+
+#[test]
+fn a_shadow_gain_the_device_lacks_is_refused_with_a_clear_error() {
+    let Some(backend) = gpu_backend() else {
+        return;
+    };
+    let (mut model, _) = setup(Variant::D, 1);
+    model.config.shadow_gain = 2.0;
+    let err = model.set_backend(&backend).unwrap_err().to_string();
+    assert!(err.contains("shadow_gain"), "{err}");
+    // Gain 1 (the default) runs on the device; a model without shadows ignores the gain.
+    model.config.shadow_gain = 1.0;
+    model.set_backend(&backend).unwrap();
+    let (mut plain, _) = setup(Variant::B, 1);
+    plain.config.shadow_gain = 2.0;
+    plain.set_backend(&backend).unwrap();
+}

@@ -12,6 +12,7 @@
 const USAGE: &str = "accuracy_probe: the accuracy ladder's measurements on the demo scenario
 
 usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
+  --scenario PATH      a scenario file instead of the demo's (the demo's preset still applies)
   --config a|b|c|d     configuration (default a)
   --tumble DEG_S       target tumble rate (default: the scenario's; 0: a static target)
   --spp N              ray-tracing samples per pixel (default: the preset's)
@@ -54,10 +55,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let masked = arg("--masked").is_some_and(|s| s == "1");
     let extra = arg("--extra").unwrap_or_default().replace("\\n", "\n");
     let mut preset = Preset::from_toml_str(&format!("{DEMO_PRESET}\n{extra}\n"), "demo")?;
-    let mut scenario = preset.apply(&Scenario::from_toml_str(
-        sim_harness::experiment::demo::DEMO_SCENARIO,
-        std::path::Path::new("."),
-    )?)?;
+    let base = match arg("--scenario") {
+        Some(path) => Scenario::load(std::path::Path::new(&path))?,
+        None => Scenario::from_toml_str(
+            sim_harness::experiment::demo::DEMO_SCENARIO,
+            std::path::Path::new("."),
+        )?,
+    };
+    let mut scenario = preset.apply(&base)?;
     if let Some(rate) = arg("--tumble") {
         scenario.attitude.tumble_rate_deg_s = rate.parse()?;
     }

@@ -110,3 +110,35 @@ fn file_without_faces_is_an_error() {
     std::fs::remove_dir_all(&dir).unwrap();
     assert!(err.to_string().contains("no faces"), "{err}");
 }
+
+#[test]
+fn relay_satellite_loads_with_every_part_on_a_preset_material() {
+    // The accuracy ladder's fourth target (config/scenarios/relay.toml).
+    let mesh = load_obj(&asset("relay_sat.obj")).unwrap();
+    // Every triangle names one of the five presets (none fell back to the default).
+    let mut used: Vec<&str> = mesh
+        .material_of_triangle()
+        .iter()
+        .map(|&m| mesh.materials()[m as usize].name.as_str())
+        .collect();
+    used.sort_unstable();
+    used.dedup();
+    assert_eq!(
+        used,
+        [
+            "aluminium",
+            "gold_mli",
+            "silver_mli",
+            "solar_cell",
+            "white_paint"
+        ]
+    );
+    // The wing reaches 6.8 m along +y: the bounding sphere is that of the whole craft.
+    let max_y = mesh
+        .vertices_m()
+        .iter()
+        .map(|v| v.y)
+        .fold(f32::MIN, f32::max);
+    assert!((max_y - 6.8).abs() < 1e-3, "{max_y}");
+    assert!(mesh.bounding_radius_m() > 3.0);
+}
