@@ -31,7 +31,9 @@ use gs_core::sunaware::trainer::Observation;
 use gs_core::sunaware::Variant;
 use sim_harness::experiment::data::render_scene;
 use sim_harness::experiment::demo::DEMO_PRESET;
-use sim_harness::experiment::evaluate::{black_baseline, camera_of, evaluate_views, sun_of};
+use sim_harness::experiment::evaluate::{
+    black_baseline, camera_of, evaluate_views, nearest_angle_deg, sun_of,
+};
 use sim_harness::experiment::preset::Preset;
 use sim_harness::experiment::runner::{online_config, scene_box, try_initialisation};
 use sim_harness::scenario::Scenario;
@@ -116,7 +118,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some(w) = arg("--window") {
             preset.window = w.parse()?;
         }
-        let (o, trainer) =
+        let (o, _) =
             sim_harness::experiment::runner::run_config(&scene, &preset, variant, 0, &mut |m| {
                 eprintln!("{m}")
             })?;
@@ -127,39 +129,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             o.train_s
         );
         // L2 per view against how far its Sun and viewpoint are from every trained frame's.
-        let trained: Vec<&sim_harness::experiment::data::ViewData> = scene
-            .frames
-            .iter()
-            .enumerate()
-            .filter(|(i, v)| {
-                !v.eclipse && !sim_harness::experiment::runner::is_held_out(&preset, *i)
-            })
-            .map(|(_, v)| v)
-            .collect();
-        let nearest_deg =
-            |a: glam::DVec3,
-             f: &dyn Fn(&sim_harness::experiment::data::ViewData) -> glam::DVec3| {
-                trained
-                    .iter()
-                    .map(|v| a.angle_between(f(v)).to_degrees())
-                    .fold(f64::INFINITY, f64::min)
-            };
-        let black = black_baseline(&scene.intrinsics, scene.eval.iter())?;
+        let trained = sim_harness::experiment::runner::trained_frames(&scene, &preset);
+        let suns: Vec<glam::DVec3> = trained.iter().map(|v| v.sun_dir_target).collect();
+        let dirs: Vec<glam::DVec3> = trained.iter().map(|v| v.view_dir_target()).collect();
         for (view, (m, b)) in scene
             .eval
             .iter()
-            .zip(o.eval.per_view.iter().zip(&black.per_view))
+            .zip(o.eval.per_view.iter().zip(&o.black_eval.per_view))
         {
             eprintln!(
                 "eval view {:3}: masked {:6.2} dB (black {:6.2}); nearest trained Sun {:5.1} deg, view {:5.1} deg",
                 view.index,
                 m.masked_psnr_db,
                 b.masked_psnr_db,
-                nearest_deg(view.sun_dir_target, &|v| v.sun_dir_target),
-                nearest_deg(view.view_dir_target(), &|v| v.view_dir_target()),
+                nearest_angle_deg(view.sun_dir_target, &suns),
+                nearest_angle_deg(view.view_dir_target(), &dirs),
             );
         }
-        let _ = trainer;
         return Ok(());
     }
     let mut online = fsw_component::online::OnlineTrainer::new(

@@ -155,6 +155,25 @@ pub fn evaluate_views(
     Ok((summarise(per_view), kept))
 }
 
+/// Scores of `model` on `views` (no renders kept) and of an all-black render on the same
+/// views: one rung of the accuracy ladder.
+pub fn score_with_black(
+    model: &SunAwareModel,
+    k: &SceneIntrinsics,
+    views: &[&ViewData],
+) -> Result<(EvalSummary, EvalSummary), SunAwareError> {
+    let (scores, _) = evaluate_views(model, k, views, 0)?;
+    Ok((scores, black_baseline(k, views.iter().copied())?))
+}
+
+/// The smallest angle between `dir` and any of `among`, degrees (infinite when empty).
+pub fn nearest_angle_deg(dir: glam::DVec3, among: &[glam::DVec3]) -> f64 {
+    among
+        .iter()
+        .map(|a| a.angle_between(dir).to_degrees())
+        .fold(f64::INFINITY, f64::min)
+}
+
 /// Scores of an all-black render on `views`: the floor any useful model must beat (the
 /// background is black, so this measures how much of the frame the target covers).
 pub fn black_baseline<'a>(

@@ -9,7 +9,7 @@
 
 use crate::scenario::{Scenario, ScenarioError};
 use gs_core::nn::MatmulPrecision;
-use gs_core::sunaware::{BackendKind, SunAwareError, SunAwareRates};
+use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, SunAwareRates, Variant};
 use serde::Deserialize;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -211,33 +211,6 @@ impl RateOverrides {
             shadow_mlp: pick(self.shadow_mlp, base.shadow_mlp),
         }
     }
-
-    /// Every named rate finite and >= 0; the error names the rate.
-    fn validate(&self) -> Result<(), PresetError> {
-        let named = [
-            ("position_init", self.position_init),
-            ("position_final", self.position_final),
-            ("sh_dc", self.sh_dc),
-            ("sh_rest", self.sh_rest),
-            ("opacity", self.opacity),
-            ("scale", self.scale),
-            ("rotation", self.rotation),
-            ("feature", self.feature),
-            ("shadow_latent", self.shadow_latent),
-            ("appearance_mlp", self.appearance_mlp),
-            ("shadow_mlp", self.shadow_mlp),
-        ];
-        for (name, value) in named {
-            if let Some(v) = value {
-                if !(v.is_finite() && v >= 0.0) {
-                    return Err(PresetError::Invalid(format!(
-                        "rates.{name} {v} must be finite and >= 0"
-                    )));
-                }
-            }
-        }
-        Ok(())
-    }
 }
 
 impl Default for Preset {
@@ -336,6 +309,33 @@ impl Preset {
         Preset::from_toml_str(&text, &path.display().to_string())
     }
 
+    /// gs-core's model settings for `variant` under this preset (the training loop's
+    /// settings are `experiment::runner::online_config`).
+    pub fn model_config(&self, variant: Variant) -> SunAwareConfig {
+        let mut model = SunAwareConfig::for_variant(variant);
+        model.max_gaussians = self.max_gaussians;
+        model.light.resolution_px = self.light_resolution_px;
+        model.seed = self.seed;
+        model.feature_dim = self.feature_dim;
+        model.encoding_frequencies = self.encoding_frequencies;
+        model.skip_noncontributing_in_mlp = self.skip_noncontributing_in_mlp;
+        model.cull_outside_frustum = self.cull_outside_frustum;
+        model.early_termination = self.early_termination;
+        model.skip_masked_background_tiles = self.skip_masked_background_tiles;
+        model.appearance_hidden_width = self.appearance_hidden_width;
+        // `validate` refuses any other name.
+        model.mlp_precision = self.mlp_precision_kind().unwrap_or_default();
+        model.lr = self.rates.applied_to(model.lr);
+        model.shadow_gain = self.shadow_gain;
+        if let Some(interval) = self.sh_degree_interval {
+            model.sh_degree_interval = interval;
+        }
+        if let Some(from) = self.densify_from_step {
+            model.densify_from_step = from;
+        }
+        model
+    }
+
     /// The backend named by `backend`, checked against this build (`wgpu` needs the cargo
     /// feature; whether an adapter exists is found when a run opens it).
     pub fn backend_kind(&self) -> Result<BackendKind, PresetError> {
@@ -362,10 +362,6 @@ impl Preset {
     /// Checks every value; the error names the field.
     pub fn validate(&self) -> Result<(), PresetError> {
         let bad = |m: String| Err(PresetError::Invalid(m));
-        self.rates.validate()?;
-        if self.sh_degree_interval == Some(0) {
-            return bad("sh_degree_interval must be positive".into());
-        }
         if self.downsample == 0 || self.downsample > 64 {
             return bad(format!("downsample {} is outside 1..=64", self.downsample));
         }
@@ -461,6 +457,11 @@ impl Preset {
                 ));
             }
         }
+        // The model's own checks (rates, shadow gain, SH interval, ...), before any
+        // rendering; the variant does not change which settings are valid here.
+        self.model_config(Variant::D)
+            .validate()
+            .map_err(|e| PresetError::Invalid(format!("model settings: {e}")))?;
         Ok(())
     }
 
@@ -516,6 +517,43 @@ mod tests {
         let k = s.camera_intrinsics();
         assert_eq!((k.width, k.height, paper.window), (960, 600, 10));
         assert_eq!(s.frame_count(), 5764);
+    }
+
+    /// The accuracy knobs reach the model; bad values are refused when the preset loads,
+    /// by gs-core's own checks, with the setting named.
+    #[test]
+    fn accuracy_knobs_reach_the_model_and_bad_values_are_refused_at_load() {
+        let text = "shadow_gain = 2.0\nsh_degree_interval = 100\nearth_albedo = 0.0\n\
+                    [rates]\nsh_dc = 0.01\nopacity = 0.05\n";
+        let p = Preset::from_toml_str(text, "t.toml").unwrap();
+        let m = p.model_config(Variant::D);
+        let base = SunAwareConfig::for_variant(Variant::D);
+        assert_eq!((m.shadow_gain, m.sh_degree_interval), (2.0, 100));
+        assert_eq!((m.lr.sh_dc, m.lr.opacity), (0.01, 0.05));
+        assert_eq!(
+            m.lr.feature, base.lr.feature,
+            "unnamed rates keep the default"
+        );
+        assert_eq!(
+            p.apply(&Scenario::default()).unwrap().render.earth_albedo,
+            0.0
+        );
+        for (text, named) in [
+            ("[rates]\nsh_dc = -0.01\n", "sh_dc"),
+            ("[rates]\nfeature = nan\n", "feature"),
+            ("sh_degree_interval = 0\n", "sh_degree_interval"),
+            ("shadow_gain = 0.0\n", "shadow_gain"),
+            ("shadow_gain = inf\n", "shadow_gain"),
+        ] {
+            let e = Preset::from_toml_str(text, "t.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(named), "{text:?}: {e}");
+        }
+        let e = Preset::from_toml_str("[rates]\nsh_cd = 0.01\n", "t.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("sh_cd"), "unknown rate: {e}");
     }
 
     /// The knobs of the rasterizer skips, the masked loss and the networks parse, default

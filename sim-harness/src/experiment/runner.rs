@@ -14,16 +14,16 @@
 
 use super::data::{SceneData, ViewData};
 use super::evaluate::{
-    black_baseline, camera_of, evaluate_model, evaluate_views, seen_views, summarise, sun_of,
-    EvalSummary,
+    black_baseline, camera_of, evaluate_model, nearest_angle_deg, score_with_black, seen_views,
+    summarise, sun_of, EvalSummary,
 };
 use super::preset::{InitKind, Preset};
 use crate::raytrace::linear_to_srgb8;
 use fsw_component::keyframe::WindowConfig;
 use fsw_component::online::{Frame, Initialisation, OnlineConfig, OnlineError, OnlineTrainer};
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 use gs_core::nn::SceneBox;
-use gs_core::sunaware::{BackendKind, SunAwareConfig, Variant};
+use gs_core::sunaware::{BackendKind, Variant};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -110,6 +110,17 @@ pub fn is_held_out(preset: &Preset, i: usize) -> bool {
     every > 0 && i % every == every - 1
 }
 
+/// The lit sequence frames training received (none withheld for L1), in time order.
+pub fn trained_frames<'a>(scene: &'a SceneData, preset: &Preset) -> Vec<&'a ViewData> {
+    scene
+        .frames
+        .iter()
+        .enumerate()
+        .filter(|(i, v)| !is_held_out(preset, *i) && !v.eclipse)
+        .map(|(_, v)| v)
+        .collect()
+}
+
 /// One line with the accuracy ladder, masked PSNR first (the target's own pixels), each
 /// rung beside its all-black score, and a warning on any rung that does not beat black.
 pub fn ladder_line(label: &str, o: &RunOutcome) -> String {
@@ -155,27 +166,7 @@ pub fn scene_box(scene: &SceneData) -> Result<SceneBox, OnlineError> {
 
 /// The online trainer's settings for `variant` under `preset`.
 pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
-    let mut model = SunAwareConfig::for_variant(variant);
-    model.max_gaussians = preset.max_gaussians;
-    model.light.resolution_px = preset.light_resolution_px;
-    model.seed = preset.seed;
-    model.feature_dim = preset.feature_dim;
-    model.encoding_frequencies = preset.encoding_frequencies;
-    model.skip_noncontributing_in_mlp = preset.skip_noncontributing_in_mlp;
-    model.cull_outside_frustum = preset.cull_outside_frustum;
-    model.early_termination = preset.early_termination;
-    model.skip_masked_background_tiles = preset.skip_masked_background_tiles;
-    model.appearance_hidden_width = preset.appearance_hidden_width;
-    // `Preset::validate` refuses any other name.
-    model.mlp_precision = preset.mlp_precision_kind().unwrap_or_default();
-    model.lr = preset.rates.applied_to(model.lr);
-    model.shadow_gain = preset.shadow_gain;
-    if let Some(interval) = preset.sh_degree_interval {
-        model.sh_degree_interval = interval;
-    }
-    if let Some(from) = preset.densify_from_step {
-        model.densify_from_step = from;
-    }
+    let model = preset.model_config(variant);
     OnlineConfig {
         window: WindowConfig {
             capacity: preset.window,
@@ -373,14 +364,10 @@ pub fn run_config(
     }
     let eval_started = Instant::now();
     let (eval, renders) = evaluate_model(&trainer.trainer().model, scene, keep_renders)?;
-    let offered: Vec<&ViewData> = scene
-        .frames
-        .iter()
-        .enumerate()
-        .filter(|(i, _)| !is_held_out(preset, *i))
-        .map(|(_, v)| v)
-        .collect();
-    let seen_frames = seen_views(&offered, 20);
+    let model = &trainer.trainer().model;
+    let k = &scene.intrinsics;
+    let trained = trained_frames(scene, preset);
+    let seen_frames = seen_views(&trained, 20);
     let window_ids: Vec<u64> = trainer.window().keyframes().iter().map(|k| k.id).collect();
     let window_frames: Vec<&ViewData> = scene
         .frames
@@ -394,39 +381,19 @@ pub fn run_config(
         .filter(|(i, v)| is_held_out(preset, *i) && !v.eclipse)
         .map(|(_, v)| v)
         .collect();
-    let (window_fit, _) = evaluate_views(
-        &trainer.trainer().model,
-        &scene.intrinsics,
-        &window_frames,
-        0,
-    )?;
-    let (held_out, _) =
-        evaluate_views(&trainer.trainer().model, &scene.intrinsics, &held_frames, 0)?;
-    let trained_dirs: Vec<glam::DVec3> = offered
-        .iter()
-        .filter(|v| !v.eclipse)
-        .map(|v| v.view_dir_target())
-        .collect();
-    let covered: Vec<usize> = scene
-        .eval
-        .iter()
-        .enumerate()
-        .filter(|(_, v)| {
-            let dir = v.view_dir_target();
-            trained_dirs
-                .iter()
-                .any(|t| t.angle_between(dir).to_degrees() <= COVERED_VIEW_DEG)
+    let (window_fit, black_window) = score_with_black(model, k, &window_frames)?;
+    let (held_out, black_held_out) = score_with_black(model, k, &held_frames)?;
+    let (seen, black_seen) = score_with_black(model, k, &seen_frames)?;
+    let trained_dirs: Vec<DVec3> = trained.iter().map(|v| v.view_dir_target()).collect();
+    let covered: Vec<usize> = (0..scene.eval.len())
+        .filter(|&i| {
+            nearest_angle_deg(scene.eval[i].view_dir_target(), &trained_dirs) <= COVERED_VIEW_DEG
         })
-        .map(|(i, _)| i)
         .collect();
-    let black_eval = black_baseline(&scene.intrinsics, &scene.eval)?;
+    let black_eval = black_baseline(k, &scene.eval)?;
     let subset = |s: &EvalSummary| summarise(covered.iter().map(|&i| s.per_view[i]).collect());
     let eval_covered = subset(&eval);
     let black_eval_covered = subset(&black_eval);
-    let black_window = black_baseline(&scene.intrinsics, window_frames.iter().copied())?;
-    let black_held_out = black_baseline(&scene.intrinsics, held_frames.iter().copied())?;
-    let (seen, _) = evaluate_views(&trainer.trainer().model, &scene.intrinsics, &seen_frames, 0)?;
-    let black_seen = black_baseline(&scene.intrinsics, seen_frames.iter().copied())?;
     let eval_s = eval_started.elapsed().as_secs_f64();
     let t = trainer.trainer();
     let counters = trainer.counters();
