@@ -146,6 +146,7 @@ mod tests {
             time_us: 5,
             sun_body: [0.0, 0.6, 0.8],
             valid: true,
+            eclipse: None,
         };
         let mut udp = UdpFramer::default();
         let mut rx: CcsdsReassembler<Vec<u8>, 2> = CcsdsReassembler::new(vec![0; 2 * 256]);
@@ -179,6 +180,7 @@ mod tests {
             time_us: 5,
             sun_body: [f32::NAN, 0.0, 1.0],
             valid: true,
+            eclipse: None,
         };
         assert!(matches!(
             UdpFramer::default().datagrams(&bad),

@@ -6,6 +6,7 @@
 //! offending key; [`ComponentConfig::load`] reads, parses and validates in one step.
 //! Quaternions are written `[w, x, y, z]` like the bus messages.
 
+use crate::hull_start::ModelSettings;
 use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use crate::sync::SyncConfig;
 use glam::DQuat;
@@ -33,6 +34,7 @@ pub struct ComponentConfig {
     pub camera: CameraConfig,
     pub sync: SyncSettings,
     pub training: TrainingConfig,
+    pub model: ModelSettings,
     pub checkpoint: CheckpointConfig,
     pub queues: QueueConfig,
 }
@@ -78,6 +80,18 @@ pub struct UdpConfig {
 pub struct CameraConfig {
     /// Camera mounting: rotation taking servicer-body vectors to camera-frame vectors, [w, x, y, z].
     pub camera_from_body_wxyz: [f64; 4],
+    /// Image size the camera delivers, pixels. A frame without its own camera model
+    /// (`CameraFrame` 1.0) must have exactly this size (`crate::camera`).
+    pub width_px: u16,
+    pub height_px: u16,
+    /// Focal lengths, pixels.
+    pub fx_px: f32,
+    pub fy_px: f32,
+    /// Principal point, pixels from the image's top-left corner (pixel centres at +0.5).
+    pub cx_px: f32,
+    pub cy_px: f32,
+    /// Lens distortion: only "none" (the camera sends undistorted images).
+    pub distortion: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -195,8 +209,16 @@ impl Default for UdpConfig {
 
 impl Default for CameraConfig {
     fn default() -> Self {
+        // SPEED's camera (Tango mission): 1920x1200 px, f = 3003.41 px, centred.
         Self {
             camera_from_body_wxyz: [1.0, 0.0, 0.0, 0.0],
+            width_px: 1920,
+            height_px: 1200,
+            fx_px: 3003.41,
+            fy_px: 3003.41,
+            cx_px: 960.0,
+            cy_px: 600.0,
+            distortion: "none".to_string(),
         }
     }
 }
@@ -367,6 +389,8 @@ impl ComponentConfig {
             }
         }
         self.sync_config()?;
+        self.camera_intrinsics()?;
+        self.model.validate()?;
         self.window_config()?;
         self.variant()?;
         if !(1..=MAX_PASSES_PER_ROUND).contains(&self.training.passes_per_round) {
@@ -683,6 +707,17 @@ mod tests {
             "checkpoint.path"
         );
         assert_eq!(invalid_key("[queues]\ncommands = 0\n"), "queues.commands");
+        for (text, key) in [
+            ("[camera]\nwidth_px = 0\n", "camera.width_px"),
+            ("[camera]\nfy_px = -1.0\n", "camera.fy_px"),
+            ("[camera]\ncx_px = 1921.0\n", "camera.cx_px"),
+            ("[camera]\ncy_px = nan\n", "camera.cy_px"),
+            ("[camera]\ndistortion = \"brown\"\n", "camera.distortion"),
+            ("[model]\ninit = \"surface\"\n", "model.init"),
+            ("[model]\nhull_resolution = 1000\n", "model.hull_resolution"),
+        ] {
+            assert_eq!(invalid_key(text), key, "{text}");
+        }
         let message = parse("[node]\nnode_id = 128\n").unwrap_err().to_string();
         assert_eq!(
             message,

@@ -11,11 +11,16 @@
 //! in the reassembler/synchronizer counters; a frame waits for the telemetry sample after
 //! its time tag at most `max_wait_us` and at most `pending_capacity` frames wait; error
 //! events are rate-limited to one per error code per second (with the count in `detail`).
+//! Every frame that goes on to the trainer carries the intrinsics it is used with
+//! (`crate::camera`'s rule); a frame whose size disagrees with the configured camera and
+//! that carries no camera model of its own is counted and evented, never trained on.
 
+use crate::camera;
 use crate::learner::{ObservedFrame, ViewRequest};
 use crate::sync::{PoseSample, SunSample, SyncError, Synchronizer, WaitPolicy};
 use crate::worker::{CommandJob, FrameJob, FrameUse, ModelCommand, WorkerShared};
 use glam::{DQuat, DVec3};
+use gs_core::Intrinsics;
 use interfaces::ccsds::{CcsdsReassembler, CcsdsRxError};
 use interfaces::cyphal::{CanReassembler, CanRxError};
 use interfaces::messages::{
@@ -47,6 +52,8 @@ pub struct CoreSettings {
     pub max_wait_us: u64,
     pub pending_capacity: usize,
     pub initial_mode: Mode,
+    /// The configured camera (`[camera]`), for frames without their own camera model.
+    pub camera: Intrinsics,
 }
 
 /// Counters kept by the bus core (the reassemblers and the synchronizer keep their own).
@@ -56,6 +63,8 @@ pub struct BusCounters {
     pub frames_received: u64,
     /// Frames not processed because the mode is Idle.
     pub frames_ignored_idle: u64,
+    /// Frames without a camera model whose size is not the configured camera's.
+    pub frames_camera_mismatch: u64,
     /// Messages whose bytes failed to decode or validate (per port).
     pub sun_decode_errors: u64,
     pub pose_decode_errors: u64,
@@ -102,6 +111,7 @@ struct OwnedFrame {
     format: interfaces::messages::PixelFormat,
     pixels: Vec<u8>,
     mask: Option<Vec<u8>>,
+    camera: Intrinsics,
 }
 
 pub struct BusCore {
@@ -114,11 +124,11 @@ pub struct BusCore {
     counters: BusCounters,
     worker: Arc<WorkerShared>,
     outbox: Vec<Outgoing>,
-    last_error_event_us: [Option<u64>; 11],
-    suppressed_errors: [u32; 11],
+    last_error_event_us: [Option<u64>; ErrorCode::COUNT],
+    suppressed_errors: [u32; ErrorCode::COUNT],
     now_us: u64,
-    /// Width, height and format for RENDER: the last valid camera frame's.
-    render_size: (u16, u16, interfaces::messages::PixelFormat),
+    /// Intrinsics (with the size) and format for RENDER: the last accepted camera frame's.
+    render_camera: (Intrinsics, interfaces::messages::PixelFormat),
 }
 
 /// Health figures the core cannot know itself.
@@ -143,6 +153,10 @@ impl BusCore {
         worker: Arc<WorkerShared>,
     ) -> Result<Self, crate::sync::SyncConfigError> {
         let sync = Synchronizer::new(settings.sync)?;
+        let render_camera = (
+            camera::render_default(&settings.camera),
+            interfaces::messages::PixelFormat::Rgb8,
+        );
         Ok(Self {
             mode: settings.initial_mode,
             settings,
@@ -155,14 +169,10 @@ impl BusCore {
             counters: BusCounters::default(),
             worker,
             outbox: Vec::new(),
-            last_error_event_us: [None; 11],
-            suppressed_errors: [0; 11],
+            last_error_event_us: [None; ErrorCode::COUNT],
+            suppressed_errors: [0; ErrorCode::COUNT],
             now_us: 0,
-            render_size: (
-                RENDER_WIDTH,
-                RENDER_HEIGHT,
-                interfaces::messages::PixelFormat::Rgb8,
-            ),
+            render_camera,
         })
     }
 
@@ -272,6 +282,7 @@ impl BusCore {
             time_us: sun.time_us,
             sun_in_body: DVec3::from_array(sun.sun_body.map(f64::from)),
             valid: sun.valid,
+            eclipse: sun.eclipse,
         };
         match self.sync.push_sun(sample) {
             Ok(_) => self.retry_pending(WaitPolicy::MayWait),
@@ -314,7 +325,16 @@ impl BusCore {
             }
         };
         self.counters.frames_received += 1;
-        self.render_size = (frame.header.width, frame.header.height, frame.header.format);
+        let intrinsics =
+            match camera::for_frame(&self.settings.camera, &frame.header, frame.camera.as_ref()) {
+                Ok(intrinsics) => intrinsics,
+                Err(_) => {
+                    self.counters.frames_camera_mismatch += 1;
+                    self.error_event(ErrorCode::CameraMismatch);
+                    return;
+                }
+            };
+        self.render_camera = (intrinsics, frame.header.format);
         if self.mode == Mode::Idle {
             self.counters.frames_ignored_idle += 1;
             return;
@@ -327,6 +347,7 @@ impl BusCore {
             format: frame.header.format,
             pixels: frame.pixels.to_vec(),
             mask: frame.mask.map(<[u8]>::to_vec),
+            camera: intrinsics,
         };
         if self.pending.len() >= self.settings.pending_capacity.max(1) {
             if let Some(oldest) = self.pending.pop_front() {
@@ -358,6 +379,7 @@ impl BusCore {
                         format: frame.format,
                         pixels: frame.pixels,
                         mask: frame.mask,
+                        camera: frame.camera,
                         telemetry,
                     },
                     usage,
@@ -368,6 +390,8 @@ impl BusCore {
                 None
             }
             Err(SyncError::AwaitingTelemetry { .. }) => Some(frame),
+            // Skipped on purpose (counted by the synchronizer), not an error.
+            Err(SyncError::Eclipse) => None,
             Err(error) => {
                 let code = match error {
                     SyncError::Missing { .. } => ErrorCode::TelemetryMissing,
@@ -467,9 +491,10 @@ impl BusCore {
                     camera_from_target: DQuat::from_xyzw(x, y, z, w).normalize(),
                     target_in_camera_m: DVec3::from_array(r.t_camera_from_target_m.map(f64::from)),
                     sun_in_target: DVec3::from_array(r.sun_target.map(f64::from)).normalize(),
-                    width: self.render_size.0,
-                    height: self.render_size.1,
-                    format: self.render_size.2,
+                    width: self.render_camera.0.width as u16,
+                    height: self.render_camera.0.height as u16,
+                    format: self.render_camera.1,
+                    intrinsics: self.render_camera.0,
                 }))
             }
         };
@@ -507,7 +532,8 @@ impl BusCore {
         let depths = self.worker.depths();
         let sync_rejected = c.sync.frames.rejected_missing
             + c.sync.frames.rejected_stale
-            + c.sync.frames.rejected_invalid;
+            + c.sync.frames.rejected_invalid
+            + c.sync.frames.eclipse;
         let crc_errors = c.udp.rejected_crc_mismatch + c.can.rejected_crc_mismatch;
         let udp_rejected = c.udp.rejected_total()
             - c.udp.rejected_crc_mismatch
@@ -532,7 +558,10 @@ impl BusCore {
             frames_received: sat_u32(c.bus.frames_received),
             frames_used: sat_u32(worker.frames_used),
             frames_dropped: sat_u32(
-                sync_rejected + c.bus.frames_ignored_idle + depths.frames_dropped,
+                sync_rejected
+                    + c.bus.frames_ignored_idle
+                    + c.bus.frames_camera_mismatch
+                    + depths.frames_dropped,
             ),
             decode_errors: sat_u32(decode_errors),
             crc_errors: sat_u32(crc_errors),
@@ -556,12 +585,6 @@ impl BusCore {
         }
     }
 }
-
-/// Image size of predictions rendered on the RENDER command before any camera frame arrived
-/// (the command carries no size; afterwards the last valid frame's size and format are used,
-/// so that predictions compare with what the camera delivers).
-pub const RENDER_WIDTH: u16 = 64;
-pub const RENDER_HEIGHT: u16 = 64;
 
 /// Navigation quality in (0, 1] from the pose uncertainties:
 /// `1 / (1 + sigma_att / 0.01 rad + sigma_pos / 1 m)`; NaN for poses flagged invalid, which

@@ -11,7 +11,8 @@
 
 use crate::sync::SyncedTelemetry;
 use glam::{DQuat, DVec3};
-use interfaces::messages::PixelFormat;
+use gs_core::Intrinsics;
+use interfaces::messages::{EventKind, PixelFormat};
 use std::fmt;
 
 /// A synchronised camera frame, owned, ready for the trainer.
@@ -24,6 +25,9 @@ pub struct ObservedFrame {
     pub format: PixelFormat,
     pub pixels: Vec<u8>,
     pub mask: Option<Vec<u8>>,
+    /// The intrinsics of this frame (its own camera model, or the configured camera);
+    /// `width` and `height` equal the frame's.
+    pub camera: Intrinsics,
     pub telemetry: SyncedTelemetry,
 }
 
@@ -36,6 +40,8 @@ pub struct ViewRequest {
     pub width: u16,
     pub height: u16,
     pub format: PixelFormat,
+    /// The camera to render with; its `width` and `height` equal the request's.
+    pub intrinsics: Intrinsics,
 }
 
 impl ViewRequest {
@@ -120,4 +126,8 @@ pub trait Learner: Send {
     /// Replaces the whole state from checkpoint bytes; on error the model is unchanged.
     fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError>;
     fn stats(&self) -> LearnerStats;
+    /// Events the model has to report since the last call (e.g. how it was initialised).
+    fn take_events(&mut self) -> Vec<EventKind> {
+        Vec::new()
+    }
 }

@@ -1,10 +1,12 @@
 //! The flight component: keyframe window, synchronizer, training scheduler and transports.
 
 pub mod bus;
+pub mod camera;
 pub mod checkpoint;
 pub mod config;
 pub mod core;
 pub mod health;
+pub mod hull_start;
 pub mod imagemetrics;
 pub mod keyframe;
 pub mod learner;

@@ -343,6 +343,7 @@ mod tests {
             format: PixelFormat::Rgb8,
             pixels: vec![value; 24],
             mask: None,
+            camera: gs_core::Intrinsics::from_fov_x(0.6, 4, 2),
             telemetry: SyncedTelemetry {
                 time_us: 0,
                 camera_from_target: DQuat::IDENTITY,
@@ -353,6 +354,7 @@ mod tests {
                 sun_in_target: DVec3::Z,
                 view_in_target: view,
                 range_m: 10.0,
+                eclipse: false,
             },
         }
     }
@@ -383,6 +385,7 @@ mod tests {
             width: 2,
             height: 1,
             format: PixelFormat::Gray8,
+            intrinsics: gs_core::Intrinsics::from_fov_x(0.6, 2, 1),
         };
         assert_eq!(l.predict(&request).unwrap().pixels, vec![20, 20]);
     }

@@ -4,7 +4,8 @@
 //! the same code. Per frame, [`OnlineTrainer::offer`] applies, in order:
 //! 1. validation (sizes, finiteness, camera, Sun vector): a bad frame is an error;
 //! 2. eclipse frames, and unlit frames (mean masked brightness below
-//!    `min_mean_brightness`), teach nothing: skipped and counted (each skip switchable);
+//!    `min_mean_brightness`; without a mask the full frame's, or no test when
+//!    `unlit_full_frame` is off), teach nothing: skipped and counted (each skip switchable);
 //!    a frame whose mask is zero everywhere (the target is not in it) has nothing for the
 //!    masked loss to read: always skipped and counted (`skipped_empty_mask`), never an
 //!    error, since a sensor pipeline can legitimately send one;
@@ -132,6 +133,10 @@ pub struct OnlineConfig {
     /// Skip frames whose mean masked brightness is below `min_mean_brightness`.
     pub skip_unlit: bool,
     pub min_mean_brightness: f32,
+    /// Apply the unlit test to frames without a mask, on the full frame's brightness (the
+    /// black background then also turns away frames where the lit target is small:
+    /// docs/runtime-vs-error.md recommends off without masks).
+    pub unlit_full_frame: bool,
     /// Run a round only when the window's composition changed since the last one.
     pub require_window_change: bool,
     /// Seeds the per-round shuffles.
@@ -158,6 +163,7 @@ impl Default for OnlineConfig {
             skip_eclipse: true,
             skip_unlit: true,
             min_mean_brightness: 0.01,
+            unlit_full_frame: true,
             require_window_change: true,
             shuffle_seed: 0,
             normal_flatten: 1.0,
@@ -385,6 +391,24 @@ impl OnlineTrainer {
         &self.config
     }
 
+    /// Replaces the model (Gaussians from `init`, fresh networks and optimiser state, the
+    /// new scene box) and keeps the window, the counters and the round count: how a start
+    /// carved from the first keyframes takes over before the first round. The new trainer
+    /// runs on `backend`. On error nothing changes.
+    pub fn restart_model(
+        &mut self,
+        init: &Initialisation,
+        scene_box: SceneBox,
+        backend: &gs_core::train::Backend,
+    ) -> Result<(), OnlineError> {
+        let gaussians = initial_gaussians(init, &self.config)?;
+        let model = SunAwareModel::new(gaussians, scene_box, self.config.model.clone())?;
+        let mut trainer = SunAwareTrainer::new(model);
+        trainer.set_backend(backend)?;
+        self.trainer = trainer;
+        Ok(())
+    }
+
     pub fn window(&self) -> &KeyframeWindow<Frame> {
         &self.window
     }
@@ -457,7 +481,7 @@ impl OnlineTrainer {
             self.counters.skipped_empty_mask += 1;
             return Ok(OfferReport::Skipped(SkipReason::EmptyMask));
         }
-        if self.config.skip_unlit {
+        if self.config.skip_unlit && (frame.mask.is_some() || self.config.unlit_full_frame) {
             let mean_brightness = frame.mean_brightness();
             if mean_brightness < self.config.min_mean_brightness {
                 self.counters.skipped_unlit += 1;

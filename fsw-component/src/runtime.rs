@@ -103,6 +103,7 @@ pub fn build_learner(
             settings.online.model = config
                 .model_config()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?;
+            settings.model = config.model.clone();
             Box::new(SunAwareLearner::new(settings).map_err(RuntimeError::Config)?)
         }
     })
@@ -165,6 +166,9 @@ impl Engine {
             max_wait_us: config.sync.max_wait_ms.saturating_mul(1000),
             pending_capacity: config.queues.pending_frames,
             initial_mode: Mode::Train,
+            camera: config
+                .camera_intrinsics()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?,
         };
         let mut resume_event = None;
         if config.checkpoint.resume {

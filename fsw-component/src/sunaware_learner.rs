@@ -4,21 +4,27 @@
 //! `online::Frame`s (RGB in [0, 1], camera = intrinsics + camera-from-target pose, Sun in
 //! the target frame) and renders predictions back to 8-bit images.
 //!
-//! Camera intrinsics: the bus carries only the image size, and the component configuration has
-//! no camera model yet, so the horizontal field of view is [`DEFAULT_FOV_X_RAD`] (the
-//! simulator's default camera, SPEED: 1920 px wide, f = 3003.41 px) with square pixels and the
-//! principal point at the image centre. Initialisation: random points in a ball of
-//! [`DEFAULT_TARGET_RADIUS_M`] around the target origin (no surface samples on board); the
-//! scene box is the ball's bounding cube.
+//! Camera intrinsics: each frame's own (`ObservedFrame::camera`: its camera model, or the
+//! configured `[camera]`, `crate::camera`); predictions use the request's. Eclipse comes from
+//! the synchronised telemetry (the ICD's rule); the unlit skip runs on frames with a mask
+//! only (masked mean brightness), never on full-frame brightness.
+//! Initialisation (`[model]`, `crate::hull_start`): random points in the ball of
+//! `target_radius_m` around the target origin, scene box its bounding cube; with
+//! `init = "hull"` a visual hull carved from the window's keyframes replaces them when the
+//! window first fills, before the first round, with the scene box fitted to the hull (or the
+//! random start stays when too few keyframes carry masks or carving fails). Each start is
+//! reported once as `EventKind::ModelInitialised`.
 //!
 //! Checkpoint format (little-endian): magic `FSWSAL01`, rounds u64, trainer length u64, the
 //! gs-core Sun-aware trainer checkpoint (Gaussians, features, latents, MLP weights, optimiser
 //! state, step counters, RNG state; its own magic and checksum), then CRC-32/IEEE of all
 //! before. Loading restores the model and optimiser exactly and continues the round count;
-//! the keyframe window restarts empty (`OnlineTrainer` has no window restore yet).
+//! the keyframe window restarts empty (`OnlineTrainer` has no window restore yet); a loaded
+//! model that has not trained yet (0 rounds) still waits for its hull start.
 //! Invariants: frames the online trainer refuses are skipped, never half-applied; nothing
 //! non-finite enters the model (the online trainer validates, gs-core skips non-finite steps).
 
+use crate::hull_start::{self, HullStartError, InitKind, ModelSettings};
 use crate::keyframe::WindowConfig;
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
@@ -26,64 +32,60 @@ use crate::learner::{
 };
 use crate::online::{Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason};
 use glam::{DQuat, DVec3, Quat, Vec3};
-use gs_core::nn::SceneBox;
 use gs_core::sunaware::checkpoint;
 use gs_core::{Camera, Intrinsics};
 use interfaces::crc::crc32_ieee;
-use interfaces::messages::PixelFormat;
+use interfaces::messages::{EventKind, InitSource, PixelFormat};
 
 pub const CHECKPOINT_MAGIC: &[u8; 8] = b"FSWSAL01";
-/// SPEED camera: 2 atan(960 / 3003.41).
-pub const DEFAULT_FOV_X_RAD: f32 = 0.618_238;
-pub const DEFAULT_TARGET_RADIUS_M: f32 = 5.0;
-pub const DEFAULT_INITIAL_GAUSSIANS: usize = 2000;
 
 /// How the adapter builds its online trainer.
 #[derive(Clone, Debug)]
 pub struct SunAwareSettings {
     pub online: OnlineConfig,
-    pub fov_x_rad: f32,
-    pub target_radius_m: f32,
-    pub initial_gaussians: usize,
-    pub init_seed: u64,
+    /// How the model starts (`[model]`).
+    pub model: ModelSettings,
     /// Where the rasterizer and the shadow pass run (`[training] backend`, opened by the
     /// runtime); the networks and Adam stay on the CPU. Not saved in checkpoints.
     pub backend: gs_core::train::Backend,
 }
 
 impl SunAwareSettings {
-    /// The online trainer's defaults with the component's window.
+    /// The online trainer's defaults with the component's window; the unlit skip only on
+    /// masked frames.
     pub fn with_window(window: WindowConfig) -> Self {
         Self {
             online: OnlineConfig {
                 window,
+                unlit_full_frame: false,
                 ..OnlineConfig::default()
             },
-            fov_x_rad: DEFAULT_FOV_X_RAD,
-            target_radius_m: DEFAULT_TARGET_RADIUS_M,
-            initial_gaussians: DEFAULT_INITIAL_GAUSSIANS,
-            init_seed: 0,
+            model: ModelSettings::default(),
             backend: gs_core::train::Backend::Cpu,
         }
     }
 
-    fn init(&self) -> Initialisation {
+    fn init_kind(&self) -> Result<InitKind, String> {
+        self.model.validate().map_err(|e| e.to_string())
+    }
+
+    fn random_init(&self) -> Initialisation {
         Initialisation::RandomSphere {
-            count: self.initial_gaussians,
+            count: self.model.initial_gaussians,
             centre: Vec3::ZERO,
-            radius_m: self.target_radius_m,
-            seed: self.init_seed,
+            radius_m: self.model.target_radius_m,
+            seed: self.model.seed,
         }
     }
 
-    fn scene_box(&self) -> Result<SceneBox, String> {
-        let r = self.target_radius_m;
-        SceneBox::new([-r; 3], [r; 3]).map_err(|e| e.to_string())
-    }
-
+    /// A trainer on the random start.
     fn build(&self) -> Result<OnlineTrainer, String> {
-        let mut online = OnlineTrainer::new(self.online.clone(), &self.init(), self.scene_box()?)
-            .map_err(|e| e.to_string())?;
+        let mut online = OnlineTrainer::new(
+            self.online.clone(),
+            &self.random_init(),
+            self.model.ball_scene_box()?,
+        )
+        .map_err(|e| e.to_string())?;
         online
             .trainer_mut()
             .set_backend(&self.backend)
@@ -94,29 +96,89 @@ impl SunAwareSettings {
 
 pub struct SunAwareLearner {
     settings: SunAwareSettings,
+    init: InitKind,
     online: OnlineTrainer,
     /// Rounds run before the last checkpoint load (the online trainer restarts at zero).
     rounds_offset: u64,
+    /// The hull start is still to be carved (when the window first fills).
+    hull_pending: bool,
+    /// Events for the bus, taken by [`Learner::take_events`].
+    events: Vec<EventKind>,
 }
 
 impl SunAwareLearner {
     pub fn new(settings: SunAwareSettings) -> Result<Self, String> {
+        let init = settings.init_kind()?;
         let online = settings.build()?;
-        Ok(Self {
+        let mut learner = Self {
             settings,
+            init,
             online,
             rounds_offset: 0,
-        })
+            hull_pending: false,
+            events: Vec::new(),
+        };
+        learner.started();
+        Ok(learner)
     }
 
-    fn camera(&self, q: DQuat, t: DVec3, width: u16, height: u16) -> Camera {
+    /// After a fresh random start: wait for the hull, or report the random start.
+    fn started(&mut self) {
+        self.hull_pending = self.init == InitKind::Hull;
+        if !self.hull_pending {
+            self.initialised(InitSource::Random);
+        }
+    }
+
+    fn initialised(&mut self, source: InitSource) {
+        let gaussians = u32::try_from(self.online.trainer().model.len()).unwrap_or(u32::MAX);
+        self.events
+            .push(EventKind::ModelInitialised { source, gaussians });
+    }
+
+    /// Carves the hull from the full window and restarts the model from it (or keeps the
+    /// random start and says why).
+    fn start_from_hull(&mut self) {
+        self.hull_pending = false;
+        let keyframes: Vec<&Frame> = self
+            .online
+            .window()
+            .keyframes()
+            .iter()
+            .map(|k| &k.payload)
+            .collect();
+        let source = match hull_start::carve(&keyframes, &self.settings.model) {
+            Ok(start) => {
+                let init = Initialisation::SurfaceSamples {
+                    points: start.points,
+                    normals: None,
+                    colours: Some(start.colours),
+                };
+                match self
+                    .online
+                    .restart_model(&init, start.scene_box, &self.settings.backend)
+                {
+                    Ok(()) => InitSource::Hull,
+                    Err(error) => {
+                        // Nothing changed: the random start stays.
+                        eprintln!("fsw-component: hull start refused: {error}");
+                        InitSource::RandomCarveFailed
+                    }
+                }
+            }
+            Err(HullStartError::TooFewMasks { .. }) => InitSource::RandomNoMasks,
+            Err(error) => {
+                eprintln!("fsw-component: visual hull not carved: {error}");
+                InitSource::RandomCarveFailed
+            }
+        };
+        self.initialised(source);
+    }
+
+    fn camera(intrinsics: Intrinsics, q: DQuat, t: DVec3) -> Camera {
         let q = q.normalize();
         Camera {
-            intrinsics: Intrinsics::from_fov_x(
-                self.settings.fov_x_rad,
-                u32::from(width),
-                u32::from(height),
-            ),
+            intrinsics,
             rotation: Quat::from_xyzw(q.x as f32, q.y as f32, q.z as f32, q.w as f32),
             translation: t.as_vec3(),
         }
@@ -148,19 +210,14 @@ impl Learner for SunAwareLearner {
         let online_frame = Frame {
             id: u64::from(frame.frame_id),
             time_s: frame.time_us as f64 / 1e6,
-            camera: self.camera(
-                t.camera_from_target,
-                t.target_in_camera_m,
-                frame.width,
-                frame.height,
-            ),
+            camera: Self::camera(frame.camera, t.camera_from_target, t.target_in_camera_m),
             sun_dir_target: t.sun_in_target.as_vec3(),
             image: to_unit_rgb(&frame.pixels, frame.format),
             mask: frame
                 .mask
                 .as_ref()
                 .map(|m| m.iter().map(|&v| if v == 0 { 0.0 } else { 1.0 }).collect()),
-            eclipse: false,
+            eclipse: t.eclipse,
         };
         match self.online.offer(online_frame) {
             Ok(OfferReport::Added { .. }) => OfferResult::Added,
@@ -176,6 +233,9 @@ impl Learner for SunAwareLearner {
     }
 
     fn run_round_if_due(&mut self) -> Option<RoundSummary> {
+        if self.hull_pending && self.online.round_due() {
+            self.start_from_hull();
+        }
         match self.online.run_round_if_due() {
             Ok(Some(report)) => Some(RoundSummary {
                 rounds: u32::try_from(self.rounds()).unwrap_or(u32::MAX),
@@ -195,11 +255,17 @@ impl Learner for SunAwareLearner {
         if view.width == 0 || view.height == 0 {
             return Err(LearnerError::BadRequest("zero image size".into()));
         }
-        let camera = self.camera(
+        if (view.intrinsics.width, view.intrinsics.height)
+            != (u32::from(view.width), u32::from(view.height))
+        {
+            return Err(LearnerError::BadRequest(
+                "camera size differs from the image size".into(),
+            ));
+        }
+        let camera = Self::camera(
+            view.intrinsics,
             view.camera_from_target,
             view.target_in_camera_m,
-            view.width,
-            view.height,
         );
         let rendered = self
             .online
@@ -226,6 +292,7 @@ impl Learner for SunAwareLearner {
             Ok(online) => {
                 self.online = online;
                 self.rounds_offset = 0;
+                self.started();
             }
             // Built once already from the same settings: cannot fail unless memory is gone.
             Err(error) => eprintln!("fsw-component: model reset failed: {error}"),
@@ -273,6 +340,8 @@ impl Learner for SunAwareLearner {
             .map_err(|e| bad(e.to_string()))?;
         self.online = online;
         self.rounds_offset = rounds;
+        // A model that never trained is still the random start.
+        self.hull_pending = self.init == InitKind::Hull && rounds == 0;
         Ok(())
     }
 
@@ -283,5 +352,9 @@ impl Learner for SunAwareLearner {
             window_fill: self.online.window().len().min(255) as u8,
             window_capacity: self.online.window().capacity().min(255) as u8,
         }
+    }
+
+    fn take_events(&mut self) -> Vec<EventKind> {
+        std::mem::take(&mut self.events)
     }
 }

@@ -15,6 +15,13 @@
 //!   value is ever stored or returned.
 //! - Every final answer for a frame is counted exactly once ([`SyncCounters::frames`]);
 //!   [`SyncError::AwaitingTelemetry`] is not final and not counted.
+//! - Eclipse (the ICD's rule): a Sun sample flagged `eclipse = Some(true)` is an eclipse
+//!   sample, kept with its direction when the vector is valid and without one when not (it
+//!   is then no invalid marker). A frame bracketed by an eclipse sample is an eclipse frame:
+//!   with a direction from every bracketing sample it is synchronised with
+//!   [`SyncedTelemetry::eclipse`] set (the learner skips it and counts it); otherwise it is
+//!   the final [`SyncError::Eclipse`]. A sample without the flag (a 1.0 sender) or with
+//!   `Some(false)` is sunlit: `valid = false` makes it an invalid marker as before.
 //!
 //! Times are integer microseconds on the spacecraft clock.
 
@@ -42,6 +49,8 @@ pub struct SunSample {
     pub sun_in_body: DVec3,
     /// The AOCS validity flag.
     pub valid: bool,
+    /// The AOCS eclipse flag (`None`: not reported, treated as sunlit).
+    pub eclipse: Option<bool>,
 }
 
 /// The two telemetry streams.
@@ -122,6 +131,8 @@ pub enum SyncError {
         stream: Stream,
         reason: InvalidReason,
     },
+    /// An eclipse frame without a Sun direction (skipped on purpose, not an error).
+    Eclipse,
 }
 
 impl SyncError {
@@ -152,6 +163,7 @@ impl fmt::Display for SyncError {
             Self::Invalid { stream, reason } => {
                 write!(f, "{stream:?} telemetry invalid: {reason:?}")
             }
+            Self::Eclipse => f.write_str("eclipse frame without a Sun direction"),
         }
     }
 }
@@ -276,6 +288,8 @@ pub struct SyncedTelemetry {
     pub view_in_target: DVec3,
     /// Distance between camera and target origin, metres.
     pub range_m: f64,
+    /// A bracketing Sun sample was flagged eclipse (the Sun vectors are still valid).
+    pub eclipse: bool,
 }
 
 /// Per-stream sample counters.
@@ -297,6 +311,8 @@ pub struct FrameCounters {
     pub rejected_missing: u64,
     pub rejected_stale: u64,
     pub rejected_invalid: u64,
+    /// Eclipse frames without a Sun direction ([`SyncError::Eclipse`]).
+    pub eclipse: u64,
 }
 
 /// Health counters of the synchronizer.
@@ -312,6 +328,13 @@ struct PoseValue {
     camera_from_target: DQuat,
     target_in_camera_m: DVec3,
     quality: f64,
+}
+
+/// A usable Sun sample: `direction` is `None` only for eclipse samples.
+#[derive(Clone, Copy, Debug)]
+struct SunValue {
+    direction: Option<DVec3>,
+    eclipse: bool,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -332,7 +355,7 @@ pub struct Synchronizer {
     config: SyncConfig,
     camera_from_body: DQuat,
     poses: VecDeque<Stored<PoseValue>>,
-    suns: VecDeque<Stored<DVec3>>,
+    suns: VecDeque<Stored<SunValue>>,
     counters: SyncCounters,
 }
 
@@ -417,7 +440,22 @@ impl Synchronizer {
         })
     }
 
-    fn check_sun(&self, sample: &SunSample) -> Result<DVec3, InvalidReason> {
+    fn check_sun(&self, sample: &SunSample) -> Result<SunValue, InvalidReason> {
+        let direction = self.check_sun_direction(sample);
+        if sample.eclipse == Some(true) {
+            // In eclipse the direction is optional: without one the frame is skipped.
+            return Ok(SunValue {
+                direction: direction.ok(),
+                eclipse: true,
+            });
+        }
+        direction.map(|d| SunValue {
+            direction: Some(d),
+            eclipse: false,
+        })
+    }
+
+    fn check_sun_direction(&self, sample: &SunSample) -> Result<DVec3, InvalidReason> {
         if !sample.valid {
             return Err(InvalidReason::FlaggedInvalid);
         }
@@ -447,6 +485,7 @@ impl Synchronizer {
             Err(SyncError::Missing { .. }) => frames.rejected_missing += 1,
             Err(SyncError::Stale { .. }) => frames.rejected_stale += 1,
             Err(SyncError::Invalid { .. }) => frames.rejected_invalid += 1,
+            Err(SyncError::Eclipse) => frames.eclipse += 1,
         }
         result
     }
@@ -474,6 +513,28 @@ impl Synchronizer {
                     .lerp(after.target_in_camera_m, alpha),
                 before.quality.min(after.quality),
             ),
+        };
+        let (sun, eclipse) = match sun {
+            Bracket::Exact(s) => (s.direction.map(Bracket::Exact), s.eclipse),
+            Bracket::Between {
+                before,
+                after,
+                alpha,
+            } => (
+                before
+                    .direction
+                    .zip(after.direction)
+                    .map(|(b, a)| Bracket::Between {
+                        before: b,
+                        after: a,
+                        alpha,
+                    }),
+                before.eclipse || after.eclipse,
+            ),
+        };
+        let Some(sun) = sun else {
+            // Only eclipse samples lack a direction.
+            return Err(SyncError::Eclipse);
         };
         let sun_in_body = match sun {
             Bracket::Exact(s) => s,
@@ -516,6 +577,7 @@ impl Synchronizer {
             sun_in_target,
             view_in_target,
             range_m,
+            eclipse,
         })
     }
 }
@@ -652,6 +714,7 @@ mod tests {
             time_us,
             sun_in_body: DVec3::X,
             valid: true,
+            eclipse: None,
         }
     }
 
@@ -919,5 +982,54 @@ mod tests {
         assert!(mid.dot(DQuat::from_rotation_z(0.4)).abs() > 1.0 - 1e-12);
         assert_eq!(slerp_shortest(a, b, 0.0), a);
         assert!(slerp_shortest(a, b, 1.0).dot(b) > 1.0 - 1e-15);
+    }
+
+    #[test]
+    fn eclipse_flag_marks_frames_and_without_a_direction_skips_them() {
+        let mut s = Synchronizer::new(SyncConfig::default()).unwrap();
+        for t in [0, 1_000_000] {
+            s.push_pose(pose(t)).unwrap();
+        }
+        s.push_sun(sun(0)).unwrap();
+        // Flagged eclipse with a valid vector (the AOCS's ephemeris): stored with it.
+        assert_eq!(
+            s.push_sun(SunSample {
+                eclipse: Some(true),
+                ..sun(500_000)
+            }),
+            Ok(SampleStatus::Valid)
+        );
+        // Flagged eclipse without a Sun solution: not an invalid marker either.
+        assert_eq!(
+            s.push_sun(SunSample {
+                valid: false,
+                sun_in_body: DVec3::splat(f64::NAN),
+                eclipse: Some(true),
+                ..sun(1_000_000)
+            }),
+            Ok(SampleStatus::Valid)
+        );
+        let lit = s.synchronize(0, WaitPolicy::NoWait).unwrap();
+        assert!(!lit.eclipse);
+        // Between a lit and an eclipse sample: eclipse, with the interpolated direction.
+        let edge = s.synchronize(250_000, WaitPolicy::NoWait).unwrap();
+        assert!(edge.eclipse && edge.sun_in_body.is_finite());
+        assert!((edge.sun_in_body - DVec3::X).length() < 1e-12);
+        // Next to the sample without a direction: skipped, counted, never NaN.
+        assert_eq!(
+            s.synchronize(750_000, WaitPolicy::NoWait),
+            Err(SyncError::Eclipse)
+        );
+        assert_eq!(s.counters().frames.eclipse, 1);
+        assert_eq!(s.counters().frames.rejected_invalid, 0);
+        // `Some(false)` with an invalid vector stays an invalid marker, as without the flag.
+        assert_eq!(
+            s.push_sun(SunSample {
+                valid: false,
+                eclipse: Some(false),
+                ..sun(2_000_000)
+            }),
+            Ok(SampleStatus::Invalid(InvalidReason::FlaggedInvalid))
+        );
     }
 }

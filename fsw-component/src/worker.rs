@@ -354,12 +354,19 @@ fn next_job(shared: &WorkerShared, wait: Duration) -> Option<Option<Job>> {
 
 fn run(mut learner: Box<dyn Learner>, shared: &WorkerShared, checkpoints: &CheckpointSettings) {
     let mut last_save = Instant::now();
+    let report = |learner: &mut dyn Learner| {
+        for kind in learner.take_events() {
+            shared.notice(Notice::Event(kind));
+        }
+    };
+    report(learner.as_mut());
     while let Some(job) = next_job(shared, Duration::from_millis(200)) {
         match job {
             Some(Job::Command(c)) => run_command(learner.as_mut(), shared, checkpoints, c),
             Some(Job::Frame(f)) => run_frame(learner.as_mut(), shared, f),
             None => {}
         }
+        report(learner.as_mut());
         if let Some(period) = checkpoints.period {
             if last_save.elapsed() >= period {
                 last_save = Instant::now();
@@ -531,6 +538,7 @@ fn run_frame(learner: &mut dyn Learner, shared: &WorkerShared, job: FrameJob) {
         width: frame.width,
         height: frame.height,
         format: frame.format,
+        intrinsics: frame.camera,
     };
     match learner.predict(&view) {
         Ok(image) => {

@@ -22,6 +22,7 @@ async fn valid_frame(peer: &mut Peer, handle: &ComponentHandle, id: u32, size: u
         header,
         mask: None,
         pixels: &pixels,
+        camera: None,
     };
     peer.send(&frame, handle.frames_addr).await;
     wait_prediction(peer, id).await;
@@ -75,10 +76,13 @@ fn frame_bytes(id: u32, time_us: u64, size: u16) -> Vec<u8> {
     let mut header = frame_header(id, time_us);
     header.width = size;
     header.height = size;
+    // Larger frames than the configured camera's carry their own camera model (1.1), so
+    // they are valid; the small malformed one keeps the 1.0 layout the test edits by hand.
     let frame = CameraFrame {
         header,
         mask: None,
         pixels: &pixels,
+        camera: (size > FRAME_SIZE).then(|| scaled_camera(size)),
     };
     let mut out = vec![0u8; pixels.len() + 64];
     let len = interfaces::messages::encode(&frame, &mut out)
@@ -327,6 +331,7 @@ async fn a_flood_at_ten_times_the_scenario_rate_loses_no_valid_message() {
             header: frame_header(200 + i as u32, t - 50_000),
             mask: None,
             pixels: &pixels,
+            camera: None,
         };
         peer.send(&frame, handle.frames_addr).await;
         frames_sent += 1;

@@ -73,6 +73,7 @@ fn write_mixed_logs(dir: &Path) -> Vec<PathBuf> {
             header: frame_header(k, frame_time_us(k)),
             mask: None,
             pixels: &pixels,
+            camera: None,
         };
         for d in udp.datagrams(&frame).unwrap() {
             time_us += 100;

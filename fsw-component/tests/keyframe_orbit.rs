@@ -66,6 +66,7 @@ fn synchronised_tumble_views_drop_revisit_duplicates() {
                 time_us,
                 sun_in_body,
                 valid: true,
+                eclipse: None,
             })
             .unwrap();
             telemetry_s += 1;

@@ -63,7 +63,7 @@ proptest! {
                 target_in_camera_m: translation,
                 quality: 1.0,
             }), Ok(SampleStatus::Valid));
-            prop_assert_eq!(s.push_sun(SunSample { time_us: t, sun_in_body: DVec3::Z, valid: true }),
+            prop_assert_eq!(s.push_sun(SunSample { time_us: t, sun_in_body: DVec3::Z, valid: true, eclipse: None }),
                 Ok(SampleStatus::Valid));
         }
         let t = t0 + (fraction * dt_us as f64) as u64;
@@ -85,7 +85,7 @@ proptest! {
         prop_assume!(a.dot(b) > -0.99);
         let mut s = Synchronizer::new(config(DQuat::IDENTITY)).unwrap();
         for (t, v) in [(0u64, a), (1_000_000, b)] {
-            s.push_sun(SunSample { time_us: t, sun_in_body: v, valid: true }).unwrap();
+            s.push_sun(SunSample { time_us: t, sun_in_body: v, valid: true, eclipse: None }).unwrap();
             s.push_pose(PoseSample {
                 time_us: t,
                 camera_from_target: DQuat::IDENTITY,
@@ -125,7 +125,7 @@ proptest! {
 
         let mut s = Synchronizer::new(config(camera_from_body)).unwrap();
         s.push_pose(PoseSample { time_us: 5, camera_from_target, target_in_camera_m, quality: 0.9 }).unwrap();
-        s.push_sun(SunSample { time_us: 5, sun_in_body, valid: true }).unwrap();
+        s.push_sun(SunSample { time_us: 5, sun_in_body, valid: true, eclipse: None }).unwrap();
         let out = s.synchronize(5, WaitPolicy::NoWait).unwrap();
         prop_assert!((out.view_in_target - camera_dir).length() < 1e-9);
         prop_assert!((out.range_m - range_m).abs() < 1e-9 * range_m);
@@ -173,7 +173,7 @@ proptest! {
                 }
                 1 => {
                     sun_pushes += 1;
-                    let _ = s.push_sun(SunSample { time_us, sun_in_body: sun_raw, valid: flag || make_unit });
+                    let _ = s.push_sun(SunSample { time_us, sun_in_body: sun_raw, valid: flag || make_unit, eclipse: None });
                 }
                 _ => {
                     // Frames are usually a little older than the newest telemetry.

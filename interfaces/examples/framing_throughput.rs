@@ -22,6 +22,7 @@ fn camera_frame(pixels: &[u8], width: u16, height: u16, format: PixelFormat) -> 
         },
         mask: None,
         pixels,
+        camera: None,
     }
 }
 

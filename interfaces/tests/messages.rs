@@ -6,9 +6,9 @@ mod common;
 
 use common::*;
 use interfaces::messages::{
-    decode, decode_command, encode, encoded_len, port, AckStatus, CameraFrame, CodecError, Command,
-    CommandAck, CommandKind, Event, HealthStatus, Message, PixelFormat, PredictionSource,
-    RenderedPrediction, SunVector, TargetPose, ValidationError,
+    decode, decode_command, encode, encoded_len, port, AckStatus, CameraFrame, CameraModel,
+    CodecError, Command, CommandAck, CommandKind, Distortion, Event, HealthStatus, Message,
+    PixelFormat, PredictionSource, RenderedPrediction, SunVector, TargetPose, ValidationError,
 };
 use serde::{Deserialize, Serialize};
 
@@ -54,6 +54,7 @@ fn every_message_round_trips() {
         header: header(5, 4, PixelFormat::Rgb8),
         mask: Some(&mask),
         pixels: &pixels,
+        camera: None,
     };
     let mut frame_buf = vec![0u8; 256];
     round_trip(&frame, &mut frame_buf);
@@ -82,6 +83,7 @@ fn image_bytes_are_written_as_one_length_prefixed_block() {
         header: header(2, 2, PixelFormat::Gray8),
         mask: None,
         pixels: &pixels,
+        camera: None,
     };
     let mut buf = [0u8; 64];
     let bytes = encode(&frame, &mut buf).unwrap();
@@ -96,6 +98,7 @@ fn fixed_layout_of_sun_vector() {
         time_us: 300,
         sun_body: [1.0, 0.0, 0.0],
         valid: true,
+        eclipse: None,
     };
     let mut buf = [0u8; 32];
     let bytes = encode(&msg, &mut buf).unwrap();
@@ -147,6 +150,7 @@ fn invalid_messages_are_refused_on_encode_and_decode() {
         header: header(2, 2, PixelFormat::Rgb8),
         mask: None,
         pixels: &pixels,
+        camera: None,
     };
     assert_eq!(
         encode(&frame, &mut buf),
@@ -277,6 +281,7 @@ fn documented_maximum_sizes_are_exact() {
         time_us: u64::MAX,
         sun_body: [1.0, 0.0, 0.0],
         valid: true,
+        eclipse: Some(true),
     };
     assert_eq!(encoded_len(&sun).unwrap(), SunVector::MAX_ENCODED_LEN);
     let mut pose = target_pose();
@@ -324,11 +329,19 @@ fn documented_maximum_sizes_are_exact() {
     let e = Event {
         time_us: u64::MAX,
         kind: EventKind::Error {
-            code: ErrorCode::Internal,
+            code: ErrorCode::CameraMismatch,
             detail: u32::MAX,
         },
     };
     assert_eq!(encoded_len(&e).unwrap(), Event::MAX_ENCODED_LEN);
+    let initialised = Event {
+        time_us: u64::MAX,
+        kind: EventKind::ModelInitialised {
+            source: interfaces::messages::InitSource::RandomCarveFailed,
+            gaussians: u32::MAX,
+        },
+    };
+    assert_eq!(encoded_len(&initialised).unwrap(), Event::MAX_ENCODED_LEN);
     let header = FrameHeader {
         frame_id: u32::MAX,
         time_us: u64::MAX,
@@ -352,4 +365,156 @@ fn documented_maximum_sizes_are_exact() {
         encoded_len(&prediction).unwrap(),
         RenderedPrediction::MAX_FIXED_ENCODED_LEN + 1
     );
+}
+
+fn camera_model() -> CameraModel {
+    CameraModel {
+        fx_px: 30.5,
+        fy_px: 31.0,
+        cx_px: 2.0,
+        cy_px: 1.5,
+        distortion: Distortion::None,
+    }
+}
+
+#[test]
+fn camera_frame_1_0_bytes_decode_with_no_camera_and_1_1_round_trips() {
+    let pixels = [1u8, 2, 3, 4, 5, 6];
+    let mask = [0u8, 255, 255, 0, 0, 0];
+    let old = CameraFrame {
+        header: header(3, 2, PixelFormat::Gray8),
+        mask: Some(&mask),
+        pixels: &pixels,
+        camera: None,
+    };
+    // A 1.0 frame written by hand (header, mask, pixels): no trailing byte at all.
+    let mut v10 = Vec::new();
+    v10.extend(
+        postcard::to_slice(&old.header, &mut [0u8; 32])
+            .unwrap()
+            .iter(),
+    );
+    v10.push(1);
+    v10.push(6);
+    v10.extend_from_slice(&mask);
+    v10.push(6);
+    v10.extend_from_slice(&pixels);
+    let mut buf = [0u8; 128];
+    // Without a camera the encoding is exactly 1.0's, so 1.0 receivers read it unchanged.
+    assert_eq!(encode(&old, &mut buf).unwrap(), &v10[..]);
+    assert_eq!(decode::<CameraFrame>(&v10).unwrap(), old);
+    // CAN FD padding after a 1.0 frame reads as "no camera" too.
+    let mut padded = v10.clone();
+    padded.extend_from_slice(&[0, 0, 0]);
+    assert_eq!(decode::<CameraFrame>(&padded).unwrap(), old);
+
+    let new = CameraFrame {
+        camera: Some(camera_model()),
+        ..old
+    };
+    let bytes = encode(&new, &mut buf).unwrap().to_vec();
+    assert_eq!(bytes.len(), v10.len() + 1 + CameraModel::ENCODED_LEN);
+    assert_eq!(&bytes[..v10.len()], &v10[..], "1.1 only appends");
+    assert_eq!(bytes[v10.len()], 1, "Option tag of the camera");
+    assert_eq!(decode::<CameraFrame>(&bytes).unwrap(), new);
+    // A camera cut short is malformed, never silently "no camera".
+    for cut in v10.len() + 1..bytes.len() {
+        assert_eq!(
+            decode::<CameraFrame>(&bytes[..cut]),
+            Err(CodecError::Format),
+            "cut at {cut}"
+        );
+    }
+    // A tag other than 0 or 1 is malformed.
+    let mut bad_tag = v10.clone();
+    bad_tag.push(2);
+    assert_eq!(decode::<CameraFrame>(&bad_tag), Err(CodecError::Format));
+}
+
+#[test]
+fn camera_models_are_validated() {
+    let pixels = [0u8; 6];
+    let mut buf = [0u8; 128];
+    for (camera, field) in [
+        (
+            CameraModel {
+                fx_px: 0.0,
+                ..camera_model()
+            },
+            "camera focal length",
+        ),
+        (
+            CameraModel {
+                cx_px: 3.5,
+                ..camera_model()
+            },
+            "camera principal point",
+        ),
+        (
+            CameraModel {
+                cy_px: -0.1,
+                ..camera_model()
+            },
+            "camera principal point",
+        ),
+    ] {
+        let frame = CameraFrame {
+            header: header(3, 2, PixelFormat::Gray8),
+            mask: None,
+            pixels: &pixels,
+            camera: Some(camera),
+        };
+        assert_eq!(
+            encode(&frame, &mut buf),
+            Err(CodecError::Invalid(ValidationError::OutOfRange { field }))
+        );
+    }
+    let nan = CameraModel {
+        fy_px: f32::NAN,
+        ..camera_model()
+    };
+    assert_eq!(
+        nan.check(3, 2),
+        Err(ValidationError::NonFinite { field: "camera" })
+    );
+    // Decoding validates too: a NaN focal length written by hand is refused.
+    let good = CameraFrame {
+        header: header(3, 2, PixelFormat::Gray8),
+        mask: None,
+        pixels: &pixels,
+        camera: Some(camera_model()),
+    };
+    let mut bytes = encode(&good, &mut buf).unwrap().to_vec();
+    let at = bytes.len() - CameraModel::ENCODED_LEN;
+    bytes[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    assert!(matches!(
+        decode::<CameraFrame>(&bytes),
+        Err(CodecError::Invalid(ValidationError::NonFinite { .. }))
+    ));
+}
+
+#[test]
+fn sun_vector_eclipse_flag_is_appended() {
+    let mut buf = [0u8; 64];
+    let v10 = sun_vector();
+    let old_bytes = encode(&v10, &mut buf).unwrap().to_vec();
+    assert_eq!(old_bytes.len(), 10 + 12 + 1 - 2, "1.0 layout");
+    assert_eq!(decode::<SunVector>(&old_bytes).unwrap().eclipse, None);
+    for flag in [true, false] {
+        let sun = SunVector {
+            eclipse: Some(flag),
+            ..v10
+        };
+        let bytes = encode(&sun, &mut buf).unwrap().to_vec();
+        assert_eq!(&bytes[..old_bytes.len()], &old_bytes[..]);
+        assert_eq!(&bytes[old_bytes.len()..], &[1, u8::from(flag)]);
+        assert_eq!(decode::<SunVector>(&bytes).unwrap(), sun);
+        // CAN FD padding after it is still fine.
+        let mut padded = bytes.clone();
+        padded.extend_from_slice(&[0; 4]);
+        assert_eq!(decode::<SunVector>(&padded).unwrap(), sun);
+    }
+    let mut cut = old_bytes.clone();
+    cut.push(1);
+    assert_eq!(decode::<SunVector>(&cut), Err(CodecError::Format));
 }

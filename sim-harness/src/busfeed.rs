@@ -7,8 +7,8 @@
 //!   with the frame's exposure time, so the synchronizer finds an exact sample for each
 //!   stream (the frame cadence is longer than `sync.max_gap_ms`, so interpolation between
 //!   frames would be rejected anyway);
-//! - the `CameraFrame` (RGB8, with the mask when the dataset has one) as CCSDS datagrams to
-//!   the component's frame port, after the telemetry.
+//! - the `CameraFrame` (RGB8, with the mask when the dataset has one, and the dataset's
+//!   camera model) as CCSDS datagrams to the component's frame port, after the telemetry.
 //!
 //! Time base: message times and log time tags are microseconds since the scenario epoch
 //! (`time_s` of telemetry.jsonl). Log time tags are receive times: telemetry frames at the
@@ -21,14 +21,18 @@
 //! bad input (missing files, non-finite or non-unit vectors, sizes that do not fit the
 //! message, lines out of time order) is a [`BusFeedError`] naming the line or file, never a
 //! panic. The Sun vector is sent `valid` also in eclipse: the AOCS knows the Sun direction
-//! from its ephemeris, and the Sun-aware model needs it for the dark frames too. The dataset
+//! from its ephemeris, and the Sun-aware model needs it for the dark frames too; the
+//! scenario's eclipse flag travels with it (`eclipse`), so the component skips the frames
+//! the in-process trainer skips. The dataset
 //! has no navigation covariance, so the pose uncertainties come from the options.
 
 use fsw_component::bus::{CanFramer, OutboundError, UdpFramer};
 use fsw_component::config::ComponentConfig;
 use fsw_component::recorder::{Recorder, CAN_FILE, UDP_FILE};
 use fsw_component::transport::{CanTransport, CanTransportConfig, RawCanFrame};
-use interfaces::messages::{CameraFrame, FrameHeader, PixelFormat, SunVector, TargetPose};
+use interfaces::messages::{
+    CameraFrame, CameraModel, Distortion, FrameHeader, PixelFormat, SunVector, TargetPose,
+};
 use serde::Deserialize;
 use std::fmt;
 use std::net::SocketAddr;
@@ -164,6 +168,10 @@ impl BusFeedOptions {
 struct Intrinsics {
     width: u32,
     height: u32,
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
 }
 
 /// The fields of a telemetry.jsonl line the feed uses (others are ignored).
@@ -177,6 +185,8 @@ struct TelemetryJson {
     q_camera_from_target_wxyz: [f64; 4],
     t_camera_from_target_m: [f64; 3],
     sun_servicer_body: [f64; 3],
+    #[serde(default)]
+    eclipse: bool,
     intrinsics: Intrinsics,
 }
 
@@ -193,6 +203,10 @@ pub struct FeedLine {
     pub q_camera_from_target_wxyz: [f32; 4],
     pub t_camera_from_target_m: [f32; 3],
     pub sun_servicer_body: [f32; 3],
+    /// The frame's camera, sent with it (`CameraFrame` 1.1).
+    pub camera: CameraModel,
+    /// The scenario's eclipse flag, sent as the AOCS's (`SunVector` 1.1).
+    pub eclipse: bool,
 }
 
 /// Unit vector in f32 from an f64 one within 1e-3 of unit length (the sensor's output is
@@ -210,6 +224,20 @@ fn unit_f32<const N: usize>(
         });
     }
     Ok(v.map(|x| (x / norm) as f32))
+}
+
+/// The dataset camera as a bus camera model (validated against its size).
+fn camera_model(k: &Intrinsics) -> Result<CameraModel, interfaces::messages::ValidationError> {
+    let model = CameraModel {
+        fx_px: k.fx as f32,
+        fy_px: k.fy as f32,
+        cx_px: k.cx as f32,
+        cy_px: k.cy as f32,
+        distortion: Distortion::None,
+    };
+    let size = |v: u32| u16::try_from(v).unwrap_or(u16::MAX);
+    model.check(size(k.width), size(k.height))?;
+    Ok(model)
 }
 
 fn parse_line(text: &str, line: usize, dataset: &Path) -> Result<FeedLine, BusFeedError> {
@@ -246,6 +274,8 @@ fn parse_line(text: &str, line: usize, dataset: &Path) -> Result<FeedLine, BusFe
         )?,
         t_camera_from_target_m: t.map(|x| x as f32),
         sun_servicer_body: unit_f32(json.sun_servicer_body, "sun_servicer_body", line)?,
+        camera: camera_model(&json.intrinsics).map_err(|e| bad(format!("intrinsics: {e}")))?,
+        eclipse: json.eclipse,
     })
 }
 
@@ -365,6 +395,7 @@ impl BusFeed {
             time_us: line.time_us,
             sun_body: line.sun_servicer_body,
             valid: true,
+            eclipse: Some(line.eclipse),
         };
         let pixels = load_png(&line.frame_path, line.width, line.height, false)?;
         let mask = match (&line.mask_path, self.options.include_mask) {
@@ -383,6 +414,7 @@ impl BusFeed {
             },
             mask: mask.as_deref(),
             pixels: &pixels,
+            camera: Some(line.camera),
         };
         let mut can_frames = self.navigation.frames(&pose)?;
         can_frames.extend(self.aocs.frames(&sun)?);

@@ -193,12 +193,18 @@ fn bad_datasets_and_options_are_clear_errors() {
     assert!(matches!(err, BusFeedError::Io { .. }), "{err}");
     assert!(err.to_string().contains("telemetry.jsonl"), "{err}");
 
-    let line = r#"{"index":0,"time_s":1.0,"frame":"frames/000000.png","mask":"","q_camera_from_target_wxyz":[1.0,0.0,0.0,0.0],"t_camera_from_target_m":[0.0,0.0,30.0],"sun_servicer_body":[0.0,0.0,1.0],"intrinsics":{"width":4,"height":2}}"#;
+    let line = r#"{"index":0,"time_s":1.0,"frame":"frames/000000.png","mask":"","q_camera_from_target_wxyz":[1.0,0.0,0.0,0.0],"t_camera_from_target_m":[0.0,0.0,30.0],"sun_servicer_body":[0.0,0.0,1.0],"intrinsics":{"width":4,"height":2,"fx":4.0,"fy":4.0,"cx":2.0,"cy":1.0}}"#;
     let write = |text: &str| std::fs::write(dir.join("telemetry.jsonl"), text).unwrap();
     write(&line.replace("[0.0,0.0,1.0]", "[0.0,0.0,2.0]"));
     let err = write_bus_logs(&dir, &out, &options, 42).unwrap_err();
     assert!(
         err.to_string().contains("line 1") && err.to_string().contains("sun_servicer_body"),
+        "{err}"
+    );
+    write(&line.replace("\"cx\":2.0", "\"cx\":5.0"));
+    let err = write_bus_logs(&dir, &out, &options, 42).unwrap_err();
+    assert!(
+        err.to_string().contains("line 1") && err.to_string().contains("principal point"),
         "{err}"
     );
     write(&line.replace("\"time_s\":1.0", "\"time_s\":null"));

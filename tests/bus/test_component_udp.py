@@ -110,10 +110,20 @@ def frame_pixels(frame_id):
     )
 
 
-def camera_frame(frame_id, time_us, pixels=None, size=SIZE):
+def focal_px(size):
+    """SPEED's focal length (3003.41 px at 1920 px wide) at `size` px wide."""
+    return 3003.41 * size / 1920
+
+
+def camera_frame(frame_id, time_us, pixels=None, size=SIZE, camera=False):
+    """CameraFrame 1.0, or 1.1 with the scenario's camera model appended (`camera`)."""
     pixels = pixels if pixels is not None else frame_pixels(frame_id)
     header = varint(frame_id) + varint(time_us) + varint(size) + varint(size) + varint(0)
-    return header + b"\x00" + varint(len(pixels)) + pixels
+    frame = header + b"\x00" + varint(len(pixels)) + pixels
+    if camera:  # Some(CameraModel { fx, fy, cx, cy, distortion: None })
+        f = focal_px(size)
+        frame += b"\x01" + struct.pack("<4f", f, f, size / 2, size / 2) + varint(0)
+    return frame
 
 
 def command(sequence, opcode, args=b""):
@@ -326,6 +336,14 @@ telemetry_port = 0
 health_to = "{health[0]}:{health[1]}"
 predictions_to = "{predictions[0]}:{predictions[1]}"
 
+[camera]
+width_px = {SIZE}
+height_px = {SIZE}
+fx_px = {focal_px(SIZE)}
+fy_px = {focal_px(SIZE)}
+cx_px = {SIZE / 2}
+cy_px = {SIZE / 2}
+
 [training]
 window_size = {window_size}
 passes_per_round = {passes}
@@ -379,7 +397,9 @@ class Component:
         # Frames and telemetry use different sockets: give the telemetry a head start.
         time.sleep(0.05)
         pixels = frame_pixels(k) if size == SIZE else bytes((k * 41 + i) % 256 for i in range(size * size * 3))
-        self.send(PORT_FRAME, camera_frame(k, k * 1_000_000 + 500_000, pixels, size), to=self.frames)
+        # Frames of another size than the configured camera's carry their own camera model.
+        frame = camera_frame(k, k * 1_000_000 + 500_000, pixels, size, camera=size != SIZE)
+        self.send(PORT_FRAME, frame, to=self.frames)
 
     def stop(self):
         self.process.terminate()

@@ -12,8 +12,9 @@ use fsw_component::runtime::ComponentHandle;
 use glam::{DQuat, DVec3};
 use interfaces::ccsds::{message_packets, CcsdsReassembler, PacketType};
 use interfaces::messages::{
-    decode, port, CameraFrame, Command, CommandAck, CommandKind, Event, FrameHeader, HealthStatus,
-    Message, PixelFormat, PredictionSource, RenderedPrediction, SunVector, TargetPose,
+    decode, port, CameraFrame, CameraModel, Command, CommandAck, CommandKind, Distortion, Event,
+    FrameHeader, HealthStatus, Message, PixelFormat, PredictionSource, RenderedPrediction,
+    SunVector, TargetPose,
 };
 use serde::Serialize;
 use std::net::SocketAddr;
@@ -23,6 +24,8 @@ use std::time::{Duration, Instant};
 use tokio::net::UdpSocket;
 
 pub const FRAME_SIZE: u16 = 16;
+/// SPEED's focal length (3003.41 px at 1920 px wide) scaled to `FRAME_SIZE`.
+pub const FRAME_FOCAL_PX: f32 = 3003.41 * 16.0 / 1920.0;
 pub const SUN_BODY: [f32; 3] = [0.0, 0.6, 0.8];
 pub const DEG_PER_S: f64 = 20.0;
 
@@ -147,6 +150,8 @@ impl Peer {
         config.udp.health_to = self.health_addr;
         config.udp.predictions_to = self.predictions_addr;
         config.training.window_size = 4;
+        // The scenario's camera: SPEED's field of view at 16x16 px.
+        set_camera(&mut config, FRAME_SIZE, FRAME_FOCAL_PX);
         config.checkpoint.path = checkpoint;
         config.checkpoint.period_s = 0;
         config
@@ -251,6 +256,7 @@ pub fn sun_at(time_us: u64) -> SunVector {
         time_us,
         sun_body: SUN_BODY,
         valid: true,
+        eclipse: None,
     }
 }
 
@@ -261,6 +267,29 @@ pub fn frame_pixels(frame_id: u32) -> Vec<u8> {
             ((frame_id as usize * 37 + (i / 3 % n) * 5 + (i / 3 / n) * 3 + i % 3 * 50) % 256) as u8
         })
         .collect()
+}
+
+/// Configures a square camera of `size` px, focal length `focal_px`, centred.
+pub fn set_camera(config: &mut ComponentConfig, size: u16, focal_px: f32) {
+    config.camera.width_px = size;
+    config.camera.height_px = size;
+    config.camera.fx_px = focal_px;
+    config.camera.fy_px = focal_px;
+    config.camera.cx_px = f32::from(size) / 2.0;
+    config.camera.cy_px = f32::from(size) / 2.0;
+}
+
+/// The scenario's camera (SPEED's field of view) as a bus camera model for a `size` square
+/// image.
+pub fn scaled_camera(size: u16) -> CameraModel {
+    let scale = f32::from(size) / f32::from(FRAME_SIZE);
+    CameraModel {
+        fx_px: FRAME_FOCAL_PX * scale,
+        fy_px: FRAME_FOCAL_PX * scale,
+        cx_px: f32::from(size) / 2.0,
+        cy_px: f32::from(size) / 2.0,
+        distortion: Distortion::None,
+    }
 }
 
 pub fn frame_header(frame_id: u32, time_us: u64) -> FrameHeader {
@@ -311,6 +340,7 @@ pub async fn send_step(peer: &mut Peer, k: u32, handle: &ComponentHandle) {
         header: frame_header(k, frame_time_us(k)),
         mask: None,
         pixels: &pixels,
+        camera: None,
     };
     peer.send(&frame, frames).await;
 }

@@ -2,9 +2,12 @@
 //! top row first, tightly packed (RGB8: 3 bytes per pixel R, G, B; Gray8: 1 byte). A mask is
 //! one byte per pixel, 0 = background, non-zero = target. Pixel bytes are borrowed from the
 //! caller's buffer. Sizes are checked against width x height x bytes per pixel.
+//!
+//! `CameraFrame` 1.1 appends an optional [`CameraModel`] (pinhole intrinsics of this frame);
+//! a frame without it is byte-identical to 1.0 and the receiver uses its configured camera.
 
 use super::validate::{check_finite, check_len, check_unit_norm, ValidationError};
-use super::{bytes, port, Direction, Message, Version};
+use super::{appended, bytes, port, Direction, Message, Version};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -57,6 +60,48 @@ impl FrameHeader {
     }
 }
 
+/// Lens distortion of a [`CameraModel`]; the wire value is the variant index (append only).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Distortion {
+    /// An ideal pinhole (or images already undistorted by the camera).
+    None,
+}
+
+/// Pinhole intrinsics of one frame, pixels, for the image size in its header. Pixel centres
+/// are at integer + 0.5 (the pixel (u, v) covers [u, u+1) x [v, v+1)); camera axes as in
+/// `TargetPose` (+x right, +y down, +z along the boresight).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraModel {
+    pub fx_px: f32,
+    pub fy_px: f32,
+    pub cx_px: f32,
+    pub cy_px: f32,
+    pub distortion: Distortion,
+}
+
+impl CameraModel {
+    /// Encoded size, bytes.
+    pub const ENCODED_LEN: usize = 17;
+
+    /// Focal lengths finite and positive, principal point finite and inside the image
+    /// `width` x `height` (edges included).
+    pub fn check(&self, width: u16, height: u16) -> Result<(), ValidationError> {
+        check_finite("camera", &[self.fx_px, self.fy_px, self.cx_px, self.cy_px])?;
+        if self.fx_px <= 0.0 || self.fy_px <= 0.0 {
+            return Err(ValidationError::OutOfRange {
+                field: "camera focal length",
+            });
+        }
+        let inside = |c: f32, size: u16| (0.0..=f32::from(size)).contains(&c);
+        if !inside(self.cx_px, width) || !inside(self.cy_px, height) {
+            return Err(ValidationError::OutOfRange {
+                field: "camera principal point",
+            });
+        }
+        Ok(())
+    }
+}
+
 /// One camera image with optional target mask.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CameraFrame<'a> {
@@ -65,11 +110,19 @@ pub struct CameraFrame<'a> {
     pub mask: Option<&'a [u8]>,
     #[serde(borrow, serialize_with = "bytes::serialize")]
     pub pixels: &'a [u8],
+    /// 1.1: this frame's intrinsics; `None` (and every 1.0 frame): the receiver's configured
+    /// camera. Left off the wire when `None`.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "appended::deserialize"
+    )]
+    pub camera: Option<CameraModel>,
 }
 
 impl Message for CameraFrame<'_> {
     const PORT_ID: u16 = port::CAMERA_FRAME;
-    const VERSION: Version = Version { major: 1, minor: 0 };
+    const VERSION: Version = Version { major: 1, minor: 1 };
     const NAME: &'static str = "CameraFrame";
     const DIRECTION: Direction = Direction::ToComponent;
 
@@ -77,6 +130,9 @@ impl Message for CameraFrame<'_> {
         self.header.check_image(self.pixels)?;
         if let Some(mask) = self.mask {
             check_len("mask", self.header.pixel_count(), mask.len())?;
+        }
+        if let Some(camera) = &self.camera {
+            camera.check(self.header.width, self.header.height)?;
         }
         Ok(())
     }

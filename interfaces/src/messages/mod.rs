@@ -6,6 +6,7 @@
 //! rotations); [`decode`] accepts trailing zero bytes only (CAN FD padding) and validates.
 //! Large payloads are borrowed `&[u8]` slices of the caller's buffer: no copies, no allocation.
 
+pub mod appended;
 pub mod command;
 pub mod image;
 pub mod status;
@@ -16,8 +17,11 @@ pub use command::{
     decode_command, AckStatus, Command, CommandAck, CommandDecodeError, CommandKind, Mode,
     RenderRequest,
 };
-pub use image::{CameraFrame, FrameHeader, PixelFormat, PredictionSource, RenderedPrediction};
-pub use status::{ErrorCode, Event, EventKind, HealthStatus};
+pub use image::{
+    CameraFrame, CameraModel, Distortion, FrameHeader, PixelFormat, PredictionSource,
+    RenderedPrediction,
+};
+pub use status::{ErrorCode, Event, EventKind, HealthStatus, InitSource};
 pub use telemetry::{SunVector, TargetPose};
 pub use validate::ValidationError;
 

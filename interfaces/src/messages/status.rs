@@ -80,15 +80,52 @@ pub enum ErrorCode {
     TrainingNonFinite,
     RenderFailed,
     Internal,
+    /// A camera frame without its own camera model whose size is not the configured
+    /// camera's (detail: frames since the last such event).
+    CameraMismatch,
+}
+
+impl ErrorCode {
+    /// Number of codes (the last wire value + 1).
+    pub const COUNT: usize = ErrorCode::CameraMismatch as usize + 1;
+}
+
+/// Where the component's starting model came from ([`EventKind::ModelInitialised`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum InitSource {
+    /// Random points, as configured (`[model] init = "random"`).
+    Random,
+    /// A visual hull carved from the first keyframes' masks and poses.
+    Hull,
+    /// Random points because the keyframes carried too few masks to carve a hull.
+    RandomNoMasks,
+    /// Random points because carving failed (e.g. every voxel carved away).
+    RandomCarveFailed,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum EventKind {
-    ModeChanged { from: Mode, to: Mode },
-    Error { code: ErrorCode, detail: u32 },
-    CheckpointSaved { rounds: u32 },
-    CheckpointLoaded { rounds: u32 },
+    ModeChanged {
+        from: Mode,
+        to: Mode,
+    },
+    Error {
+        code: ErrorCode,
+        detail: u32,
+    },
+    CheckpointSaved {
+        rounds: u32,
+    },
+    CheckpointLoaded {
+        rounds: u32,
+    },
     ModelReset,
+    /// The model that training starts from (random at start, or when the window first
+    /// fills with `init = "hull"`), and its Gaussian count.
+    ModelInitialised {
+        source: InitSource,
+        gaussians: u32,
+    },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -104,7 +141,7 @@ impl Event {
 
 impl Message for Event {
     const PORT_ID: u16 = port::EVENT;
-    const VERSION: Version = Version { major: 1, minor: 0 };
+    const VERSION: Version = Version { major: 1, minor: 1 };
     const NAME: &'static str = "Event";
     const DIRECTION: Direction = Direction::FromComponent;
 

@@ -2,9 +2,11 @@
 //! target's relative pose from relative navigation. Time tags are spacecraft time in
 //! microseconds since the mission epoch. A message whose `valid` flag is false carries no
 //! usable numbers and is not checked beyond its encoding; consumers must test `valid`.
+//! `SunVector` 1.1 appends the AOCS's eclipse flag (left off the wire when not reported, so
+//! such a message is byte-identical to 1.0).
 
 use super::validate::{check_finite, check_non_negative, check_unit_norm, ValidationError};
-use super::{port, Direction, Message, Version};
+use super::{appended, port, Direction, Message, Version};
 use serde::{Deserialize, Serialize};
 
 /// Sun direction from the AOCS.
@@ -15,16 +17,25 @@ pub struct SunVector {
     pub sun_body: [f32; 3],
     /// False when the AOCS has no Sun solution (sensor blind, eclipse flag, fault).
     pub valid: bool,
+    /// 1.1: `Some(true)` when the servicer and target are in the Earth's shadow, `Some(false)`
+    /// when sunlit, `None` when not reported (every 1.0 message). The eclipse rule the
+    /// component applies is in the ICD (interfaces/README.md).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "appended::deserialize"
+    )]
+    pub eclipse: Option<bool>,
 }
 
 impl SunVector {
-    /// Largest possible encoding, bytes (varints at their widest).
-    pub const MAX_ENCODED_LEN: usize = 23;
+    /// Largest possible encoding, bytes (varints at their widest, the eclipse flag present).
+    pub const MAX_ENCODED_LEN: usize = 25;
 }
 
 impl Message for SunVector {
     const PORT_ID: u16 = port::SUN_VECTOR;
-    const VERSION: Version = Version { major: 1, minor: 0 };
+    const VERSION: Version = Version { major: 1, minor: 1 };
     const NAME: &'static str = "SunVector";
     const DIRECTION: Direction = Direction::ToComponent;
 

@@ -30,6 +30,7 @@ pub fn sun_vector() -> SunVector {
         time_us: 1_700_000_000_123_456,
         sun_body: [0.6, 0.0, -0.8],
         valid: true,
+        eclipse: None,
     }
 }
 
@@ -133,6 +134,13 @@ pub fn events() -> Vec<Event> {
             time_us: 4,
             kind: EventKind::ModelReset,
         },
+        Event {
+            time_us: 5,
+            kind: EventKind::ModelInitialised {
+                source: interfaces::messages::InitSource::Hull,
+                gaussians: 1500,
+            },
+        },
     ]
 }
 
@@ -148,6 +156,10 @@ fn encoded<M: Message + Serialize>(msg: &M) -> (u16, Vec<u8>) {
 pub fn all_encoded(rng: &mut SplitMix64) -> Vec<(u16, Vec<u8>)> {
     let mut out = vec![
         encoded(&sun_vector()),
+        encoded(&SunVector {
+            eclipse: Some(true),
+            ..sun_vector()
+        }),
         encoded(&target_pose()),
         encoded(&health()),
     ];
@@ -169,12 +181,26 @@ pub fn all_encoded(rng: &mut SplitMix64) -> Vec<(u16, Vec<u8>)> {
         header: header(8, 6, PixelFormat::Rgb8),
         mask: Some(&small_mask),
         pixels: &small_pixels,
+        camera: None,
     }));
     let gray = rng.bytes(64 * 48);
     out.push(encoded(&CameraFrame {
         header: header(64, 48, PixelFormat::Gray8),
         mask: None,
         pixels: &gray,
+        camera: None,
+    }));
+    out.push(encoded(&CameraFrame {
+        header: header(8, 6, PixelFormat::Rgb8),
+        mask: Some(&small_mask),
+        pixels: &small_pixels,
+        camera: Some(interfaces::messages::CameraModel {
+            fx_px: 9.0,
+            fy_px: 9.5,
+            cx_px: 4.0,
+            cy_px: 3.25,
+            distortion: interfaces::messages::Distortion::None,
+        }),
     }));
     let predicted = rng.bytes(40 * 30 * 3);
     out.push(encoded(&RenderedPrediction {
