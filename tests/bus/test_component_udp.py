@@ -163,7 +163,14 @@ def decode_health(data):
 def decode_event(data):
     r = Reader(data)
     time_us, kind = r.varint(), r.varint()
-    fields = {0: ("from", "to"), 1: ("code", "detail"), 2: ("rounds",), 3: ("rounds",), 4: ()}
+    fields = {
+        0: ("from", "to"),
+        1: ("code", "detail"),
+        2: ("rounds",),
+        3: ("rounds",),
+        4: (),
+        5: ("source", "gaussians"),  # ModelInitialised (Event 1.1)
+    }
     return {"time_us": time_us, "kind": kind, **{f: r.varint() for f in fields[kind]}}
 
 
