@@ -147,8 +147,18 @@ impl SunAwareLearner {
             .iter()
             .map(|k| &k.payload)
             .collect();
+        let started = std::time::Instant::now();
         let source = match hull_start::carve(&keyframes, &self.settings.model) {
             Ok(start) => {
+                eprintln!(
+                    "fsw-component: visual hull from {} keyframes in {:.2} s: {} points, \
+                     scene box {:?}..{:?} m",
+                    start.views,
+                    started.elapsed().as_secs_f64(),
+                    start.points.len(),
+                    start.scene_box.min_m(),
+                    start.scene_box.max_m()
+                );
                 let init = Initialisation::SurfaceSamples {
                     points: start.points,
                     normals: None,

@@ -518,3 +518,13 @@ fn sun_vector_eclipse_flag_is_appended() {
     cut.push(1);
     assert_eq!(decode::<SunVector>(&cut), Err(CodecError::Format));
 }
+
+#[test]
+fn error_code_count_is_the_number_of_codes() {
+    use interfaces::messages::ErrorCode;
+    // Receivers size per-code tables with COUNT: a code appended without updating it would
+    // index past them. The wire value COUNT - 1 is the last code, COUNT is none.
+    let last = u8::try_from(ErrorCode::COUNT - 1).unwrap();
+    assert!(postcard::from_bytes::<ErrorCode>(&[last]).is_ok());
+    assert!(postcard::from_bytes::<ErrorCode>(&[last + 1]).is_err());
+}
