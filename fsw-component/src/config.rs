@@ -23,6 +23,8 @@ pub const MAX_NODE_ID: u8 = 127;
 pub const MAX_INTERFACE_NAME_BYTES: usize = 15;
 /// Upper bound of `training.passes_per_round`: a round must still end within minutes.
 pub const MAX_PASSES_PER_ROUND: u32 = 100;
+/// Range of `training.round_deadline_ms`: 100 ms to one hour.
+pub const ROUND_DEADLINE_MS_RANGE: std::ops::RangeInclusive<u64> = 100..=3_600_000;
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -130,6 +132,10 @@ pub struct TrainingConfig {
     /// The networks' matrix products: "f32" (default) or "bf16" (AVX-512 BF16 only; a CPU
     /// without it fails validation).
     pub mlp_precision: String,
+    /// A trainer job (a frame with its training round, or a command) running longer than
+    /// this is reported with an `Internal` event (`ROUND_DEADLINE_MISSED`), once per job,
+    /// within the 50 ms housekeeping tick. 100 ms to one hour.
+    pub round_deadline_ms: u64,
     /// Subnormal floats on the trainer's threads: "flush-to-zero" (default; x86 FTZ + DAZ,
     /// aarch64 FZ; with "ieee" the step took about 1.46x the CPU time on an Intel Xeon) or
     /// "ieee" (gradual underflow). Deterministic either way; the two differ in the last
@@ -140,11 +146,12 @@ pub struct TrainingConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct CheckpointConfig {
-    /// Checkpoint file (written atomically: temporary file, then rename).
+    /// Newest checkpoint; the one before it is kept as `<path>.prev` (both written
+    /// atomically and verified; a save never replaces a model trained for more rounds).
     pub path: PathBuf,
     /// Seconds between periodic checkpoints; 0 disables them.
     pub period_s: u64,
-    /// Resume from `path` at start when it exists.
+    /// Resume at start from the newest slot the model accepts (`path`, else `path.prev`).
     pub resume: bool,
 }
 
@@ -229,6 +236,7 @@ impl Default for TrainingConfig {
             appearance_hidden_width: 128,
             encoding_frequencies: 2,
             mlp_precision: "f32".to_string(),
+            round_deadline_ms: 60_000,
             denormals: DenormalMode::default().name().to_string(),
         }
     }
@@ -373,6 +381,12 @@ impl ComponentConfig {
             return Err(invalid(
                 "training.passes_per_round",
                 format!("must be within 1..={MAX_PASSES_PER_ROUND}"),
+            ));
+        }
+        if !ROUND_DEADLINE_MS_RANGE.contains(&self.training.round_deadline_ms) {
+            return Err(invalid(
+                "training.round_deadline_ms",
+                format!("must be within {ROUND_DEADLINE_MS_RANGE:?}"),
             ));
         }
         if self.training.threads == 0 {
@@ -669,6 +683,10 @@ mod tests {
         assert_eq!(
             invalid_key("[training]\npasses_per_round = 0\n"),
             "training.passes_per_round"
+        );
+        assert_eq!(
+            invalid_key("[training]\nround_deadline_ms = 99\n"),
+            "training.round_deadline_ms"
         );
         assert_eq!(
             invalid_key("[training]\ndenormals = \"fast\"\n"),

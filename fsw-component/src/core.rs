@@ -111,6 +111,9 @@ pub struct BusCore {
     sync: Synchronizer,
     pending: VecDeque<PendingFrame>,
     mode: Mode,
+    /// The mode to return to once the trainer's learner is restarted after a panic (None
+    /// when no restart is pending, or the operator set a mode since).
+    mode_after_restart: Option<Mode>,
     counters: BusCounters,
     worker: Arc<WorkerShared>,
     outbox: Vec<Outgoing>,
@@ -145,6 +148,7 @@ impl BusCore {
         let sync = Synchronizer::new(settings.sync)?;
         Ok(Self {
             mode: settings.initial_mode,
+            mode_after_restart: None,
             settings,
             udp_rx: CcsdsReassembler::new(vec![0; UDP_SLOTS * UDP_SLOT_BYTES])
                 .with_apid_filter(is_inbound_port),
@@ -435,6 +439,33 @@ impl BusCore {
         self.push_event(kind);
     }
 
+    fn set_mode(&mut self, to: Mode) {
+        let from = self.mode;
+        self.mode = to;
+        if from != to {
+            self.push_event(EventKind::ModeChanged { from, to });
+        }
+    }
+
+    /// The trainer panicked: no training on a learner being restarted (Train becomes
+    /// PredictOnly until [`Self::trainer_restored`]); when it gave up, Idle until commanded.
+    pub fn trainer_faulted(&mut self, gave_up: bool) {
+        if gave_up {
+            self.mode_after_restart = None;
+            self.set_mode(Mode::Idle);
+        } else if self.mode == Mode::Train {
+            self.mode_after_restart = Some(Mode::Train);
+            self.set_mode(Mode::PredictOnly);
+        }
+    }
+
+    /// The learner was restarted: back to the mode the fault interrupted.
+    pub fn trainer_restored(&mut self) {
+        if let Some(mode) = self.mode_after_restart.take() {
+            self.set_mode(mode);
+        }
+    }
+
     fn handle_command(&mut self, payload: &[u8]) {
         let command = match decode_command(payload) {
             Ok(command) => command,
@@ -451,11 +482,9 @@ impl BusCore {
                 None
             }
             CommandKind::SetMode(to) => {
-                let from = self.mode;
-                self.mode = to;
-                if from != to {
-                    self.push_event(EventKind::ModeChanged { from, to });
-                }
+                // The operator's choice wins over a pending return after a restart.
+                self.mode_after_restart = None;
+                self.set_mode(to);
                 None
             }
             CommandKind::ResetModel => Some(ModelCommand::ResetModel),

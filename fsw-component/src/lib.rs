@@ -9,6 +9,7 @@ pub mod imagemetrics;
 pub mod keyframe;
 pub mod learner;
 pub mod logfmt;
+pub mod model_store;
 pub mod nearest_learner;
 pub mod online;
 pub mod recorder;

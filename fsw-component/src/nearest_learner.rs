@@ -150,11 +150,11 @@ impl Learner for NearestKeyframeLearner {
         OfferResult::Added
     }
 
-    fn run_round_if_due(&mut self) -> Option<RoundSummary> {
+    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
         if self.keyframes.len() < self.config.capacity
             || self.generation == self.last_round_generation
         {
-            return None;
+            return Ok(None);
         }
         let started = Instant::now();
         let mut total = 0.0;
@@ -168,12 +168,13 @@ impl Learner for NearestKeyframeLearner {
         }
         self.rounds += 1;
         self.last_round_generation = self.generation;
-        Some(RoundSummary {
+        Ok(Some(RoundSummary {
             rounds: self.rounds,
             duration_ms: u32::try_from(started.elapsed().as_millis()).unwrap_or(u32::MAX),
             loss: (total / self.keyframes.len() as f64) as f32,
             gaussians: 0,
-        })
+            skipped_steps: 0,
+        }))
     }
 
     fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
@@ -194,8 +195,9 @@ impl Learner for NearestKeyframeLearner {
         })
     }
 
-    fn reset(&mut self) {
+    fn reset(&mut self) -> Result<(), LearnerError> {
         *self = Self::new(self.config);
+        Ok(())
     }
 
     fn save(&self) -> Vec<u8> {
@@ -277,6 +279,14 @@ impl Learner for NearestKeyframeLearner {
         self.generation = generation;
         self.last_round_generation = last_round_generation;
         Ok(())
+    }
+
+    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
+        // The window is small (a few 8-bit keyframes): parsing into a scratch model is the
+        // simplest way to accept exactly what `load` accepts.
+        let mut scratch = Self::new(self.config);
+        scratch.load(bytes)?;
+        Ok(u64::from(scratch.rounds))
     }
 
     fn stats(&self) -> LearnerStats {
@@ -370,11 +380,20 @@ mod tests {
         assert_eq!(l.offer(&frame(1, DVec3::X, 10)), OfferResult::Added);
         assert_eq!(l.offer(&frame(2, DVec3::X, 99)), OfferResult::NotAdded);
         assert_eq!(l.offer(&frame(3, DVec3::Y, 20)), OfferResult::Added);
-        assert!(l.run_round_if_due().is_none(), "window not full yet");
+        assert!(
+            l.run_round_if_due().unwrap().is_none(),
+            "window not full yet"
+        );
         assert_eq!(l.offer(&frame(4, DVec3::Z, 30)), OfferResult::Added);
-        let round = l.run_round_if_due().expect("full window, new composition");
+        let round = l
+            .run_round_if_due()
+            .unwrap()
+            .expect("full window, new composition");
         assert_eq!(round.rounds, 1);
-        assert!(l.run_round_if_due().is_none(), "composition unchanged");
+        assert!(
+            l.run_round_if_due().unwrap().is_none(),
+            "composition unchanged"
+        );
         let request = ViewRequest {
             camera_from_target: DQuat::IDENTITY,
             // Camera on the target's +Y side: the target origin at -Y in the camera frame.
@@ -395,7 +414,7 @@ mod tests {
             .enumerate()
         {
             l.offer(&frame(i as u32, *v, i as u8 * 40));
-            l.run_round_if_due();
+            l.run_round_if_due().unwrap();
         }
         let bytes = l.save();
         let mut restored = learner(3);

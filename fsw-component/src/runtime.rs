@@ -13,12 +13,13 @@ use crate::config::ComponentConfig;
 use crate::core::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
 use crate::health::{memory_bytes, ReceiveClock};
 use crate::learner::Learner;
+use crate::model_store::ModelStore;
 use crate::nearest_learner::NearestKeyframeLearner;
 use crate::recorder::Recorder;
 use crate::replay::{self, ReplayInput};
 use crate::sunaware_learner::{SunAwareLearner, SunAwareSettings};
 use crate::transport::{CanTransport, CanTransportConfig, TransportError, UdpTransport};
-use crate::worker::{load_checkpoint, CheckpointSettings, Notice, QueueLimits, Worker};
+use crate::worker::{load_events, CheckpointSettings, Notice, QueueLimits, Worker};
 use interfaces::messages::{
     ErrorCode, Event, EventKind, Message, Mode, PredictionSource, RenderedPrediction,
 };
@@ -157,7 +158,7 @@ impl Engine {
         config: &ComponentConfig,
         mut learner: Box<dyn Learner>,
         can: Option<CanTransport>,
-    ) -> Result<(Self, Option<Event>), RuntimeError> {
+    ) -> Result<(Self, Vec<Event>), RuntimeError> {
         let settings = CoreSettings {
             sync: config
                 .sync_config()
@@ -166,28 +167,10 @@ impl Engine {
             pending_capacity: config.queues.pending_frames,
             initial_mode: Mode::Train,
         };
-        let mut resume_event = None;
+        let mut resume_events = Vec::new();
         if config.checkpoint.resume {
-            let path = &config.checkpoint.path;
-            resume_event = Some(match load_checkpoint(learner.as_mut(), path) {
-                Ok(true) => {
-                    eprintln!("fsw-component: resumed from {}", path.display());
-                    EventKind::CheckpointLoaded {
-                        rounds: learner.stats().rounds,
-                    }
-                }
-                Ok(false) => {
-                    eprintln!("fsw-component: no checkpoint at {} yet", path.display());
-                    EventKind::ModelReset
-                }
-                Err(why) => {
-                    eprintln!("fsw-component: cannot resume, starting afresh: {why}");
-                    EventKind::Error {
-                        code: ErrorCode::CheckpointLoadFailed,
-                        detail: 0,
-                    }
-                }
-            });
+            let store = ModelStore::open(&config.checkpoint.path, learner.as_ref());
+            resume_events = load_events(store.load_newest(learner.as_mut()));
         }
         let worker = Worker::start(
             learner,
@@ -205,6 +188,7 @@ impl Engine {
             config
                 .denormals()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?,
+            Duration::from_millis(config.training.round_deadline_ms),
         )
         .map_err(|source| RuntimeError::Io {
             what: "start the trainer thread".into(),
@@ -216,10 +200,13 @@ impl Engine {
             .await
             .map_err(RuntimeError::Transport)?;
         let clock = ReceiveClock::start();
-        let event = resume_event.map(|kind| Event {
-            time_us: clock.now_us(),
-            kind,
-        });
+        let events = resume_events
+            .into_iter()
+            .map(|kind| Event {
+                time_us: clock.now_us(),
+                kind,
+            })
+            .collect();
         Ok((
             Self {
                 core: Arc::new(Mutex::new(core)),
@@ -234,7 +221,7 @@ impl Engine {
                 predictions_to: config.udp.predictions_to,
                 predictions_sent: 0,
             },
-            event,
+            events,
         ))
     }
 
@@ -272,13 +259,22 @@ impl Engine {
     /// Sends everything the core and the worker produced.
     async fn flush_outputs(&mut self) {
         let notices = self.worker.shared.take_notices();
+        let overdue = self.worker.shared.overdue_job();
         let outgoing = {
             let mut core = lock(&self.core);
             for notice in notices {
                 match notice {
                     Notice::Ack(ack) => core.worker_ack(ack),
                     Notice::Event(kind) => core.worker_event(kind),
+                    Notice::TrainerFault { gave_up } => core.trainer_faulted(gave_up),
+                    Notice::TrainerRestored => core.trainer_restored(),
                 }
+            }
+            if overdue {
+                core.worker_event(EventKind::Error {
+                    code: ErrorCode::Internal,
+                    detail: interfaces::messages::event_detail::ROUND_DEADLINE_MISSED,
+                });
             }
             core.take_outgoing()
         };
@@ -423,8 +419,8 @@ pub async fn start(
         ),
         None => None,
     };
-    let (mut engine, resume_event) = Engine::new(config, learner, can).await?;
-    if let Some(event) = resume_event {
+    let (mut engine, resume_events) = Engine::new(config, learner, can).await?;
+    for event in resume_events {
         engine.send_status(&event).await;
     }
     let unbound = SocketAddr::new(config.udp.bind_ip, 0);
@@ -575,8 +571,8 @@ pub async fn run_replay(
     speed: ReplaySpeed,
 ) -> Result<ReplaySummary, RuntimeError> {
     let (records, load) = replay::load(logs).map_err(RuntimeError::Replay)?;
-    let (mut engine, resume_event) = Engine::new(config, learner, None).await?;
-    if let Some(event) = resume_event {
+    let (mut engine, resume_events) = Engine::new(config, learner, None).await?;
+    for event in resume_events {
         engine.send_status(&event).await;
     }
     let replay_started = Instant::now();

@@ -142,6 +142,45 @@ fn to_u8(value: f32) -> u8 {
     (value.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
+/// The seam's summary of a round: `skipped_steps` travels on, so the worker can report
+/// non-finite steps (the ICD's `TrainingNonFinite`).
+fn round_summary(report: &crate::online::RoundReport, rounds: u64) -> RoundSummary {
+    RoundSummary {
+        rounds: u32::try_from(rounds).unwrap_or(u32::MAX),
+        duration_ms: (report.duration_s * 1000.0).min(f64::from(u32::MAX)) as u32,
+        loss: report.mean_loss,
+        gaussians: u32::try_from(report.gaussians).unwrap_or(u32::MAX),
+        skipped_steps: u32::try_from(report.skipped_steps).unwrap_or(u32::MAX),
+    }
+}
+
+/// Checks the component wrapper (magic, length, CRC) and parses the gs-core trainer, which
+/// bounds every size and checks every value; returns the stored round count.
+fn parse_checkpoint(
+    bytes: &[u8],
+) -> Result<(u64, gs_core::sunaware::SunAwareTrainer), LearnerError> {
+    let bad = |why: String| LearnerError::BadCheckpoint(why);
+    if bytes.len() < 28 || &bytes[..8] != CHECKPOINT_MAGIC {
+        return Err(bad("not a Sun-aware component checkpoint (magic)".into()));
+    }
+    let (body, crc) = bytes.split_at(bytes.len() - 4);
+    if crc32_ieee(body).to_le_bytes() != crc {
+        return Err(bad("checksum mismatch".into()));
+    }
+    let word = |at: usize| {
+        let mut b = [0u8; 8];
+        b.copy_from_slice(&body[at..at + 8]);
+        u64::from_le_bytes(b)
+    };
+    let rounds = word(8);
+    let len = usize::try_from(word(16)).unwrap_or(usize::MAX);
+    if body.len() - 24 != len {
+        return Err(bad(format!("trainer length {len} disagrees with the file")));
+    }
+    let trainer = checkpoint::from_bytes(&body[24..]).map_err(|e| bad(e.to_string()))?;
+    Ok((rounds, trainer))
+}
+
 impl Learner for SunAwareLearner {
     fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
         let t = &frame.telemetry;
@@ -168,26 +207,16 @@ impl Learner for SunAwareLearner {
                 OfferResult::NotAdded
             }
             Ok(OfferReport::Skipped(_)) => OfferResult::Skipped,
-            Err(error) => {
-                eprintln!("fsw-component: frame {} refused: {error}", frame.frame_id);
-                OfferResult::Skipped
-            }
+            // The worker reports it as an event; the frame never reaches the model.
+            Err(_) => OfferResult::Refused,
         }
     }
 
-    fn run_round_if_due(&mut self) -> Option<RoundSummary> {
+    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
         match self.online.run_round_if_due() {
-            Ok(Some(report)) => Some(RoundSummary {
-                rounds: u32::try_from(self.rounds()).unwrap_or(u32::MAX),
-                duration_ms: (report.duration_s * 1000.0).min(f64::from(u32::MAX)) as u32,
-                loss: report.mean_loss,
-                gaussians: u32::try_from(report.gaussians).unwrap_or(u32::MAX),
-            }),
-            Ok(None) => None,
-            Err(error) => {
-                eprintln!("fsw-component: training round failed: {error}");
-                None
-            }
+            Ok(Some(report)) => Ok(Some(round_summary(&report, self.rounds()))),
+            Ok(None) => Ok(None),
+            Err(error) => Err(LearnerError::Training(error.to_string())),
         }
     }
 
@@ -221,15 +250,10 @@ impl Learner for SunAwareLearner {
         })
     }
 
-    fn reset(&mut self) {
-        match self.settings.build() {
-            Ok(online) => {
-                self.online = online;
-                self.rounds_offset = 0;
-            }
-            // Built once already from the same settings: cannot fail unless memory is gone.
-            Err(error) => eprintln!("fsw-component: model reset failed: {error}"),
-        }
+    fn reset(&mut self) -> Result<(), LearnerError> {
+        self.online = self.settings.build().map_err(LearnerError::Training)?;
+        self.rounds_offset = 0;
+        Ok(())
     }
 
     fn save(&self) -> Vec<u8> {
@@ -245,25 +269,8 @@ impl Learner for SunAwareLearner {
     }
 
     fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
-        let bad = |why: String| LearnerError::BadCheckpoint(why);
-        if bytes.len() < 28 || &bytes[..8] != CHECKPOINT_MAGIC {
-            return Err(bad("not a Sun-aware component checkpoint (magic)".into()));
-        }
-        let (body, crc) = bytes.split_at(bytes.len() - 4);
-        if crc32_ieee(body).to_le_bytes() != crc {
-            return Err(bad("checksum mismatch".into()));
-        }
-        let word = |at: usize| {
-            let mut b = [0u8; 8];
-            b.copy_from_slice(&body[at..at + 8]);
-            u64::from_le_bytes(b)
-        };
-        let rounds = word(8);
-        let len = usize::try_from(word(16)).unwrap_or(usize::MAX);
-        if body.len() - 24 != len {
-            return Err(bad(format!("trainer length {len} disagrees with the file")));
-        }
-        let trainer = checkpoint::from_bytes(&body[24..]).map_err(|e| bad(e.to_string()))?;
+        let (rounds, trainer) = parse_checkpoint(bytes)?;
+        let bad = LearnerError::BadCheckpoint;
         let mut online = self.settings.build().map_err(bad)?;
         *online.trainer_mut() = trainer;
         // A checkpoint holds no backend: the restored trainer runs where this one did.
@@ -274,6 +281,10 @@ impl Learner for SunAwareLearner {
         self.online = online;
         self.rounds_offset = rounds;
         Ok(())
+    }
+
+    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
+        parse_checkpoint(bytes).map(|(rounds, _)| rounds)
     }
 
     fn stats(&self) -> LearnerStats {

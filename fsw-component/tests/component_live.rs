@@ -263,15 +263,17 @@ impl Learner for SlowRounds {
     fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
         self.inner.offer(frame)
     }
-    fn run_round_if_due(&mut self) -> Option<RoundSummary> {
-        let round = self.inner.run_round_if_due()?;
+    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
+        let Some(round) = self.inner.run_round_if_due()? else {
+            return Ok(None);
+        };
         std::thread::sleep(self.round_time);
-        Some(round)
+        Ok(Some(round))
     }
     fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
         self.inner.predict(view)
     }
-    fn reset(&mut self) {
+    fn reset(&mut self) -> Result<(), LearnerError> {
         self.inner.reset()
     }
     fn save(&self) -> Vec<u8> {
@@ -279,6 +281,9 @@ impl Learner for SlowRounds {
     }
     fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
         self.inner.load(bytes)
+    }
+    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
+        self.inner.inspect(bytes)
     }
     fn stats(&self) -> LearnerStats {
         self.inner.stats()

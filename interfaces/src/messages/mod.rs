@@ -17,7 +17,7 @@ pub use command::{
     RenderRequest,
 };
 pub use image::{CameraFrame, FrameHeader, PixelFormat, PredictionSource, RenderedPrediction};
-pub use status::{ErrorCode, Event, EventKind, HealthStatus};
+pub use status::{event_detail, ErrorCode, Event, EventKind, HealthStatus};
 pub use telemetry::{SunVector, TargetPose};
 pub use validate::ValidationError;
 

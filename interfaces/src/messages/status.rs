@@ -112,3 +112,38 @@ impl Message for Event {
         Ok(())
     }
 }
+
+/// `detail` values of [`EventKind::Error`] for the codes whose detail is a reason, not a
+/// count (the ICD's table lists them). `TrainingNonFinite`'s detail is the number of
+/// optimisation steps the round skipped.
+pub mod event_detail {
+    /// `CheckpointSaveFailed`: writing, syncing or renaming the file failed.
+    pub const SAVE_IO: u32 = 0;
+    /// `CheckpointSaveFailed`: the file read back differs from what was written.
+    pub const SAVE_VERIFY_FAILED: u32 = 1;
+    /// `CheckpointSaveFailed`: refused, the model has fewer training rounds than the one on
+    /// disk (RESET_MODEL is the command that allows replacing it).
+    pub const SAVE_REFUSED_FEWER_ROUNDS: u32 = 2;
+    /// `CheckpointSaveFailed`: refused, the model's own reader would not accept the bytes
+    /// (e.g. a non-finite optimiser moment).
+    pub const SAVE_REFUSED_UNREADABLE: u32 = 3;
+    /// `CheckpointLoadFailed`: no slot holds a checkpoint the model accepts.
+    pub const LOAD_NOTHING_USABLE: u32 = 0;
+    /// `CheckpointLoadFailed`: the newest slot was refused; the previous one was loaded.
+    pub const LOAD_NEWEST_FAILED_PREVIOUS_USED: u32 = 1;
+    /// `Internal`: the trainer panicked; the learner was restarted from the newest usable
+    /// checkpoint (or afresh).
+    pub const TRAINER_PANICKED: u32 = 1;
+    /// `Internal`: a trainer job (a frame with its round, or a command) ran past
+    /// `training.round_deadline_ms`.
+    pub const ROUND_DEADLINE_MISSED: u32 = 2;
+    /// `Internal`: the model refused a synchronised frame (it failed its own checks).
+    pub const FRAME_REFUSED_BY_MODEL: u32 = 3;
+    /// `Internal`: a training round failed with an error (nothing was applied).
+    pub const ROUND_FAILED: u32 = 4;
+    /// `Internal`: the trainer panicked three times without a job completing in between
+    /// (or its restart failed); the component stays in Idle until commanded.
+    pub const TRAINER_GAVE_UP: u32 = 5;
+    /// `Internal`: RESET_MODEL failed; the model is as before.
+    pub const RESET_FAILED: u32 = 6;
+}
