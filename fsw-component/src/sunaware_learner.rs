@@ -296,3 +296,26 @@ impl Learner for SunAwareLearner {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn skipped_steps_cross_the_seam() {
+        let report = crate::online::RoundReport {
+            rounds: 7,
+            mean_loss: 0.25,
+            duration_s: 1.5,
+            gaussians: 2000,
+            skipped_steps: 3,
+            trained_ids: vec![1, 2],
+            densified: None,
+        };
+        let summary = round_summary(&report, 9);
+        assert_eq!(summary.skipped_steps, 3);
+        assert_eq!(summary.rounds, 9);
+        assert_eq!(summary.duration_ms, 1500);
+        assert_eq!(summary.gaussians, 2000);
+    }
+}

@@ -469,8 +469,8 @@ fn restart(
     }));
     match restored {
         Ok(Ok(outcome)) => {
-            lock(&shared.snapshot).trainer_restarts += 1;
             let mut s = lock(&shared.snapshot);
+            s.trainer_restarts += 1;
             s.last_round = None;
             s.last_prediction_psnr_db = None;
             drop(s);
