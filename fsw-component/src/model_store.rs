@@ -150,3 +150,116 @@ impl ModelStore {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::learner::{
+        LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
+        ViewRequest,
+    };
+
+    /// A model that is just a round count; `unreadable` makes its bytes fail `inspect`.
+    #[derive(Default)]
+    struct Rounds {
+        rounds: u64,
+        unreadable: bool,
+    }
+
+    impl Learner for Rounds {
+        fn offer(&mut self, _: &ObservedFrame) -> OfferResult {
+            OfferResult::NotAdded
+        }
+        fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
+            Ok(None)
+        }
+        fn predict(&self, _: &ViewRequest) -> Result<PredictedImage, LearnerError> {
+            Err(LearnerError::NothingToRender)
+        }
+        fn reset(&mut self) -> Result<(), LearnerError> {
+            self.rounds = 0;
+            Ok(())
+        }
+        fn save(&self) -> Vec<u8> {
+            let mut out = b"ROUNDS".to_vec();
+            out.extend_from_slice(&self.rounds.to_le_bytes());
+            if self.unreadable {
+                out.push(0xff);
+            }
+            out
+        }
+        fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
+            self.rounds = self.inspect(bytes)?;
+            Ok(())
+        }
+        fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
+            match bytes.strip_prefix(b"ROUNDS") {
+                Some(rest) if rest.len() == 8 => Ok(u64::from_le_bytes(rest.try_into().unwrap())),
+                _ => Err(LearnerError::BadCheckpoint("not a round count".into())),
+            }
+        }
+        fn stats(&self) -> LearnerStats {
+            LearnerStats {
+                rounds: u32::try_from(self.rounds).unwrap_or(u32::MAX),
+                ..LearnerStats::default()
+            }
+        }
+    }
+
+    #[test]
+    fn saves_follow_the_policy_and_loads_fall_back() {
+        let dir = std::env::temp_dir().join(format!("fsw-store-{}", std::process::id()));
+        let path = dir.join("model.bin");
+        let mut model = Rounds {
+            rounds: 5,
+            ..Rounds::default()
+        };
+        let mut store = ModelStore::open(&path, &model);
+        assert_eq!(
+            store.load_newest(&mut Rounds::default()),
+            LoadOutcome::Empty
+        );
+        assert_eq!(store.save(&model), SaveOutcome::Saved { rounds: 5 });
+        model.unreadable = true;
+        let unreadable = SaveOutcome::Refused {
+            detail: event_detail::SAVE_REFUSED_UNREADABLE,
+        };
+        assert_eq!(store.save(&model), unreadable);
+        model.unreadable = false;
+        model.rounds = 2;
+        let fewer = SaveOutcome::Refused {
+            detail: event_detail::SAVE_REFUSED_FEWER_ROUNDS,
+        };
+        assert_eq!(store.save(&model), fewer);
+        // A new store (a restart) reads the floor back from disk.
+        let mut store = ModelStore::open(&path, &model);
+        assert_eq!(store.floor_rounds(), 5);
+        assert_eq!(store.save(&model), fewer);
+        store.allow_replacing();
+        assert_eq!(store.save(&model), SaveOutcome::Saved { rounds: 2 });
+        let mut loaded = Rounds::default();
+        let newest = LoadOutcome::Loaded {
+            rounds: 2,
+            fell_back: false,
+        };
+        assert_eq!(store.load_newest(&mut loaded), newest);
+        // The newest damaged: the previous one (rounds 5) loads, reported as a fallback.
+        std::fs::write(&path, b"damaged").unwrap();
+        let fallback = store.load_newest(&mut loaded);
+        assert_eq!(
+            fallback,
+            LoadOutcome::Loaded {
+                rounds: 5,
+                fell_back: true
+            }
+        );
+        assert_eq!(
+            fallback.failure_detail(),
+            Some(event_detail::LOAD_NEWEST_FAILED_PREVIOUS_USED)
+        );
+        std::fs::write(checkpoint::previous_path(&path), b"damaged").unwrap();
+        assert_eq!(store.load_newest(&mut loaded), LoadOutcome::Unusable);
+        assert_eq!(loaded.rounds, 5, "a failed load leaves the model unchanged");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
