@@ -4,14 +4,11 @@ mod component_support;
 
 use component_support::*;
 use fsw_component::imagemetrics;
-use fsw_component::learner::{
-    Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
-    ViewRequest,
-};
 use fsw_component::runtime::{build_learner, start, LearnerKind};
 use interfaces::messages::{
     AckStatus, CommandKind, EventKind, Mode, PredictionSource, RenderRequest,
 };
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 const WAIT: Duration = Duration::from_secs(5);
@@ -253,51 +250,17 @@ async fn live_scenario_predictions_health_and_commands() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Wraps a learner and makes every round take `round_time`.
-struct SlowRounds {
-    inner: Box<dyn Learner>,
-    round_time: Duration,
-}
-
-impl Learner for SlowRounds {
-    fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
-        self.inner.offer(frame)
-    }
-    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
-        let Some(round) = self.inner.run_round_if_due()? else {
-            return Ok(None);
-        };
-        std::thread::sleep(self.round_time);
-        Ok(Some(round))
-    }
-    fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
-        self.inner.predict(view)
-    }
-    fn reset(&mut self) -> Result<(), LearnerError> {
-        self.inner.reset()
-    }
-    fn save(&self) -> Vec<u8> {
-        self.inner.save()
-    }
-    fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
-        self.inner.load(bytes)
-    }
-    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
-        self.inner.inspect(bytes)
-    }
-    fn stats(&self) -> LearnerStats {
-        self.inner.stats()
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_keeps_1_hz_and_commands_are_acknowledged_during_a_long_round() {
     let dir = temp_dir("slow");
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let learner = SlowRounds {
+    let learner = Scripted {
         inner: build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        round_time: Duration::from_millis(3500),
+        script: Arc::new(Mutex::new(Script {
+            round_sleep: Duration::from_millis(3500),
+            ..Script::default()
+        })),
     };
     let handle = start(&config, Box::new(learner), None).await.unwrap();
     for k in 0..4 {

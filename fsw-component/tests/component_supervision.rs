@@ -6,89 +6,11 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::learner::{
-    Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
-    ViewRequest,
-};
 use fsw_component::nearest_learner::NearestKeyframeLearner;
 use fsw_component::runtime::{start, ComponentHandle};
 use interfaces::messages::{event_detail, AckStatus, CommandKind, ErrorCode, EventKind, Mode};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-
-/// What the scripted learner does on its next calls (shared with the test).
-#[derive(Default)]
-struct Script {
-    /// Round calls that panic (counted down).
-    panicking_rounds: u32,
-    /// Every round sleeps this long first.
-    round_sleep: Duration,
-    /// Reported as skipped (non-finite) steps of every round.
-    skipped_steps: u32,
-    /// Round calls that fail with an error (counted down).
-    failing_rounds: u32,
-    /// Offers that the model refuses (counted down).
-    refused_offers: u32,
-}
-
-/// The nearest-keyframe learner driven by a [`Script`].
-struct Scripted {
-    inner: NearestKeyframeLearner,
-    script: Arc<Mutex<Script>>,
-}
-
-impl Learner for Scripted {
-    fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
-        let mut script = self.script.lock().unwrap();
-        if script.refused_offers > 0 {
-            script.refused_offers -= 1;
-            return OfferResult::Refused;
-        }
-        drop(script);
-        self.inner.offer(frame)
-    }
-    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
-        let (sleep, skipped) = {
-            let mut script = self.script.lock().unwrap();
-            if script.panicking_rounds > 0 {
-                script.panicking_rounds -= 1;
-                drop(script);
-                panic!("scripted panic in a training round");
-            }
-            if script.failing_rounds > 0 {
-                script.failing_rounds -= 1;
-                return Err(LearnerError::Training("scripted failure".into()));
-            }
-            (script.round_sleep, script.skipped_steps)
-        };
-        let round = self.inner.run_round_if_due()?;
-        if round.is_some() {
-            std::thread::sleep(sleep);
-        }
-        Ok(round.map(|r| RoundSummary {
-            skipped_steps: skipped,
-            ..r
-        }))
-    }
-    fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
-        self.inner.predict(view)
-    }
-    fn reset(&mut self) -> Result<(), LearnerError> {
-        self.inner.reset()
-    }
-    fn save(&self) -> Vec<u8> {
-        self.inner.save()
-    }
-    fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
-        self.inner.load(bytes)
-    }
-    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
-        self.inner.inspect(bytes)
-    }
-    fn stats(&self) -> LearnerStats {
-        self.inner.stats()
-    }
-}
 
 async fn start_scripted(
     name: &str,
@@ -105,7 +27,7 @@ async fn start_scripted(
     config.training.round_deadline_ms = round_deadline_ms;
     let script = Arc::new(Mutex::new(Script::default()));
     let learner = Scripted {
-        inner: NearestKeyframeLearner::new(config.window_config().unwrap()),
+        inner: Box::new(NearestKeyframeLearner::new(config.window_config().unwrap())),
         script: Arc::clone(&script),
     };
     let handle = start(&config, Box::new(learner), None).await.unwrap();

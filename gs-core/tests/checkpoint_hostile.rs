@@ -91,6 +91,9 @@ const MAX_GAUSSIANS: usize = PAYLOAD + CONFIG_BYTES - (8 + 8 + 12 + 4 + 8 + 4 + 
 const HIDDEN_WIDTH: usize = PAYLOAD + CONFIG_BYTES - (8 + 4);
 const GAUSSIAN_COUNT: usize = PAYLOAD + CONFIG_BYTES + 24;
 
+/// A hostile case: its name, the (offset, bytes) edits, a word the error must contain.
+type Case<'a> = (&'a str, &'a [(usize, &'a [u8])], &'a str);
+
 fn u64_at(bytes: &[u8], at: usize) -> u64 {
     u64::from_le_bytes(bytes[at..at + 8].try_into().unwrap())
 }
@@ -170,7 +173,7 @@ fn hostile_sizes_are_refused_before_allocating() {
     let wide = 4096u64.to_le_bytes();
     let third = (u64::MAX / 3).to_le_bytes();
     // Zero Gaussians keep the row-size check from catching a huge width first.
-    let cases: [(&str, &[(usize, &[u8])], &str); 7] = [
+    let cases: [Case; 7] = [
         ("feature_dim", &[(FEATURE_DIM, &huge)], "feature_dim"),
         (
             "feature_dim, no Gaussians",
