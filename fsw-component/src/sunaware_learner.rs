@@ -173,6 +173,10 @@ fn parse_checkpoint(
         u64::from_le_bytes(b)
     };
     let rounds = word(8);
+    // Health reports rounds as u32, and the count keeps growing after a load.
+    if rounds > u64::from(u32::MAX / 2) {
+        return Err(bad(format!("round count {rounds} is implausible")));
+    }
     let len = usize::try_from(word(16)).unwrap_or(usize::MAX);
     if body.len() - 24 != len {
         return Err(bad(format!("trainer length {len} disagrees with the file")));
@@ -317,5 +321,25 @@ mod tests {
         assert_eq!(summary.rounds, 9);
         assert_eq!(summary.duration_ms, 1500);
         assert_eq!(summary.gaussians, 2000);
+    }
+
+    #[test]
+    fn inspect_accepts_what_load_accepts_and_bounds_the_round_count() {
+        let mut settings = SunAwareSettings::with_window(WindowConfig::default());
+        settings.initial_gaussians = 50;
+        let mut learner = SunAwareLearner::new(settings).unwrap();
+        learner.rounds_offset = 7;
+        let bytes = learner.save();
+        assert_eq!(learner.inspect(&bytes), Ok(7));
+        learner.load(&bytes).unwrap();
+        assert_eq!(learner.stats().rounds, 7);
+        // A checksummed file with an absurd round count is refused by both.
+        let mut hostile = bytes[..bytes.len() - 4].to_vec();
+        hostile[8..16].copy_from_slice(&u64::MAX.to_le_bytes());
+        let crc = crc32_ieee(&hostile);
+        hostile.extend_from_slice(&crc.to_le_bytes());
+        assert!(learner.inspect(&hostile).is_err());
+        assert!(learner.load(&hostile).is_err());
+        assert_eq!(learner.stats().rounds, 7, "a refused load changes nothing");
     }
 }
