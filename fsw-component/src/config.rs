@@ -6,12 +6,12 @@
 //! offending key; [`ComponentConfig::load`] reads, parses and validates in one step.
 //! Quaternions are written `[w, x, y, z]` like the bus messages.
 
-use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use crate::sync::SyncConfig;
 use glam::DQuat;
 use gs_core::fpmode::DenormalMode;
 use gs_core::nn::MatmulPrecision;
 use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, Variant};
+use gs_online::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};

@@ -1,16 +1,14 @@
-//! The flight component: keyframe window, synchronizer, training scheduler and transports.
+//! The flight component: transports, synchronizer, training scheduler, publishers, commands
+//! and checkpoints around the online trainer of `gs-online`.
 
 pub mod bus;
 pub mod checkpoint;
 pub mod config;
 pub mod core;
 pub mod health;
-pub mod imagemetrics;
-pub mod keyframe;
 pub mod learner;
 pub mod logfmt;
 pub mod nearest_learner;
-pub mod online;
 pub mod recorder;
 pub mod replay;
 pub mod runtime;

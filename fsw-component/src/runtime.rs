@@ -89,7 +89,9 @@ pub fn build_learner(
         .window_config()
         .map_err(|e| RuntimeError::Config(e.to_string()))?;
     Ok(match kind {
-        LearnerKind::NearestKeyframe => Box::new(NearestKeyframeLearner::new(window)),
+        LearnerKind::NearestKeyframe => Box::new(
+            NearestKeyframeLearner::new(window).map_err(|e| RuntimeError::Config(e.to_string()))?,
+        ),
         LearnerKind::SunAware => {
             let mut settings = SunAwareSettings::with_window(window);
             settings.online.passes_per_round = config.training.passes_per_round;

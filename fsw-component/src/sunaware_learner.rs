@@ -19,16 +19,18 @@
 //! Invariants: frames the online trainer refuses are skipped, never half-applied; nothing
 //! non-finite enters the model (the online trainer validates, gs-core skips non-finite steps).
 
-use crate::keyframe::WindowConfig;
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
     ViewRequest,
 };
-use crate::online::{Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason};
 use glam::{DQuat, DVec3, Quat, Vec3};
 use gs_core::nn::SceneBox;
 use gs_core::sunaware::checkpoint;
 use gs_core::{Camera, Intrinsics};
+use gs_online::keyframe::WindowConfig;
+use gs_online::online::{
+    Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason,
+};
 use interfaces::crc::crc32_ieee;
 use interfaces::messages::PixelFormat;
 

@@ -22,11 +22,11 @@
 //! each starts: the bus side's threads keep IEEE arithmetic.
 
 use crate::checkpoint;
-use crate::imagemetrics;
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, RoundSummary, ViewRequest,
 };
 use gs_core::fpmode::{self, DenormalMode};
+use gs_online::imagemetrics;
 use interfaces::messages::{
     AckStatus, CommandAck, ErrorCode, EventKind, FrameHeader, PixelFormat, PredictionSource,
 };
@@ -584,9 +584,9 @@ fn run_frame(learner: &mut dyn Learner, shared: &WorkerShared, job: FrameJob) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::keyframe::WindowConfig;
     use crate::learner::PredictedImage;
     use crate::nearest_learner::NearestKeyframeLearner;
+    use gs_online::keyframe::WindowConfig;
 
     fn limits() -> QueueLimits {
         QueueLimits {
@@ -641,7 +641,7 @@ mod tests {
 
     #[test]
     fn finish_drains_queued_commands() {
-        let learner = NearestKeyframeLearner::new(WindowConfig::default());
+        let learner = NearestKeyframeLearner::new(WindowConfig::default()).expect("default window");
         let dir = std::env::temp_dir().join(format!("fsw-worker-{}", std::process::id()));
         let worker = Worker::start(
             Box::new(learner),
@@ -714,7 +714,8 @@ mod tests {
         for mode in [DenormalMode::Ieee, DenormalMode::FlushToZero] {
             let seen = Arc::new(Mutex::new(Vec::new()));
             let probe = ModeProbe {
-                inner: NearestKeyframeLearner::new(WindowConfig::default()),
+                inner: NearestKeyframeLearner::new(WindowConfig::default())
+                    .expect("default window"),
                 seen: Arc::clone(&seen),
             };
             let checkpoints = CheckpointSettings {

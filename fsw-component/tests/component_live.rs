@@ -3,12 +3,12 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::imagemetrics;
 use fsw_component::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
     ViewRequest,
 };
 use fsw_component::runtime::{build_learner, start, LearnerKind};
+use gs_online::imagemetrics;
 use interfaces::messages::{
     AckStatus, CommandKind, EventKind, Mode, PredictionSource, RenderRequest,
 };

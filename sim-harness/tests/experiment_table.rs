@@ -191,9 +191,9 @@ fn tiny_demo_writes_every_file() {
 /// image, and the fit is to the images as they are (a vertically flipped copy scores low).
 #[test]
 fn online_trainer_fits_simulator_frames() {
-    use fsw_component::online::OnlineTrainer;
     use gs_core::loss::{psnr, ImageShape};
     use gs_core::sunaware::Variant;
+    use gs_online::online::OnlineTrainer;
     use sim_harness::experiment::data::render_scene;
     use sim_harness::experiment::evaluate::{camera_of, sun_of};
     use sim_harness::experiment::runner::{

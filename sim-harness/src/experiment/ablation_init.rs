@@ -36,9 +36,6 @@ use super::ExperimentError;
 use crate::dataset::files;
 use crate::dataset::plots::{Canvas, Rgb};
 use crate::scenario::Scenario;
-use fsw_component::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
-use fsw_component::online::OnlineTrainer;
-use fsw_component::online::{Initialisation, OnlineError};
 use glam::Vec3;
 use gs_core::hull::{
     carve, carve_photo_consistent, carve_silhouette_consistent, sample_colours, CarvedVolume,
@@ -47,6 +44,9 @@ use gs_core::hull::{
 };
 use gs_core::model::Param;
 use gs_core::sunaware::Variant;
+use gs_online::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
+use gs_online::online::OnlineTrainer;
+use gs_online::online::{Initialisation, OnlineError};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

@@ -26,8 +26,8 @@ pub mod table_job;
 
 use crate::dataset::DatasetError;
 use crate::scenario::ScenarioError;
-use fsw_component::online::OnlineError;
 use gs_core::sunaware::SunAwareError;
+use gs_online::online::OnlineError;
 use std::fmt;
 use std::path::PathBuf;
 

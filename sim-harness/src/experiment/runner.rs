@@ -1,5 +1,5 @@
 //! One experiment run: a configuration (a-d) trained on one scene through the paper's online
-//! procedure (`fsw_component::online::OnlineTrainer`: frames offered in time order, keyframe
+//! procedure (`gs_online::online::OnlineTrainer`: frames offered in time order, keyframe
 //! window W, a round of W steps whenever the window changed, densify every few rounds), then
 //! evaluated on the scene's evaluation views.
 //!
@@ -19,11 +19,11 @@ use super::evaluate::{
 };
 use super::preset::{InitKind, Preset};
 use crate::raytrace::linear_to_srgb8;
-use fsw_component::keyframe::WindowConfig;
-use fsw_component::online::{Frame, Initialisation, OnlineConfig, OnlineError, OnlineTrainer};
 use glam::{DVec3, Vec3};
 use gs_core::nn::SceneBox;
 use gs_core::sunaware::{BackendKind, Variant};
+use gs_online::keyframe::WindowConfig;
+use gs_online::online::{Frame, Initialisation, OnlineConfig, OnlineError, OnlineTrainer};
 use serde::Serialize;
 use std::time::Instant;
 

@@ -3,11 +3,11 @@
 //! changed flag, and determinism. View sequences mix random directions with a small
 //! palette of repeated directions so that exact score ties occur often.
 
-use fsw_component::keyframe::{
+use glam::DVec3;
+use gs_online::keyframe::{
     Keyframe, KeyframeError, KeyframeWindow, NotAddedReason, OfferOutcome, ViewDirection,
     WindowConfig,
 };
-use glam::DVec3;
 use proptest::prelude::*;
 
 fn direction(azimuth_rad: f64, elevation_rad: f64) -> DVec3 {

@@ -39,6 +39,10 @@ pub enum KeyframeError {
     CapacityTooSmall { capacity: usize },
     /// The minimum view angle must be finite and in [0, 180] degrees.
     InvalidMinViewAngle { degrees: f64 },
+    /// A restored window holds more keyframes than its capacity.
+    TooManyKeyframes { count: usize, capacity: usize },
+    /// A restored window holds two keyframes with the same id.
+    DuplicateId { id: u64 },
 }
 
 impl fmt::Display for KeyframeError {
@@ -58,6 +62,11 @@ impl fmt::Display for KeyframeError {
             Self::InvalidMinViewAngle { degrees } => {
                 write!(f, "minimum view angle {degrees} deg is not in [0, 180]")
             }
+            Self::TooManyKeyframes { count, capacity } => write!(
+                f,
+                "{count} keyframes do not fit a window of capacity {capacity}"
+            ),
+            Self::DuplicateId { id } => write!(f, "keyframe id {id} appears twice"),
         }
     }
 }
@@ -190,6 +199,35 @@ impl<P> KeyframeWindow<P> {
             keyframes: Vec::with_capacity(config.capacity + 1),
             generation: 0,
         })
+    }
+
+    /// Rebuilds a window from saved state (a checkpoint): keyframes newest first, and the
+    /// generation counter it had. Checks what [`KeyframeWindow::offer`] guarantees: at most
+    /// `capacity` keyframes, unique ids.
+    pub fn restore(
+        config: WindowConfig,
+        keyframes_newest_first: Vec<Keyframe<P>>,
+        generation: u64,
+    ) -> Result<Self, KeyframeError> {
+        let mut window = Self::new(config)?;
+        let count = keyframes_newest_first.len();
+        if count > window.capacity {
+            return Err(KeyframeError::TooManyKeyframes {
+                count,
+                capacity: window.capacity,
+            });
+        }
+        for (index, keyframe) in keyframes_newest_first.iter().enumerate() {
+            if keyframes_newest_first[..index]
+                .iter()
+                .any(|k| k.id == keyframe.id)
+            {
+                return Err(KeyframeError::DuplicateId { id: keyframe.id });
+            }
+        }
+        window.keyframes = keyframes_newest_first;
+        window.generation = generation;
+        Ok(window)
     }
 
     pub fn config(&self) -> WindowConfig {
@@ -497,5 +535,46 @@ mod tests {
         assert_eq!(w.generation(), 2);
         assert!(w.is_empty());
         assert!(w.accepts_view(dir_deg(0.0)));
+    }
+
+    #[test]
+    fn restore_continues_exactly_and_refuses_what_offer_never_builds() {
+        let mut original = window(3);
+        for (id, azimuth) in [(1, 0.0), (2, 30.0), (3, 60.0), (4, 90.0)] {
+            original.offer(frame(id, azimuth));
+        }
+        let mut restored = KeyframeWindow::restore(
+            original.config(),
+            original.keyframes().to_vec(),
+            original.generation(),
+        )
+        .unwrap();
+        for (id, azimuth) in [(5, 120.0), (6, 125.0), (7, 200.0)] {
+            assert_eq!(
+                original.offer(frame(id, azimuth)),
+                restored.offer(frame(id, azimuth))
+            );
+        }
+        assert_eq!(original.ids(), restored.ids());
+        assert_eq!(original.generation(), restored.generation());
+
+        let four = vec![
+            frame(1, 0.0),
+            frame(2, 30.0),
+            frame(3, 60.0),
+            frame(4, 90.0),
+        ];
+        assert_eq!(
+            KeyframeWindow::restore(original.config(), four, 4).unwrap_err(),
+            KeyframeError::TooManyKeyframes {
+                count: 4,
+                capacity: 3
+            }
+        );
+        let twins = vec![frame(1, 0.0), frame(1, 30.0)];
+        assert_eq!(
+            KeyframeWindow::restore(original.config(), twins, 2).unwrap_err(),
+            KeyframeError::DuplicateId { id: 1 }
+        );
     }
 }

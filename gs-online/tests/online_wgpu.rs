@@ -9,10 +9,10 @@
 //! a missing adapter fails.
 #![cfg(feature = "wgpu")]
 
-use fsw_component::keyframe::WindowConfig;
-use fsw_component::online::{Initialisation, OnlineConfig, OnlineTrainer};
 use gs_core::sunaware::synthetic::SyntheticScene;
 use gs_core::sunaware::{BackendKind, LightConfig, SunAwareConfig, Variant};
+use gs_online::keyframe::WindowConfig;
+use gs_online::online::{Initialisation, OnlineConfig, OnlineTrainer};
 
 mod online_support;
 use online_support::{frame, held_out_psnr};

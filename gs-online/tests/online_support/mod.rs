@@ -3,8 +3,8 @@
 //! under a moving Sun, and the held-out PSNR the tests score a trainer by.
 #![allow(dead_code)]
 
-use fsw_component::online::{Frame, OnlineTrainer};
 use gs_core::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
+use gs_online::online::{Frame, OnlineTrainer};
 
 pub const W: u32 = 48;
 pub const H: u32 = 36;

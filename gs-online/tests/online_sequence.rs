@@ -4,11 +4,11 @@
 //! changed, that eclipse and unlit frames are skipped and counted (and are not when the
 //! skips are switched off), and that bad frames are errors.
 
-use fsw_component::keyframe::WindowConfig;
-use fsw_component::online::{Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason};
 use glam::Vec3;
 use gs_core::sunaware::synthetic::{orbit_camera, SyntheticScene};
 use gs_core::sunaware::{LightConfig, SunAwareConfig, Variant};
+use gs_online::keyframe::WindowConfig;
+use gs_online::online::{Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason};
 
 mod online_support;
 use online_support::{frame, held_out_psnr, H, PER_ORBIT, W};
