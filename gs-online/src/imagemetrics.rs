@@ -78,7 +78,7 @@ pub fn psnr_db(
         return Ok(MAX_PSNR_DB);
     }
     let mse = squared_error as f64 / (predicted.len() as f64 * 255.0 * 255.0);
-    Ok(((-10.0 * mse.log10()) as f32).min(MAX_PSNR_DB))
+    Ok((gs_core::loss::psnr_db_from_mse(mse) as f32).min(MAX_PSNR_DB))
 }
 
 fn gaussian_window() -> [f64; 2 * WINDOW_RADIUS + 1] {

@@ -8,11 +8,11 @@
 //! ([`super::pareto::CSV_HEADER`]) with the setting named `wN`, rewritten after every run.
 
 use super::pareto::{
-    draw_xy_panel, io_error, run_settings, to_csv, write_canvas, write_text, Knob, PlotSeries,
-    Setting, SweepRow,
+    draw_xy_panel, run_settings, to_csv, write_canvas, Knob, PlotSeries, Setting, SweepRow,
 };
 use super::preset::Preset;
 use super::table::target_label;
+use super::write_text;
 use super::ExperimentError;
 use crate::dataset::plots::{Canvas, Rgb};
 use crate::scenario::Scenario;
@@ -157,7 +157,7 @@ pub fn run_window_ablation(
         s.preset(&job.base)?;
     }
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let mut rows: Vec<SweepRow> = Vec::new();
     for scenario in &job.scenarios {
         progress(&format!("target {}", scenario.name));

@@ -29,7 +29,7 @@ use crate::scenario::ScenarioError;
 use gs_core::sunaware::SunAwareError;
 use gs_online::online::OnlineError;
 use std::fmt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Why an experiment could not run.
 #[derive(Debug)]
@@ -56,6 +56,21 @@ impl fmt::Display for ExperimentError {
 }
 
 impl std::error::Error for ExperimentError {}
+
+impl ExperimentError {
+    /// A failed write (or read) of `path`.
+    pub(crate) fn io(path: &Path, e: impl fmt::Display) -> Self {
+        ExperimentError::Io {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        }
+    }
+}
+
+/// Writes a text result file (CSV, Markdown), replacing any existing one.
+pub(crate) fn write_text(path: &Path, text: &str) -> Result<(), ExperimentError> {
+    std::fs::write(path, text).map_err(|e| ExperimentError::io(path, e))
+}
 
 impl From<DatasetError> for ExperimentError {
     fn from(e: DatasetError) -> Self {

@@ -3,7 +3,7 @@
 //! the `pareto` job that writes `pareto.csv`, `pareto.md` and `pareto.png`.
 //!
 //! Also the measuring instruments the skips table and the window ablation share:
-//! [`process_cpu_s`] (getrusage, all threads), [`reset_peak_rss`] / [`peak_rss_mb`]
+//! [`reset_peak_rss`] / [`peak_rss_mb`]
 //! (`VmHWM` of /proc/self/status, reset per run through /proc/self/clear_refs), [`Knob`] and
 //! [`Setting`] (named preset overrides), [`run_settings`] (one row per setting) and
 //! [`draw_xy_panel`] (line and scatter plots on the dataset plots' canvas).
@@ -20,6 +20,7 @@ use super::data::{load_or_render_scene, SceneData};
 use super::figure::{draw_text, text_width};
 use super::preset::Preset;
 use super::runner::run_config;
+use super::write_text;
 use super::ExperimentError;
 use crate::dataset::files;
 use crate::dataset::plots::{Canvas, Rgb};
@@ -40,18 +41,6 @@ pub fn builtin_scenario(name: &str) -> Result<Scenario, ExperimentError> {
                 "unknown target {name:?}: the built-in targets are cassini, rosetta and starlink"
             ))
         })
-}
-
-/// CPU time of this process so far (user + system, all threads), seconds.
-pub fn process_cpu_s() -> f64 {
-    // SAFETY: getrusage only writes the struct we pass; a zeroed rusage is a valid value.
-    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
-    let rc = unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut usage) };
-    if rc != 0 {
-        return 0.0;
-    }
-    let tv = |t: libc::timeval| t.tv_sec as f64 + 1e-6 * t.tv_usec as f64;
-    tv(usage.ru_utime) + tv(usage.ru_stime)
 }
 
 /// Resets the peak resident set size (Linux `clear_refs` 5). False where that is not
@@ -566,17 +555,6 @@ pub fn describe(knobs: &[Knob]) -> String {
         .join(" ")
 }
 
-pub(crate) fn io_error(path: &Path, e: impl std::fmt::Display) -> ExperimentError {
-    ExperimentError::Io {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    }
-}
-
-pub(crate) fn write_text(path: &Path, text: &str) -> Result<(), ExperimentError> {
-    std::fs::write(path, text).map_err(|e| io_error(path, e))
-}
-
 pub(crate) fn write_canvas(path: &Path, canvas: &Canvas) -> Result<(), ExperimentError> {
     files::write_png_rgb(path, canvas.width, canvas.height, &canvas.rgb8)?;
     Ok(())
@@ -894,7 +872,7 @@ pub fn run_pareto(
         ));
     }
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let write = |rows: &[SweepRow]| -> Result<Vec<bool>, ExperimentError> {
         let points: Vec<(f64, f64)> = rows.iter().map(|r| (r.train_cpu_s, r.psnr_db)).collect();
         let front = pareto_front(&points);
@@ -917,7 +895,7 @@ pub fn run_pareto(
 /// Writes `pareto.csv`, `pareto.md` and `pareto.png` for `rows` into `out` (the front
 /// computed over these rows); returns the front.
 pub fn write_outputs(out: &Path, rows: &[SweepRow]) -> Result<Vec<bool>, ExperimentError> {
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let points: Vec<(f64, f64)> = rows.iter().map(|r| (r.train_cpu_s, r.psnr_db)).collect();
     let front = pareto_front(&points);
     write_text(&out.join("pareto.csv"), &to_csv(rows, &front))?;
@@ -995,6 +973,7 @@ mod tests {
 
     #[test]
     fn peak_memory_and_cpu_time_are_measured() {
+        let process_cpu_s = || gs_core::machine::process_cpu_s().expect("Linux reports CPU time");
         let before = process_cpu_s();
         let mut x = 0u64;
         for i in 0..3_000_000u64 {

@@ -320,11 +320,11 @@ pub fn run_config(
             0
         };
         for _ in 0..rounds_due {
-            let cpu_before_s = super::pareto::process_cpu_s();
+            let cpu_before_s = gs_core::machine::process_cpu_s().unwrap_or(0.0);
             let Some(report) = trainer.run_round_if_due()? else {
                 break;
             };
-            train_cpu_s += super::pareto::process_cpu_s() - cpu_before_s;
+            train_cpu_s += gs_core::machine::process_cpu_s().unwrap_or(0.0) - cpu_before_s;
             train_s += report.duration_s;
             curve.push(RoundPoint {
                 round: report.rounds,

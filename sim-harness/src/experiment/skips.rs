@@ -12,8 +12,9 @@
 //! the skip saves time) and `cost` = PSNR without - PSNR with (positive: the skip loses
 //! quality).
 
-use super::pareto::{io_error, run_settings, write_text, Knob, Setting, SweepRow};
+use super::pareto::{run_settings, Knob, Setting, SweepRow};
 use super::preset::Preset;
+use super::write_text;
 use super::ExperimentError;
 use crate::scenario::Scenario;
 use std::fmt::Write as _;
@@ -224,7 +225,7 @@ pub fn run_skips(
     progress: &mut dyn FnMut(&str),
 ) -> Result<Vec<SkipRow>, ExperimentError> {
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let mut settings = vec![Setting::new("base", &[])];
     let mut default_on = Vec::new();
     let mut sides = Vec::new();
