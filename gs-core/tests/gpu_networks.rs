@@ -19,25 +19,14 @@
 use std::sync::Arc;
 
 use gs_core::gpu::mlp::{DeviceBatch, DeviceNetwork};
-use gs_core::gpu::{GpuContext, GpuError, GpuMlp};
+use gs_core::gpu::{context_or_skip, GpuError, GpuMlp, GpuOptions};
 use gs_core::nn::{HiddenActivation, Init, Mlp, TapeMode};
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::trainer::FlatAdam;
 
 fn device() -> Option<Arc<GpuMlp>> {
-    match GpuContext::new() {
-        Ok(ctx) => {
-            eprintln!("GPU: {}", ctx.describe());
-            Some(Arc::new(GpuMlp::new(ctx).unwrap()))
-        }
-        Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
-            None
-        }
-    }
+    let ctx = context_or_skip(GpuOptions::default())?;
+    Some(Arc::new(GpuMlp::new(ctx).unwrap()))
 }
 
 /// See the module docs for the tolerance. Returns the worst error / tolerance.

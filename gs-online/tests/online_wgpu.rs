@@ -9,26 +9,29 @@
 //! a missing adapter fails.
 #![cfg(feature = "wgpu")]
 
+use gs_core::gpu::{context_or_skip, GpuOptions, GpuRasterizer};
 use gs_core::sunaware::synthetic::SyntheticScene;
-use gs_core::sunaware::{BackendKind, LightConfig, SunAwareConfig, Variant};
+use gs_core::sunaware::{LightConfig, SunAwareConfig, Variant};
+use gs_core::train::Backend;
 use gs_online::keyframe::WindowConfig;
 use gs_online::online::{Initialisation, OnlineConfig, OnlineTrainer};
+use std::sync::Arc;
 
 mod online_support;
 use online_support::{frame, held_out_psnr};
 
 #[test]
 fn online_rounds_on_the_device_match_the_cpu() {
-    let backend = match BackendKind::Wgpu.open() {
-        Ok(b) => b,
-        Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
-            return;
-        }
+    // The same adapter policy as gs-core's GPU tests; the backend is what
+    // `BackendKind::Wgpu.open()` builds (deterministic options).
+    let options = GpuOptions {
+        deterministic: true,
+        ..GpuOptions::default()
     };
+    let Some(ctx) = context_or_skip(options) else {
+        return;
+    };
+    let backend = Backend::Wgpu(Arc::new(GpuRasterizer::new(ctx).unwrap()));
     let scene = SyntheticScene::plate_and_ball(12, 60).unwrap();
     let (points, normals, colours) = scene.surface_samples(0.02, 11);
     let init = Initialisation::SurfaceSamples {
