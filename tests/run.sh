@@ -7,6 +7,8 @@ cd "$(dirname "$0")/.."
 started=$SECONDS
 step() { echo; echo "== $* (t+$((SECONDS - started)) s)"; }
 
+step "commit subjects (at most 72 characters)"
+bash tests/check_commit_subjects.sh
 step "cargo fmt --check"
 cargo fmt --all -- --check
 step "cargo clippy"
