@@ -124,7 +124,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             })?;
         eprintln!(
             "{} | {} steps {:.0} s",
-            sim_harness::experiment::runner::ladder_line(&format!("online {variant}"), &o),
+            sim_harness::experiment::ladder::ladder_line(&format!("online {variant}"), &o),
             o.steps,
             o.train_s
         );

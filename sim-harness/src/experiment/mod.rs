@@ -2,7 +2,8 @@
 //! target through the online procedure, evaluated on the evaluation views) and the demo.
 //!
 //! Modules: [`preset`] (config/presets/*.toml), [`data`] (scenes rendered into memory) with
-//! [`cache`] (their on-disk cache), [`evaluate`] (metrics on evaluation views), [`table`]
+//! [`cache`] (their on-disk cache), [`evaluate`] (metrics on evaluation views), [`ladder`] (the
+//! accuracy ladder every report prints), [`table`]
 //! (CSV and Markdown writers), [`figure`] (comparison grids).
 //!
 //! Invariants: frames reach the online trainer in time order; evaluation views never train;
@@ -16,6 +17,7 @@ pub mod data;
 pub mod demo;
 pub mod evaluate;
 pub mod figure;
+pub mod ladder;
 pub mod pareto;
 pub mod preset;
 pub mod runner;

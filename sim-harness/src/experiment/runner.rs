@@ -121,34 +121,6 @@ pub fn trained_frames<'a>(scene: &'a SceneData, preset: &Preset) -> Vec<&'a View
         .collect()
 }
 
-/// One line with the accuracy ladder, masked PSNR first (the target's own pixels), each
-/// rung beside its all-black score, and a warning on any rung that does not beat black.
-pub fn ladder_line(label: &str, o: &RunOutcome) -> String {
-    let rungs = [
-        ("L0 window", &o.window_fit, &o.black_window),
-        ("L0 seen", &o.seen, &o.black_seen),
-        ("L1 held-out", &o.held_out, &o.black_held_out),
-        ("L2 eval", &o.eval, &o.black_eval),
-        ("L2 covered views", &o.eval_covered, &o.black_eval_covered),
-    ];
-    let mut line = format!("{label}: masked PSNR (all-black)");
-    for (name, model, black) in rungs {
-        if model.views == 0 {
-            continue;
-        }
-        let flag = if model.masked_psnr_db <= black.masked_psnr_db {
-            " BELOW BLACK"
-        } else {
-            ""
-        };
-        line.push_str(&format!(
-            "; {name} {:.2} ({:.2}) dB{flag}, full {:.2} ({:.2})",
-            model.masked_psnr_db, black.masked_psnr_db, model.psnr_db, black.psnr_db
-        ));
-    }
-    line
-}
-
 /// The scene box of the target: its vertex bounds grown by 5 % on each side.
 pub fn scene_box(scene: &SceneData) -> Result<SceneBox, OnlineError> {
     let (lo, hi) = (scene.bounds_min_m, scene.bounds_max_m);
@@ -432,7 +404,7 @@ pub fn run_config(
         eval_covered,
         black_eval_covered,
     };
-    progress(&ladder_line(&label, &outcome));
+    progress(&super::ladder::ladder_line(&label, &outcome));
     progress(&format!(
         "{label}: PSNR {:.2} dB, SSIM {:.4} (masked {:.2} dB / {:.4}; seen views {:.2} dB, all-black there {:.2} dB; all-black {:.2} dB), {} Gaussians, {} rounds, {} steps, train {:.0} s ({:.1} ms/step), eval {:.0} s",
         outcome.eval.psnr_db,

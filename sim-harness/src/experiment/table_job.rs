@@ -77,6 +77,7 @@ fn row_of(run: &RunOutcome) -> ResultRow {
         gaussians: run.gaussians,
         train_s: run.train_s,
         step_ms: run.step_ms,
+        ladder: super::ladder::Ladder::of(run),
     }
 }
 
