@@ -2,6 +2,7 @@
 
 pub mod bus;
 pub mod checkpoint;
+pub mod cmdauth;
 pub mod config;
 pub mod core;
 pub mod health;
@@ -16,5 +17,6 @@ pub mod replay;
 pub mod runtime;
 pub mod sunaware_learner;
 pub mod sync;
+pub mod timeguard;
 pub mod transport;
 pub mod worker;
