@@ -242,7 +242,9 @@ impl CommandGate {
             CommandKind::ResetModel | CommandKind::LoadCheckpoint => {
                 let opcode = kind.opcode();
                 match self.armed {
-                    Some(a) if a.opcode == opcode && a.source == source && now_us <= a.expires_us => {
+                    Some(a)
+                        if a.opcode == opcode && a.source == source && now_us <= a.expires_us =>
+                    {
                         self.armed = None;
                         Ok(())
                     }
@@ -355,10 +357,16 @@ mod tests {
         let can = CommandSource::Can { node_id: Some(1) };
         assert_eq!(gate.admit(&reset, can, 1), Err(Refusal::NotArmed));
         assert_eq!(gate.admit(&reset, GROUND, 10_000_000), Ok(()));
-        assert_eq!(gate.admit(&reset, GROUND, 10_000_001), Err(Refusal::NotArmed));
+        assert_eq!(
+            gate.admit(&reset, GROUND, 10_000_001),
+            Err(Refusal::NotArmed)
+        );
         gate.admit(&CommandKind::Arm(CommandKind::RESET_MODEL), GROUND, 0)
             .unwrap();
-        assert_eq!(gate.admit(&reset, GROUND, 10_000_001), Err(Refusal::NotArmed));
+        assert_eq!(
+            gate.admit(&reset, GROUND, 10_000_001),
+            Err(Refusal::NotArmed)
+        );
     }
 
     #[test]

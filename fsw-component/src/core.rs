@@ -173,10 +173,7 @@ fn sat_u32(v: u64) -> u32 {
 }
 
 impl BusCore {
-    pub fn new(
-        settings: CoreSettings,
-        worker: Arc<WorkerShared>,
-    ) -> Result<Self, CoreConfigError> {
+    pub fn new(settings: CoreSettings, worker: Arc<WorkerShared>) -> Result<Self, CoreConfigError> {
         let sync = Synchronizer::new(settings.sync).map_err(CoreConfigError::Sync)?;
         let guard = TimeTagGuard::new(settings.time_guard).map_err(CoreConfigError::TimeGuard)?;
         Ok(Self {
@@ -543,7 +540,9 @@ impl BusCore {
             CommandKind::SaveCheckpoint => Some(ModelCommand::SaveCheckpoint),
             CommandKind::LoadCheckpoint => Some(ModelCommand::LoadCheckpoint),
             CommandKind::Render(r) => {
-                let (width, height) = self.gate.render_size(self.render_size.0, self.render_size.1);
+                let (width, height) = self
+                    .gate
+                    .render_size(self.render_size.0, self.render_size.1);
                 let [w, x, y, z] = r.q_camera_from_target.map(f64::from);
                 Some(ModelCommand::Render(ViewRequest {
                     camera_from_target: DQuat::from_xyzw(x, y, z, w).normalize(),

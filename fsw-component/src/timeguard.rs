@@ -103,7 +103,9 @@ impl TelemetrySample {
 pub enum Admission {
     Stored(SampleStatus),
     /// Dropped: its offset moved by `deviation_us` from the last accepted sample's.
-    OutOfBounds { deviation_us: i128 },
+    OutOfBounds {
+        deviation_us: i128,
+    },
     /// Dropped by the synchronizer (older than or as old as the newest sample).
     Dropped(SampleDropped),
     /// Taken as a clock jump: the stream's buffer was cleared, then the sample stored.
@@ -187,7 +189,9 @@ impl TimeTagGuard {
     fn extend_streak(&mut self, time_us: u64, offset: i128) -> bool {
         let tolerance = i128::from(self.config.tolerance_us);
         let count = match self.streak {
-            Some(s) if time_us > s.last_time_us && (offset - s.last_offset_us).abs() <= tolerance => {
+            Some(s)
+                if time_us > s.last_time_us && (offset - s.last_offset_us).abs() <= tolerance =>
+            {
                 s.count + 1
             }
             _ => 1,
@@ -252,7 +256,10 @@ mod tests {
     fn a_far_future_sample_is_dropped_and_nominal_traffic_goes_on() {
         let (mut g, mut s) = setup();
         let base = 1_000_000_000;
-        assert!(matches!(g.push(&mut s, sun(100), base), Admission::Stored(_)));
+        assert!(matches!(
+            g.push(&mut s, sun(100), base),
+            Admission::Stored(_)
+        ));
         assert!(matches!(
             g.push(&mut s, sun(u64::MAX), base + 500),
             Admission::OutOfBounds { .. }
@@ -277,7 +284,10 @@ mod tests {
         let step = |k: u64| (1_000_000 + k * 1_000 - 900_000, base + k * 1_000);
         for k in 5..7 {
             let (t, r) = step(k);
-            assert!(matches!(g.push(&mut s, sun(t), r), Admission::OutOfBounds { .. }));
+            assert!(matches!(
+                g.push(&mut s, sun(t), r),
+                Admission::OutOfBounds { .. }
+            ));
         }
         let (t, r) = step(7);
         assert!(matches!(
@@ -306,7 +316,10 @@ mod tests {
             ));
         }
         let (t, r) = step(7);
-        assert!(matches!(g.push(&mut s, sun(t), r), Admission::Resynchronised(_)));
+        assert!(matches!(
+            g.push(&mut s, sun(t), r),
+            Admission::Resynchronised(_)
+        ));
     }
 
     #[test]
@@ -320,7 +333,10 @@ mod tests {
             .enumerate()
         {
             let r = base + i as u64;
-            assert!(!matches!(g.push(&mut s, sun(t), r), Admission::Resynchronised(_)));
+            assert!(!matches!(
+                g.push(&mut s, sun(t), r),
+                Admission::Resynchronised(_)
+            ));
         }
         // The same stale sample repeated: not increasing, never a clock.
         for i in 0..5 {

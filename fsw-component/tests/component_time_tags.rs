@@ -5,8 +5,8 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::runtime::{build_learner, start, ComponentHandle};
 use fsw_component::runtime::LearnerKind;
+use fsw_component::runtime::{build_learner, start, ComponentHandle};
 use interfaces::messages::{CameraFrame, ErrorCode, EventKind, PredictionSource};
 use std::time::Duration;
 
@@ -141,7 +141,10 @@ async fn a_backwards_clock_step_resynchronises_with_an_event() {
         step_at(&mut peer, &handle, id, hour_us + k * 1_000_000).await;
         id += 1;
     }
-    assert!(wait_predicted(&peer, id - 1).await, "nominal frame before the step");
+    assert!(
+        wait_predicted(&peer, id - 1).await,
+        "nominal frame before the step"
+    );
     // After the step: frames recover within the resynchronisation count (3 samples per
     // stream) plus one step to bracket a frame.
     let mut first_recovered = None;
@@ -154,7 +157,10 @@ async fn a_backwards_clock_step_resynchronises_with_an_event() {
         id += 1;
     }
     let recovered = first_recovered.unwrap_or_else(|| {
-        panic!("no frame accepted after the clock step: {:#?}", handle.counters())
+        panic!(
+            "no frame accepted after the clock step: {:#?}",
+            handle.counters()
+        )
     });
     assert!(recovered <= 13, "recovered only at step {recovered}");
     assert!(has_error_event(&peer, ErrorCode::TelemetryClockJump));
