@@ -354,7 +354,9 @@ async fn render_size_is_bounded_for_large_camera_frames() {
     let frame = CameraFrame {
         header: FrameHeader {
             frame_id: 50,
-            time_us: 1_600_000,
+            // Long after the telemetry: rejected as stale, so that no 490 kB prediction
+            // floods this peer's socket; its decoded size still sets the RENDER size.
+            time_us: 100_000_000,
             width,
             height,
             format: PixelFormat::Gray8,
