@@ -241,12 +241,19 @@ impl BusCore {
 
     fn error_event(&mut self, code: ErrorCode) {
         let i = code.index();
-        self.suppressed_errors[i] = self.suppressed_errors[i].saturating_add(1);
-        let due = self.last_error_event_us[i]
-            .is_none_or(|last| self.now_us.saturating_sub(last) >= ERROR_EVENT_INTERVAL_US);
+        let (Some(last), Some(suppressed)) = (
+            self.last_error_event_us.get_mut(i),
+            self.suppressed_errors.get_mut(i),
+        ) else {
+            // A code missing from `ErrorCode::ALL`: reported unthrottled rather than lost.
+            self.push_event(EventKind::Error { code, detail: 1 });
+            return;
+        };
+        *suppressed = suppressed.saturating_add(1);
+        let due = last.is_none_or(|at| self.now_us.saturating_sub(at) >= ERROR_EVENT_INTERVAL_US);
         if due {
-            self.last_error_event_us[i] = Some(self.now_us);
-            let detail = std::mem::take(&mut self.suppressed_errors[i]);
+            *last = Some(self.now_us);
+            let detail = std::mem::take(suppressed);
             self.push_event(EventKind::Error { code, detail });
         }
     }
