@@ -7,13 +7,19 @@
 //! trainer thread, executes or queues commands, and collects acknowledgements and events
 //! for the shell (`runtime.rs`) to send. It never blocks and never waits on the trainer.
 //!
+//! Telemetry passes the time-tag guard (`timeguard.rs`) before the synchronizer, and
+//! commands pass the command gate (`cmdauth.rs`): a command from a source outside the
+//! allow-list is counted and evented, never decoded and never acknowledged.
+//!
 //! Invariants: every input that is not used is counted exactly once in [`BusCounters`] or
 //! in the reassembler/synchronizer counters; a frame waits for the telemetry sample after
 //! its time tag at most `max_wait_us` and at most `pending_capacity` frames wait; error
 //! events are rate-limited to one per error code per second (with the count in `detail`).
 
+use crate::cmdauth::{CommandGate, CommandPolicy, CommandSource, Refusal, UdpIngress};
 use crate::learner::{ObservedFrame, ViewRequest};
-use crate::sync::{PoseSample, SunSample, SyncError, Synchronizer, WaitPolicy};
+use crate::sync::{PoseSample, Stream, SunSample, SyncError, Synchronizer, WaitPolicy};
+use crate::timeguard::{Admission, TelemetrySample, TimeGuardConfig, TimeTagGuard};
 use crate::worker::{CommandJob, FrameJob, FrameUse, ModelCommand, WorkerShared};
 use glam::{DQuat, DVec3};
 use interfaces::ccsds::{CcsdsReassembler, CcsdsRxError};
@@ -47,6 +53,8 @@ pub struct CoreSettings {
     pub max_wait_us: u64,
     pub pending_capacity: usize,
     pub initial_mode: Mode,
+    pub time_guard: TimeGuardConfig,
+    pub commands: CommandPolicy,
 }
 
 /// Counters kept by the bus core (the reassemblers and the synchronizer keep their own).
@@ -62,9 +70,19 @@ pub struct BusCounters {
     pub frame_decode_errors: u64,
     /// Telemetry decoded but dropped by the synchronizer (out of order, duplicate time).
     pub telemetry_out_of_order: u64,
+    /// Telemetry dropped because its time tag was too far from the receive clock.
+    pub telemetry_time_out_of_bounds: u64,
+    /// Streams resynchronised to a new telemetry clock (buffer cleared).
+    pub telemetry_resyncs: u64,
     pub commands_accepted: u64,
     pub commands_rejected: u64,
     pub commands_busy: u64,
+    /// Commands from sources outside the allow-list (not acknowledged).
+    pub commands_unauthorised: u64,
+    /// Destructive commands without a valid arm (acknowledged EXECUTION_ERROR).
+    pub commands_not_armed: u64,
+    /// RENDER commands above the rate limit (acknowledged BUSY).
+    pub commands_rate_limited: u64,
     /// Outbound messages that could not be encoded or sent (see the log).
     pub send_errors: u64,
     /// Datagrams above 1472 bytes, dropped by the UDP transport.
@@ -104,18 +122,39 @@ struct OwnedFrame {
     mask: Option<Vec<u8>>,
 }
 
+/// A refused [`CoreSettings`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CoreConfigError {
+    Sync(crate::sync::SyncConfigError),
+    TimeGuard(crate::timeguard::TimeGuardConfigError),
+}
+
+impl std::fmt::Display for CoreConfigError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Sync(e) => write!(f, "{e}"),
+            Self::TimeGuard(e) => write!(f, "{e}"),
+        }
+    }
+}
+
+impl std::error::Error for CoreConfigError {}
+
 pub struct BusCore {
     settings: CoreSettings,
     udp_rx: CcsdsReassembler<Vec<u8>, UDP_SLOTS>,
     can_rx: CanReassembler<Vec<u8>, CAN_SLOTS>,
     sync: Synchronizer,
+    pose_guard: TimeTagGuard,
+    sun_guard: TimeTagGuard,
+    gate: CommandGate,
     pending: VecDeque<PendingFrame>,
     mode: Mode,
     counters: BusCounters,
     worker: Arc<WorkerShared>,
     outbox: Vec<Outgoing>,
-    last_error_event_us: [Option<u64>; 11],
-    suppressed_errors: [u32; 11],
+    last_error_event_us: [Option<u64>; ErrorCode::COUNT],
+    suppressed_errors: [u32; ErrorCode::COUNT],
     now_us: u64,
     /// Width, height and format for RENDER: the last valid camera frame's.
     render_size: (u16, u16, interfaces::messages::PixelFormat),
@@ -133,17 +172,14 @@ fn sat_u32(v: u64) -> u32 {
     u32::try_from(v).unwrap_or(u32::MAX)
 }
 
-fn error_index(code: ErrorCode) -> usize {
-    code as usize
-}
-
 impl BusCore {
-    pub fn new(
-        settings: CoreSettings,
-        worker: Arc<WorkerShared>,
-    ) -> Result<Self, crate::sync::SyncConfigError> {
-        let sync = Synchronizer::new(settings.sync)?;
+    pub fn new(settings: CoreSettings, worker: Arc<WorkerShared>) -> Result<Self, CoreConfigError> {
+        let sync = Synchronizer::new(settings.sync).map_err(CoreConfigError::Sync)?;
+        let guard = TimeTagGuard::new(settings.time_guard).map_err(CoreConfigError::TimeGuard)?;
         Ok(Self {
+            pose_guard: guard.clone(),
+            sun_guard: guard,
+            gate: CommandGate::new(settings.commands),
             mode: settings.initial_mode,
             settings,
             udp_rx: CcsdsReassembler::new(vec![0; UDP_SLOTS * UDP_SLOT_BYTES])
@@ -155,8 +191,8 @@ impl BusCore {
             counters: BusCounters::default(),
             worker,
             outbox: Vec::new(),
-            last_error_event_us: [None; 11],
-            suppressed_errors: [0; 11],
+            last_error_event_us: [None; ErrorCode::COUNT],
+            suppressed_errors: [0; ErrorCode::COUNT],
             now_us: 0,
             render_size: (
                 RENDER_WIDTH,
@@ -204,13 +240,20 @@ impl BusCore {
     }
 
     fn error_event(&mut self, code: ErrorCode) {
-        let i = error_index(code);
-        self.suppressed_errors[i] = self.suppressed_errors[i].saturating_add(1);
-        let due = self.last_error_event_us[i]
-            .is_none_or(|last| self.now_us.saturating_sub(last) >= ERROR_EVENT_INTERVAL_US);
+        let i = code.index();
+        let (Some(last), Some(suppressed)) = (
+            self.last_error_event_us.get_mut(i),
+            self.suppressed_errors.get_mut(i),
+        ) else {
+            // A code missing from `ErrorCode::ALL`: reported unthrottled rather than lost.
+            self.push_event(EventKind::Error { code, detail: 1 });
+            return;
+        };
+        *suppressed = suppressed.saturating_add(1);
+        let due = last.is_none_or(|at| self.now_us.saturating_sub(at) >= ERROR_EVENT_INTERVAL_US);
         if due {
-            self.last_error_event_us[i] = Some(self.now_us);
-            let detail = std::mem::take(&mut self.suppressed_errors[i]);
+            *last = Some(self.now_us);
+            let detail = std::mem::take(suppressed);
             self.push_event(EventKind::Error { code, detail });
         }
     }
@@ -222,14 +265,18 @@ impl BusCore {
         }));
     }
 
-    /// One received UDP datagram (any inbound socket).
-    pub fn handle_datagram(&mut self, datagram: &[u8], now_us: u64) {
+    /// One received UDP datagram from the socket `ingress`.
+    pub fn handle_datagram(&mut self, datagram: &[u8], ingress: UdpIngress, now_us: u64) {
         self.now_us = now_us;
         match self.udp_rx.push(datagram, now_us) {
             Ok(Some(message)) => {
                 let apid = message.apid;
+                let source = CommandSource::Udp {
+                    ingress,
+                    packet_type: message.packet_type,
+                };
                 let payload = message.payload.to_vec();
-                self.handle_message(apid, &payload);
+                self.handle_message(apid, &payload, source);
             }
             Ok(None) | Err(CcsdsRxError::NotSubscribed) => {}
             Err(CcsdsRxError::CrcMismatch) => self.error_event(ErrorCode::CrcError),
@@ -243,8 +290,11 @@ impl BusCore {
         match self.can_rx.push_frame(extended, id, data, now_us) {
             Ok(Some(transfer)) => {
                 let subject = transfer.subject_id;
+                let source = CommandSource::Can {
+                    node_id: transfer.source_node_id,
+                };
                 let payload = transfer.payload.to_vec();
-                self.handle_message(subject, &payload);
+                self.handle_message(subject, &payload, source);
             }
             Ok(None) | Err(CanRxError::NotSubscribed) => {}
             Err(CanRxError::CrcMismatch) => self.error_event(ErrorCode::CrcError),
@@ -252,13 +302,42 @@ impl BusCore {
         }
     }
 
-    fn handle_message(&mut self, port_id: u16, payload: &[u8]) {
+    fn handle_message(&mut self, port_id: u16, payload: &[u8], source: CommandSource) {
         match port_id {
             port::SUN_VECTOR => self.handle_sun(payload),
             port::TARGET_POSE => self.handle_pose(payload),
             port::CAMERA_FRAME => self.handle_frame(payload),
-            port::COMMAND => self.handle_command(payload),
+            port::COMMAND if self.gate.authorises(source) => self.handle_command(payload, source),
+            port::COMMAND => {
+                // Strangers get no acknowledgement: counted, and one event per second.
+                self.counters.commands_unauthorised += 1;
+                self.error_event(ErrorCode::CommandUnauthorised);
+            }
             _ => {}
+        }
+    }
+
+    /// Time-tag guard, then synchronizer; frames waiting for this sample are retried.
+    fn push_telemetry(&mut self, sample: TelemetrySample) {
+        let guard = match sample.stream() {
+            Stream::Pose => &mut self.pose_guard,
+            Stream::Sun => &mut self.sun_guard,
+        };
+        match guard.push(&mut self.sync, sample, self.now_us) {
+            Admission::Stored(_) => self.retry_pending(WaitPolicy::MayWait),
+            Admission::Resynchronised(_) => {
+                self.counters.telemetry_resyncs += 1;
+                self.error_event(ErrorCode::TelemetryClockJump);
+                self.retry_pending(WaitPolicy::MayWait);
+            }
+            Admission::OutOfBounds { .. } => {
+                self.counters.telemetry_time_out_of_bounds += 1;
+                self.error_event(ErrorCode::TelemetryTimeOutOfBounds);
+            }
+            Admission::Dropped(_) => {
+                self.counters.telemetry_out_of_order += 1;
+                self.error_event(ErrorCode::TelemetryStale);
+            }
         }
     }
 
@@ -273,13 +352,7 @@ impl BusCore {
             sun_in_body: DVec3::from_array(sun.sun_body.map(f64::from)),
             valid: sun.valid,
         };
-        match self.sync.push_sun(sample) {
-            Ok(_) => self.retry_pending(WaitPolicy::MayWait),
-            Err(_) => {
-                self.counters.telemetry_out_of_order += 1;
-                self.error_event(ErrorCode::TelemetryStale);
-            }
-        }
+        self.push_telemetry(TelemetrySample::Sun(sample));
     }
 
     fn handle_pose(&mut self, payload: &[u8]) {
@@ -295,13 +368,7 @@ impl BusCore {
             target_in_camera_m: DVec3::from_array(pose.t_camera_from_target_m.map(f64::from)),
             quality: pose_quality(&pose),
         };
-        match self.sync.push_pose(sample) {
-            Ok(_) => self.retry_pending(WaitPolicy::MayWait),
-            Err(_) => {
-                self.counters.telemetry_out_of_order += 1;
-                self.error_event(ErrorCode::TelemetryStale);
-            }
-        }
+        self.push_telemetry(TelemetrySample::Pose(sample));
     }
 
     fn handle_frame(&mut self, payload: &[u8]) {
@@ -435,7 +502,7 @@ impl BusCore {
         self.push_event(kind);
     }
 
-    fn handle_command(&mut self, payload: &[u8]) {
+    fn handle_command(&mut self, payload: &[u8], source: CommandSource) {
         let command = match decode_command(payload) {
             Ok(command) => command,
             Err(error) => {
@@ -443,9 +510,27 @@ impl BusCore {
                 return;
             }
         };
+        if let Err(refusal) = self.gate.admit(&command.kind, source, self.now_us) {
+            let (status, code) = match refusal {
+                Refusal::NotArmed => {
+                    self.counters.commands_not_armed += 1;
+                    (AckStatus::ExecutionError, ErrorCode::CommandNotArmed)
+                }
+                Refusal::RateLimited => {
+                    self.counters.commands_rate_limited += 1;
+                    (AckStatus::Busy, ErrorCode::CommandRateLimited)
+                }
+            };
+            self.error_event(code);
+            self.ack(CommandAck {
+                detail: code.index() as u16,
+                ..command.ack(status)
+            });
+            return;
+        }
         let Command { sequence, kind } = command;
         let model_command = match kind {
-            CommandKind::Noop => None,
+            CommandKind::Noop | CommandKind::Arm(_) => None,
             CommandKind::ResetCounters => {
                 self.reset_counters();
                 None
@@ -462,13 +547,16 @@ impl BusCore {
             CommandKind::SaveCheckpoint => Some(ModelCommand::SaveCheckpoint),
             CommandKind::LoadCheckpoint => Some(ModelCommand::LoadCheckpoint),
             CommandKind::Render(r) => {
+                let (width, height) = self
+                    .gate
+                    .render_size(self.render_size.0, self.render_size.1);
                 let [w, x, y, z] = r.q_camera_from_target.map(f64::from);
                 Some(ModelCommand::Render(ViewRequest {
                     camera_from_target: DQuat::from_xyzw(x, y, z, w).normalize(),
                     target_in_camera_m: DVec3::from_array(r.t_camera_from_target_m.map(f64::from)),
                     sun_in_target: DVec3::from_array(r.sun_target.map(f64::from)).normalize(),
-                    width: self.render_size.0,
-                    height: self.render_size.1,
+                    width,
+                    height,
                     format: self.render_size.2,
                 }))
             }
@@ -523,6 +611,7 @@ impl BusCore {
             + c.bus.pose_decode_errors
             + c.bus.frame_decode_errors
             + c.bus.telemetry_out_of_order
+            + c.bus.telemetry_time_out_of_bounds
             + c.bus.oversized_datagrams;
         let learner = worker.learner;
         HealthStatus {
@@ -537,7 +626,7 @@ impl BusCore {
             decode_errors: sat_u32(decode_errors),
             crc_errors: sat_u32(crc_errors),
             commands_accepted: sat_u32(c.bus.commands_accepted),
-            commands_rejected: sat_u32(c.bus.commands_rejected),
+            commands_rejected: sat_u32(c.bus.commands_rejected + c.bus.commands_unauthorised),
             gaussians: learner.gaussians,
             rounds: learner.rounds,
             last_round_duration_ms: worker.last_round.map(|r| r.duration_ms),

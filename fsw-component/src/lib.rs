@@ -3,6 +3,7 @@
 
 pub mod bus;
 pub mod checkpoint;
+pub mod cmdauth;
 pub mod config;
 pub mod core;
 pub mod health;
@@ -14,5 +15,6 @@ pub mod replay;
 pub mod runtime;
 pub mod sunaware_learner;
 pub mod sync;
+pub mod timeguard;
 pub mod transport;
 pub mod worker;
