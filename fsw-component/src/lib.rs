@@ -1,15 +1,15 @@
 //! The flight component: transports, synchronizer, training scheduler, publishers, commands
 //! and checkpoints around the online trainer of `gs-online`.
 
-pub mod bus;
 pub mod checkpoint;
 pub mod cmdauth;
 pub mod config;
-pub mod core;
 pub mod health;
+pub mod inbound;
 pub mod learner;
 pub mod logfmt;
 pub mod nearest_learner;
+pub mod outbound;
 pub mod recorder;
 pub mod replay;
 pub mod runtime;

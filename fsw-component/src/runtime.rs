@@ -8,13 +8,13 @@
 //! Replay drives the same core from logs (no listening sockets); it waits for room in the
 //! trainer queues instead of dropping, so a replay processes every frame.
 
-use crate::bus::{CanFramer, UdpFramer};
 use crate::cmdauth::UdpIngress;
 use crate::config::ComponentConfig;
-use crate::core::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
 use crate::health::{memory_bytes, ReceiveClock};
+use crate::inbound::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
 use crate::learner::Learner;
 use crate::nearest_learner::NearestKeyframeLearner;
+use crate::outbound::{CanFramer, UdpFramer};
 use crate::recorder::Recorder;
 use crate::replay::{self, ReplayInput};
 use crate::sunaware_learner::{SunAwareLearner, SunAwareSettings};

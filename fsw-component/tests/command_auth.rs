@@ -7,7 +7,7 @@ mod component_support;
 
 use component_support::*;
 use fsw_component::config::ComponentConfig;
-use fsw_component::core::{BusCore, CoreSettings, Outgoing};
+use fsw_component::inbound::{BusCore, CoreSettings, Outgoing};
 use fsw_component::runtime::{build_learner, start, LearnerKind};
 use fsw_component::worker::{CheckpointSettings, QueueLimits, Worker};
 use interfaces::cyphal::{transfer_frames, MessageCanId, Mtu, Priority, TransferHeader};

@@ -5,9 +5,9 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::bus::{CanFramer, UdpFramer};
 use fsw_component::logfmt::candump::{CanId, CanLogFrame, CanLogRecord, CanLogWriter, FrameData};
 use fsw_component::logfmt::udprec::{UdpRecord, UdpRecordingWriter};
+use fsw_component::outbound::{CanFramer, UdpFramer};
 use fsw_component::runtime::{build_learner, run_replay, start, LearnerKind, ReplaySpeed};
 use interfaces::messages::{AckStatus, CameraFrame, Command, CommandKind};
 use std::path::{Path, PathBuf};

@@ -6,8 +6,8 @@
 //! a 16x16 RGB frame at every half second mark after the telemetry that brackets it.
 #![allow(dead_code)]
 
-use fsw_component::bus::UdpFramer;
 use fsw_component::config::ComponentConfig;
+use fsw_component::outbound::UdpFramer;
 use fsw_component::runtime::ComponentHandle;
 use glam::{DQuat, DVec3};
 use interfaces::ccsds::{message_packets, CcsdsReassembler, PacketType};
