@@ -6,12 +6,14 @@
 //! offending key; [`ComponentConfig::load`] reads, parses and validates in one step.
 //! Quaternions are written `[w, x, y, z]` like the bus messages.
 
-use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
+use crate::cmdauth::{CommandConfig, CommandPolicy};
 use crate::sync::SyncConfig;
+use crate::timeguard::TimeGuardConfig;
 use glam::DQuat;
 use gs_core::fpmode::DenormalMode;
 use gs_core::nn::MatmulPrecision;
 use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, Variant};
+use gs_online::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
@@ -37,6 +39,7 @@ pub struct ComponentConfig {
     pub training: TrainingConfig,
     pub checkpoint: CheckpointConfig,
     pub queues: QueueConfig,
+    pub commands: CommandConfig,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -97,6 +100,11 @@ pub struct SyncSettings {
     pub unit_norm_tolerance: f64,
     /// Poses with a lower quality are rejected.
     pub min_pose_quality: f64,
+    /// Largest change of (telemetry time tag - receive time) from the stream's last
+    /// accepted sample; samples beyond it are dropped.
+    pub time_tag_tolerance_ms: u64,
+    /// Consecutive consistent rejected samples of a stream taken as a clock jump.
+    pub resync_after_samples: u32,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -218,6 +226,8 @@ impl Default for SyncSettings {
             max_wait_ms: 1_000,
             unit_norm_tolerance: sync.unit_norm_tolerance,
             min_pose_quality: sync.min_pose_quality,
+            time_tag_tolerance_ms: TimeGuardConfig::default().tolerance_us / 1_000,
+            resync_after_samples: TimeGuardConfig::default().resync_after,
         }
     }
 }
@@ -375,6 +385,8 @@ impl ComponentConfig {
             }
         }
         self.sync_config()?;
+        self.time_guard_config()?;
+        self.command_policy()?;
         self.window_config()?;
         self.variant()?;
         if !(1..=MAX_PASSES_PER_ROUND).contains(&self.training.passes_per_round) {
@@ -464,7 +476,33 @@ impl ComponentConfig {
         Ok(sync)
     }
 
-    /// The keyframe window settings this configuration describes.
+    /// The telemetry time-tag guard this configuration describes.
+    pub fn time_guard_config(&self) -> Result<TimeGuardConfig, ConfigError> {
+        let guard = TimeGuardConfig {
+            tolerance_us: self.sync.time_tag_tolerance_ms.saturating_mul(1_000),
+            resync_after: self.sync.resync_after_samples,
+        };
+        guard.validate().map_err(|e| {
+            let key = match e {
+                crate::timeguard::TimeGuardConfigError::ZeroTolerance => {
+                    "sync.time_tag_tolerance_ms"
+                }
+                crate::timeguard::TimeGuardConfigError::ResyncTooEager { .. } => {
+                    "sync.resync_after_samples"
+                }
+            };
+            invalid(key, e.to_string())
+        })?;
+        Ok(guard)
+    }
+
+    /// Who may command, arming and RENDER limits (`[commands]`).
+    pub fn command_policy(&self) -> Result<CommandPolicy, ConfigError> {
+        self.commands
+            .policy()
+            .map_err(|(key, problem)| invalid(key, problem))
+    }
+
     /// The model configuration named by `training.variant`.
     pub fn variant(&self) -> Result<Variant, ConfigError> {
         self.training
@@ -524,6 +562,7 @@ impl ComponentConfig {
         Ok(model)
     }
 
+    /// The keyframe window settings this configuration describes.
     pub fn window_config(&self) -> Result<WindowConfig, ConfigError> {
         let window = WindowConfig {
             capacity: self.training.window_size,
@@ -647,6 +686,22 @@ mod tests {
             "sync.buffer_capacity"
         );
         assert_eq!(invalid_key("[sync]\nmax_gap_ms = 0\n"), "sync.max_gap_ms");
+        assert_eq!(
+            invalid_key("[sync]\ntime_tag_tolerance_ms = 0\n"),
+            "sync.time_tag_tolerance_ms"
+        );
+        assert_eq!(
+            invalid_key("[sync]\nresync_after_samples = 1\n"),
+            "sync.resync_after_samples"
+        );
+        assert_eq!(
+            invalid_key("[commands]\ncan_source_nodes = [1, 128]\n"),
+            "commands.can_source_nodes"
+        );
+        assert_eq!(
+            invalid_key("[commands]\narm_timeout_ms = 0\n"),
+            "commands.arm_timeout_ms"
+        );
         assert_eq!(
             invalid_key("[sync]\nunit_norm_tolerance = 0.0\n"),
             "sync.unit_norm_tolerance"

@@ -8,13 +8,14 @@
 //! Replay drives the same core from logs (no listening sockets); it waits for room in the
 //! trainer queues instead of dropping, so a replay processes every frame.
 
-use crate::bus::{CanFramer, UdpFramer};
+use crate::cmdauth::UdpIngress;
 use crate::config::ComponentConfig;
-use crate::core::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
 use crate::health::{memory_bytes, ReceiveClock};
+use crate::inbound::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
 use crate::learner::Learner;
 use crate::model_store::ModelStore;
 use crate::nearest_learner::NearestKeyframeLearner;
+use crate::outbound::{CanFramer, UdpFramer};
 use crate::recorder::Recorder;
 use crate::replay::{self, ReplayInput};
 use crate::sunaware_learner::{SunAwareLearner, SunAwareSettings};
@@ -90,7 +91,9 @@ pub fn build_learner(
         .window_config()
         .map_err(|e| RuntimeError::Config(e.to_string()))?;
     Ok(match kind {
-        LearnerKind::NearestKeyframe => Box::new(NearestKeyframeLearner::new(window)),
+        LearnerKind::NearestKeyframe => Box::new(
+            NearestKeyframeLearner::new(window).map_err(|e| RuntimeError::Config(e.to_string()))?,
+        ),
         LearnerKind::SunAware => {
             let mut settings = SunAwareSettings::with_window(window);
             settings.online.passes_per_round = config.training.passes_per_round;
@@ -166,6 +169,12 @@ impl Engine {
             max_wait_us: config.sync.max_wait_ms.saturating_mul(1000),
             pending_capacity: config.queues.pending_frames,
             initial_mode: Mode::Train,
+            time_guard: config
+                .time_guard_config()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?,
+            commands: config
+                .command_policy()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?,
         };
         let mut resume_events = Vec::new();
         if config.checkpoint.resume {
@@ -452,7 +461,7 @@ pub async fn start(
                             if let Some(r) = recorder.as_mut() {
                                 r.udp(now, from.port(), telemetry_addr.port(), &telemetry_buf[..len]);
                             }
-                            lock(&engine.core).handle_datagram(&telemetry_buf[..len], now);
+                            lock(&engine.core).handle_datagram(&telemetry_buf[..len], UdpIngress::Telemetry, now);
                         }
                         Err(error) => receive_failed(&engine, &error).await,
                     }
@@ -464,7 +473,7 @@ pub async fn start(
                             if let Some(r) = recorder.as_mut() {
                                 r.udp(now, from.port(), frames_addr.port(), &frame_buf[..len]);
                             }
-                            lock(&engine.core).handle_datagram(&frame_buf[..len], now);
+                            lock(&engine.core).handle_datagram(&frame_buf[..len], UdpIngress::Frames, now);
                         }
                         Err(error) => receive_failed(&engine, &error).await,
                     }
@@ -595,7 +604,9 @@ pub async fn run_replay(
             let mut core = lock(&engine.core);
             core.tick(record.time_us);
             match &record.input {
-                ReplayInput::Datagram(bytes) => core.handle_datagram(bytes, record.time_us),
+                ReplayInput::Datagram(bytes) => {
+                    core.handle_datagram(bytes, UdpIngress::Replayed, record.time_us)
+                }
                 ReplayInput::CanFrame { extended, id, data } => {
                     core.handle_can_frame(*extended, *id, data, record.time_us)
                 }

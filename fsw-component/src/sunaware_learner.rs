@@ -19,16 +19,18 @@
 //! Invariants: frames the online trainer refuses are skipped, never half-applied; nothing
 //! non-finite enters the model (the online trainer validates, gs-core skips non-finite steps).
 
-use crate::keyframe::WindowConfig;
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
     ViewRequest,
 };
-use crate::online::{Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason};
 use glam::{DQuat, DVec3, Quat, Vec3};
 use gs_core::nn::SceneBox;
 use gs_core::sunaware::checkpoint;
 use gs_core::{Camera, Intrinsics};
+use gs_online::keyframe::WindowConfig;
+use gs_online::online::{
+    Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason,
+};
 use interfaces::crc::crc32_ieee;
 use interfaces::messages::PixelFormat;
 
@@ -144,7 +146,7 @@ fn to_u8(value: f32) -> u8 {
 
 /// The seam's summary of a round: `skipped_steps` travels on, so the worker can report
 /// non-finite steps (the ICD's `TrainingNonFinite`).
-fn round_summary(report: &crate::online::RoundReport, rounds: u64) -> RoundSummary {
+fn round_summary(report: &gs_online::online::RoundReport, rounds: u64) -> RoundSummary {
     RoundSummary {
         rounds: u32::try_from(rounds).unwrap_or(u32::MAX),
         duration_ms: (report.duration_s * 1000.0).min(f64::from(u32::MAX)) as u32,
@@ -307,7 +309,7 @@ mod tests {
 
     #[test]
     fn skipped_steps_cross_the_seam() {
-        let report = crate::online::RoundReport {
+        let report = gs_online::online::RoundReport {
             rounds: 7,
             mean_loss: 0.25,
             duration_s: 1.5,

@@ -31,12 +31,12 @@
 //! past the round deadline once per job. Learner errors (a refused frame, a failed round,
 //! non-finite steps) become events, never log lines.
 
-use crate::imagemetrics;
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, RoundSummary, ViewRequest,
 };
 use crate::model_store::{LoadOutcome, ModelStore, SaveOutcome};
 use gs_core::fpmode::{self, DenormalMode};
+use gs_online::imagemetrics;
 use interfaces::messages::{
     event_detail, AckStatus, CommandAck, ErrorCode, EventKind, FrameHeader, PixelFormat,
     PredictionSource,

@@ -1,9 +1,9 @@
 //! Unit tests of the trainer thread: queues, checkpoints, denormal mode, supervision.
 
 use super::*;
-use crate::keyframe::WindowConfig;
 use crate::learner::PredictedImage;
 use crate::nearest_learner::NearestKeyframeLearner;
+use gs_online::keyframe::WindowConfig;
 
 fn limits() -> QueueLimits {
     QueueLimits {
@@ -60,7 +60,7 @@ fn full_queues_drop_oldest_frames_and_refuse_commands() {
 
 #[test]
 fn finish_drains_queued_commands() {
-    let learner = NearestKeyframeLearner::new(WindowConfig::default());
+    let learner = NearestKeyframeLearner::new(WindowConfig::default()).expect("default window");
     let dir = std::env::temp_dir().join(format!("fsw-worker-{}", std::process::id()));
     let worker = Worker::start(
         Box::new(learner),
@@ -137,7 +137,7 @@ fn the_model_runs_in_the_configured_denormal_mode() {
     for mode in [DenormalMode::Ieee, DenormalMode::FlushToZero] {
         let seen = Arc::new(Mutex::new(Vec::new()));
         let probe = ModeProbe {
-            inner: NearestKeyframeLearner::new(WindowConfig::default()),
+            inner: NearestKeyframeLearner::new(WindowConfig::default()).expect("default window"),
             seen: Arc::clone(&seen),
         };
         let checkpoints = CheckpointSettings {

@@ -3,10 +3,10 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::imagemetrics;
 use fsw_component::runtime::{build_learner, start, LearnerKind};
+use gs_online::imagemetrics;
 use interfaces::messages::{
-    AckStatus, CommandKind, EventKind, Mode, PredictionSource, RenderRequest,
+    AckStatus, CommandKind, ErrorCode, EventKind, Mode, PredictionSource, RenderRequest,
 };
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -214,8 +214,16 @@ async fn live_scenario_predictions_health_and_commands() {
         .iter()
         .any(|e| e.kind == EventKind::CheckpointSaved { rounds: 5 })));
 
+    // Destructive commands need an ARM naming them first.
     peer.command(11, CommandKind::ResetModel, addr).await;
-    assert_eq!(peer.wait_ack(11).await.status, AckStatus::Ok);
+    let refused = peer.wait_ack(11).await;
+    assert_eq!(refused.status, AckStatus::ExecutionError);
+    assert_eq!(refused.detail, ErrorCode::CommandNotArmed.index() as u16);
+    peer.command(111, CommandKind::Arm(CommandKind::RESET_MODEL), addr)
+        .await;
+    assert_eq!(peer.wait_ack(111).await.status, AckStatus::Ok);
+    peer.command(112, CommandKind::ResetModel, addr).await;
+    assert_eq!(peer.wait_ack(112).await.status, AckStatus::Ok);
     peer.command(12, CommandKind::ResetCounters, addr).await;
     assert_eq!(peer.wait_ack(12).await.status, AckStatus::Ok);
     assert!(
@@ -227,6 +235,9 @@ async fn live_scenario_predictions_health_and_commands() {
             .await,
         "counters and model reset"
     );
+    peer.command(113, CommandKind::Arm(CommandKind::LOAD_CHECKPOINT), addr)
+        .await;
+    assert_eq!(peer.wait_ack(113).await.status, AckStatus::Ok);
     peer.command(13, CommandKind::LoadCheckpoint, addr).await;
     assert_eq!(peer.wait_ack(13).await.status, AckStatus::Ok);
     assert!(
@@ -239,8 +250,8 @@ async fn live_scenario_predictions_health_and_commands() {
     let health = peer.snapshot(|r| r.last_health().unwrap());
     assert_eq!(health.commands_rejected, 0, "counted since the reset");
     assert_eq!(
-        health.commands_accepted, 2,
-        "RESET_COUNTERS itself and LOAD_CHECKPOINT"
+        health.commands_accepted, 3,
+        "RESET_COUNTERS itself, ARM and LOAD_CHECKPOINT"
     );
     peer.command(14, CommandKind::SaveCheckpoint, addr).await;
     assert_eq!(peer.wait_ack(14).await.status, AckStatus::Ok);

@@ -27,7 +27,7 @@ async fn start_scripted(
     config.training.round_deadline_ms = round_deadline_ms;
     let script = Arc::new(Mutex::new(Script::default()));
     let learner = Scripted {
-        inner: Box::new(NearestKeyframeLearner::new(config.window_config().unwrap())),
+        inner: Box::new(NearestKeyframeLearner::new(config.window_config().unwrap()).unwrap()),
         script: Arc::clone(&script),
     };
     let handle = start(&config, Box::new(learner), None).await.unwrap();

@@ -7,12 +7,12 @@
 //! [`Scripted`] wraps a learner to inject faults and slow rounds.
 #![allow(dead_code)]
 
-use fsw_component::bus::UdpFramer;
 use fsw_component::config::ComponentConfig;
 use fsw_component::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
     ViewRequest,
 };
+use fsw_component::outbound::UdpFramer;
 use fsw_component::runtime::ComponentHandle;
 use glam::{DQuat, DVec3};
 use interfaces::ccsds::{message_packets, CcsdsReassembler, PacketType};

@@ -441,12 +441,7 @@ pub fn masked_psnr(
             "mask is zero everywhere".into(),
         ));
     }
-    let mse = se / weight;
-    Ok(if mse == 0.0 {
-        f32::INFINITY
-    } else {
-        (-10.0 * mse.log10()) as f32
-    })
+    Ok(crate::loss::psnr_db_from_mse(se / weight) as f32)
 }
 
 /// SSIM weighted by `mask` (the loss's masked SSIM), images clamped to [0, 1].

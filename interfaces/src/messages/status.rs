@@ -80,6 +80,46 @@ pub enum ErrorCode {
     TrainingNonFinite,
     RenderFailed,
     Internal,
+    // Version 1.1 of `Event` appends these.
+    /// A command from a source outside the allow-list (no acknowledgement is sent).
+    CommandUnauthorised,
+    /// RESET_MODEL or LOAD_CHECKPOINT without a valid ARM from the same source.
+    CommandNotArmed,
+    /// An expensive command (RENDER) above its rate limit.
+    CommandRateLimited,
+    /// A telemetry time tag too far from the receive clock: the sample was dropped.
+    TelemetryTimeOutOfBounds,
+    /// Consistent telemetry on a new clock: a stream's buffer was cleared to follow it.
+    TelemetryClockJump,
+}
+
+impl ErrorCode {
+    /// Every code in wire order (index = wire value).
+    pub const ALL: [ErrorCode; 16] = [
+        ErrorCode::DecodeError,
+        ErrorCode::CrcError,
+        ErrorCode::QueueOverflow,
+        ErrorCode::TelemetryMissing,
+        ErrorCode::TelemetryStale,
+        ErrorCode::TelemetryInvalid,
+        ErrorCode::CheckpointSaveFailed,
+        ErrorCode::CheckpointLoadFailed,
+        ErrorCode::TrainingNonFinite,
+        ErrorCode::RenderFailed,
+        ErrorCode::Internal,
+        ErrorCode::CommandUnauthorised,
+        ErrorCode::CommandNotArmed,
+        ErrorCode::CommandRateLimited,
+        ErrorCode::TelemetryTimeOutOfBounds,
+        ErrorCode::TelemetryClockJump,
+    ];
+    /// Number of codes: size per-code tables with this, never with a literal.
+    pub const COUNT: usize = Self::ALL.len();
+
+    /// The wire value, usable as an index below [`ErrorCode::COUNT`].
+    pub const fn index(self) -> usize {
+        self as usize
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -104,7 +144,7 @@ impl Event {
 
 impl Message for Event {
     const PORT_ID: u16 = port::EVENT;
-    const VERSION: Version = Version { major: 1, minor: 0 };
+    const VERSION: Version = Version { major: 1, minor: 1 };
     const NAME: &'static str = "Event";
     const DIRECTION: Direction = Direction::FromComponent;
 
