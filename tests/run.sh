@@ -7,6 +7,8 @@ cd "$(dirname "$0")/.."
 started=$SECONDS
 step() { echo; echo "== $* (t+$((SECONDS - started)) s)"; }
 
+step "commit subjects (at most 72 characters)"
+bash tests/check_commit_subjects.sh
 step "cargo fmt --check"
 cargo fmt --all -- --check
 step "cargo clippy"
@@ -18,15 +20,15 @@ step "GPU backend: wgpu on Mesa's software Vulkan driver (lint and CPU parity te
 # Opt-in feature `wgpu`: only this step builds it. WGPU_BACKEND=vulkan keeps wgpu off the
 # OpenGL path; GS_REQUIRE_GPU=1 makes a missing adapter fail the tests, never skip them.
 bash tests/gpu/setup.sh
-cargo clippy -p gs-core -p fsw-component --features wgpu --all-targets -- -D warnings
+cargo clippy -p gs-core -p gs-online -p fsw-component --features wgpu --all-targets -- -D warnings
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_parity
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_sunaware
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_resident
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_networks
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_network_io
 GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_shadow
-# The component's rounds on the device (device-resident Sun-aware batches).
-GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p fsw-component --features wgpu --test online_wgpu
+# The online trainer's rounds on the device (device-resident Sun-aware batches).
+GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-online --features wgpu --test online_wgpu
 
 step "python test environment"
 python=$(bash tests/setup_venv.sh)

@@ -6,13 +6,15 @@
 //! offending key; [`ComponentConfig::load`] reads, parses and validates in one step.
 //! Quaternions are written `[w, x, y, z]` like the bus messages.
 
+use crate::cmdauth::{CommandConfig, CommandPolicy};
 use crate::hull_start::ModelSettings;
-use crate::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use crate::sync::SyncConfig;
+use crate::timeguard::TimeGuardConfig;
 use glam::DQuat;
 use gs_core::fpmode::DenormalMode;
 use gs_core::nn::MatmulPrecision;
 use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, Variant};
+use gs_online::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
@@ -24,6 +26,8 @@ pub const MAX_NODE_ID: u8 = 127;
 pub const MAX_INTERFACE_NAME_BYTES: usize = 15;
 /// Upper bound of `training.passes_per_round`: a round must still end within minutes.
 pub const MAX_PASSES_PER_ROUND: u32 = 100;
+/// Range of `training.round_deadline_ms`: 100 ms to one hour.
+pub const ROUND_DEADLINE_MS_RANGE: std::ops::RangeInclusive<u64> = 100..=3_600_000;
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -37,6 +41,7 @@ pub struct ComponentConfig {
     pub model: ModelSettings,
     pub checkpoint: CheckpointConfig,
     pub queues: QueueConfig,
+    pub commands: CommandConfig,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -109,6 +114,11 @@ pub struct SyncSettings {
     pub unit_norm_tolerance: f64,
     /// Poses with a lower quality are rejected.
     pub min_pose_quality: f64,
+    /// Largest change of (telemetry time tag - receive time) from the stream's last
+    /// accepted sample; samples beyond it are dropped.
+    pub time_tag_tolerance_ms: u64,
+    /// Consecutive consistent rejected samples of a stream taken as a clock jump.
+    pub resync_after_samples: u32,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -144,6 +154,10 @@ pub struct TrainingConfig {
     /// The networks' matrix products: "f32" (default) or "bf16" (AVX-512 BF16 only; a CPU
     /// without it fails validation).
     pub mlp_precision: String,
+    /// A trainer job (a frame with its training round, or a command) running longer than
+    /// this is reported with an `Internal` event (`ROUND_DEADLINE_MISSED`), once per job,
+    /// within the 50 ms housekeeping tick. 100 ms to one hour.
+    pub round_deadline_ms: u64,
     /// Subnormal floats on the trainer's threads: "flush-to-zero" (default; x86 FTZ + DAZ,
     /// aarch64 FZ; with "ieee" the step took about 1.46x the CPU time on an Intel Xeon) or
     /// "ieee" (gradual underflow). Deterministic either way; the two differ in the last
@@ -154,11 +168,12 @@ pub struct TrainingConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct CheckpointConfig {
-    /// Checkpoint file (written atomically: temporary file, then rename).
+    /// Newest checkpoint; the one before it is kept as `<path>.prev` (both written
+    /// atomically and verified; a save never replaces a model trained for more rounds).
     pub path: PathBuf,
     /// Seconds between periodic checkpoints; 0 disables them.
     pub period_s: u64,
-    /// Resume from `path` at start when it exists.
+    /// Resume at start from the newest slot the model accepts (`path`, else `path.prev`).
     pub resume: bool,
 }
 
@@ -233,6 +248,8 @@ impl Default for SyncSettings {
             max_wait_ms: 1_000,
             unit_norm_tolerance: sync.unit_norm_tolerance,
             min_pose_quality: sync.min_pose_quality,
+            time_tag_tolerance_ms: TimeGuardConfig::default().tolerance_us / 1_000,
+            resync_after_samples: TimeGuardConfig::default().resync_after,
         }
     }
 }
@@ -251,6 +268,7 @@ impl Default for TrainingConfig {
             appearance_hidden_width: 128,
             encoding_frequencies: 2,
             mlp_precision: "f32".to_string(),
+            round_deadline_ms: 60_000,
             denormals: DenormalMode::default().name().to_string(),
         }
     }
@@ -389,6 +407,8 @@ impl ComponentConfig {
             }
         }
         self.sync_config()?;
+        self.time_guard_config()?;
+        self.command_policy()?;
         self.camera_intrinsics()?;
         self.model.validate()?;
         self.window_config()?;
@@ -397,6 +417,12 @@ impl ComponentConfig {
             return Err(invalid(
                 "training.passes_per_round",
                 format!("must be within 1..={MAX_PASSES_PER_ROUND}"),
+            ));
+        }
+        if !ROUND_DEADLINE_MS_RANGE.contains(&self.training.round_deadline_ms) {
+            return Err(invalid(
+                "training.round_deadline_ms",
+                format!("must be within {ROUND_DEADLINE_MS_RANGE:?}"),
             ));
         }
         if self.training.threads == 0 {
@@ -474,7 +500,33 @@ impl ComponentConfig {
         Ok(sync)
     }
 
-    /// The keyframe window settings this configuration describes.
+    /// The telemetry time-tag guard this configuration describes.
+    pub fn time_guard_config(&self) -> Result<TimeGuardConfig, ConfigError> {
+        let guard = TimeGuardConfig {
+            tolerance_us: self.sync.time_tag_tolerance_ms.saturating_mul(1_000),
+            resync_after: self.sync.resync_after_samples,
+        };
+        guard.validate().map_err(|e| {
+            let key = match e {
+                crate::timeguard::TimeGuardConfigError::ZeroTolerance => {
+                    "sync.time_tag_tolerance_ms"
+                }
+                crate::timeguard::TimeGuardConfigError::ResyncTooEager { .. } => {
+                    "sync.resync_after_samples"
+                }
+            };
+            invalid(key, e.to_string())
+        })?;
+        Ok(guard)
+    }
+
+    /// Who may command, arming and RENDER limits (`[commands]`).
+    pub fn command_policy(&self) -> Result<CommandPolicy, ConfigError> {
+        self.commands
+            .policy()
+            .map_err(|(key, problem)| invalid(key, problem))
+    }
+
     /// The model configuration named by `training.variant`.
     pub fn variant(&self) -> Result<Variant, ConfigError> {
         self.training
@@ -534,6 +586,7 @@ impl ComponentConfig {
         Ok(model)
     }
 
+    /// The keyframe window settings this configuration describes.
     pub fn window_config(&self) -> Result<WindowConfig, ConfigError> {
         let window = WindowConfig {
             capacity: self.training.window_size,
@@ -658,6 +711,22 @@ mod tests {
         );
         assert_eq!(invalid_key("[sync]\nmax_gap_ms = 0\n"), "sync.max_gap_ms");
         assert_eq!(
+            invalid_key("[sync]\ntime_tag_tolerance_ms = 0\n"),
+            "sync.time_tag_tolerance_ms"
+        );
+        assert_eq!(
+            invalid_key("[sync]\nresync_after_samples = 1\n"),
+            "sync.resync_after_samples"
+        );
+        assert_eq!(
+            invalid_key("[commands]\ncan_source_nodes = [1, 128]\n"),
+            "commands.can_source_nodes"
+        );
+        assert_eq!(
+            invalid_key("[commands]\narm_timeout_ms = 0\n"),
+            "commands.arm_timeout_ms"
+        );
+        assert_eq!(
             invalid_key("[sync]\nunit_norm_tolerance = 0.0\n"),
             "sync.unit_norm_tolerance"
         );
@@ -693,6 +762,10 @@ mod tests {
         assert_eq!(
             invalid_key("[training]\npasses_per_round = 0\n"),
             "training.passes_per_round"
+        );
+        assert_eq!(
+            invalid_key("[training]\nround_deadline_ms = 99\n"),
+            "training.round_deadline_ms"
         );
         assert_eq!(
             invalid_key("[training]\ndenormals = \"fast\"\n"),

@@ -17,13 +17,13 @@
 //! extent on every axis.
 
 use crate::config::ConfigError;
-use crate::online::Frame;
 use glam::Vec3;
 use gs_core::hull::{
     carve_silhouette_consistent, sample_colours, ColourView, HullError, HullGrid, HullOptions,
     HullPoints, HullSampling, HullView, SILHOUETTE_SAMPLES_PER_VOXEL,
 };
 use gs_core::nn::SceneBox;
+use gs_online::online::Frame;
 use serde::{Deserialize, Serialize};
 
 /// Masked keyframes needed to carve (one view only bounds a cone).

@@ -7,7 +7,9 @@
 //!
 //! Invariants for implementations: deterministic (same calls in the same order give the same
 //! [`Learner::save`] bytes); non-finite inputs never enter the model; `load` either
-//! replaces the whole model or leaves it untouched and returns an error.
+//! replaces the whole model or leaves it untouched and returns an error; `inspect` accepts
+//! exactly the bytes `load` accepts. Failures come back as values (the worker turns them
+//! into bus events), never as log lines.
 
 use crate::sync::SyncedTelemetry;
 use glam::{DQuat, DVec3};
@@ -71,6 +73,8 @@ pub enum OfferResult {
     NotAdded,
     /// Skipped on purpose (eclipse, unlit); counted by the learner.
     Skipped,
+    /// Refused: the frame failed the model's own checks (reported as an event).
+    Refused,
 }
 
 /// One finished training round.
@@ -80,6 +84,8 @@ pub struct RoundSummary {
     pub duration_ms: u32,
     pub loss: f32,
     pub gaussians: u32,
+    /// Optimisation steps of this round refused for a non-finite render, loss or gradient.
+    pub skipped_steps: u32,
 }
 
 /// Model figures for health reports.
@@ -97,6 +103,8 @@ pub enum LearnerError {
     NothingToRender,
     BadRequest(String),
     BadCheckpoint(String),
+    /// A training round or a reset failed; the model is as before the call.
+    Training(String),
 }
 
 impl fmt::Display for LearnerError {
@@ -105,6 +113,7 @@ impl fmt::Display for LearnerError {
             Self::NothingToRender => f.write_str("the model has nothing to render yet"),
             Self::BadRequest(why) => write!(f, "bad render request: {why}"),
             Self::BadCheckpoint(why) => write!(f, "bad checkpoint: {why}"),
+            Self::Training(why) => write!(f, "training failed: {why}"),
         }
     }
 }
@@ -116,15 +125,18 @@ pub trait Learner: Send {
     /// Offers a frame to the keyframe window.
     fn offer(&mut self, frame: &ObservedFrame) -> OfferResult;
     /// Runs one training round if the window calls for one.
-    fn run_round_if_due(&mut self) -> Option<RoundSummary>;
+    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError>;
     /// Renders the current model (no training).
     fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError>;
-    /// Forgets everything learned (window, model, rounds).
-    fn reset(&mut self);
+    /// Forgets everything learned (window, model, rounds); on error the model is unchanged.
+    fn reset(&mut self) -> Result<(), LearnerError>;
     /// The whole model state as checkpoint bytes.
     fn save(&self) -> Vec<u8>;
     /// Replaces the whole state from checkpoint bytes; on error the model is unchanged.
     fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError>;
+    /// Checks `bytes` exactly as `load` would, without changing the model; returns the
+    /// training rounds they hold (checkpoints are never replaced by fewer rounds).
+    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError>;
     fn stats(&self) -> LearnerStats;
     /// Events the model has to report since the last call (e.g. how it was initialised).
     fn take_events(&mut self) -> Vec<EventKind> {

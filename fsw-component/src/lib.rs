@@ -1,22 +1,23 @@
-//! The flight component: keyframe window, synchronizer, training scheduler and transports.
+//! The flight component: transports, synchronizer, training scheduler, publishers, commands
+//! and checkpoints around the online trainer of `gs-online`.
 
-pub mod bus;
 pub mod camera;
 pub mod checkpoint;
+pub mod cmdauth;
 pub mod config;
-pub mod core;
 pub mod health;
 pub mod hull_start;
-pub mod imagemetrics;
-pub mod keyframe;
+pub mod inbound;
 pub mod learner;
 pub mod logfmt;
+pub mod model_store;
 pub mod nearest_learner;
-pub mod online;
+pub mod outbound;
 pub mod recorder;
 pub mod replay;
 pub mod runtime;
 pub mod sunaware_learner;
 pub mod sync;
+pub mod timeguard;
 pub mod transport;
 pub mod worker;

@@ -17,10 +17,12 @@
 //! then CRC-32/IEEE of everything before it. Invariant: load validates everything before
 //! replacing the state.
 
-use crate::keyframe::{most_redundant_index, Keyframe, ViewDirection, WindowConfig};
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
     ViewRequest,
+};
+use gs_online::keyframe::{
+    Keyframe, KeyframeError, KeyframeWindow, OfferOutcome, ViewDirection, WindowConfig,
 };
 use interfaces::crc::crc32_ieee;
 use interfaces::messages::PixelFormat;
@@ -38,30 +40,23 @@ struct StoredImage {
 
 #[derive(Clone, Debug)]
 pub struct NearestKeyframeLearner {
-    config: WindowConfig,
-    cos_min_view_angle: f64,
-    /// Newest first.
-    keyframes: Vec<Keyframe<StoredImage>>,
-    generation: u64,
+    window: KeyframeWindow<StoredImage>,
     last_round_generation: u64,
     rounds: u32,
 }
 
 impl NearestKeyframeLearner {
-    pub fn new(config: WindowConfig) -> Self {
-        Self {
-            config,
-            cos_min_view_angle: config.min_view_angle_deg.to_radians().cos(),
-            keyframes: Vec::new(),
-            generation: 0,
+    pub fn new(config: WindowConfig) -> Result<Self, KeyframeError> {
+        Ok(Self {
+            window: KeyframeWindow::new(config)?,
             last_round_generation: 0,
             rounds: 0,
-        }
+        })
     }
 
     fn nearest(&self, view: glam::DVec3, skip_index: Option<usize>) -> Option<&StoredImage> {
         let mut best: Option<(f64, &StoredImage)> = None;
-        for (index, keyframe) in self.keyframes.iter().enumerate() {
+        for (index, keyframe) in self.window.keyframes().iter().enumerate() {
             if Some(index) == skip_index {
                 continue;
             }
@@ -126,39 +121,26 @@ impl Learner for NearestKeyframeLearner {
             return OfferResult::Skipped;
         };
         let id = u64::from(frame.frame_id);
-        if self.keyframes.iter().any(|k| k.id == id) {
-            return OfferResult::NotAdded;
-        }
-        if let Some(newest) = self.keyframes.first() {
-            if view.cos_to(newest.view) >= self.cos_min_view_angle {
-                return OfferResult::NotAdded;
-            }
-        }
         let payload = StoredImage {
             width: frame.width,
             height: frame.height,
             format: frame.format,
             pixels: frame.pixels.clone(),
         };
-        self.keyframes.insert(0, Keyframe { id, view, payload });
-        self.generation += 1;
-        if self.keyframes.len() > self.config.capacity {
-            if let Some(index) = most_redundant_index(&self.keyframes) {
-                self.keyframes.remove(index);
-            }
+        match self.window.offer(Keyframe { id, view, payload }) {
+            OfferOutcome::Added { .. } => OfferResult::Added,
+            OfferOutcome::NotAdded { .. } => OfferResult::NotAdded,
         }
-        OfferResult::Added
     }
 
-    fn run_round_if_due(&mut self) -> Option<RoundSummary> {
-        if self.keyframes.len() < self.config.capacity
-            || self.generation == self.last_round_generation
-        {
-            return None;
+    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
+        if !self.window.is_full() || self.window.generation() == self.last_round_generation {
+            return Ok(None);
         }
         let started = Instant::now();
         let mut total = 0.0;
-        for (index, keyframe) in self.keyframes.iter().enumerate() {
+        let keyframes = self.window.keyframes();
+        for (index, keyframe) in keyframes.iter().enumerate() {
             let image = &keyframe.payload;
             let neighbour = self
                 .nearest(keyframe.view.get(), Some(index))
@@ -167,13 +149,14 @@ impl Learner for NearestKeyframeLearner {
             total += mean_abs_error(&predicted, &image.pixels);
         }
         self.rounds += 1;
-        self.last_round_generation = self.generation;
-        Some(RoundSummary {
+        self.last_round_generation = self.window.generation();
+        Ok(Some(RoundSummary {
             rounds: self.rounds,
             duration_ms: u32::try_from(started.elapsed().as_millis()).unwrap_or(u32::MAX),
-            loss: (total / self.keyframes.len() as f64) as f32,
+            loss: (total / keyframes.len() as f64) as f32,
             gaussians: 0,
-        })
+            skipped_steps: 0,
+        }))
     }
 
     fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
@@ -194,18 +177,22 @@ impl Learner for NearestKeyframeLearner {
         })
     }
 
-    fn reset(&mut self) {
-        *self = Self::new(self.config);
+    fn reset(&mut self) -> Result<(), LearnerError> {
+        self.window.clear();
+        // Like a new learner: the next round waits for a composition change.
+        self.last_round_generation = self.window.generation();
+        self.rounds = 0;
+        Ok(())
     }
 
     fn save(&self) -> Vec<u8> {
         let mut out = Vec::new();
         out.extend_from_slice(CHECKPOINT_MAGIC);
         out.extend_from_slice(&self.rounds.to_le_bytes());
-        out.extend_from_slice(&self.generation.to_le_bytes());
+        out.extend_from_slice(&self.window.generation().to_le_bytes());
         out.extend_from_slice(&self.last_round_generation.to_le_bytes());
-        out.extend_from_slice(&(self.keyframes.len() as u32).to_le_bytes());
-        for keyframe in &self.keyframes {
+        out.extend_from_slice(&(self.window.len() as u32).to_le_bytes());
+        for keyframe in self.window.keyframes() {
             out.extend_from_slice(&keyframe.id.to_le_bytes());
             for v in keyframe.view.get().to_array() {
                 out.extend_from_slice(&v.to_le_bytes());
@@ -239,7 +226,7 @@ impl Learner for NearestKeyframeLearner {
         let generation = reader.u64()?;
         let last_round_generation = reader.u64()?;
         let count = reader.u32()? as usize;
-        if count > self.config.capacity {
+        if count > self.window.capacity() {
             return Err(bad("more keyframes than the window holds"));
         }
         let mut keyframes = Vec::with_capacity(count);
@@ -272,19 +259,27 @@ impl Learner for NearestKeyframeLearner {
         if reader.at != body.len() {
             return Err(bad("trailing bytes"));
         }
-        self.keyframes = keyframes;
+        self.window = KeyframeWindow::restore(self.window.config(), keyframes, generation)
+            .map_err(|e| bad(&e.to_string()))?;
         self.rounds = rounds;
-        self.generation = generation;
         self.last_round_generation = last_round_generation;
         Ok(())
+    }
+
+    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
+        // The window is small (a few 8-bit keyframes): parsing into a scratch model is the
+        // simplest way to accept exactly what `load` accepts.
+        let mut scratch = self.clone();
+        scratch.load(bytes)?;
+        Ok(u64::from(scratch.rounds))
     }
 
     fn stats(&self) -> LearnerStats {
         LearnerStats {
             gaussians: 0,
             rounds: self.rounds,
-            window_fill: self.keyframes.len().min(255) as u8,
-            window_capacity: self.config.capacity.min(255) as u8,
+            window_fill: self.window.len().min(255) as u8,
+            window_capacity: self.window.capacity().min(255) as u8,
         }
     }
 }
@@ -364,6 +359,7 @@ mod tests {
             capacity,
             min_view_angle_deg: 10.0,
         })
+        .expect("valid window")
     }
 
     #[test]
@@ -372,11 +368,20 @@ mod tests {
         assert_eq!(l.offer(&frame(1, DVec3::X, 10)), OfferResult::Added);
         assert_eq!(l.offer(&frame(2, DVec3::X, 99)), OfferResult::NotAdded);
         assert_eq!(l.offer(&frame(3, DVec3::Y, 20)), OfferResult::Added);
-        assert!(l.run_round_if_due().is_none(), "window not full yet");
+        assert!(
+            l.run_round_if_due().unwrap().is_none(),
+            "window not full yet"
+        );
         assert_eq!(l.offer(&frame(4, DVec3::Z, 30)), OfferResult::Added);
-        let round = l.run_round_if_due().expect("full window, new composition");
+        let round = l
+            .run_round_if_due()
+            .unwrap()
+            .expect("full window, new composition");
         assert_eq!(round.rounds, 1);
-        assert!(l.run_round_if_due().is_none(), "composition unchanged");
+        assert!(
+            l.run_round_if_due().unwrap().is_none(),
+            "composition unchanged"
+        );
         let request = ViewRequest {
             camera_from_target: DQuat::IDENTITY,
             // Camera on the target's +Y side: the target origin at -Y in the camera frame.
@@ -398,7 +403,7 @@ mod tests {
             .enumerate()
         {
             l.offer(&frame(i as u32, *v, i as u8 * 40));
-            l.run_round_if_due();
+            l.run_round_if_due().unwrap();
         }
         let bytes = l.save();
         let mut restored = learner(3);

@@ -8,17 +8,19 @@
 //! Replay drives the same core from logs (no listening sockets); it waits for room in the
 //! trainer queues instead of dropping, so a replay processes every frame.
 
-use crate::bus::{CanFramer, UdpFramer};
+use crate::cmdauth::UdpIngress;
 use crate::config::ComponentConfig;
-use crate::core::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
 use crate::health::{memory_bytes, ReceiveClock};
+use crate::inbound::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
 use crate::learner::Learner;
+use crate::model_store::ModelStore;
 use crate::nearest_learner::NearestKeyframeLearner;
+use crate::outbound::{CanFramer, UdpFramer};
 use crate::recorder::Recorder;
 use crate::replay::{self, ReplayInput};
 use crate::sunaware_learner::{SunAwareLearner, SunAwareSettings};
 use crate::transport::{CanTransport, CanTransportConfig, TransportError, UdpTransport};
-use crate::worker::{load_checkpoint, CheckpointSettings, Notice, QueueLimits, Worker};
+use crate::worker::{load_events, CheckpointSettings, Notice, QueueLimits, Worker};
 use interfaces::messages::{
     ErrorCode, Event, EventKind, Message, Mode, PredictionSource, RenderedPrediction,
 };
@@ -89,7 +91,9 @@ pub fn build_learner(
         .window_config()
         .map_err(|e| RuntimeError::Config(e.to_string()))?;
     Ok(match kind {
-        LearnerKind::NearestKeyframe => Box::new(NearestKeyframeLearner::new(window)),
+        LearnerKind::NearestKeyframe => Box::new(
+            NearestKeyframeLearner::new(window).map_err(|e| RuntimeError::Config(e.to_string()))?,
+        ),
         LearnerKind::SunAware => {
             let mut settings = SunAwareSettings::with_window(window);
             settings.online.passes_per_round = config.training.passes_per_round;
@@ -158,7 +162,7 @@ impl Engine {
         config: &ComponentConfig,
         mut learner: Box<dyn Learner>,
         can: Option<CanTransport>,
-    ) -> Result<(Self, Option<Event>), RuntimeError> {
+    ) -> Result<(Self, Vec<Event>), RuntimeError> {
         let settings = CoreSettings {
             sync: config
                 .sync_config()
@@ -169,29 +173,17 @@ impl Engine {
             camera: config
                 .camera_intrinsics()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?,
+            time_guard: config
+                .time_guard_config()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?,
+            commands: config
+                .command_policy()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?,
         };
-        let mut resume_event = None;
+        let mut resume_events = Vec::new();
         if config.checkpoint.resume {
-            let path = &config.checkpoint.path;
-            resume_event = Some(match load_checkpoint(learner.as_mut(), path) {
-                Ok(true) => {
-                    eprintln!("fsw-component: resumed from {}", path.display());
-                    EventKind::CheckpointLoaded {
-                        rounds: learner.stats().rounds,
-                    }
-                }
-                Ok(false) => {
-                    eprintln!("fsw-component: no checkpoint at {} yet", path.display());
-                    EventKind::ModelReset
-                }
-                Err(why) => {
-                    eprintln!("fsw-component: cannot resume, starting afresh: {why}");
-                    EventKind::Error {
-                        code: ErrorCode::CheckpointLoadFailed,
-                        detail: 0,
-                    }
-                }
-            });
+            let store = ModelStore::open(&config.checkpoint.path, learner.as_ref());
+            resume_events = load_events(store.load_newest(learner.as_mut()));
         }
         let worker = Worker::start(
             learner,
@@ -209,6 +201,7 @@ impl Engine {
             config
                 .denormals()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?,
+            Duration::from_millis(config.training.round_deadline_ms),
         )
         .map_err(|source| RuntimeError::Io {
             what: "start the trainer thread".into(),
@@ -220,10 +213,13 @@ impl Engine {
             .await
             .map_err(RuntimeError::Transport)?;
         let clock = ReceiveClock::start();
-        let event = resume_event.map(|kind| Event {
-            time_us: clock.now_us(),
-            kind,
-        });
+        let events = resume_events
+            .into_iter()
+            .map(|kind| Event {
+                time_us: clock.now_us(),
+                kind,
+            })
+            .collect();
         Ok((
             Self {
                 core: Arc::new(Mutex::new(core)),
@@ -238,7 +234,7 @@ impl Engine {
                 predictions_to: config.udp.predictions_to,
                 predictions_sent: 0,
             },
-            event,
+            events,
         ))
     }
 
@@ -276,13 +272,22 @@ impl Engine {
     /// Sends everything the core and the worker produced.
     async fn flush_outputs(&mut self) {
         let notices = self.worker.shared.take_notices();
+        let overdue = self.worker.shared.overdue_job();
         let outgoing = {
             let mut core = lock(&self.core);
             for notice in notices {
                 match notice {
                     Notice::Ack(ack) => core.worker_ack(ack),
                     Notice::Event(kind) => core.worker_event(kind),
+                    Notice::TrainerFault { gave_up } => core.trainer_faulted(gave_up),
+                    Notice::TrainerRestored => core.trainer_restored(),
                 }
+            }
+            if overdue {
+                core.worker_event(EventKind::Error {
+                    code: ErrorCode::Internal,
+                    detail: interfaces::messages::event_detail::ROUND_DEADLINE_MISSED,
+                });
             }
             core.take_outgoing()
         };
@@ -427,8 +432,8 @@ pub async fn start(
         ),
         None => None,
     };
-    let (mut engine, resume_event) = Engine::new(config, learner, can).await?;
-    if let Some(event) = resume_event {
+    let (mut engine, resume_events) = Engine::new(config, learner, can).await?;
+    for event in resume_events {
         engine.send_status(&event).await;
     }
     let unbound = SocketAddr::new(config.udp.bind_ip, 0);
@@ -460,7 +465,7 @@ pub async fn start(
                             if let Some(r) = recorder.as_mut() {
                                 r.udp(now, from.port(), telemetry_addr.port(), &telemetry_buf[..len]);
                             }
-                            lock(&engine.core).handle_datagram(&telemetry_buf[..len], now);
+                            lock(&engine.core).handle_datagram(&telemetry_buf[..len], UdpIngress::Telemetry, now);
                         }
                         Err(error) => receive_failed(&engine, &error).await,
                     }
@@ -472,7 +477,7 @@ pub async fn start(
                             if let Some(r) = recorder.as_mut() {
                                 r.udp(now, from.port(), frames_addr.port(), &frame_buf[..len]);
                             }
-                            lock(&engine.core).handle_datagram(&frame_buf[..len], now);
+                            lock(&engine.core).handle_datagram(&frame_buf[..len], UdpIngress::Frames, now);
                         }
                         Err(error) => receive_failed(&engine, &error).await,
                     }
@@ -579,8 +584,8 @@ pub async fn run_replay(
     speed: ReplaySpeed,
 ) -> Result<ReplaySummary, RuntimeError> {
     let (records, load) = replay::load(logs).map_err(RuntimeError::Replay)?;
-    let (mut engine, resume_event) = Engine::new(config, learner, None).await?;
-    if let Some(event) = resume_event {
+    let (mut engine, resume_events) = Engine::new(config, learner, None).await?;
+    for event in resume_events {
         engine.send_status(&event).await;
     }
     let replay_started = Instant::now();
@@ -603,7 +608,9 @@ pub async fn run_replay(
             let mut core = lock(&engine.core);
             core.tick(record.time_us);
             match &record.input {
-                ReplayInput::Datagram(bytes) => core.handle_datagram(bytes, record.time_us),
+                ReplayInput::Datagram(bytes) => {
+                    core.handle_datagram(bytes, UdpIngress::Replayed, record.time_us)
+                }
                 ReplayInput::CanFrame { extended, id, data } => {
                     core.handle_can_frame(*extended, *id, data, record.time_us)
                 }

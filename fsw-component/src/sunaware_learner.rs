@@ -25,15 +25,17 @@
 //! non-finite enters the model (the online trainer validates, gs-core skips non-finite steps).
 
 use crate::hull_start::{self, HullStartError, InitKind, ModelSettings};
-use crate::keyframe::WindowConfig;
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
     ViewRequest,
 };
-use crate::online::{Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason};
 use glam::{DQuat, DVec3, Quat, Vec3};
 use gs_core::sunaware::checkpoint;
 use gs_core::{Camera, Intrinsics};
+use gs_online::keyframe::WindowConfig;
+use gs_online::online::{
+    Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason,
+};
 use interfaces::crc::crc32_ieee;
 use interfaces::messages::{EventKind, InitSource, PixelFormat};
 
@@ -214,6 +216,49 @@ fn to_u8(value: f32) -> u8 {
     (value.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
+/// The seam's summary of a round: `skipped_steps` travels on, so the worker can report
+/// non-finite steps (the ICD's `TrainingNonFinite`).
+fn round_summary(report: &gs_online::online::RoundReport, rounds: u64) -> RoundSummary {
+    RoundSummary {
+        rounds: u32::try_from(rounds).unwrap_or(u32::MAX),
+        duration_ms: (report.duration_s * 1000.0).min(f64::from(u32::MAX)) as u32,
+        loss: report.mean_loss,
+        gaussians: u32::try_from(report.gaussians).unwrap_or(u32::MAX),
+        skipped_steps: u32::try_from(report.skipped_steps).unwrap_or(u32::MAX),
+    }
+}
+
+/// Checks the component wrapper (magic, length, CRC) and parses the gs-core trainer, which
+/// bounds every size and checks every value; returns the stored round count.
+fn parse_checkpoint(
+    bytes: &[u8],
+) -> Result<(u64, gs_core::sunaware::SunAwareTrainer), LearnerError> {
+    let bad = |why: String| LearnerError::BadCheckpoint(why);
+    if bytes.len() < 28 || &bytes[..8] != CHECKPOINT_MAGIC {
+        return Err(bad("not a Sun-aware component checkpoint (magic)".into()));
+    }
+    let (body, crc) = bytes.split_at(bytes.len() - 4);
+    if crc32_ieee(body).to_le_bytes() != crc {
+        return Err(bad("checksum mismatch".into()));
+    }
+    let word = |at: usize| {
+        let mut b = [0u8; 8];
+        b.copy_from_slice(&body[at..at + 8]);
+        u64::from_le_bytes(b)
+    };
+    let rounds = word(8);
+    // Health reports rounds as u32, and the count keeps growing after a load.
+    if rounds > u64::from(u32::MAX / 2) {
+        return Err(bad(format!("round count {rounds} is implausible")));
+    }
+    let len = usize::try_from(word(16)).unwrap_or(usize::MAX);
+    if body.len() - 24 != len {
+        return Err(bad(format!("trainer length {len} disagrees with the file")));
+    }
+    let trainer = checkpoint::from_bytes(&body[24..]).map_err(|e| bad(e.to_string()))?;
+    Ok((rounds, trainer))
+}
+
 impl Learner for SunAwareLearner {
     fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
         let t = &frame.telemetry;
@@ -235,29 +280,19 @@ impl Learner for SunAwareLearner {
                 OfferResult::NotAdded
             }
             Ok(OfferReport::Skipped(_)) => OfferResult::Skipped,
-            Err(error) => {
-                eprintln!("fsw-component: frame {} refused: {error}", frame.frame_id);
-                OfferResult::Skipped
-            }
+            // The worker reports it as an event; the frame never reaches the model.
+            Err(_) => OfferResult::Refused,
         }
     }
 
-    fn run_round_if_due(&mut self) -> Option<RoundSummary> {
+    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
         if self.hull_pending && self.online.round_due() {
             self.start_from_hull();
         }
         match self.online.run_round_if_due() {
-            Ok(Some(report)) => Some(RoundSummary {
-                rounds: u32::try_from(self.rounds()).unwrap_or(u32::MAX),
-                duration_ms: (report.duration_s * 1000.0).min(f64::from(u32::MAX)) as u32,
-                loss: report.mean_loss,
-                gaussians: u32::try_from(report.gaussians).unwrap_or(u32::MAX),
-            }),
-            Ok(None) => None,
-            Err(error) => {
-                eprintln!("fsw-component: training round failed: {error}");
-                None
-            }
+            Ok(Some(report)) => Ok(Some(round_summary(&report, self.rounds()))),
+            Ok(None) => Ok(None),
+            Err(error) => Err(LearnerError::Training(error.to_string())),
         }
     }
 
@@ -297,16 +332,11 @@ impl Learner for SunAwareLearner {
         })
     }
 
-    fn reset(&mut self) {
-        match self.settings.build() {
-            Ok(online) => {
-                self.online = online;
-                self.rounds_offset = 0;
-                self.started();
-            }
-            // Built once already from the same settings: cannot fail unless memory is gone.
-            Err(error) => eprintln!("fsw-component: model reset failed: {error}"),
-        }
+    fn reset(&mut self) -> Result<(), LearnerError> {
+        self.online = self.settings.build().map_err(LearnerError::Training)?;
+        self.rounds_offset = 0;
+        self.started();
+        Ok(())
     }
 
     fn save(&self) -> Vec<u8> {
@@ -322,25 +352,8 @@ impl Learner for SunAwareLearner {
     }
 
     fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
-        let bad = |why: String| LearnerError::BadCheckpoint(why);
-        if bytes.len() < 28 || &bytes[..8] != CHECKPOINT_MAGIC {
-            return Err(bad("not a Sun-aware component checkpoint (magic)".into()));
-        }
-        let (body, crc) = bytes.split_at(bytes.len() - 4);
-        if crc32_ieee(body).to_le_bytes() != crc {
-            return Err(bad("checksum mismatch".into()));
-        }
-        let word = |at: usize| {
-            let mut b = [0u8; 8];
-            b.copy_from_slice(&body[at..at + 8]);
-            u64::from_le_bytes(b)
-        };
-        let rounds = word(8);
-        let len = usize::try_from(word(16)).unwrap_or(usize::MAX);
-        if body.len() - 24 != len {
-            return Err(bad(format!("trainer length {len} disagrees with the file")));
-        }
-        let trainer = checkpoint::from_bytes(&body[24..]).map_err(|e| bad(e.to_string()))?;
+        let (rounds, trainer) = parse_checkpoint(bytes)?;
+        let bad = LearnerError::BadCheckpoint;
         let mut online = self.settings.build().map_err(bad)?;
         *online.trainer_mut() = trainer;
         // A checkpoint holds no backend: the restored trainer runs where this one did.
@@ -355,6 +368,10 @@ impl Learner for SunAwareLearner {
         Ok(())
     }
 
+    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
+        parse_checkpoint(bytes).map(|(rounds, _)| rounds)
+    }
+
     fn stats(&self) -> LearnerStats {
         LearnerStats {
             gaussians: u32::try_from(self.online.trainer().model.len()).unwrap_or(u32::MAX),
@@ -366,5 +383,48 @@ impl Learner for SunAwareLearner {
 
     fn take_events(&mut self) -> Vec<EventKind> {
         std::mem::take(&mut self.events)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn skipped_steps_cross_the_seam() {
+        let report = gs_online::online::RoundReport {
+            rounds: 7,
+            mean_loss: 0.25,
+            duration_s: 1.5,
+            gaussians: 2000,
+            skipped_steps: 3,
+            trained_ids: vec![1, 2],
+            densified: None,
+        };
+        let summary = round_summary(&report, 9);
+        assert_eq!(summary.skipped_steps, 3);
+        assert_eq!(summary.rounds, 9);
+        assert_eq!(summary.duration_ms, 1500);
+        assert_eq!(summary.gaussians, 2000);
+    }
+
+    #[test]
+    fn inspect_accepts_what_load_accepts_and_bounds_the_round_count() {
+        let mut settings = SunAwareSettings::with_window(WindowConfig::default());
+        settings.model.initial_gaussians = 50;
+        let mut learner = SunAwareLearner::new(settings).unwrap();
+        learner.rounds_offset = 7;
+        let bytes = learner.save();
+        assert_eq!(learner.inspect(&bytes), Ok(7));
+        learner.load(&bytes).unwrap();
+        assert_eq!(learner.stats().rounds, 7);
+        // A checksummed file with an absurd round count is refused by both.
+        let mut hostile = bytes[..bytes.len() - 4].to_vec();
+        hostile[8..16].copy_from_slice(&u64::MAX.to_le_bytes());
+        let crc = crc32_ieee(&hostile);
+        hostile.extend_from_slice(&crc.to_le_bytes());
+        assert!(learner.inspect(&hostile).is_err());
+        assert!(learner.load(&hostile).is_err());
+        assert_eq!(learner.stats().rounds, 7, "a refused load changes nothing");
     }
 }

@@ -397,6 +397,14 @@ impl Synchronizer {
         self.suns.clear();
     }
 
+    /// Drops one stream's buffered telemetry (after a clock jump; counters are kept).
+    pub fn clear_stream(&mut self, stream: Stream) {
+        match stream {
+            Stream::Pose => self.poses.clear(),
+            Stream::Sun => self.suns.clear(),
+        }
+    }
+
     pub fn push_pose(&mut self, sample: PoseSample) -> Result<SampleStatus, SampleDropped> {
         let value = self.check_pose(&sample);
         push_ordered(

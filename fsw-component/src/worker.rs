@@ -20,17 +20,29 @@
 //! bus side's threads, and a fixed count keeps results bit-identical. The trainer thread
 //! and every pool worker run in `training.denormals`' mode (`gs_core::fpmode`), set as
 //! each starts: the bus side's threads keep IEEE arithmetic.
+//!
+//! Supervision: every job runs under `catch_unwind`. A panic becomes an `Internal` event
+//! (`TRAINER_PANICKED`), a [`Notice::TrainerFault`] (the bus side leaves Train while the
+//! learner restarts), an EXECUTION_ERROR ack for a command that was running, and a restart:
+//! the learner is reset and loaded from the newest usable checkpoint, then
+//! [`Notice::TrainerRestored`]. After [`MAX_CONSECUTIVE_PANICS`] panics with no job
+//! completing in between, or a failed restart, the fault notice says the trainer gave up.
+//! A watchdog ([`WorkerShared::overdue_job`], polled by the bus side) reports a job that runs
+//! past the round deadline once per job. Learner errors (a refused frame, a failed round,
+//! non-finite steps) become events, never log lines.
 
-use crate::checkpoint;
-use crate::imagemetrics;
 use crate::learner::{
     Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, RoundSummary, ViewRequest,
 };
+use crate::model_store::{LoadOutcome, ModelStore, SaveOutcome};
 use gs_core::fpmode::{self, DenormalMode};
+use gs_online::imagemetrics;
 use interfaces::messages::{
-    AckStatus, CommandAck, ErrorCode, EventKind, FrameHeader, PixelFormat, PredictionSource,
+    event_detail, AckStatus, CommandAck, ErrorCode, EventKind, FrameHeader, PixelFormat,
+    PredictionSource,
 };
 use std::collections::VecDeque;
+use std::panic::{self, AssertUnwindSafe};
 use std::path::PathBuf;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
@@ -80,11 +92,21 @@ pub struct Prediction {
     pub pixels: Vec<u8>,
 }
 
-/// Acknowledgements and events from the worker.
+/// Panics in a row (no job completing in between) after which the trainer gives up.
+pub const MAX_CONSECUTIVE_PANICS: u32 = 3;
+
+/// Acknowledgements, events and supervision notices from the worker.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Notice {
     Ack(CommandAck),
     Event(EventKind),
+    /// The trainer panicked and its learner is being restarted; `gave_up` when it will not
+    /// train again until commanded.
+    TrainerFault {
+        gave_up: bool,
+    },
+    /// The learner was restarted (from the newest usable checkpoint, or afresh).
+    TrainerRestored,
 }
 
 /// Figures the worker publishes for health reports.
@@ -98,6 +120,12 @@ pub struct WorkerSnapshot {
     pub last_round: Option<RoundSummary>,
     pub last_prediction_psnr_db: Option<f32>,
     pub checkpoints_saved: u64,
+    /// Saves refused (fewer rounds than on disk, or bytes the model's reader refuses).
+    pub checkpoints_refused: u64,
+    /// Learner restarts after a panic.
+    pub trainer_restarts: u64,
+    /// Jobs that ran past the round deadline.
+    pub deadline_misses: u64,
     /// True while the worker runs a job (a frame or a command).
     pub busy: bool,
 }
@@ -129,6 +157,9 @@ pub struct WorkerShared {
     queues: Mutex<Queues>,
     work_ready: Condvar,
     snapshot: Mutex<WorkerSnapshot>,
+    /// The running job's start, and whether the watchdog has reported it.
+    job_started: Mutex<Option<(Instant, bool)>>,
+    round_deadline: Duration,
     /// Wakes the bus side when predictions or notices are waiting.
     pub output_ready: tokio::sync::Notify,
 }
@@ -216,6 +247,21 @@ impl WorkerShared {
         *lock(&self.snapshot)
     }
 
+    /// The watchdog: true once for a job that has run past the round deadline (the bus
+    /// side polls it at least every housekeeping tick and sends the event).
+    pub fn overdue_job(&self) -> bool {
+        let mut started = lock(&self.job_started);
+        match started.as_mut() {
+            Some((at, reported)) if !*reported && at.elapsed() > self.round_deadline => {
+                *reported = true;
+                drop(started);
+                lock(&self.snapshot).deadline_misses += 1;
+                true
+            }
+            _ => false,
+        }
+    }
+
     /// RESET_COUNTERS: zero the worker-side counters (model figures stay).
     pub fn reset_counters(&self) {
         let mut q = lock(&self.queues);
@@ -247,7 +293,7 @@ impl WorkerShared {
     }
 }
 
-/// Checkpoint settings of the worker.
+/// Checkpoint settings of the worker (the slots are `path` and `path.prev`).
 #[derive(Clone, Debug)]
 pub struct CheckpointSettings {
     pub path: PathBuf,
@@ -269,13 +315,15 @@ enum Job {
 impl Worker {
     /// Starts the thread that owns `learner`; the model's parallel work runs on its own pool
     /// of `threads` threads (results are bit-identical for a given thread count and
-    /// `denormals` mode, which the thread and the pool's workers set as they start).
+    /// `denormals` mode, which the thread and the pool's workers set as they start). A job
+    /// running longer than `round_deadline` is reported by [`WorkerShared::overdue_job`].
     pub fn start(
         learner: Box<dyn Learner>,
         limits: QueueLimits,
         checkpoints: CheckpointSettings,
         threads: usize,
         denormals: DenormalMode,
+        round_deadline: Duration,
     ) -> std::io::Result<Self> {
         let pool = fpmode::pool_builder(denormals)
             .num_threads(threads.max(1))
@@ -290,6 +338,8 @@ impl Worker {
                 learner: learner.stats(),
                 ..WorkerSnapshot::default()
             }),
+            job_started: Mutex::new(None),
+            round_deadline,
             output_ready: tokio::sync::Notify::new(),
         });
         let thread_shared = Arc::clone(&shared);
@@ -348,73 +398,153 @@ fn next_job(shared: &WorkerShared, wait: Duration) -> Option<Option<Job>> {
         // Set while the queue lock is held, so `is_idle` never sees an empty queue and an
         // idle worker while a job is in flight.
         lock(&shared.snapshot).busy = true;
+        *lock(&shared.job_started) = Some((Instant::now(), false));
     }
     Some(job)
 }
 
 fn run(mut learner: Box<dyn Learner>, shared: &WorkerShared, checkpoints: &CheckpointSettings) {
+    let mut store = ModelStore::open(&checkpoints.path, learner.as_ref());
     let mut last_save = Instant::now();
+    // The learner's own events (e.g. where its starting model came from), after every job.
     let report = |learner: &mut dyn Learner| {
-        for kind in learner.take_events() {
+        let events = panic::catch_unwind(AssertUnwindSafe(|| learner.take_events()));
+        for kind in events.unwrap_or_default() {
             shared.notice(Notice::Event(kind));
         }
     };
     report(learner.as_mut());
+    let mut consecutive_panics = 0;
     while let Some(job) = next_job(shared, Duration::from_millis(200)) {
-        match job {
-            Some(Job::Command(c)) => run_command(learner.as_mut(), shared, checkpoints, c),
-            Some(Job::Frame(f)) => run_frame(learner.as_mut(), shared, f),
-            None => {}
-        }
-        report(learner.as_mut());
-        if let Some(period) = checkpoints.period {
-            if last_save.elapsed() >= period {
-                last_save = Instant::now();
-                save(learner.as_ref(), shared, checkpoints);
+        let running_command = match &job {
+            Some(Job::Command(c)) => Some((c.sequence, c.opcode)),
+            _ => None,
+        };
+        let ran_job = job.is_some();
+        let outcome = panic::catch_unwind(AssertUnwindSafe(|| {
+            match job {
+                Some(Job::Command(c)) => run_command(learner.as_mut(), shared, &mut store, c),
+                Some(Job::Frame(f)) => run_frame(learner.as_mut(), shared, f),
+                None => {}
+            }
+            if let Some(period) = checkpoints.period {
+                if last_save.elapsed() >= period {
+                    last_save = Instant::now();
+                    save(learner.as_ref(), shared, &mut store);
+                }
+            }
+        }));
+        match outcome {
+            Ok(()) if ran_job => consecutive_panics = 0,
+            Ok(()) => {}
+            Err(_) => {
+                consecutive_panics += 1;
+                if let Some((sequence, opcode)) = running_command {
+                    shared.notice(Notice::Ack(CommandAck {
+                        sequence: Some(sequence),
+                        opcode: Some(opcode),
+                        status: AckStatus::ExecutionError,
+                        detail: ErrorCode::Internal as u16,
+                    }));
+                }
+                restart(&mut learner, &store, shared, consecutive_panics);
             }
         }
-        let stats = learner.stats();
+        report(learner.as_mut());
+        let stats = panic::catch_unwind(AssertUnwindSafe(|| learner.stats())).unwrap_or_default();
+        *lock(&shared.job_started) = None;
         let mut s = lock(&shared.snapshot);
         s.learner = stats;
         s.busy = false;
     }
 }
 
-fn save(learner: &dyn Learner, shared: &WorkerShared, checkpoints: &CheckpointSettings) -> bool {
-    let rounds = learner.stats().rounds;
-    match checkpoint::write_atomic(&checkpoints.path, &learner.save()) {
-        Ok(()) => {
-            lock(&shared.snapshot).checkpoints_saved += 1;
-            shared.notice(Notice::Event(EventKind::CheckpointSaved { rounds }));
-            true
+/// After a panic: report it, reset the learner and load the newest usable checkpoint.
+fn restart(
+    learner: &mut Box<dyn Learner>,
+    store: &ModelStore,
+    shared: &WorkerShared,
+    consecutive_panics: u32,
+) {
+    shared.notice(Notice::Event(EventKind::Error {
+        code: ErrorCode::Internal,
+        detail: event_detail::TRAINER_PANICKED,
+    }));
+    let mut gave_up = consecutive_panics >= MAX_CONSECUTIVE_PANICS;
+    shared.notice(Notice::TrainerFault { gave_up });
+    let restored = panic::catch_unwind(AssertUnwindSafe(|| {
+        learner.reset()?;
+        Ok::<_, LearnerError>(store.load_newest(learner.as_mut()))
+    }));
+    match restored {
+        Ok(Ok(outcome)) => {
+            let mut s = lock(&shared.snapshot);
+            s.trainer_restarts += 1;
+            s.last_round = None;
+            s.last_prediction_psnr_db = None;
+            drop(s);
+            report_load(shared, outcome);
         }
-        Err(error) => {
-            eprintln!("fsw-component: checkpoint save failed: {error}");
-            shared.notice(Notice::Event(EventKind::Error {
-                code: ErrorCode::CheckpointSaveFailed,
-                detail: 0,
-            }));
-            false
-        }
+        Ok(Err(_)) | Err(_) => gave_up = true,
+    }
+    if gave_up {
+        shared.notice(Notice::Event(EventKind::Error {
+            code: ErrorCode::Internal,
+            detail: event_detail::TRAINER_GAVE_UP,
+        }));
+        shared.notice(Notice::TrainerFault { gave_up });
+    } else {
+        shared.notice(Notice::TrainerRestored);
     }
 }
 
-/// Loads the checkpoint at `path` into `learner`; errors are described for the log.
-pub fn load_checkpoint(learner: &mut dyn Learner, path: &std::path::Path) -> Result<bool, String> {
-    match checkpoint::read(path) {
-        Ok(None) => Ok(false),
-        Ok(Some(bytes)) => learner
-            .load(&bytes)
-            .map(|()| true)
-            .map_err(|e| format!("{}: {e}", path.display())),
-        Err(e) => Err(e.to_string()),
+/// Events for a load: `CheckpointLoaded`, a `CheckpointLoadFailed` when the newest slot was
+/// refused or none was usable, `ModelReset` when the model starts afresh.
+pub fn load_events(outcome: LoadOutcome) -> Vec<EventKind> {
+    let mut events = Vec::new();
+    if let Some(detail) = outcome.failure_detail() {
+        events.push(EventKind::Error {
+            code: ErrorCode::CheckpointLoadFailed,
+            detail,
+        });
     }
+    events.push(match outcome {
+        LoadOutcome::Loaded { rounds, .. } => EventKind::CheckpointLoaded {
+            rounds: u32::try_from(rounds).unwrap_or(u32::MAX),
+        },
+        LoadOutcome::Empty | LoadOutcome::Unusable => EventKind::ModelReset,
+    });
+    events
+}
+
+fn report_load(shared: &WorkerShared, outcome: LoadOutcome) {
+    for kind in load_events(outcome) {
+        shared.notice(Notice::Event(kind));
+    }
+}
+
+fn save(learner: &dyn Learner, shared: &WorkerShared, store: &mut ModelStore) -> bool {
+    let (code, detail) = match store.save(learner) {
+        SaveOutcome::Saved { rounds } => {
+            lock(&shared.snapshot).checkpoints_saved += 1;
+            let rounds = u32::try_from(rounds).unwrap_or(u32::MAX);
+            shared.notice(Notice::Event(EventKind::CheckpointSaved { rounds }));
+            return true;
+        }
+        SaveOutcome::Refused { detail } => {
+            lock(&shared.snapshot).checkpoints_refused += 1;
+            (ErrorCode::CheckpointSaveFailed, detail)
+        }
+        SaveOutcome::Failed { detail } => (ErrorCode::CheckpointSaveFailed, detail),
+    };
+    shared.notice(Notice::Event(EventKind::Error { code, detail }));
+    false
 }
 
 fn run_command(
     learner: &mut dyn Learner,
     shared: &WorkerShared,
-    checkpoints: &CheckpointSettings,
+    store: &mut ModelStore,
     job: CommandJob,
 ) {
     let ack = |status| {
@@ -426,36 +556,56 @@ fn run_command(
         })
     };
     let status = match &job.command {
-        ModelCommand::ResetModel => {
-            learner.reset();
-            let mut s = lock(&shared.snapshot);
-            s.last_round = None;
-            s.last_prediction_psnr_db = None;
-            drop(s);
-            shared.notice(Notice::Event(EventKind::ModelReset));
-            AckStatus::Ok
-        }
+        ModelCommand::ResetModel => match learner.reset() {
+            Ok(()) => {
+                // The explicit command that may replace a trained model on disk.
+                store.allow_replacing();
+                let mut s = lock(&shared.snapshot);
+                s.last_round = None;
+                s.last_prediction_psnr_db = None;
+                drop(s);
+                shared.notice(Notice::Event(EventKind::ModelReset));
+                AckStatus::Ok
+            }
+            Err(_) => {
+                shared.notice(Notice::Event(EventKind::Error {
+                    code: ErrorCode::Internal,
+                    detail: event_detail::RESET_FAILED,
+                }));
+                AckStatus::ExecutionError
+            }
+        },
         ModelCommand::SaveCheckpoint => {
-            if save(learner, shared, checkpoints) {
+            if save(learner, shared, store) {
                 AckStatus::Ok
             } else {
                 AckStatus::ExecutionError
             }
         }
-        ModelCommand::LoadCheckpoint => match load_checkpoint(learner, &checkpoints.path) {
-            Ok(true) => {
-                let rounds = learner.stats().rounds;
-                shared.notice(Notice::Event(EventKind::CheckpointLoaded { rounds }));
-                AckStatus::Ok
-            }
-            Ok(false) | Err(_) => {
+        ModelCommand::LoadCheckpoint => {
+            let outcome = store.load_newest(learner);
+            if let Some(detail) = outcome.failure_detail() {
                 shared.notice(Notice::Event(EventKind::Error {
                     code: ErrorCode::CheckpointLoadFailed,
-                    detail: 0,
+                    detail,
                 }));
-                AckStatus::ExecutionError
             }
-        },
+            match outcome {
+                LoadOutcome::Loaded { rounds, .. } => {
+                    let rounds = u32::try_from(rounds).unwrap_or(u32::MAX);
+                    shared.notice(Notice::Event(EventKind::CheckpointLoaded { rounds }));
+                    AckStatus::Ok
+                }
+                LoadOutcome::Empty => {
+                    shared.notice(Notice::Event(EventKind::Error {
+                        code: ErrorCode::CheckpointLoadFailed,
+                        detail: event_detail::LOAD_NOTHING_USABLE,
+                    }));
+                    AckStatus::ExecutionError
+                }
+                LoadOutcome::Unusable => AckStatus::ExecutionError,
+            }
+        }
         ModelCommand::Render(view) => match learner.predict(view) {
             Ok(image) => {
                 shared.publish_prediction(prediction(
@@ -479,11 +629,19 @@ fn run_command(
     shared.notice(ack(status));
 }
 
+fn internal_event(shared: &WorkerShared, detail: u32) {
+    shared.notice(Notice::Event(EventKind::Error {
+        code: ErrorCode::Internal,
+        detail,
+    }));
+}
+
 fn render_failed(shared: &WorkerShared, error: &LearnerError) {
     let detail = match error {
         LearnerError::NothingToRender => 0,
         LearnerError::BadRequest(_) => 1,
         LearnerError::BadCheckpoint(_) => 2,
+        LearnerError::Training(_) => 3,
     };
     shared.notice(Notice::Event(EventKind::Error {
         code: ErrorCode::RenderFailed,
@@ -573,13 +731,29 @@ fn run_frame(learner: &mut dyn Learner, shared: &WorkerShared, job: FrameJob) {
     let mut used = false;
     let mut round = None;
     if job.usage == FrameUse::PredictAndTrain {
-        used = learner.offer(frame) == OfferResult::Added;
+        let offered = learner.offer(frame);
+        used = offered == OfferResult::Added;
+        if offered == OfferResult::Refused {
+            internal_event(shared, event_detail::FRAME_REFUSED_BY_MODEL);
+        }
         let started = Instant::now();
-        // The worker times the round itself: the figure health reports is wall time.
-        round = learner.run_round_if_due().map(|r| RoundSummary {
-            duration_ms: u32::try_from(started.elapsed().as_millis()).unwrap_or(u32::MAX),
-            ..r
-        });
+        match learner.run_round_if_due() {
+            // The worker times the round itself: the figure health reports is wall time.
+            Ok(Some(r)) => {
+                if r.skipped_steps > 0 {
+                    shared.notice(Notice::Event(EventKind::Error {
+                        code: ErrorCode::TrainingNonFinite,
+                        detail: r.skipped_steps,
+                    }));
+                }
+                round = Some(RoundSummary {
+                    duration_ms: u32::try_from(started.elapsed().as_millis()).unwrap_or(u32::MAX),
+                    ..r
+                });
+            }
+            Ok(None) => {}
+            Err(_) => internal_event(shared, event_detail::ROUND_FAILED),
+        }
     }
     let mut s = lock(&shared.snapshot);
     s.frames_processed += 1;
@@ -590,159 +764,5 @@ fn run_frame(learner: &mut dyn Learner, shared: &WorkerShared, job: FrameJob) {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::keyframe::WindowConfig;
-    use crate::learner::PredictedImage;
-    use crate::nearest_learner::NearestKeyframeLearner;
-
-    fn limits() -> QueueLimits {
-        QueueLimits {
-            frames: 2,
-            commands: 1,
-            predictions: 2,
-        }
-    }
-
-    #[test]
-    fn full_queues_drop_oldest_frames_and_refuse_commands() {
-        let shared = WorkerShared {
-            limits: limits(),
-            queues: Mutex::new(Queues::default()),
-            work_ready: Condvar::new(),
-            snapshot: Mutex::new(WorkerSnapshot::default()),
-            output_ready: tokio::sync::Notify::new(),
-        };
-        let job = |id| CommandJob {
-            sequence: id,
-            opcode: 2,
-            command: ModelCommand::ResetModel,
-        };
-        assert!(shared.push_command(job(1)).is_ok());
-        assert_eq!(shared.push_command(job(2)).unwrap_err().sequence, 2);
-        for i in 0..3 {
-            shared.publish_prediction(Prediction {
-                header: FrameHeader {
-                    frame_id: i,
-                    time_us: 0,
-                    width: 1,
-                    height: 1,
-                    format: PixelFormat::Gray8,
-                },
-                source: PredictionSource::Command { sequence: i },
-                q_camera_from_target: [1.0, 0.0, 0.0, 0.0],
-                t_camera_from_target_m: [0.0; 3],
-                sun_target: [0.0, 0.0, 1.0],
-                psnr_db: None,
-                ssim: None,
-                pixels: vec![0],
-            });
-        }
-        let ids: Vec<u32> = shared
-            .take_predictions()
-            .iter()
-            .map(|p| p.header.frame_id)
-            .collect();
-        assert_eq!(ids, vec![1, 2], "the oldest prediction is the one dropped");
-        assert_eq!(shared.depths().predictions_dropped, 1);
-    }
-
-    #[test]
-    fn finish_drains_queued_commands() {
-        let learner = NearestKeyframeLearner::new(WindowConfig::default());
-        let dir = std::env::temp_dir().join(format!("fsw-worker-{}", std::process::id()));
-        let worker = Worker::start(
-            Box::new(learner),
-            limits(),
-            CheckpointSettings {
-                path: dir.join("ckpt.bin"),
-                period: None,
-            },
-            1,
-            DenormalMode::FlushToZero,
-        )
-        .unwrap();
-        let shared = Arc::clone(&worker.shared);
-        shared
-            .push_command(CommandJob {
-                sequence: 7,
-                opcode: 3,
-                command: ModelCommand::SaveCheckpoint,
-            })
-            .unwrap();
-        worker.finish();
-        let notices = shared.take_notices();
-        assert!(notices.contains(&Notice::Ack(CommandAck {
-            sequence: Some(7),
-            opcode: Some(3),
-            status: AckStatus::Ok,
-            detail: 0
-        })));
-        assert!(dir.join("ckpt.bin").exists());
-        std::fs::remove_dir_all(&dir).unwrap();
-    }
-
-    /// The baseline learner, noting on `save` the denormal mode of the thread it runs on
-    /// and of every worker of the pool it runs in.
-    struct ModeProbe {
-        inner: NearestKeyframeLearner,
-        seen: Arc<Mutex<Vec<DenormalMode>>>,
-    }
-
-    impl Learner for ModeProbe {
-        fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
-            self.inner.offer(frame)
-        }
-        fn run_round_if_due(&mut self) -> Option<RoundSummary> {
-            self.inner.run_round_if_due()
-        }
-        fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
-            self.inner.predict(view)
-        }
-        fn reset(&mut self) {
-            self.inner.reset()
-        }
-        fn save(&self) -> Vec<u8> {
-            let mut seen = lock(&self.seen);
-            seen.push(fpmode::current());
-            seen.extend(rayon::broadcast(|_| fpmode::current()));
-            self.inner.save()
-        }
-        fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
-            self.inner.load(bytes)
-        }
-        fn stats(&self) -> LearnerStats {
-            self.inner.stats()
-        }
-    }
-
-    #[test]
-    fn the_model_runs_in_the_configured_denormal_mode() {
-        let dir = std::env::temp_dir().join(format!("fsw-worker-fp-{}", std::process::id()));
-        for mode in [DenormalMode::Ieee, DenormalMode::FlushToZero] {
-            let seen = Arc::new(Mutex::new(Vec::new()));
-            let probe = ModeProbe {
-                inner: NearestKeyframeLearner::new(WindowConfig::default()),
-                seen: Arc::clone(&seen),
-            };
-            let checkpoints = CheckpointSettings {
-                path: dir.join("ckpt.bin"),
-                period: None,
-            };
-            let worker = Worker::start(Box::new(probe), limits(), checkpoints, 2, mode).unwrap();
-            let save = CommandJob {
-                sequence: 1,
-                opcode: 3,
-                command: ModelCommand::SaveCheckpoint,
-            };
-            worker.shared.push_command(save).unwrap();
-            worker.finish();
-            let seen = lock(&seen).clone();
-            assert_eq!(seen.len(), 3, "the model's thread and both pool workers");
-            if fpmode::is_supported() {
-                assert!(seen.iter().all(|&m| m == mode), "{mode}: {seen:?}");
-            }
-        }
-        std::fs::remove_dir_all(&dir).unwrap();
-    }
-}
+#[path = "worker_tests.rs"]
+mod tests;

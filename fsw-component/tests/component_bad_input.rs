@@ -243,7 +243,7 @@ async fn bad_input_is_counted_and_neither_the_model_nor_valid_messages_are_lost(
     // Oversized: a datagram above 1472 bytes, and a message above the reassembly slot.
     peer.send_raw(&vec![0u8; 2000], frames).await;
     let huge = frame_bytes(108, 5_530_000, 600);
-    assert!(huge.len() > fsw_component::core::UDP_SLOT_BYTES);
+    assert!(huge.len() > fsw_component::inbound::UDP_SLOT_BYTES);
     let huge = peer.raw_packets(port::CAMERA_FRAME, &huge);
     send_all(&peer, &huge, frames).await;
     valid_frame(&mut peer, &handle, 109, 16).await;

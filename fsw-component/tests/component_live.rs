@@ -3,15 +3,12 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::imagemetrics;
-use fsw_component::learner::{
-    Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
-    ViewRequest,
-};
 use fsw_component::runtime::{build_learner, start, LearnerKind};
+use gs_online::imagemetrics;
 use interfaces::messages::{
-    AckStatus, CommandKind, EventKind, Mode, PredictionSource, RenderRequest,
+    AckStatus, CommandKind, ErrorCode, EventKind, Mode, PredictionSource, RenderRequest,
 };
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 const WAIT: Duration = Duration::from_secs(5);
@@ -217,8 +214,16 @@ async fn live_scenario_predictions_health_and_commands() {
         .iter()
         .any(|e| e.kind == EventKind::CheckpointSaved { rounds: 5 })));
 
+    // Destructive commands need an ARM naming them first.
     peer.command(11, CommandKind::ResetModel, addr).await;
-    assert_eq!(peer.wait_ack(11).await.status, AckStatus::Ok);
+    let refused = peer.wait_ack(11).await;
+    assert_eq!(refused.status, AckStatus::ExecutionError);
+    assert_eq!(refused.detail, ErrorCode::CommandNotArmed.index() as u16);
+    peer.command(111, CommandKind::Arm(CommandKind::RESET_MODEL), addr)
+        .await;
+    assert_eq!(peer.wait_ack(111).await.status, AckStatus::Ok);
+    peer.command(112, CommandKind::ResetModel, addr).await;
+    assert_eq!(peer.wait_ack(112).await.status, AckStatus::Ok);
     peer.command(12, CommandKind::ResetCounters, addr).await;
     assert_eq!(peer.wait_ack(12).await.status, AckStatus::Ok);
     assert!(
@@ -230,6 +235,9 @@ async fn live_scenario_predictions_health_and_commands() {
             .await,
         "counters and model reset"
     );
+    peer.command(113, CommandKind::Arm(CommandKind::LOAD_CHECKPOINT), addr)
+        .await;
+    assert_eq!(peer.wait_ack(113).await.status, AckStatus::Ok);
     peer.command(13, CommandKind::LoadCheckpoint, addr).await;
     assert_eq!(peer.wait_ack(13).await.status, AckStatus::Ok);
     assert!(
@@ -242,8 +250,8 @@ async fn live_scenario_predictions_health_and_commands() {
     let health = peer.snapshot(|r| r.last_health().unwrap());
     assert_eq!(health.commands_rejected, 0, "counted since the reset");
     assert_eq!(
-        health.commands_accepted, 2,
-        "RESET_COUNTERS itself and LOAD_CHECKPOINT"
+        health.commands_accepted, 3,
+        "RESET_COUNTERS itself, ARM and LOAD_CHECKPOINT"
     );
     peer.command(14, CommandKind::SaveCheckpoint, addr).await;
     assert_eq!(peer.wait_ack(14).await.status, AckStatus::Ok);
@@ -253,46 +261,17 @@ async fn live_scenario_predictions_health_and_commands() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Wraps a learner and makes every round take `round_time`.
-struct SlowRounds {
-    inner: Box<dyn Learner>,
-    round_time: Duration,
-}
-
-impl Learner for SlowRounds {
-    fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
-        self.inner.offer(frame)
-    }
-    fn run_round_if_due(&mut self) -> Option<RoundSummary> {
-        let round = self.inner.run_round_if_due()?;
-        std::thread::sleep(self.round_time);
-        Some(round)
-    }
-    fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
-        self.inner.predict(view)
-    }
-    fn reset(&mut self) {
-        self.inner.reset()
-    }
-    fn save(&self) -> Vec<u8> {
-        self.inner.save()
-    }
-    fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
-        self.inner.load(bytes)
-    }
-    fn stats(&self) -> LearnerStats {
-        self.inner.stats()
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_keeps_1_hz_and_commands_are_acknowledged_during_a_long_round() {
     let dir = temp_dir("slow");
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let learner = SlowRounds {
+    let learner = Scripted {
         inner: build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        round_time: Duration::from_millis(3500),
+        script: Arc::new(Mutex::new(Script {
+            round_sleep: Duration::from_millis(3500),
+            ..Script::default()
+        })),
     };
     let handle = start(&config, Box::new(learner), None).await.unwrap();
     for k in 0..4 {

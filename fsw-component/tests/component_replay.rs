@@ -5,9 +5,9 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::bus::{CanFramer, UdpFramer};
 use fsw_component::logfmt::candump::{CanId, CanLogFrame, CanLogRecord, CanLogWriter, FrameData};
 use fsw_component::logfmt::udprec::{UdpRecord, UdpRecordingWriter};
+use fsw_component::outbound::{CanFramer, UdpFramer};
 use fsw_component::runtime::{build_learner, run_replay, start, LearnerKind, ReplaySpeed};
 use interfaces::messages::{AckStatus, CameraFrame, Command, CommandKind};
 use std::path::{Path, PathBuf};
@@ -92,7 +92,9 @@ fn write_mixed_logs(dir: &Path) -> Vec<PathBuf> {
         sequence: 1,
         kind: CommandKind::SaveCheckpoint,
     };
-    write_can(can.frames(&save).unwrap(), &mut time_us);
+    // Commands come from node 1, the default `[commands] can_source_nodes`; telemetry from 10.
+    let mut ground = CanFramer::new(1, false);
+    write_can(ground.frames(&save).unwrap(), &mut time_us);
     can_log.flush().unwrap();
     udp_log.flush().unwrap();
     vec![can_path, udp_path]

@@ -52,10 +52,24 @@ async fn sun_aware_trainer_live_checkpoint_and_replay() {
         .await;
     assert_eq!(peer.wait_ack(1).await.status, AckStatus::Ok);
     let live = std::fs::read(&checkpoint).unwrap();
+    peer.command(
+        20,
+        CommandKind::Arm(CommandKind::RESET_MODEL),
+        handle.telemetry_addr,
+    )
+    .await;
+    assert_eq!(peer.wait_ack(20).await.status, AckStatus::Ok);
     peer.command(2, CommandKind::ResetModel, handle.telemetry_addr)
         .await;
     assert_eq!(peer.wait_ack(2).await.status, AckStatus::Ok);
     assert_eq!(handle.worker_snapshot().learner.rounds, 0);
+    peer.command(
+        30,
+        CommandKind::Arm(CommandKind::LOAD_CHECKPOINT),
+        handle.telemetry_addr,
+    )
+    .await;
+    assert_eq!(peer.wait_ack(30).await.status, AckStatus::Ok);
     peer.command(3, CommandKind::LoadCheckpoint, handle.telemetry_addr)
         .await;
     assert_eq!(peer.wait_ack(3).await.status, AckStatus::Ok);

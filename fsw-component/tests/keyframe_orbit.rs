@@ -12,9 +12,9 @@
 //! and the oldest-first tie-break makes the window a contiguous run of recent frames
 //! (like FIFO); the rule spreads keyframes only through such revisits.
 
-use fsw_component::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
 use fsw_component::sync::{PoseSample, SunSample, SyncConfig, Synchronizer, WaitPolicy};
 use glam::{DQuat, DVec3};
+use gs_online::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
 
 const TUMBLE_RAD_PER_S: f64 = 2.0 * std::f64::consts::PI / 180.0;
 

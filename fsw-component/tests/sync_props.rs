@@ -1,10 +1,12 @@
 //! Property tests of the synchronizer: interpolation against analytic constant-rate motion,
-//! hemisphere independence, frame-chain geometry built the other way round, and robustness
-//! (no panic, no NaN, bounded buffers, consistent counters) under arbitrary telemetry.
+//! hemisphere independence, frame-chain geometry built the other way round, robustness
+//! (no panic, no NaN, bounded buffers, consistent counters) under arbitrary telemetry, and
+//! recovery through the time-tag guard after arbitrary time tags.
 
 use fsw_component::sync::{
     PoseSample, SampleStatus, SunSample, SyncConfig, SyncError, Synchronizer, WaitPolicy,
 };
+use fsw_component::timeguard::{TelemetrySample, TimeGuardConfig, TimeTagGuard};
 use glam::{DQuat, DVec3};
 use proptest::prelude::*;
 
@@ -211,5 +213,51 @@ proptest! {
         prop_assert_eq!(f.synced + f.rejected_missing + f.rejected_stale + f.rejected_invalid, final_answers);
         prop_assert_eq!(c.pose.stored_valid + c.pose.stored_invalid - c.pose.evicted_oldest,
             s.buffered(fsw_component::sync::Stream::Pose) as u64);
+    }
+
+    /// Arbitrary time tags (far future, far past, duplicates, on any receive time) then
+    /// nominal 1 Hz traffic on one clock: through the time-tag guard, every frame from the
+    /// (resync_after + 2)-th nominal step on is synchronised.
+    #[test]
+    fn arbitrary_time_tags_never_stop_synchronisation(
+        prefix in prop::collection::vec(
+            (any::<bool>(), prop_oneof![1 => any::<u64>(), 1 => 0u64..20_000_000],
+             0u64..3_000_000, any::<bool>()),
+            0..40),
+        clock_offset_us in 0u64..1_000_000_000_000,
+        resync_after in 2u32..5,
+    ) {
+        let mut s = Synchronizer::new(SyncConfig::default()).unwrap();
+        let guard = TimeTagGuard::new(TimeGuardConfig { tolerance_us: 60_000_000, resync_after }).unwrap();
+        let (mut pose_guard, mut sun_guard) = (guard.clone(), guard);
+        let pose = |time_us| TelemetrySample::Pose(PoseSample {
+            time_us,
+            camera_from_target: DQuat::IDENTITY,
+            target_in_camera_m: DVec3::new(0.0, 0.0, 10.0),
+            quality: 1.0,
+        });
+        let sun = |time_us, valid| TelemetrySample::Sun(SunSample { time_us, sun_in_body: DVec3::X, valid, eclipse: None });
+        let mut received_us = 1_700_000_000_000_000u64;
+        for (is_pose, time_us, advance_us, valid) in prefix {
+            received_us += advance_us;
+            if is_pose {
+                pose_guard.push(&mut s, pose(time_us), received_us);
+            } else {
+                sun_guard.push(&mut s, sun(time_us, valid), received_us);
+            }
+        }
+        let first_synced_step = u64::from(resync_after) + 2;
+        for k in 0..first_synced_step + 4 {
+            received_us += 1_000_000;
+            let t = clock_offset_us + k * 1_000_000;
+            pose_guard.push(&mut s, pose(t), received_us);
+            sun_guard.push(&mut s, sun(t, true), received_us + 10);
+            if k >= 1 {
+                let frame = s.synchronize(t - 500_000, WaitPolicy::NoWait);
+                if k >= first_synced_step {
+                    prop_assert!(frame.is_ok(), "step {}: {:?}", k, frame);
+                }
+            }
+        }
     }
 }

@@ -78,7 +78,7 @@ fn step_times(model: &GaussianModel, camera: &Camera, backend: Backend, runs: us
     let mut cpu0 = 0.0;
     for r in 0..=runs {
         if r == 1 {
-            cpu0 = process_cpu_s();
+            cpu0 = gs_core::machine::process_cpu_s().unwrap_or(f64::NAN);
         }
         let t = Instant::now();
         let st = trainer.step(&view, 0).expect("step");
@@ -89,7 +89,7 @@ fn step_times(model: &GaussianModel, camera: &Camera, backend: Backend, runs: us
             bwd.push(st.backward_ms);
         }
     }
-    let cpu_ms = (process_cpu_s() - cpu0) * 1e3 / runs as f64;
+    let cpu_ms = (gs_core::machine::process_cpu_s().unwrap_or(f64::NAN) - cpu0) * 1e3 / runs as f64;
     StepTimes {
         wall_ms: median(wall),
         forward_ms: median(fwd),
@@ -102,34 +102,6 @@ fn step_times(model: &GaussianModel, camera: &Camera, backend: Backend, runs: us
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
-}
-
-fn process_cpu_s() -> f64 {
-    // SAFETY: getrusage only writes the struct it is given.
-    let mut ru: libc_rusage::Rusage = unsafe { std::mem::zeroed() };
-    unsafe { libc_rusage::getrusage(0, &mut ru) };
-    let t = |tv: libc_rusage::Timeval| tv.sec as f64 + tv.usec as f64 * 1e-6;
-    t(ru.utime) + t(ru.stime)
-}
-
-/// The two fields of `struct rusage` read here (Linux x86_64/aarch64 layout), to avoid a
-/// libc dependency for one call.
-mod libc_rusage {
-    #[repr(C)]
-    #[derive(Clone, Copy)]
-    pub struct Timeval {
-        pub sec: i64,
-        pub usec: i64,
-    }
-    #[repr(C)]
-    pub struct Rusage {
-        pub utime: Timeval,
-        pub stime: Timeval,
-        pub rest: [i64; 14],
-    }
-    extern "C" {
-        pub fn getrusage(who: i32, usage: *mut Rusage) -> i32;
-    }
 }
 
 const USAGE: &str = "\
@@ -206,7 +178,7 @@ fn main() {
             d_alpha: None,
             d_depth: None,
         };
-        let cpu0 = process_cpu_s();
+        let cpu0 = gs_core::machine::process_cpu_s().unwrap_or(f64::NAN);
         let (mut cf, mut cb, mut gf, mut gb, mut gp) = (vec![], vec![], vec![], vec![], vec![]);
         let mut entries = 0;
         for r in 0..=runs {
@@ -242,7 +214,7 @@ fn main() {
             gfm,
             gbm,
             gfm + gbm,
-            process_cpu_s() - cpu0
+            gs_core::machine::process_cpu_s().unwrap_or(f64::NAN) - cpu0
         );
         if train {
             let model = cloud_model(&c);

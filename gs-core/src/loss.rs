@@ -1114,6 +1114,17 @@ pub fn ssim(a: &[f32], b: &[f32], shape: ImageShape) -> Result<f32, LossError> {
     Ok(s as f32)
 }
 
+/// PSNR in dB of a mean squared error on [0, 1] intensities: `10 log10(1 / MSE)`; zero
+/// error gives `f64::INFINITY` (callers that report a number clamp it). The one PSNR
+/// formula of the project: every metric (masked, 8-bit, pooled) reduces to an MSE first.
+pub fn psnr_db_from_mse(mse: f64) -> f64 {
+    if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    }
+}
+
 /// PSNR in dB, `10 log10(1 / MSE)`, over all values of images clamped to [0, 1];
 /// identical images give `f32::INFINITY`.
 pub fn psnr(a: &[f32], b: &[f32], shape: ImageShape) -> Result<f32, LossError> {
@@ -1128,11 +1139,7 @@ pub fn psnr(a: &[f32], b: &[f32], shape: ImageShape) -> Result<f32, LossError> {
         })
         .sum::<f64>()
         / a.len() as f64;
-    Ok(if mse == 0.0 {
-        f32::INFINITY
-    } else {
-        (-10.0 * mse.log10()) as f32
-    })
+    Ok(psnr_db_from_mse(mse) as f32)
 }
 
 #[cfg(test)]

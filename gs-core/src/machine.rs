@@ -77,6 +77,24 @@ fn isa_features() -> String {
     }
 }
 
+/// CPU time of this process so far (user + system, every thread), seconds; `None` where
+/// the platform does not report it. Benchmarks and experiments report it beside wall time:
+/// on a shared or throttled machine the two differ.
+pub fn process_cpu_s() -> Option<f64> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: getrusage only writes the struct it is given; zeroed is a valid rusage.
+        let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut usage) } != 0 {
+            return None;
+        }
+        let seconds = |t: libc::timeval| t.tv_sec as f64 + 1e-6 * t.tv_usec as f64;
+        Some(seconds(usage.ru_utime) + seconds(usage.ru_stime))
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

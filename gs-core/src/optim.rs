@@ -7,14 +7,25 @@
 //! Invariants:
 //! - one global step counter for the bias correction, as torch's Adam keeps per tensor
 //!   (3DGS grows tensors in place and keeps the count);
-//! - a step with any non-finite gradient is refused as a whole (nothing is changed),
-//!   so NaN/Inf never reach the parameters or the moments;
+//! - a step with any unusable gradient (non-finite, or larger in magnitude than
+//!   [`MAX_GRADIENT_MAGNITUDE`], whose square would overflow the second moment to +inf) is
+//!   refused as a whole (nothing is changed), so NaN/Inf never reach the parameters or the
+//!   moments, and every state Adam holds can be checkpointed and read back;
 //! - quaternions are NOT renormalised here: the rasterizer normalises them.
 
 use crate::model::{Param, ParamSet};
 
 /// Adam's epsilon in 3DGS (much smaller than torch's default 1e-8).
 pub const ADAM_EPS: f32 = 1e-15;
+
+/// Largest gradient magnitude a step accepts: its square (1e36) and every second moment
+/// built from such squares stay below `f32::MAX` (3.4e38); sqrt(f32::MAX) ~ 1.8e19 would not.
+pub const MAX_GRADIENT_MAGNITUDE: f32 = 1e18;
+
+/// Whether Adam may apply `g`: finite and at most [`MAX_GRADIENT_MAGNITUDE`] in magnitude.
+pub fn is_usable_gradient(g: f32) -> bool {
+    g.abs() <= MAX_GRADIENT_MAGNITUDE
+}
 
 /// Error from an optimiser step.
 #[derive(Debug, Clone, PartialEq)]
@@ -25,8 +36,11 @@ pub enum OptimError {
         grads_rows: usize,
         moment_rows: usize,
     },
-    /// A gradient was NaN or infinite; the step was not applied.
+    /// A gradient was NaN, infinite or above [`MAX_GRADIENT_MAGNITUDE`]; the step was not
+    /// applied.
     NonFiniteGradient { param: Param, index: usize },
+    /// The same for a flat vector (a network's weights).
+    NonFiniteFlatGradient { index: usize },
 }
 
 impl std::fmt::Display for OptimError {
@@ -43,8 +57,13 @@ impl std::fmt::Display for OptimError {
             ),
             OptimError::NonFiniteGradient { param, index } => write!(
                 f,
-                "non-finite gradient in group {} at index {index}; step not applied",
+                "non-finite or oversized gradient in group {} at index {index}; step not \
+                 applied",
                 param.name()
+            ),
+            OptimError::NonFiniteFlatGradient { index } => write!(
+                f,
+                "non-finite or oversized network gradient at index {index}; step not applied"
             ),
         }
     }
@@ -82,13 +101,13 @@ impl Adam {
         }
     }
 
-    /// Index of the first non-finite gradient, if any.
+    /// Index of the first gradient a step would refuse (non-finite or oversized), if any.
     pub fn first_non_finite(grads: &ParamSet) -> Option<(Param, usize)> {
         Param::ALL.iter().find_map(|&p| {
             grads
                 .get(p)
                 .iter()
-                .position(|g| !g.is_finite())
+                .position(|&g| !is_usable_gradient(g))
                 .map(|i| (p, i))
         })
     }
@@ -278,6 +297,42 @@ mod tests {
             adam.step(&mut params, &short, &[1.0; Param::COUNT]),
             Err(OptimError::Shape { .. })
         ));
+    }
+
+    /// A finite gradient whose square overflows f32 used to make the second moment +inf
+    /// (then every later step divides by inf and the moment cannot be checkpointed).
+    #[test]
+    fn oversized_gradients_are_refused_and_moments_stay_finite() {
+        let mut params = model(1);
+        let mut adam = Adam::new(&params);
+        let rates = [1e-3; Param::COUNT];
+        for g in [2e19f32, 1e21, -f32::MAX] {
+            let mut grads = params.zeros_like();
+            grads.get_mut(Param::Mean)[1] = g;
+            let before = (params.clone(), adam.clone());
+            assert_eq!(
+                adam.step(&mut params, &grads, &rates),
+                Err(OptimError::NonFiniteGradient {
+                    param: Param::Mean,
+                    index: 1
+                }),
+                "gradient {g}"
+            );
+            assert_eq!((params.clone(), adam.clone()), before, "gradient {g}");
+        }
+        // The largest accepted gradient, applied many times, keeps everything finite.
+        let mut grads = params.zeros_like();
+        grads.get_mut(Param::Mean)[1] = -MAX_GRADIENT_MAGNITUDE;
+        for _ in 0..10_000 {
+            adam.step(&mut params, &grads, &rates).unwrap();
+        }
+        assert!(Param::ALL
+            .iter()
+            .all(|&p| adam.v.get(p).iter().all(|v| v.is_finite())));
+        assert!(Param::ALL
+            .iter()
+            .all(|&p| params.get(p).iter().all(|v| v.is_finite())));
+        assert!(!is_usable_gradient(f32::NAN) && !is_usable_gradient(f32::INFINITY));
     }
 
     #[test]

@@ -90,4 +90,21 @@ mod tests {
         let mean = draws.iter().map(|&v| v as f64).sum::<f64>() / draws.len() as f64;
         assert!(mean.abs() < 0.01, "mean {mean}");
     }
+
+    #[test]
+    fn next_f32_is_the_top_24_bits_and_mix64_is_one_step() {
+        // The simulator's cached scenes were drawn with exactly these bits.
+        let mut a = SplitMix64::new(42);
+        let mut b = SplitMix64::new(42);
+        for _ in 0..1000 {
+            let expected = (b.next_u64() >> 40) as f32 * (1.0 / (1u64 << 24) as f32);
+            assert_eq!(a.next_f32().to_bits(), expected.to_bits());
+        }
+        let mut rng = SplitMix64::new(42);
+        assert!((0..1000).all(|_| (0.0..1.0).contains(&rng.next_f32())));
+        assert_eq!(
+            mix64(1),
+            SplitMix64::new(1u64.wrapping_sub(0x9E37_79B9_7F4A_7C15)).next_u64()
+        );
+    }
 }

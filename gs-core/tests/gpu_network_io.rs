@@ -18,7 +18,7 @@
 #![cfg(feature = "wgpu")]
 
 use gs_core::gpu::network_io::{packed_offsets, NetworkIo, NetworkIoProbe};
-use gs_core::gpu::{GpuContext, GpuError, Scratch};
+use gs_core::gpu::{context_or_skip, GpuError, GpuOptions, Scratch};
 use gs_core::model::Param;
 use gs_core::nn::{AppearanceNet, PositionalEncoding, SceneBox, ShadowNet};
 use gs_core::rng::SplitMix64;
@@ -48,23 +48,12 @@ struct Rig {
 }
 
 fn rig() -> Option<Rig> {
-    match GpuContext::new() {
-        Ok(ctx) => {
-            eprintln!("GPU: {}", ctx.describe());
-            Some(Rig {
-                io: NetworkIo::new(&ctx).unwrap(),
-                scratch: Scratch::default(),
-                probe: NetworkIoProbe::new(&ctx),
-            })
-        }
-        Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
-            None
-        }
-    }
+    let ctx = context_or_skip(GpuOptions::default())?;
+    Some(Rig {
+        io: NetworkIo::new(&ctx).unwrap(),
+        scratch: Scratch::default(),
+        probe: NetworkIoProbe::new(&ctx),
+    })
 }
 
 /// Random Gaussians in the packed layout, a sorted list with gaps, junk past `count`.

@@ -19,25 +19,14 @@
 use std::sync::Arc;
 
 use gs_core::gpu::mlp::{DeviceBatch, DeviceNetwork};
-use gs_core::gpu::{GpuContext, GpuError, GpuMlp};
+use gs_core::gpu::{context_or_skip, GpuError, GpuMlp, GpuOptions};
 use gs_core::nn::{HiddenActivation, Init, Mlp, TapeMode};
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::trainer::FlatAdam;
 
 fn device() -> Option<Arc<GpuMlp>> {
-    match GpuContext::new() {
-        Ok(ctx) => {
-            eprintln!("GPU: {}", ctx.describe());
-            Some(Arc::new(GpuMlp::new(ctx).unwrap()))
-        }
-        Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
-            None
-        }
-    }
+    let ctx = context_or_skip(GpuOptions::default())?;
+    Some(Arc::new(GpuMlp::new(ctx).unwrap()))
 }
 
 /// See the module docs for the tolerance. Returns the worst error / tolerance.
@@ -728,20 +717,6 @@ fn resident_network_round_trip_and_bad_input() {
     ));
 }
 
-/// Process CPU time so far (every thread, the driver's included), seconds.
-fn process_cpu_s() -> f64 {
-    #[cfg(target_os = "linux")]
-    {
-        // SAFETY: getrusage only writes the struct it is given.
-        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
-        unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut ru) };
-        let t = |tv: libc::timeval| tv.tv_sec as f64 + tv.tv_usec as f64 * 1e-6;
-        t(ru.ru_utime) + t(ru.ru_stime)
-    }
-    #[cfg(not(target_os = "linux"))]
-    f64::NAN
-}
-
 /// Timings, not a check (ignored; run with `--ignored --nocapture`): Phi-like
 /// [37, 256, 256, 256, 3] over 10,000 rows, forward + backward with the input gradient,
 /// the host path (`GpuMlp::forward`/`backward`: uploads of the input, the parameters and
@@ -793,10 +768,15 @@ fn resident_network_timings() {
     let mut times = vec![(Vec::new(), Vec::new()); runs.len()];
     for _ in 0..5 {
         for (k, (_, f)) in runs.iter().enumerate() {
-            let (t, c) = (std::time::Instant::now(), process_cpu_s());
+            let (t, c) = (
+                std::time::Instant::now(),
+                gs_core::machine::process_cpu_s().unwrap_or(f64::NAN),
+            );
             f();
             times[k].0.push(t.elapsed().as_secs_f64() * 1e3);
-            times[k].1.push((process_cpu_s() - c) * 1e3);
+            times[k]
+                .1
+                .push((gs_core::machine::process_cpu_s().unwrap_or(f64::NAN) - c) * 1e3);
         }
     }
     let median = |v: &mut Vec<f64>| {

@@ -13,7 +13,7 @@
 mod common;
 
 use glam::Vec3;
-use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer, GpuRenderOutput};
+use gs_core::gpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer, GpuRenderOutput};
 use gs_core::raster::bin::{bin_tiles, PixelRect, TileGrid, TileSelection};
 use gs_core::raster::blend::{tile_contributions, AlphaMode, Splat, ENTRY_BLENDS};
 use gs_core::raster::{
@@ -26,19 +26,7 @@ use gs_core::{Camera, Intrinsics};
 /// A context, or None (with a notice) when there is no adapter and GS_REQUIRE_GPU is
 /// not 1.
 fn context(options: GpuOptions) -> Option<GpuContext> {
-    match GpuContext::with_options(options) {
-        Ok(ctx) => {
-            eprintln!("GPU: {}", ctx.describe());
-            Some(ctx)
-        }
-        Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
-            None
-        }
-    }
+    context_or_skip(options)
 }
 
 struct Scene {

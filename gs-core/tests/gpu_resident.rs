@@ -14,7 +14,7 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use gs_core::densify::DensifyStats;
-use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer, ResidentModel};
+use gs_core::gpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer, ResidentModel};
 use gs_core::init::random_in_sphere;
 use gs_core::optim::Adam;
 use gs_core::rng::SplitMix64;
@@ -29,19 +29,8 @@ fn gpu() -> Option<Arc<GpuRasterizer>> {
 
 /// [`gpu`] with the given options.
 fn gpu_with(options: GpuOptions) -> Option<Arc<GpuRasterizer>> {
-    match GpuContext::with_options(options) {
-        Ok(ctx) => {
-            eprintln!("GPU: {}", ctx.describe());
-            Some(Arc::new(GpuRasterizer::new(ctx).unwrap()))
-        }
-        Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
-            None
-        }
-    }
+    let ctx = context_or_skip(options)?;
+    Some(Arc::new(GpuRasterizer::new(ctx).unwrap()))
 }
 
 /// Random values spanning magnitudes 1e-20 to 1e3, both signs.

@@ -22,7 +22,7 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use gs_core::gpu::shadow::PackedVisibility;
-use gs_core::gpu::{GpuContext, GpuRasterizer, GpuShadow};
+use gs_core::gpu::{context_or_skip, GpuOptions, GpuRasterizer, GpuShadow};
 use gs_core::nn::SceneBox;
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::config::{LightConfig, LightProjection};
@@ -32,20 +32,9 @@ use gs_core::{GaussianModel, ModelLayout, Param};
 const NEAR_M: f32 = 0.01;
 
 fn shadow_pass() -> Option<GpuShadow> {
-    match GpuContext::new() {
-        Ok(ctx) => {
-            eprintln!("GPU: {}", ctx.describe());
-            let raster = Arc::new(GpuRasterizer::new(ctx).unwrap());
-            Some(GpuShadow::new(raster).unwrap())
-        }
-        Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
-            None
-        }
-    }
+    let ctx = context_or_skip(GpuOptions::default())?;
+    let raster = Arc::new(GpuRasterizer::new(ctx).unwrap());
+    Some(GpuShadow::new(raster).unwrap())
 }
 
 fn scene_box() -> SceneBox {

@@ -21,7 +21,7 @@
 use std::sync::Arc;
 
 use glam::Vec3;
-use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
+use gs_core::gpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer};
 use gs_core::init::from_points;
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::checkpoint;
@@ -33,19 +33,8 @@ use gs_core::train::Backend;
 use gs_core::{Camera, Param};
 
 fn gpu_backend() -> Option<Backend> {
-    match GpuContext::new() {
-        Ok(ctx) => {
-            eprintln!("GPU: {}", ctx.describe());
-            Some(Backend::Wgpu(Arc::new(GpuRasterizer::new(ctx).unwrap())))
-        }
-        Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
-            None
-        }
-    }
+    let ctx = context_or_skip(GpuOptions::default())?;
+    Some(Backend::Wgpu(Arc::new(GpuRasterizer::new(ctx).unwrap())))
 }
 
 /// Camera, Sun vector, image and mask of one observation.

@@ -239,9 +239,57 @@ fn opcodes_are_the_encoded_variant_index() {
         assert_eq!(u32::from(bytes[2]), c.kind.opcode());
     }
     assert_eq!(
-        CommandKind::Render(render_request()).opcode() + 1,
+        CommandKind::Arm(CommandKind::RESET_MODEL).opcode() + 1,
         CommandKind::OPCODE_COUNT
     );
+    assert_eq!(CommandKind::ResetModel.opcode(), CommandKind::RESET_MODEL);
+    assert_eq!(
+        CommandKind::LoadCheckpoint.opcode(),
+        CommandKind::LOAD_CHECKPOINT
+    );
+    assert_eq!(
+        CommandKind::Render(render_request()).opcode(),
+        CommandKind::RENDER
+    );
+}
+
+#[test]
+fn arm_names_a_destructive_command_only() {
+    let mut buf = [0u8; 64];
+    for opcode in [CommandKind::RESET_MODEL, CommandKind::LOAD_CHECKPOINT] {
+        let c = Command {
+            sequence: 1,
+            kind: CommandKind::Arm(opcode),
+        };
+        let bytes = encode(&c, &mut buf).unwrap();
+        assert_eq!(decode_command(bytes).unwrap(), c);
+    }
+    // ARM of NOOP: sequence 1, opcode 7, argument 0.
+    let refused = decode_command(&[1, 7, 0]).unwrap_err();
+    assert_eq!(refused.status, AckStatus::ValidationError);
+    assert_eq!((refused.sequence, refused.opcode), (Some(1), Some(7)));
+}
+
+#[test]
+fn error_codes_table_matches_the_wire_values() {
+    use interfaces::messages::ErrorCode;
+    for (i, code) in ErrorCode::ALL.iter().enumerate() {
+        assert_eq!(code.index(), i);
+        let event = interfaces::messages::Event {
+            time_us: 1,
+            kind: interfaces::messages::EventKind::Error {
+                code: *code,
+                detail: 0,
+            },
+        };
+        let mut buf = [0u8; 32];
+        let bytes = encode(&event, &mut buf).unwrap();
+        // time_us 1, kind 1 (Error), then the code's index.
+        assert_eq!(usize::from(bytes[2]), i);
+    }
+    // The wire value after the last code is not a code.
+    let unknown = [1u8, 1, ErrorCode::COUNT as u8, 0];
+    assert!(decode::<interfaces::messages::Event>(&unknown).is_err());
 }
 
 #[test]

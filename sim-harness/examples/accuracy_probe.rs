@@ -124,7 +124,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             })?;
         eprintln!(
             "{} | {} steps {:.0} s",
-            sim_harness::experiment::runner::ladder_line(&format!("online {variant}"), &o),
+            sim_harness::experiment::ladder::ladder_line(&format!("online {variant}"), &o),
             o.steps,
             o.train_s
         );
@@ -148,7 +148,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         return Ok(());
     }
-    let mut online = fsw_component::online::OnlineTrainer::new(
+    let mut online = gs_online::online::OnlineTrainer::new(
         online_config(&preset, variant),
         &try_initialisation(&scene, &preset)?,
         scene_box(&scene)?,

@@ -26,8 +26,8 @@
 //! the in-process trainer skips. The dataset
 //! has no navigation covariance, so the pose uncertainties come from the options.
 
-use fsw_component::bus::{CanFramer, OutboundError, UdpFramer};
 use fsw_component::config::ComponentConfig;
+use fsw_component::outbound::{CanFramer, OutboundError, UdpFramer};
 use fsw_component::recorder::{Recorder, CAN_FILE, UDP_FILE};
 use fsw_component::transport::{CanTransport, CanTransportConfig, RawCanFrame};
 use interfaces::messages::{

@@ -2,8 +2,8 @@
 //! window would take, the hull is far closer to the true surface than random points, its
 //! colours come from the images (or grey), and the job writes every file with finite metrics.
 
-use fsw_component::online::Initialisation;
 use glam::Vec3;
+use gs_online::online::Initialisation;
 use sim_harness::experiment::ablation_init::{
     first_keyframes, hull_initialisation, mean_nearest_distance, parse_init, run_init_ablation,
     write_hull_figure, InitAblationJob, CSV_HEADER,

@@ -36,7 +36,7 @@ fn demo_preset() -> Preset {
 }
 
 fn report(o: &RunOutcome) -> String {
-    sim_harness::experiment::runner::ladder_line("test", o)
+    sim_harness::experiment::ladder::ladder_line("test", o)
 }
 
 /// Fails unless the model beats the all-black frame on a rung by `min_db` (masked PSNR).

@@ -3,6 +3,7 @@
 //! runs on the quick scenario (rows, files, determinism, what each skip switches).
 
 use sim_harness::experiment::ablation::{run_window_ablation, WindowJob};
+use sim_harness::experiment::ladder::{Ladder, Rung};
 use sim_harness::experiment::pareto::{
     from_csv, pareto_front, run_pareto, select_settings, to_csv, Knob, ParetoJob, Setting,
     SweepRow, CSV_HEADER,
@@ -65,6 +66,17 @@ fn row(setting: &str, cpu_s: f64, psnr: f64) -> SweepRow {
         black_psnr_db: 19.55,
         gaussians: 3000,
         peak_rss_mb: 74.44,
+        ladder: Ladder {
+            eval: Some(Rung {
+                views: 24,
+                masked_psnr_db: 10.1234,
+                masked_ssim: 0.25,
+                psnr_db: psnr,
+                black_masked_psnr_db: 9.5,
+                black_psnr_db: 19.55,
+            }),
+            ..Ladder::default()
+        },
     }
 }
 
@@ -78,17 +90,22 @@ fn csv_has_the_exact_header_and_one_full_line_per_row() {
         "setting,target,config,downsample,width,height,max_gaussians,init_points,feature_dim,\
          encoding_frequencies,window,rounds_per_window_change,passes_per_round,skip_eclipse,\
          skip_unlit,skip_unchanged_window,frames,rounds,steps,train_s,train_cpu_s,step_ms,\
-         psnr_db,ssim,masked_psnr_db,black_psnr_db,gaussians,peak_rss_mb,pareto"
+         psnr_db,ssim,masked_psnr_db,black_psnr_db,gaussians,peak_rss_mb,pareto,\
+         l0_window_masked_psnr,l0_window_black_masked_psnr,l0_seen_masked_psnr,\
+         l0_seen_black_masked_psnr,l1_held_out_masked_psnr,l1_held_out_black_masked_psnr,\
+         l2_eval_masked_psnr,l2_eval_black_masked_psnr,l2_covered_masked_psnr,\
+         l2_covered_black_masked_psnr,l2_eval_masked_ssim"
     );
     assert_eq!(
         lines[1],
         "base,cassini,d,16,120,75,3000,1500,72,4,6,2,1,true,false,true,96,140,840,62.71,28.20,\
-         74.66,19.150,0.8239,10.123,19.550,3000,74.4,true"
+         74.66,19.150,0.8239,10.123,19.550,3000,74.4,true,NaN,NaN,NaN,NaN,NaN,NaN,10.123,\
+         9.500,NaN,NaN,0.2500"
     );
     // A comma in a name cannot shift the columns; a missing front flag is false.
     let columns = CSV_HEADER.split(',').count();
     assert!(lines[2].starts_with("a;b,"));
-    assert!(lines[2].ends_with(",false"));
+    assert!(lines[2].contains(",false,NaN,"));
     assert!(lines.iter().all(|l| l.split(',').count() == columns));
     assert_eq!(lines.len(), 3);
 }
@@ -104,7 +121,27 @@ fn csv_reads_back_and_bad_csv_is_a_clear_error() {
     b.window = 4;
     b.skip_unlit = true;
     let text = to_csv(&[a.clone(), b.clone()], &[true, false]);
-    assert_eq!(from_csv(&text).unwrap(), vec![a, b]);
+    let back = from_csv(&text).unwrap();
+    // Everything the CSV holds comes back: writing the rows read gives the same text (the
+    // ladder's empty rungs are NaN, so the rows themselves cannot compare equal).
+    assert_eq!(to_csv(&back, &[true, false]), text);
+    assert_eq!((back[1].window, back[1].skip_unlit), (4, true));
+    assert_eq!(back[0].ladder.eval.unwrap().black_masked_psnr_db, 9.5);
+    assert_eq!(back[0].ladder.window, None);
+    // A CSV written before the ladder's columns still reads, with an empty ladder.
+    let old_header = CSV_HEADER.split(",pareto,").next().unwrap().to_string() + ",pareto";
+    let old_line = text
+        .lines()
+        .nth(1)
+        .unwrap()
+        .split(",true,NaN")
+        .next()
+        .unwrap()
+        .to_string()
+        + ",true";
+    let old = from_csv(&format!("{old_header}\n{old_line}\n")).unwrap();
+    assert_eq!(old[0].masked_psnr_db, 10.125);
+    assert_eq!(old[0].ladder, Ladder::default());
     let e = from_csv("setting,target\n").unwrap_err().to_string();
     assert!(e.contains("header"), "{e}");
     let short = format!("{CSV_HEADER}\nbase,cassini,d\n");
@@ -264,9 +301,10 @@ fn tiny_pareto_run_writes_rows_and_plot_and_repeats_bit_for_bit() {
     let png = image::open(out.join("pareto.png")).unwrap();
     assert_eq!((png.width(), png.height()), (960, 600));
     let md = std::fs::read_to_string(out.join("pareto.md")).unwrap();
+    // The sweep table (header and two rows), then the ladder table (the same).
     assert_eq!(
         md.lines().filter(|l| l.starts_with("| ")).count(),
-        3,
+        6,
         "{md}"
     );
     assert!(
@@ -389,7 +427,10 @@ fn tiny_window_ablation_writes_one_row_per_window() {
     assert_eq!(csv.lines().count(), 3);
     assert!(csv.lines().nth(2).unwrap().starts_with("w4,quick,d,"));
     let md = std::fs::read_to_string(out.join("window.md")).unwrap();
-    assert!(md.starts_with("| W | Quick PSNR dB |"), "{md}");
+    assert!(
+        md.starts_with("| W | Quick masked PSNR dB (black) |"),
+        "{md}"
+    );
     let png = image::open(out.join("window.png")).unwrap();
     assert_eq!((png.width(), png.height()), (900, 1040));
     let _ = std::fs::remove_dir_all(&out);

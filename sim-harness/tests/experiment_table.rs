@@ -2,68 +2,90 @@
 //! end-to-end `table` job and demo: every file written, metrics finite, rows as expected.
 
 use sim_harness::experiment::demo::run_demo_with;
+use sim_harness::experiment::ladder::{Ladder, Rung, CSV_COLUMNS as LADDER_COLUMNS};
 use sim_harness::experiment::preset::Preset;
 use sim_harness::experiment::table::{to_csv, to_markdown, ResultRow, CSV_HEADER};
 use sim_harness::experiment::table_job::{run_table, TableJob};
 use sim_harness::scenario::Scenario;
 use std::path::{Path, PathBuf};
 
-fn row(target: &str, config: &str, psnr: f64, ssim: f64) -> ResultRow {
+/// A row whose evaluation views score `masked_psnr` / `masked_ssim` on the target's pixels
+/// against an all-black 10 dB; full frame 10 dB higher; the other rungs without frames.
+fn row(target: &str, config: &str, masked_psnr: f64, masked_ssim: f64) -> ResultRow {
+    let eval = Rung {
+        views: 4,
+        masked_psnr_db: masked_psnr,
+        masked_ssim,
+        psnr_db: masked_psnr + 10.0,
+        black_masked_psnr_db: 10.0,
+        black_psnr_db: 20.0,
+    };
     ResultRow {
         target: target.into(),
         config: config.into(),
-        ssim,
-        psnr,
+        ssim: 0.99,
+        psnr: masked_psnr + 10.0,
         gaussians: 42_700,
         train_s: 12.34,
         step_ms: 5.67,
+        ladder: Ladder {
+            eval: Some(eval),
+            ..Ladder::default()
+        },
     }
 }
 
 #[test]
 fn csv_has_the_exact_header_and_one_line_per_row() {
     let rows = [
-        row("cassini", "a", 26.514, 0.98712),
-        row("rosetta", "d", 35.27, 0.9905),
+        row("cassini", "a", 16.514, 0.58712),
+        row("rosetta", "d", 25.27, 0.9905),
     ];
     let csv = to_csv(&rows);
     let lines: Vec<&str> = csv.lines().collect();
     assert_eq!(
         lines[0],
-        "target,config,ssim,psnr,gaussians,train_s,step_ms"
+        format!("target,config,ssim,psnr,gaussians,train_s,step_ms,{LADDER_COLUMNS}")
     );
     assert_eq!(lines[0], CSV_HEADER);
-    assert_eq!(lines[1], "cassini,a,0.9871,26.51,42700,12.3,5.7");
-    assert_eq!(lines[2], "rosetta,d,0.9905,35.27,42700,12.3,5.7");
+    assert_eq!(
+        lines[1],
+        "cassini,a,0.9900,26.51,42700,12.3,5.7,NaN,NaN,NaN,NaN,NaN,NaN,16.514,10.000,NaN,NaN,0.5871"
+    );
+    assert_eq!(lines[2].split(',').count(), CSV_HEADER.split(',').count());
     assert_eq!(lines.len(), 3);
-    // A name with a comma is quoted, so the column count stays 7.
+    // A name with a comma is quoted, so the column count stays the same.
     let odd = to_csv(&[row("my,target", "b", 1.0, 0.5)]);
     assert!(odd.lines().nth(1).unwrap().starts_with("\"my,target\",b,"));
 }
 
 #[test]
-fn markdown_is_laid_out_like_table_one() {
+fn markdown_is_laid_out_like_table_one_with_the_target_pixels_first() {
     let rows = [
-        row("cassini", "a", 26.51, 0.9871),
-        row("cassini", "b", 30.63, 0.9894),
-        row("starlink", "a", 25.05, 0.9539),
-        row("starlink", "b", 24.00, 0.9600),
+        row("cassini", "a", 16.51, 0.5871),
+        row("cassini", "b", 20.63, 0.6894),
+        row("starlink", "a", 15.05, 0.5539),
+        row("starlink", "b", 11.00, 0.5600),
     ];
     let md = to_markdown(&rows);
     let lines: Vec<&str> = md.lines().collect();
     assert_eq!(
-        lines[0],
-        "| Config. | Cassini SSIM↑ | Cassini PSNR↑ | Cassini \\|G\\| | Starlink SSIM↑ | Starlink PSNR↑ | Starlink \\|G\\| |"
-    );
-    assert_eq!(lines[1], "|---|---:|---:|---:|---:|---:|---:|");
-    // Best per target in bold, per metric.
-    assert_eq!(
         lines[2],
-        "| (a) 3DGS | 0.9871 | 26.51 | 42.7K | 0.9539 | **25.05** | 42.7K |"
+        "| Config. | Cassini masked SSIM↑ | Cassini masked PSNR↑ (black) | Cassini full PSNR | Cassini \\|G\\| | Starlink masked SSIM↑ | Starlink masked PSNR↑ (black) | Starlink full PSNR | Starlink \\|G\\| |"
+    );
+    assert_eq!(lines[3], "|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    // Best per target in bold, per metric; within 3 dB of black said in words.
+    assert_eq!(
+        lines[4],
+        "| (a) 3DGS | 0.5871 | 16.51 (10.00) | 26.51 | 42.7K | 0.5539 | **15.05 (10.00)** | 25.05 | 42.7K |"
     );
     assert_eq!(
-        lines[3],
-        "| (b) + Illum. | **0.9894** | **30.63** | 42.7K | **0.9600** | 24.00 | 42.7K |"
+        lines[5],
+        "| (b) + Illum. | **0.6894** | **20.63 (10.00)** | 30.63 | 42.7K | **0.5600** | 11.00 (10.00) **< 3 dB over black** | 21.00 | 42.7K |"
+    );
+    assert!(
+        md.contains("| Cassini (a) 3DGS | - | - | - | 16.51 (10.00) | - |"),
+        "{md}"
     );
     assert!(md.contains(
         "| Config. | Cassini train s | Cassini step ms | Starlink train s | Starlink step ms |"
@@ -72,7 +94,9 @@ fn markdown_is_laid_out_like_table_one() {
     // A missing cell prints dashes instead of shifting the columns.
     let md = to_markdown(&rows[..3]);
     assert!(
-        md.contains("| (b) + Illum. | **0.9894** | **30.63** | 42.7K | - | - | - |"),
+        md.contains(
+            "| (b) + Illum. | **0.6894** | **20.63 (10.00)** | 30.63 | 42.7K | - | - | - | - |"
+        ),
         "{md}"
     );
 }
@@ -136,9 +160,25 @@ fn tiny_table_job_writes_every_file_with_finite_metrics() {
     }
     let csv = std::fs::read_to_string(out.join("table.csv")).unwrap();
     assert_eq!(csv.lines().count(), 3);
-    assert!(csv.starts_with("target,config,ssim,psnr,gaussians,train_s,step_ms\n"));
+    assert!(csv.starts_with(&format!("{CSV_HEADER}\n")));
+    // Every rung of the ladder that has frames is a number in the CSV (no held-out frames
+    // and maybe no covered views in this tiny preset: those are NaN).
+    let fields: Vec<&str> = csv.lines().nth(1).unwrap().split(',').collect();
+    for name in [
+        "l0_window_masked_psnr",
+        "l0_seen_masked_psnr",
+        "l2_eval_masked_psnr",
+    ] {
+        let i = CSV_HEADER.split(',').position(|c| c == name).unwrap();
+        assert!(
+            fields[i].parse::<f64>().unwrap().is_finite(),
+            "{name}: {}",
+            fields[i]
+        );
+    }
     let md = std::fs::read_to_string(out.join("table.md")).unwrap();
     assert!(md.contains("(a) 3DGS") && md.contains("(d) + Isotropic Loss"));
+    assert!(md.contains("Accuracy ladder"), "{md}");
     let figure = image::open(out.join("figure.png")).unwrap();
     // Two rows (evaluation views) of three columns (truth, a, d), each cell at least 200 px.
     assert!(figure.width() >= 3 * 200 && figure.height() >= 2 * 100);
@@ -191,9 +231,9 @@ fn tiny_demo_writes_every_file() {
 /// image, and the fit is to the images as they are (a vertically flipped copy scores low).
 #[test]
 fn online_trainer_fits_simulator_frames() {
-    use fsw_component::online::OnlineTrainer;
     use gs_core::loss::{psnr, ImageShape};
     use gs_core::sunaware::Variant;
+    use gs_online::online::OnlineTrainer;
     use sim_harness::experiment::data::render_scene;
     use sim_harness::experiment::evaluate::{camera_of, sun_of};
     use sim_harness::experiment::runner::{

@@ -30,7 +30,8 @@ pytestmark = pytest.mark.skipif(
     not IFACE, reason="VCAN_IFACE not set: run through tests/vcan/run-in-vm.sh"
 )
 NODE = 42  # config/component.toml default, the component's node-ID
-PEER_NODE = 10
+PEER_NODE = 10  # telemetry sender (AOCS)
+COMMAND_NODE = 1  # the one node allowed to command by default ([commands] can_source_nodes)
 FD_LENGTHS = [0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64]
 
 
@@ -87,11 +88,13 @@ class CanSide:
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
-    def send(self, subject, payload, corrupt_crc=False):
-        tid = self.tids.get(subject, 0)
-        self.tids[subject] = tid + 1
+    def send(self, subject, payload, corrupt_crc=False, node=None):
+        if node is None:
+            node = COMMAND_NODE if subject == PORT_COMMAND else PEER_NODE
+        tid = self.tids.get((subject, node), 0)
+        self.tids[(subject, node)] = tid + 1
         for data in transfer_frames(subject, tid, payload, corrupt_crc):
-            self.bus.send(can.Message(arbitration_id=can_id(subject, PEER_NODE),
+            self.bus.send(can.Message(arbitration_id=can_id(subject, node),
                                       is_extended_id=True, is_fd=True, data=data))
 
     def _run(self):
@@ -162,6 +165,13 @@ def test_telemetry_and_commands_on_can_frames_on_udp(tmp_path, listener):  # noq
         side.send(PORT_COMMAND, command(2, 9))
         assert side.wait(lambda s: next((a for a in s.acks if a["sequence"] == 2), None),
                          what="error ack on CAN")["status"] == ACK_INVALID_OPCODE
+        # A node outside the allow-list is not answered (counted as rejected in health).
+        side.send(PORT_COMMAND, command(4, 0), node=PEER_NODE)
+        side.send(PORT_COMMAND, command(5, 0))
+        assert side.wait(lambda s: next((a for a in s.acks if a["sequence"] == 5), None),
+                         what="NOOP ack after the stranger's")["status"] == ACK_OK
+        time.sleep(0.2)
+        assert not any(a["sequence"] == 4 for a in side.acks)
         side.send(PORT_POSE, bytes(range(70)), corrupt_crc=True)
         h = side.wait(lambda s: s.health[-1][1] if s.health and s.health[-1][1]["crc_errors"] else None,
                       what="CRC error in health on CAN")

@@ -31,7 +31,9 @@ TIMEOUT_S = 10.0
 
 PORT_SUN, PORT_POSE, PORT_FRAME, PORT_PREDICTION = 100, 101, 200, 201
 PORT_COMMAND, PORT_ACK, PORT_HEALTH, PORT_EVENT = 300, 301, 400, 401
-ACK_OK, ACK_INVALID_OPCODE, ACK_VALIDATION, ACK_FORMAT = 0, 1, 2, 3
+ACK_OK, ACK_INVALID_OPCODE, ACK_VALIDATION, ACK_FORMAT, ACK_EXECUTION = 0, 1, 2, 3, 4
+OPCODE_RESET_MODEL, OPCODE_ARM = 2, 7
+ERROR_COMMAND_NOT_ARMED = 12  # ErrorCode index, in the ack's detail
 MODE_IDLE, MODE_TRAIN, MODE_PREDICT_ONLY = 0, 1, 2
 SIZE = 16
 SUN_BODY = (0.0, 0.6, 0.8)
@@ -500,9 +502,21 @@ def test_scenario_predictions_health_cadence_and_commands(tmp_path, listener):
         component.command(6, 3)  # SAVE_CHECKPOINT
         assert listener.ack(6)["status"] == ACK_OK
         assert (tmp_path / "checkpoint.bin").stat().st_size > 0
+        # RESET_MODEL needs an ARM naming it first; a command to the frame port is ignored.
+        component.command(7, OPCODE_RESET_MODEL)
+        refused = listener.ack(7)
+        assert (refused["status"], refused["detail"]) == (ACK_EXECUTION, ERROR_COMMAND_NOT_ARMED)
+        component.send(PORT_COMMAND, command(8, 0), to=component.frames, telecommand=True)
+        component.command(9, OPCODE_ARM, varint(OPCODE_RESET_MODEL))
+        assert listener.ack(9)["status"] == ACK_OK
+        component.command(10, OPCODE_RESET_MODEL)
+        assert listener.ack(10)["status"] == ACK_OK
+        assert not any(a["sequence"] == 8 for a in listener.acks)
         h = listener.fresh_health()
-        assert h["mode"] == MODE_PREDICT_ONLY
-        assert (h["commands_accepted"], h["commands_rejected"]) == (4, 3)
+        assert h["mode"] == MODE_PREDICT_ONLY and h["rounds"] == 0, "model reset"
+        # Accepted: NOOP, RENDER, SET_MODE, SAVE, ARM, RESET_MODEL; rejected: bad opcode,
+        # format, validation, not armed, and the unauthorised one (not acknowledged).
+        assert (h["commands_accepted"], h["commands_rejected"]) == (6, 5)
     finally:
         assert component.stop() == 0
 
@@ -628,7 +642,9 @@ def test_live_run_and_replay_of_python_can_logs_give_the_same_model(tmp_path, li
     def can_message(at_s, subject, payload):
         tid = tids.get(subject, 0)
         tids[subject] = tid + 1
-        can_id, data = cyphal_fd_single_frame(subject, 10, tid, payload)
+        # Telemetry from the AOCS node 10; commands from node 1, the default command source.
+        node = 1 if subject == PORT_COMMAND else 10
+        can_id, data = cyphal_fd_single_frame(subject, node, tid, payload)
         messages.append(can.Message(timestamp=at_s, arbitration_id=can_id, is_extended_id=True,
                                     is_fd=True, data=data, channel="vcan0"))
 

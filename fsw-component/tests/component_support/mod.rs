@@ -4,10 +4,15 @@
 //! acknowledgements and predictions on its own ephemeral ports, and scripts a small orbit
 //! scenario: the camera circles the target at 10 m, 20 degrees per second, telemetry at 1 Hz,
 //! a 16x16 RGB frame at every half second mark after the telemetry that brackets it.
+//! [`Scripted`] wraps a learner to inject faults and slow rounds.
 #![allow(dead_code)]
 
-use fsw_component::bus::UdpFramer;
 use fsw_component::config::ComponentConfig;
+use fsw_component::learner::{
+    Learner, LearnerError, LearnerStats, ObservedFrame, OfferResult, PredictedImage, RoundSummary,
+    ViewRequest,
+};
+use fsw_component::outbound::UdpFramer;
 use fsw_component::runtime::ComponentHandle;
 use glam::{DQuat, DVec3};
 use interfaces::ccsds::{message_packets, CcsdsReassembler, PacketType};
@@ -398,4 +403,78 @@ pub fn packets(apid: u16, payload: &[u8], first: u16) -> Vec<Vec<u8>> {
         .unwrap()
         .map(|p| p.to_vec())
         .collect()
+}
+
+/// What the scripted learner does on its next calls (shared with the test).
+#[derive(Default)]
+pub struct Script {
+    /// Round calls that panic (counted down).
+    pub panicking_rounds: u32,
+    /// Every round sleeps this long first.
+    pub round_sleep: Duration,
+    /// Reported as skipped (non-finite) steps of every round.
+    pub skipped_steps: u32,
+    /// Round calls that fail with an error (counted down).
+    pub failing_rounds: u32,
+    /// Offers that the model refuses (counted down).
+    pub refused_offers: u32,
+}
+
+/// A learner driven by a [`Script`] (faults, slow rounds) around a real one.
+pub struct Scripted {
+    pub inner: Box<dyn Learner>,
+    pub script: Arc<Mutex<Script>>,
+}
+
+impl Learner for Scripted {
+    fn offer(&mut self, frame: &ObservedFrame) -> OfferResult {
+        let mut script = self.script.lock().unwrap();
+        if script.refused_offers > 0 {
+            script.refused_offers -= 1;
+            return OfferResult::Refused;
+        }
+        drop(script);
+        self.inner.offer(frame)
+    }
+    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
+        let (sleep, skipped) = {
+            let mut script = self.script.lock().unwrap();
+            if script.panicking_rounds > 0 {
+                script.panicking_rounds -= 1;
+                drop(script);
+                panic!("scripted panic in a training round");
+            }
+            if script.failing_rounds > 0 {
+                script.failing_rounds -= 1;
+                return Err(LearnerError::Training("scripted failure".into()));
+            }
+            (script.round_sleep, script.skipped_steps)
+        };
+        let round = self.inner.run_round_if_due()?;
+        if round.is_some() {
+            std::thread::sleep(sleep);
+        }
+        Ok(round.map(|r| RoundSummary {
+            skipped_steps: skipped,
+            ..r
+        }))
+    }
+    fn predict(&self, view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
+        self.inner.predict(view)
+    }
+    fn reset(&mut self) -> Result<(), LearnerError> {
+        self.inner.reset()
+    }
+    fn save(&self) -> Vec<u8> {
+        self.inner.save()
+    }
+    fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
+        self.inner.load(bytes)
+    }
+    fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
+        self.inner.inspect(bytes)
+    }
+    fn stats(&self) -> LearnerStats {
+        self.inner.stats()
+    }
 }

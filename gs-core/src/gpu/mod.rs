@@ -121,6 +121,25 @@ pub struct GpuContext {
     pub(crate) limits: wgpu::Limits,
 }
 
+/// The tests' and benchmarks' adapter policy, in one place: a context, or `None` with a
+/// printed `SKIPPED` notice when no adapter opens; with `GS_REQUIRE_GPU=1` (CI) a missing
+/// adapter panics instead, so a skip can never pass for a test that ran.
+pub fn context_or_skip(options: GpuOptions) -> Option<GpuContext> {
+    match GpuContext::with_options(options) {
+        Ok(ctx) => {
+            eprintln!("GPU: {}", ctx.describe());
+            Some(ctx)
+        }
+        Err(e) => {
+            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
+            }
+            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
+            None
+        }
+    }
+}
+
 impl GpuContext {
     /// Opens the first high-performance Vulkan adapter, with f32 atomics where it has them.
     pub fn new() -> Result<Self, GpuError> {

@@ -115,12 +115,23 @@ impl AppearanceNet {
         })
     }
 
+    /// Weights of Phi for these settings, without building it (checked: an error for
+    /// sizes no network may have).
+    pub fn param_count(
+        feature_dim: usize,
+        hidden_width: usize,
+        encoding: PositionalEncoding,
+    ) -> Result<usize, NnError> {
+        super::mlp::param_count(&Self::widths_for(feature_dim, hidden_width, encoding))
+    }
+
     fn widths_for(
         feature_dim: usize,
         hidden_width: usize,
         encoding: PositionalEncoding,
     ) -> Vec<usize> {
-        let mut widths = vec![feature_dim + 2 * encoding.width(3)];
+        // Saturating: an absurd width then fails `param_count` instead of overflowing.
+        let mut widths = vec![feature_dim.saturating_add(2 * encoding.width(3))];
         widths.extend([hidden_width; APPEARANCE_HIDDEN_LAYERS]);
         widths.push(APPEARANCE_OUTPUT);
         widths

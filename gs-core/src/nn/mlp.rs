@@ -211,6 +211,28 @@ fn layer_starts_for(widths: &[usize]) -> Vec<usize> {
     starts
 }
 
+/// Largest weight count of one network (256 MiB of f32): a size from a file or a
+/// configuration beyond it is an error, not an allocation.
+pub const MAX_MLP_PARAMS: usize = 1 << 26;
+
+/// Weights and biases of a network of `widths`, with checked arithmetic; an error for
+/// fewer than two widths, a zero width, or more than [`MAX_MLP_PARAMS`] weights.
+pub fn param_count(widths: &[usize]) -> Result<usize, NnError> {
+    validate_widths(widths)?;
+    let total = widths.windows(2).try_fold(0usize, |total, pair| {
+        pair[0]
+            .checked_mul(pair[1])
+            .and_then(|w| w.checked_add(pair[1]))
+            .and_then(|layer| total.checked_add(layer))
+    });
+    match total {
+        Some(n) if n <= MAX_MLP_PARAMS => Ok(n),
+        _ => Err(NnError::Config(format!(
+            "an MLP of widths {widths:?} has more than {MAX_MLP_PARAMS} weights"
+        ))),
+    }
+}
+
 fn validate_widths(widths: &[usize]) -> Result<(), NnError> {
     if widths.len() < 2 {
         return Err(NnError::Config(format!(
@@ -233,7 +255,8 @@ impl Mlp {
         init: Init,
         seed: u64,
     ) -> Result<Self, NnError> {
-        validate_widths(widths)?;
+        // Bounds the sizes first: `layer_starts_for` cannot overflow after this.
+        param_count(widths)?;
         let layer_starts = layer_starts_for(widths);
         let mut params = vec![0.0f32; *layer_starts.last().unwrap_or(&0)];
         let mut rng = SplitMix64::new(seed);
@@ -281,7 +304,8 @@ impl Mlp {
         hidden: HiddenActivation,
         params: Vec<f32>,
     ) -> Result<Self, NnError> {
-        validate_widths(widths)?;
+        // Bounds the sizes first: `layer_starts_for` cannot overflow after this.
+        param_count(widths)?;
         let layer_starts = layer_starts_for(widths);
         check_len(
             "MLP parameters",

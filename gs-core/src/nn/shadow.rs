@@ -130,8 +130,14 @@ impl ShadowNet {
         })
     }
 
+    /// Weights of Psi for these settings, without building it (checked).
+    pub fn param_count(latent_dim: usize, encoding: PositionalEncoding) -> Result<usize, NnError> {
+        super::mlp::param_count(&Self::widths_for(latent_dim, encoding))
+    }
+
     fn widths_for(latent_dim: usize, encoding: PositionalEncoding) -> Vec<usize> {
-        let mut widths = vec![1 + 2 * encoding.width(3) + latent_dim];
+        // Saturating: an absurd width then fails `param_count` instead of overflowing.
+        let mut widths = vec![(1 + 2 * encoding.width(3)).saturating_add(latent_dim)];
         widths.extend(SHADOW_HIDDEN);
         widths.push(1);
         widths

@@ -35,16 +35,20 @@
 //!
 //! There is no other state: densification draws from streams seeded by the config's seed
 //! and `densify_count`, and online rounds shuffle with seeds derived from the round number.
-//! Loading checks the magic, version, length, checksum, every count against the bytes left
-//! (before allocating) and every value for finiteness; any failure is a
-//! [`SunAwareError::Checkpoint`] naming the problem.
+//! Loading checks the magic, version, length, checksum, every size field against its bound
+//! (the configuration's limits on widths and counts, [`crate::nn::mlp::MAX_MLP_PARAMS`])
+//! and every count against the bytes left, all before allocating (so no allocation exceeds
+//! a small multiple of the file); then every value for finiteness, Adam's betas (in
+//! [0, 1)), eps (in (0, 1]), step (at most [`MAX_ADAM_STEP`]) and second moments (>= 0).
+//! Any failure is a [`SunAwareError::Checkpoint`] naming the problem. [`save`],
+//! [`save_file`] and [`checked_to_bytes`] refuse a trainer the loader would refuse.
 
 use std::io::{Read, Write};
 use std::path::Path;
 
 use crate::densify::{DensifyConfig, DensifyStats};
 use crate::model::{GaussianModel, Param, ParamSet};
-use crate::nn::SceneBox;
+use crate::nn::{AppearanceNet, PositionalEncoding, SceneBox, ShadowNet};
 use crate::optim::Adam;
 use crate::regularizer::IsoReduction;
 
@@ -59,6 +63,9 @@ pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
 pub const VERSION: u32 = 4;
 /// Oldest version [`from_bytes`] reads.
 pub const OLDEST_READABLE_VERSION: u32 = 1;
+/// Largest Adam step a checkpoint may hold: the bias correction raises the betas to the
+/// step as an `i32`.
+pub const MAX_ADAM_STEP: u64 = i32::MAX as u64;
 
 /// FNV-1a, 64 bit.
 pub fn fnv1a64(bytes: &[u8]) -> u64 {
@@ -327,6 +334,70 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
     Ok(config)
 }
 
+/// Weights of Phi and Psi for `config` (0 for an absent network), from the sizes alone.
+fn network_weights(config: &SunAwareConfig) -> Result<[usize; 2], SunAwareError> {
+    let encoding = PositionalEncoding::new(config.encoding_frequencies)?;
+    let phi = if config.variant.uses_appearance_mlp() {
+        AppearanceNet::param_count(config.feature_dim, config.appearance_hidden_width, encoding)?
+    } else {
+        0
+    };
+    let psi = if config.variant.uses_shadow() {
+        ShadowNet::param_count(config.shadow_latent_dim, encoding)?
+    } else {
+        0
+    };
+    Ok([phi, psi])
+}
+
+/// Bytes that follow the Gaussians for `n` Gaussians of `row_bytes` and networks of
+/// `weights`: Adam (header and two moment sets), each network (presence byte; count,
+/// weights, two moments and step when present), densify statistics and the counters.
+fn bytes_after_gaussians(n: usize, row_bytes: usize, weights: [usize; 2]) -> Option<usize> {
+    let net = |w: usize| match w {
+        0 => Some(1),
+        w => w.checked_mul(12)?.checked_add(17),
+    };
+    n.checked_mul(row_bytes)?
+        .checked_mul(2)?
+        .checked_add(20)?
+        .checked_add(net(weights[0])?)?
+        .checked_add(net(weights[1])?)?
+        .checked_add(n.checked_mul(12)?)?
+        .checked_add(32)
+}
+
+fn check_adam(
+    beta1: f32,
+    beta2: f32,
+    eps: f32,
+    step: u64,
+    what: &str,
+) -> Result<(), SunAwareError> {
+    for (name, beta) in [("beta1", beta1), ("beta2", beta2)] {
+        if !(0.0..1.0).contains(&beta) {
+            return Err(ck(format!("{what} Adam {name} {beta} is outside [0, 1)")));
+        }
+    }
+    if !(eps > 0.0 && eps <= 1.0) {
+        return Err(ck(format!("{what} Adam eps {eps} is outside (0, 1]")));
+    }
+    if step > MAX_ADAM_STEP {
+        return Err(ck(format!(
+            "{what} Adam step {step} is above {MAX_ADAM_STEP}"
+        )));
+    }
+    Ok(())
+}
+
+/// A negative second moment would put NaN (its square root) into the parameters.
+fn check_second_moment(v: &[f32], what: &str) -> Result<(), SunAwareError> {
+    match v.iter().position(|&x| x < 0.0) {
+        Some(i) => Err(ck(format!("{what} second moment value {i} is negative"))),
+        None => Ok(()),
+    }
+}
+
 fn write_net(w: &mut Writer, params: Option<&[f32]>, adam: &FlatAdam) {
     match params {
         None => w.u8(0),
@@ -359,8 +430,11 @@ fn read_net(
             }
             params.copy_from_slice(&r.f32s(n, what)?);
             let m = r.f32s(n, what)?;
-            let v = r.f32s(n, what)?;
+            let v = r.f32s(n, &format!("{what} second moment"))?;
+            check_second_moment(&v, what)?;
             let step = r.u64(what)?;
+            // The networks' Adam has fixed betas and eps; only the step is stored.
+            check_adam(0.9, 0.999, crate::optim::ADAM_EPS, step, what)?;
             Ok(FlatAdam { m, v, step })
         }
         _ => Err(ck(format!(
@@ -413,6 +487,19 @@ pub fn to_bytes(t: &SunAwareTrainer) -> Vec<u8> {
     out
 }
 
+/// [`to_bytes`], refusing a trainer that [`from_bytes`] would refuse (a non-finite or
+/// negative moment, an out-of-range Adam setting): nothing is written that cannot be read.
+pub fn checked_to_bytes(t: &SunAwareTrainer) -> Result<Vec<u8>, SunAwareError> {
+    let bytes = to_bytes(t);
+    match from_bytes(&bytes) {
+        Ok(_) => Ok(bytes),
+        Err(SunAwareError::Checkpoint(why)) => Err(ck(format!(
+            "not written, the reader would refuse it: {why}"
+        ))),
+        Err(other) => Err(other),
+    }
+}
+
 /// Restores a trainer from [`to_bytes`]'s output.
 pub fn from_bytes(bytes: &[u8]) -> Result<SunAwareTrainer, SunAwareError> {
     if bytes.len() < 28 {
@@ -457,6 +544,19 @@ pub fn from_bytes(bytes: &[u8]) -> Result<SunAwareTrainer, SunAwareError> {
     if !fits {
         return Err(ck(format!("Gaussian count {n} exceeds the file")));
     }
+    // The networks' sizes follow from the (bounded) configuration; the file must hold them
+    // and every other count-sized section before anything is allocated.
+    let weights = network_weights(&config)?;
+    let left = payload.len() - r.pos - n * row_bytes;
+    match bytes_after_gaussians(n, row_bytes, weights) {
+        Some(needed) if needed <= left => {}
+        _ => {
+            return Err(ck(format!(
+                "Gaussian count {n} and networks of {} + {} weights exceed the file",
+                weights[0], weights[1]
+            )))
+        }
+    }
     let mut gaussians = GaussianModel::new(layout)?;
     gaussians.params.push_zeros(n);
     r.params(&mut gaussians.params, "Gaussians")?;
@@ -468,8 +568,12 @@ pub fn from_bytes(bytes: &[u8]) -> Result<SunAwareTrainer, SunAwareError> {
     adam.beta2 = r.f32("Adam beta2")?;
     adam.eps = r.f32("Adam eps")?;
     adam.step = r.u64("Adam step")?;
+    check_adam(adam.beta1, adam.beta2, adam.eps, adam.step, "Gaussian")?;
     r.params(&mut adam.m, "Adam first moment")?;
     r.params(&mut adam.v, "Adam second moment")?;
+    for g in Param::ALL {
+        check_second_moment(adam.v.get(g), &format!("Gaussian Adam {}", g.name()))?;
+    }
     let appearance_adam = read_net(
         &mut r,
         model.appearance.as_mut().map(|n| n.mlp.params_mut()),
@@ -512,7 +616,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<SunAwareTrainer, SunAwareError> {
 
 /// Writes a checkpoint.
 pub fn save<W: Write>(t: &SunAwareTrainer, mut out: W) -> Result<(), SunAwareError> {
-    out.write_all(&to_bytes(t))?;
+    out.write_all(&checked_to_bytes(t)?)?;
     out.flush()?;
     Ok(())
 }
@@ -528,9 +632,10 @@ pub fn load<R: Read>(mut input: R) -> Result<SunAwareTrainer, SunAwareError> {
 /// never leaves a half-written checkpoint under the final name).
 pub fn save_file(t: &SunAwareTrainer, path: impl AsRef<Path>) -> Result<(), SunAwareError> {
     let path = path.as_ref();
+    let bytes = checked_to_bytes(t)?;
     let mut tmp = path.as_os_str().to_owned();
     tmp.push(".tmp");
-    std::fs::write(&tmp, to_bytes(t))?;
+    std::fs::write(&tmp, bytes)?;
     std::fs::rename(&tmp, path)?;
     Ok(())
 }

@@ -278,6 +278,13 @@ pub enum ShadowRefinement {
     Multiply,
 }
 
+/// Largest `feature_dim` (the paper: 72); bounds a loaded checkpoint's network sizes.
+pub const MAX_FEATURE_DIM: usize = 1024;
+/// Largest `shadow_latent_dim` (the paper: 6).
+pub const MAX_SHADOW_LATENT_DIM: usize = 1024;
+/// Largest `max_gaussians` (the paper's preset: 200 000).
+pub const MAX_GAUSSIANS_LIMIT: usize = 1 << 24;
+
 /// Everything that shapes a Sun-aware model and its training.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SunAwareConfig {
@@ -463,6 +470,24 @@ impl SunAwareConfig {
         }
         if self.sh_degree_interval == 0 {
             return bad("sh_degree_interval must be positive".into());
+        }
+        if self.feature_dim > MAX_FEATURE_DIM {
+            return bad(format!(
+                "feature_dim {} is above {MAX_FEATURE_DIM}",
+                self.feature_dim
+            ));
+        }
+        if self.shadow_latent_dim > MAX_SHADOW_LATENT_DIM {
+            return bad(format!(
+                "shadow_latent_dim {} is above {MAX_SHADOW_LATENT_DIM}",
+                self.shadow_latent_dim
+            ));
+        }
+        if self.max_gaussians > MAX_GAUSSIANS_LIMIT {
+            return bad(format!(
+                "max_gaussians {} is above {MAX_GAUSSIANS_LIMIT}",
+                self.max_gaussians
+            ));
         }
         if self.variant.uses_appearance_mlp() && self.feature_dim == 0 {
             return bad("feature_dim must be positive for configurations b-d".into());

@@ -243,15 +243,17 @@ pub struct SunAwareGrads {
 }
 
 impl SunAwareGrads {
-    /// First non-finite value, named by group.
+    /// First value an optimiser step would refuse (non-finite or oversized: see
+    /// [`crate::optim::MAX_GRADIENT_MAGNITUDE`]), named by group.
     pub fn first_non_finite(&self) -> Option<&'static str> {
         if let Some((p, _)) = crate::optim::Adam::first_non_finite(&self.params) {
             return Some(p.name());
         }
-        if !self.appearance.iter().all(|v| v.is_finite()) {
+        let usable = |v: &[f32]| v.iter().all(|&g| crate::optim::is_usable_gradient(g));
+        if !usable(&self.appearance) {
             return Some("appearance MLP");
         }
-        if !self.shadow.iter().all(|v| v.is_finite()) {
+        if !usable(&self.shadow) {
             return Some("shadow MLP");
         }
         None

@@ -258,9 +258,9 @@ impl FlatAdam {
     }
 
     /// One Adam step of `params` with `grads` at learning rate `lr` (the step counter
-    /// first incremented). The caller has checked `grads` for finiteness; `params`,
-    /// `grads` and both moments must have the same length, else `OptimError::Shape` and
-    /// nothing changes.
+    /// first incremented). `params`, `grads` and both moments must have the same length,
+    /// else `OptimError::Shape`; a gradient [`crate::optim::is_usable_gradient`] refuses
+    /// gives `OptimError::NonFiniteFlatGradient`; either way nothing changes.
     pub fn apply(
         &mut self,
         params: &mut [f32],
@@ -277,6 +277,12 @@ impl FlatAdam {
                 grads_rows: grads.len(),
                 moment_rows,
             });
+        }
+        if let Some(index) = grads
+            .iter()
+            .position(|&g| !crate::optim::is_usable_gradient(g))
+        {
+            return Err(crate::optim::OptimError::NonFiniteFlatGradient { index });
         }
         let (b1, b2, eps) = (0.9f32, 0.999f32, crate::optim::ADAM_EPS);
         self.step += 1;
@@ -435,12 +441,7 @@ pub fn masked_psnr(
             "mask is zero everywhere".into(),
         ));
     }
-    let mse = se / weight;
-    Ok(if mse == 0.0 {
-        f32::INFINITY
-    } else {
-        (-10.0 * mse.log10()) as f32
-    })
+    Ok(crate::loss::psnr_db_from_mse(se / weight) as f32)
 }
 
 /// SSIM weighted by `mask` (the loss's masked SSIM), images clamped to [0, 1].
@@ -925,6 +926,24 @@ mod tests {
         let sun = sun_direction(0.4, 0.9);
         let (image, mask) = scene.render(&camera, sun).unwrap();
         (SunAwareTrainer::new(model), camera, sun, image, mask)
+    }
+
+    #[test]
+    fn network_adam_refuses_oversized_gradients_without_change() {
+        let mut adam = FlatAdam::new(3);
+        let mut params = vec![0.5f32; 3];
+        for g in [1e21f32, f32::NAN] {
+            let before = (params.clone(), adam.clone());
+            let err = adam.apply(&mut params, &[0.0, g, 1.0], 1e-3);
+            assert_eq!(
+                err,
+                Err(crate::optim::OptimError::NonFiniteFlatGradient { index: 1 })
+            );
+            assert_eq!((params.clone(), adam.clone()), before);
+        }
+        adam.apply(&mut params, &[0.0, 1e18, 1.0], 1e-3).unwrap();
+        assert!(adam.v.iter().chain(&params).all(|v| v.is_finite()));
+        assert_eq!(adam.step, 1);
     }
 
     #[test]

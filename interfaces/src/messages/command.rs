@@ -1,7 +1,7 @@
 //! Commands to the component and their acknowledgements.
 //!
 //! Wire layout of a command (postcard): `varint sequence | varint opcode | arguments`.
-//! The opcode is the [`CommandKind`] variant index (NOOP = 0 ... RENDER = 6), so
+//! The opcode is the [`CommandKind`] variant index (NOOP = 0 ... ARM = 7), so
 //! [`decode_command`] can tell an unknown opcode (INVALID_OPCODE) from malformed bytes
 //! (FORMAT_ERROR) and from bad arguments (VALIDATION_ERROR), and still report the sequence
 //! number in the acknowledgement whenever it could be read.
@@ -43,11 +43,22 @@ pub enum CommandKind {
     LoadCheckpoint,
     SetMode(Mode),
     Render(RenderRequest),
+    /// Version 1.1: arms the destructive command with this opcode (RESET_MODEL or
+    /// LOAD_CHECKPOINT) for the component's configured arm time, for the same source.
+    Arm(u32),
 }
 
 impl CommandKind {
     /// Number of defined opcodes.
-    pub const OPCODE_COUNT: u32 = 7;
+    pub const OPCODE_COUNT: u32 = 8;
+    pub const RESET_MODEL: u32 = 2;
+    pub const LOAD_CHECKPOINT: u32 = 4;
+    pub const RENDER: u32 = 6;
+
+    /// Commands that destroy or replace the model: they need an ARM first.
+    pub const fn is_destructive_opcode(opcode: u32) -> bool {
+        opcode == Self::RESET_MODEL || opcode == Self::LOAD_CHECKPOINT
+    }
 
     pub const fn opcode(&self) -> u32 {
         match self {
@@ -58,6 +69,7 @@ impl CommandKind {
             CommandKind::LoadCheckpoint => 4,
             CommandKind::SetMode(_) => 5,
             CommandKind::Render(_) => 6,
+            CommandKind::Arm(_) => 7,
         }
     }
 }
@@ -76,7 +88,7 @@ impl Command {
 
 impl Message for Command {
     const PORT_ID: u16 = port::COMMAND;
-    const VERSION: Version = Version { major: 1, minor: 0 };
+    const VERSION: Version = Version { major: 1, minor: 1 };
     const NAME: &'static str = "Command";
     const DIRECTION: Direction = Direction::ToComponent;
     const CCSDS_PACKET_TYPE: PacketType = PacketType::Telecommand;
@@ -86,6 +98,13 @@ impl Message for Command {
             check_unit_norm("q_camera_from_target", &r.q_camera_from_target)?;
             check_finite("t_camera_from_target_m", &r.t_camera_from_target_m)?;
             check_unit_norm("sun_target", &r.sun_target)?;
+        }
+        if let CommandKind::Arm(opcode) = self.kind {
+            if !CommandKind::is_destructive_opcode(opcode) {
+                return Err(ValidationError::OutOfRange {
+                    field: "arm opcode",
+                });
+            }
         }
         Ok(())
     }

@@ -21,7 +21,7 @@ pub use image::{
     CameraFrame, CameraModel, Distortion, FrameHeader, PixelFormat, PredictionSource,
     RenderedPrediction,
 };
-pub use status::{ErrorCode, Event, EventKind, HealthStatus, InitSource};
+pub use status::{event_detail, ErrorCode, Event, EventKind, HealthStatus, InitSource};
 pub use telemetry::{SunVector, TargetPose};
 pub use validate::ValidationError;
 

@@ -80,14 +80,51 @@ pub enum ErrorCode {
     TrainingNonFinite,
     RenderFailed,
     Internal,
+    // Version 1.1 of `Event` appends these.
+    /// A command from a source outside the allow-list (no acknowledgement is sent).
+    CommandUnauthorised,
+    /// RESET_MODEL or LOAD_CHECKPOINT without a valid ARM from the same source.
+    CommandNotArmed,
+    /// An expensive command (RENDER) above its rate limit.
+    CommandRateLimited,
+    /// A telemetry time tag too far from the receive clock: the sample was dropped.
+    TelemetryTimeOutOfBounds,
+    /// Consistent telemetry on a new clock: a stream's buffer was cleared to follow it.
+    TelemetryClockJump,
+    // Version 1.2 of `Event` appends this.
     /// A camera frame without its own camera model whose size is not the configured
     /// camera's (detail: frames since the last such event).
     CameraMismatch,
 }
 
 impl ErrorCode {
-    /// Number of codes (the last wire value + 1).
-    pub const COUNT: usize = ErrorCode::CameraMismatch as usize + 1;
+    /// Every code in wire order (index = wire value).
+    pub const ALL: [ErrorCode; 17] = [
+        ErrorCode::DecodeError,
+        ErrorCode::CrcError,
+        ErrorCode::QueueOverflow,
+        ErrorCode::TelemetryMissing,
+        ErrorCode::TelemetryStale,
+        ErrorCode::TelemetryInvalid,
+        ErrorCode::CheckpointSaveFailed,
+        ErrorCode::CheckpointLoadFailed,
+        ErrorCode::TrainingNonFinite,
+        ErrorCode::RenderFailed,
+        ErrorCode::Internal,
+        ErrorCode::CommandUnauthorised,
+        ErrorCode::CommandNotArmed,
+        ErrorCode::CommandRateLimited,
+        ErrorCode::TelemetryTimeOutOfBounds,
+        ErrorCode::TelemetryClockJump,
+        ErrorCode::CameraMismatch,
+    ];
+    /// Number of codes: size per-code tables with this, never with a literal.
+    pub const COUNT: usize = Self::ALL.len();
+
+    /// The wire value, usable as an index below [`ErrorCode::COUNT`].
+    pub const fn index(self) -> usize {
+        self as usize
+    }
 }
 
 /// Where the component's starting model came from ([`EventKind::ModelInitialised`]).
@@ -141,11 +178,46 @@ impl Event {
 
 impl Message for Event {
     const PORT_ID: u16 = port::EVENT;
-    const VERSION: Version = Version { major: 1, minor: 1 };
+    const VERSION: Version = Version { major: 1, minor: 2 };
     const NAME: &'static str = "Event";
     const DIRECTION: Direction = Direction::FromComponent;
 
     fn validate(&self) -> Result<(), ValidationError> {
         Ok(())
     }
+}
+
+/// `detail` values of [`EventKind::Error`] for the codes whose detail is a reason, not a
+/// count (the ICD's table lists them). `TrainingNonFinite`'s detail is the number of
+/// optimisation steps the round skipped.
+pub mod event_detail {
+    /// `CheckpointSaveFailed`: writing, syncing or renaming the file failed.
+    pub const SAVE_IO: u32 = 0;
+    /// `CheckpointSaveFailed`: the file read back differs from what was written.
+    pub const SAVE_VERIFY_FAILED: u32 = 1;
+    /// `CheckpointSaveFailed`: refused, the model has fewer training rounds than the one on
+    /// disk (RESET_MODEL is the command that allows replacing it).
+    pub const SAVE_REFUSED_FEWER_ROUNDS: u32 = 2;
+    /// `CheckpointSaveFailed`: refused, the model's own reader would not accept the bytes
+    /// (e.g. a non-finite optimiser moment).
+    pub const SAVE_REFUSED_UNREADABLE: u32 = 3;
+    /// `CheckpointLoadFailed`: no slot holds a checkpoint the model accepts.
+    pub const LOAD_NOTHING_USABLE: u32 = 0;
+    /// `CheckpointLoadFailed`: the newest slot was refused; the previous one was loaded.
+    pub const LOAD_NEWEST_FAILED_PREVIOUS_USED: u32 = 1;
+    /// `Internal`: the trainer panicked; the learner was restarted from the newest usable
+    /// checkpoint (or afresh).
+    pub const TRAINER_PANICKED: u32 = 1;
+    /// `Internal`: a trainer job (a frame with its round, or a command) ran past
+    /// `training.round_deadline_ms`.
+    pub const ROUND_DEADLINE_MISSED: u32 = 2;
+    /// `Internal`: the model refused a synchronised frame (it failed its own checks).
+    pub const FRAME_REFUSED_BY_MODEL: u32 = 3;
+    /// `Internal`: a training round failed with an error (nothing was applied).
+    pub const ROUND_FAILED: u32 = 4;
+    /// `Internal`: the trainer panicked three times without a job completing in between
+    /// (or its restart failed); the component stays in Idle until commanded.
+    pub const TRAINER_GAVE_UP: u32 = 5;
+    /// `Internal`: RESET_MODEL failed; the model is as before.
+    pub const RESET_FAILED: u32 = 6;
 }

@@ -74,6 +74,8 @@ pub fn commands() -> Vec<Command> {
         CommandKind::SetMode(Mode::Train),
         CommandKind::SetMode(Mode::PredictOnly),
         CommandKind::Render(render_request()),
+        CommandKind::Arm(CommandKind::RESET_MODEL),
+        CommandKind::Arm(CommandKind::LOAD_CHECKPOINT),
     ];
     kinds
         .iter()

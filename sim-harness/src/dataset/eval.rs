@@ -7,9 +7,9 @@
 //! silhouette.
 
 use crate::orbit::{look_at_camera_from_inertial, FrameGeometry, RendezvousGeometry};
-use crate::raytrace::rng::{mix64, SplitMix64};
 use crate::scenario::Scenario;
 use glam::{DQuat, DVec3};
+use gs_core::rng::{mix64, SplitMix64};
 
 use super::noise::random_unit_vector;
 

@@ -19,11 +19,11 @@ pub mod noise;
 pub mod plots;
 
 use crate::orbit::{FrameGeometry, RtnFrame};
-use crate::raytrace::rng::mix64;
 use crate::raytrace::{try_render_frame, EarthFill, Frame, FrameRequest, PinholeCamera, Scene};
 use crate::scenario::{CameraIntrinsics, Scenario, ScenarioError, TargetSize, TargetSource};
 use crate::target::{builtin_target, load_obj, TargetError, TargetMesh};
 use glam::{DQuat, DVec3, Vec3};
+use gs_core::rng::mix64;
 use serde::Serialize;
 use std::fmt;
 use std::path::{Path, PathBuf};

@@ -4,9 +4,9 @@
 //! Invariants: the same seed gives the same noise sequence; with every setting at zero the
 //! telemetry equals the truth bit for bit (no rotation is applied at all).
 
-use crate::raytrace::rng::SplitMix64;
 use crate::scenario::NoiseConfig;
 use glam::{DQuat, DVec3};
+use gs_core::rng::SplitMix64;
 
 /// Noise state for one sequence: biases fixed at construction, jitter drawn per frame.
 pub struct TelemetryNoise {
@@ -47,7 +47,7 @@ fn gaussian_vector(rng: &mut SplitMix64, sigma: f64) -> DVec3 {
 
 impl TelemetryNoise {
     pub fn new(config: &NoiseConfig, seed: u64) -> TelemetryNoise {
-        let mut rng = SplitMix64::new(crate::raytrace::rng::mix64(seed ^ 0x6E6F_6973_655F_7631));
+        let mut rng = SplitMix64::new(gs_core::rng::mix64(seed ^ 0x6E6F_6973_655F_7631));
         let sun_bias = DQuat::from_axis_angle(
             random_unit_vector(&mut rng),
             config.sun_bias_deg.to_radians(),

@@ -7,12 +7,14 @@
 //! changes between runs of a target; the CSV is the Pareto sweep's schema
 //! ([`super::pareto::CSV_HEADER`]) with the setting named `wN`, rewritten after every run.
 
+use super::ladder::{self, Ladder};
 use super::pareto::{
-    draw_xy_panel, io_error, run_settings, to_csv, write_canvas, write_text, Knob, PlotSeries,
-    Setting, SweepRow,
+    draw_xy_panel, masked_cell, run_settings, to_csv, write_canvas, Knob, PlotSeries, Setting,
+    SweepRow,
 };
 use super::preset::Preset;
 use super::table::target_label;
+use super::write_text;
 use super::ExperimentError;
 use crate::dataset::plots::{Canvas, Rgb};
 use crate::scenario::Scenario;
@@ -38,7 +40,8 @@ const COLOURS: [Rgb; 6] = [
     [60, 60, 60],
 ];
 
-/// Markdown: one line per W, per target PSNR / SSIM / training CPU s / wall s / steps.
+/// Markdown: one line per W, per target masked PSNR (black) / SSIM / training CPU s / wall
+/// s / steps, then the ladder of every run.
 pub fn to_markdown(rows: &[SweepRow]) -> String {
     let mut targets: Vec<&str> = Vec::new();
     let mut windows: Vec<usize> = Vec::new();
@@ -55,7 +58,7 @@ pub fn to_markdown(rows: &[SweepRow]) -> String {
         let n = target_label(t);
         let _ = write!(
             out,
-            " {n} PSNR dB | {n} SSIM | {n} steps | {n} train CPU s | {n} train wall s |"
+            " {n} masked PSNR dB (black) | {n} SSIM | {n} steps | {n} train CPU s | {n} train wall s |"
         );
     }
     out.push_str("\n|---:|");
@@ -70,8 +73,12 @@ pub fn to_markdown(rows: &[SweepRow]) -> String {
                 Some(r) => {
                     let _ = write!(
                         out,
-                        " {:.2} | {:.4} | {} | {:.1} | {:.1} |",
-                        r.psnr_db, r.ssim, r.steps, r.train_cpu_s, r.train_s
+                        " {} | {:.4} | {} | {:.1} | {:.1} |",
+                        masked_cell(r),
+                        r.ssim,
+                        r.steps,
+                        r.train_cpu_s,
+                        r.train_s
                     );
                 }
                 None => out.push_str(" - | - | - | - | - |"),
@@ -79,10 +86,24 @@ pub fn to_markdown(rows: &[SweepRow]) -> String {
         }
         out.push('\n');
     }
+    let ladders: Vec<(String, Ladder)> = rows
+        .iter()
+        .filter(|r| r.ladder.eval.is_some())
+        .map(|r| {
+            (
+                format!("{} W = {}", target_label(&r.target), r.window),
+                r.ladder,
+            )
+        })
+        .collect();
+    if !ladders.is_empty() {
+        out.push('\n');
+        out.push_str(&ladder::to_markdown(&ladders));
+    }
     out
 }
 
-/// Two panels: evaluation PSNR against W (top) and training CPU time against W (bottom),
+/// Two panels: evaluation masked PSNR (the target's pixels) against W (top) and training CPU time against W (bottom),
 /// one line per target; W on a log axis.
 pub fn window_plot(rows: &[SweepRow]) -> Canvas {
     let mut targets: Vec<&str> = Vec::new();
@@ -116,11 +137,11 @@ pub fn window_plot(rows: &[SweepRow]) -> Canvas {
     draw_xy_panel(
         &mut canvas,
         (0, 0, w, h),
-        "EVAL PSNR VS KEYFRAME WINDOW W",
+        "EVAL MASKED PSNR VS KEYFRAME WINDOW W",
         "W (LOG)",
-        "PSNR DB",
+        "MASKED PSNR DB",
         true,
-        &series(|r| r.psnr_db),
+        &series(|r| r.masked_psnr_db),
         &[],
     );
     draw_xy_panel(
@@ -157,7 +178,7 @@ pub fn run_window_ablation(
         s.preset(&job.base)?;
     }
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let mut rows: Vec<SweepRow> = Vec::new();
     for scenario in &job.scenarios {
         progress(&format!("target {}", scenario.name));

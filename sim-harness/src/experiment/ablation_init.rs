@@ -32,13 +32,11 @@ use super::figure::draw_text;
 use super::preset::{InitKind, Preset};
 use super::runner::{run_config, RunOutcome};
 use super::table::target_label;
+use super::write_text;
 use super::ExperimentError;
 use crate::dataset::files;
 use crate::dataset::plots::{Canvas, Rgb};
 use crate::scenario::Scenario;
-use fsw_component::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
-use fsw_component::online::OnlineTrainer;
-use fsw_component::online::{Initialisation, OnlineError};
 use glam::Vec3;
 use gs_core::hull::{
     carve, carve_photo_consistent, carve_silhouette_consistent, sample_colours, CarvedVolume,
@@ -47,9 +45,12 @@ use gs_core::hull::{
 };
 use gs_core::model::Param;
 use gs_core::sunaware::Variant;
+use gs_online::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
+use gs_online::online::OnlineTrainer;
+use gs_online::online::{Initialisation, OnlineError};
 use serde::Serialize;
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 /// Grey for hull points no keyframe colours (and for `hull_grey_colours`).
@@ -291,19 +292,6 @@ pub fn uncovered_fraction(points: &[Vec3], scene: &SceneData, far_m: f64) -> f64
     uncovered as f64 / scene.surface.len() as f64
 }
 
-/// This process's CPU time (user + system, all threads) from `/proc/self/stat`, seconds;
-/// `None` where that file is missing. Linux reports it in USER_HZ = 100 ticks per second.
-pub fn process_cpu_s() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // Fields after the command name (which may hold spaces) start at field 3 (state);
-    // utime and stime are fields 14 and 15.
-    let rest = &stat[stat.rfind(')')? + 1..];
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let utime: f64 = fields.get(11)?.parse().ok()?;
-    let stime: f64 = fields.get(12)?.parse().ok()?;
-    Some((utime + stime) / 100.0)
-}
-
 /// The initialisation's name in files.
 pub fn init_name(kind: InitKind, grey: bool) -> &'static str {
     match (kind, grey) {
@@ -522,17 +510,6 @@ pub struct InitAblationResult {
     pub render_s: f64,
     pub total_s: f64,
     pub total_cpu_s: f64,
-}
-
-fn io_error(path: &Path, e: impl std::fmt::Display) -> ExperimentError {
-    ExperimentError::Io {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    }
-}
-
-fn write_text(path: &Path, text: &str) -> Result<(), ExperimentError> {
-    std::fs::write(path, text).map_err(|e| io_error(path, e))
 }
 
 /// CSV header of `init.csv`.
@@ -1026,7 +1003,7 @@ pub fn write_hull_figure(
     progress: &mut dyn FnMut(&str),
 ) -> Result<Vec<(String, HullReport)>, ExperimentError> {
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let mut variant = HullVariant::default();
     for name in &job.inits {
         if let (InitKind::Hull, v) = parse_init_variant(name)? {
@@ -1115,9 +1092,9 @@ pub fn run_init_ablation(
     progress: &mut dyn FnMut(&str),
 ) -> Result<InitAblationResult, ExperimentError> {
     let started = Instant::now();
-    let cpu_started = process_cpu_s();
+    let cpu_started = gs_core::machine::process_cpu_s();
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let inits: Vec<(InitKind, HullVariant)> = job
         .inits
         .iter()
@@ -1142,7 +1119,7 @@ pub fn run_init_ablation(
         render_s += scene.render_s;
         for (&(kind, variant), name) in inits.iter().zip(&names) {
             let run_started = Instant::now();
-            let cpu_before = process_cpu_s();
+            let cpu_before = gs_core::machine::process_cpu_s();
             let preset = Preset {
                 init: kind,
                 hull_grey_colours: variant.grey,
@@ -1189,7 +1166,7 @@ pub fn run_init_ablation(
                 (None, InitKind::Surface) => scene.surface.len().min(preset.init_points as usize),
                 (None, _) => preset.init_points as usize,
             };
-            let cpu_s = match (cpu_before, process_cpu_s()) {
+            let cpu_s = match (cpu_before, gs_core::machine::process_cpu_s()) {
                 (Some(a), Some(b)) => b - a,
                 _ => f64::NAN,
             };
@@ -1208,7 +1185,7 @@ pub fn run_init_ablation(
             write_text(&out.join("init_curves.csv"), &curves_csv(&runs))?;
             write_text(
                 &out.join("runs.json"),
-                &serde_json::to_string_pretty(&runs).map_err(|e| io_error(out, e))?,
+                &serde_json::to_string_pretty(&runs).map_err(|e| ExperimentError::io(out, e))?,
             )?;
             progress(&format!(
                 "{} of {} runs done, {:.0} s elapsed",
@@ -1225,7 +1202,7 @@ pub fn run_init_ablation(
         canvas.height,
         &canvas.rgb8,
     )?;
-    let total_cpu_s = match (cpu_started, process_cpu_s()) {
+    let total_cpu_s = match (cpu_started, gs_core::machine::process_cpu_s()) {
         (Some(a), Some(b)) => b - a,
         _ => f64::NAN,
     };

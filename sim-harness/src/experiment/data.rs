@@ -11,11 +11,11 @@
 
 use crate::dataset::{eval, frame_request, framing_radius_m, load_target, DatasetError};
 use crate::orbit::FrameGeometry;
-use crate::raytrace::rng::mix64;
 use crate::raytrace::{try_render_frame, Scene};
 use crate::scenario::{Scenario, TargetSize};
 use crate::target::SurfaceSample;
 use glam::{DQuat, DVec3};
+use gs_core::rng::mix64;
 use rayon::prelude::*;
 use std::path::Path;
 use std::time::Instant;

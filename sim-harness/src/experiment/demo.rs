@@ -43,13 +43,6 @@ pub struct DemoSummary {
     pub run: RunOutcome,
 }
 
-fn io_error(path: &Path, e: impl std::fmt::Display) -> ExperimentError {
-    ExperimentError::Io {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    }
-}
-
 /// Loss curve CSV: `round,frame_index,mean_loss,gaussians,train_s`.
 pub fn curve_csv(curve: &[RoundPoint]) -> String {
     let mut out = String::from("round,frame_index,mean_loss,gaussians,train_s\n");
@@ -144,7 +137,7 @@ pub fn run_demo_with(
     progress: &mut dyn FnMut(&str),
 ) -> Result<DemoSummary, ExperimentError> {
     let started = Instant::now();
-    std::fs::create_dir_all(out_dir).map_err(|e| io_error(out_dir, e))?;
+    std::fs::create_dir_all(out_dir).map_err(|e| ExperimentError::io(out_dir, e))?;
     let scene = render_scene(scenario, preset.init_points as usize, progress)?;
     let figure_views = preset.figure_views as usize;
     let (run, trainer) = run_config(&scene, preset, Variant::D, figure_views, progress)?;
@@ -176,7 +169,8 @@ pub fn run_demo_with(
         &figure.rgb8,
     )?;
     let csv_path = out_dir.join("loss_curve.csv");
-    std::fs::write(&csv_path, curve_csv(&run.curve)).map_err(|e| io_error(&csv_path, e))?;
+    std::fs::write(&csv_path, curve_csv(&run.curve))
+        .map_err(|e| ExperimentError::io(&csv_path, e))?;
     let plot = curve_plot(&run.curve);
     files::write_png_rgb(
         &out_dir.join("loss_curve.png"),
@@ -206,8 +200,9 @@ pub fn run_demo_with(
         run,
     };
     let json_path = out_dir.join("metrics.json");
-    let json = serde_json::to_string_pretty(&summary).map_err(|e| io_error(&json_path, e))?;
-    std::fs::write(&json_path, json).map_err(|e| io_error(&json_path, e))?;
+    let json =
+        serde_json::to_string_pretty(&summary).map_err(|e| ExperimentError::io(&json_path, e))?;
+    std::fs::write(&json_path, json).map_err(|e| ExperimentError::io(&json_path, e))?;
     Ok(summary)
 }
 

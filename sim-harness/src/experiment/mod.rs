@@ -2,7 +2,8 @@
 //! target through the online procedure, evaluated on the evaluation views) and the demo.
 //!
 //! Modules: [`preset`] (config/presets/*.toml), [`data`] (scenes rendered into memory) with
-//! [`cache`] (their on-disk cache), [`evaluate`] (metrics on evaluation views), [`table`]
+//! [`cache`] (their on-disk cache), [`evaluate`] (metrics on evaluation views), [`ladder`] (the
+//! accuracy ladder every report prints), [`table`]
 //! (CSV and Markdown writers), [`figure`] (comparison grids).
 //!
 //! Invariants: frames reach the online trainer in time order; evaluation views never train;
@@ -16,6 +17,7 @@ pub mod data;
 pub mod demo;
 pub mod evaluate;
 pub mod figure;
+pub mod ladder;
 pub mod pareto;
 pub mod preset;
 pub mod runner;
@@ -26,10 +28,10 @@ pub mod table_job;
 
 use crate::dataset::DatasetError;
 use crate::scenario::ScenarioError;
-use fsw_component::online::OnlineError;
 use gs_core::sunaware::SunAwareError;
+use gs_online::online::OnlineError;
 use std::fmt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Why an experiment could not run.
 #[derive(Debug)]
@@ -56,6 +58,21 @@ impl fmt::Display for ExperimentError {
 }
 
 impl std::error::Error for ExperimentError {}
+
+impl ExperimentError {
+    /// A failed write (or read) of `path`.
+    pub(crate) fn io(path: &Path, e: impl fmt::Display) -> Self {
+        ExperimentError::Io {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        }
+    }
+}
+
+/// Writes a text result file (CSV, Markdown), replacing any existing one.
+pub(crate) fn write_text(path: &Path, text: &str) -> Result<(), ExperimentError> {
+    std::fs::write(path, text).map_err(|e| ExperimentError::io(path, e))
+}
 
 impl From<DatasetError> for ExperimentError {
     fn from(e: DatasetError) -> Self {

@@ -3,7 +3,7 @@
 //! the `pareto` job that writes `pareto.csv`, `pareto.md` and `pareto.png`.
 //!
 //! Also the measuring instruments the skips table and the window ablation share:
-//! [`process_cpu_s`] (getrusage, all threads), [`reset_peak_rss`] / [`peak_rss_mb`]
+//! [`reset_peak_rss`] / [`peak_rss_mb`]
 //! (`VmHWM` of /proc/self/status, reset per run through /proc/self/clear_refs), [`Knob`] and
 //! [`Setting`] (named preset overrides), [`run_settings`] (one row per setting) and
 //! [`draw_xy_panel`] (line and scatter plots on the dataset plots' canvas).
@@ -18,8 +18,10 @@
 use super::cache::scene_key;
 use super::data::{load_or_render_scene, SceneData};
 use super::figure::{draw_text, text_width};
+use super::ladder::{self, Ladder};
 use super::preset::Preset;
 use super::runner::run_config;
+use super::write_text;
 use super::ExperimentError;
 use crate::dataset::files;
 use crate::dataset::plots::{Canvas, Rgb};
@@ -40,18 +42,6 @@ pub fn builtin_scenario(name: &str) -> Result<Scenario, ExperimentError> {
                 "unknown target {name:?}: the built-in targets are cassini, rosetta and starlink"
             ))
         })
-}
-
-/// CPU time of this process so far (user + system, all threads), seconds.
-pub fn process_cpu_s() -> f64 {
-    // SAFETY: getrusage only writes the struct we pass; a zeroed rusage is a valid value.
-    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
-    let rc = unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut usage) };
-    if rc != 0 {
-        return 0.0;
-    }
-    let tv = |t: libc::timeval| t.tv_sec as f64 + 1e-6 * t.tv_usec as f64;
-    tv(usage.ru_utime) + tv(usage.ru_stime)
 }
 
 /// Resets the peak resident set size (Linux `clear_refs` 5). False where that is not
@@ -292,13 +282,29 @@ pub struct SweepRow {
     pub gaussians: usize,
     /// Peak resident memory of the process during training and evaluation, MB.
     pub peak_rss_mb: f64,
+    /// Masked metrics on every rung beside black's (empty when read from a CSV written
+    /// before the ladder existed).
+    pub ladder: Ladder,
 }
 
-/// The CSV header, exactly.
-pub const CSV_HEADER: &str = "setting,target,config,downsample,width,height,max_gaussians,\
-init_points,feature_dim,encoding_frequencies,window,rounds_per_window_change,passes_per_round,\
-skip_eclipse,skip_unlit,skip_unchanged_window,frames,rounds,steps,train_s,train_cpu_s,step_ms,\
-psnr_db,ssim,masked_psnr_db,black_psnr_db,gaussians,peak_rss_mb,pareto";
+/// The CSV header before the ladder's columns (files written then still read back).
+const CSV_HEADER_BEFORE_LADDER: &str = "setting,target,config,downsample,width,height,\
+max_gaussians,init_points,feature_dim,encoding_frequencies,window,rounds_per_window_change,\
+passes_per_round,skip_eclipse,skip_unlit,skip_unchanged_window,frames,rounds,steps,train_s,\
+train_cpu_s,step_ms,psnr_db,ssim,masked_psnr_db,black_psnr_db,gaussians,peak_rss_mb,pareto";
+
+/// The CSV header, exactly: the settings and results, `pareto`, then the ladder's columns
+/// ([`ladder::CSV_COLUMNS`]).
+pub const CSV_HEADER: &str = concat!(
+    "setting,target,config,downsample,width,height,",
+    "max_gaussians,init_points,feature_dim,encoding_frequencies,window,rounds_per_window_change,",
+    "passes_per_round,skip_eclipse,skip_unlit,skip_unchanged_window,frames,rounds,steps,train_s,",
+    "train_cpu_s,step_ms,psnr_db,ssim,masked_psnr_db,black_psnr_db,gaussians,peak_rss_mb,pareto,",
+    "l0_window_masked_psnr,l0_window_black_masked_psnr,",
+    "l0_seen_masked_psnr,l0_seen_black_masked_psnr,l1_held_out_masked_psnr,",
+    "l1_held_out_black_masked_psnr,l2_eval_masked_psnr,l2_eval_black_masked_psnr,",
+    "l2_covered_masked_psnr,l2_covered_black_masked_psnr,l2_eval_masked_ssim"
+);
 
 /// CSV text; `front[i]` marks row i on the Pareto front (missing entries: false).
 pub fn to_csv(rows: &[SweepRow], front: &[bool]) -> String {
@@ -307,7 +313,7 @@ pub fn to_csv(rows: &[SweepRow], front: &[bool]) -> String {
     for (i, r) in rows.iter().enumerate() {
         let _ = writeln!(
             out,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.2},{:.2},{:.2},{:.3},{:.4},{:.3},{:.3},{},{:.1},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.2},{:.2},{:.2},{:.3},{:.4},{:.3},{:.3},{},{:.1},{},{}",
             r.setting.replace(',', ";"),
             r.target.replace(',', ";"),
             r.config,
@@ -336,7 +342,8 @@ pub fn to_csv(rows: &[SweepRow], front: &[bool]) -> String {
             r.black_psnr_db,
             r.gaussians,
             r.peak_rss_mb,
-            front.get(i).copied().unwrap_or(false)
+            front.get(i).copied().unwrap_or(false),
+            r.ladder.csv_fields()
         );
     }
     out
@@ -346,12 +353,19 @@ pub fn to_csv(rows: &[SweepRow], front: &[bool]) -> String {
 /// front depends on which rows are plotted together). Errors name the line and column.
 pub fn from_csv(text: &str) -> Result<Vec<SweepRow>, ExperimentError> {
     let mut lines = text.lines();
-    if lines.next() != Some(CSV_HEADER) {
+    let header = lines.next();
+    let with_ladder = header == Some(CSV_HEADER);
+    if !with_ladder && header != Some(CSV_HEADER_BEFORE_LADDER) {
         return Err(ExperimentError::Invalid(
             "CSV: the first line is not the pareto header".into(),
         ));
     }
-    let columns = CSV_HEADER.split(',').count();
+    let columns = if with_ladder {
+        CSV_HEADER.split(',').count()
+    } else {
+        CSV_HEADER_BEFORE_LADDER.split(',').count()
+    };
+    let base_columns = CSV_HEADER_BEFORE_LADDER.split(',').count();
     let mut rows = Vec::new();
     for (k, line) in lines.enumerate().filter(|(_, l)| !l.trim().is_empty()) {
         let f: Vec<&str> = line.split(',').collect();
@@ -404,6 +418,11 @@ pub fn from_csv(text: &str) -> Result<Vec<SweepRow>, ExperimentError> {
             black_psnr_db: parse(&f, 25, line_no)?,
             gaussians: parse(&f, 26, line_no)?,
             peak_rss_mb: parse(&f, 27, line_no)?,
+            ladder: if with_ladder {
+                Ladder::from_csv_fields(&f[base_columns..], line_no)?
+            } else {
+                Ladder::default()
+            },
         });
     }
     Ok(rows)
@@ -484,6 +503,7 @@ pub fn run_one(
         black_psnr_db: run.black_eval.psnr_db,
         gaussians: run.gaussians,
         peak_rss_mb: peak_rss_mb(),
+        ladder: Ladder::of(&run),
     })
 }
 
@@ -516,10 +536,11 @@ pub fn run_settings(
         let scene = &last.as_ref().expect("scene_for filled it").1;
         let row = run_one(scene, preset, &setting.name, &mut |l| progress(l))?;
         progress(&format!(
-            "[{}/{}] {}: PSNR {:.2} dB, SSIM {:.4}, train {:.1} s wall / {:.1} s CPU, {:.1} ms/step, {} Gaussians, peak {:.0} MB; {:.0} s elapsed",
+            "[{}/{}] {}: masked PSNR {} dB, full {:.2} dB, SSIM {:.4}, train {:.1} s wall / {:.1} s CPU, {:.1} ms/step, {} Gaussians, peak {:.0} MB; {:.0} s elapsed",
             i + 1,
             settings.len(),
             setting.name,
+            ladder::markdown_cell(row.ladder.eval.as_ref()).replace("**", ""),
             row.psnr_db,
             row.ssim,
             row.train_s,
@@ -564,17 +585,6 @@ pub fn describe(knobs: &[Knob]) -> String {
         })
         .collect::<Vec<_>>()
         .join(" ")
-}
-
-pub(crate) fn io_error(path: &Path, e: impl std::fmt::Display) -> ExperimentError {
-    ExperimentError::Io {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    }
-}
-
-pub(crate) fn write_text(path: &Path, text: &str) -> Result<(), ExperimentError> {
-    std::fs::write(path, text).map_err(|e| io_error(path, e))
 }
 
 pub(crate) fn write_canvas(path: &Path, canvas: &Canvas) -> Result<(), ExperimentError> {
@@ -766,21 +776,42 @@ pub fn draw_xy_panel(
     }
 }
 
-/// Training CPU time against evaluation PSNR, every setting a grey point, the front in red
-/// joined as a line and labelled with the settings' names.
+/// Training CPU time against evaluation masked PSNR (the target's own pixels), every setting
+/// a grey point, the front in red joined as a line and labelled with the settings' names, and
+/// the all-black render's score as a black line (the floor every setting must clear).
 pub fn pareto_plot(rows: &[SweepRow], front: &[bool], title: &str) -> Canvas {
     let mut canvas = Canvas::new(960, 600, [255, 255, 255]);
-    let point = |r: &SweepRow| (r.train_cpu_s, r.psnr_db);
+    let point = |r: &SweepRow| (r.train_cpu_s, r.masked_psnr_db);
     let mut on: Vec<(f64, f64, &str)> = rows
         .iter()
         .zip(front)
         .filter(|(_, f)| **f)
-        .map(|(r, _)| (r.train_cpu_s, r.psnr_db, r.setting.as_str()))
+        .map(|(r, _)| (r.train_cpu_s, r.masked_psnr_db, r.setting.as_str()))
         .collect();
     on.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
     let red: Rgb = [200, 30, 30];
     let grey: Rgb = [130, 130, 130];
+    let (x_lo, x_hi) = rows
+        .iter()
+        .map(|r| r.train_cpu_s)
+        .filter(|x| x.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), x| {
+            (lo.min(x), hi.max(x))
+        });
+    let black_db = rows
+        .iter()
+        .filter_map(|r| r.ladder.eval.map(|e| e.black_masked_psnr_db))
+        .find(|v| v.is_finite());
     let series = [
+        PlotSeries {
+            name: "ALL-BLACK RENDER".into(),
+            color: [0, 0, 0],
+            points: match black_db {
+                Some(b) if x_lo <= x_hi => vec![(x_lo, b), (x_hi, b)],
+                _ => Vec::new(),
+            },
+            line: true,
+        },
         PlotSeries {
             name: "DOMINATED".into(),
             color: grey,
@@ -803,18 +834,20 @@ pub fn pareto_plot(rows: &[SweepRow], front: &[bool], title: &str) -> Canvas {
         .iter()
         .map(|p| (p.0, p.1, p.2.to_uppercase(), red))
         .collect();
-    labels.extend(
-        rows.iter()
-            .zip(front)
-            .filter(|(_, f)| !**f)
-            .map(|(r, _)| (r.train_cpu_s, r.psnr_db, r.setting.to_uppercase(), grey)),
-    );
+    labels.extend(rows.iter().zip(front).filter(|(_, f)| !**f).map(|(r, _)| {
+        (
+            r.train_cpu_s,
+            r.masked_psnr_db,
+            r.setting.to_uppercase(),
+            grey,
+        )
+    }));
     draw_xy_panel(
         &mut canvas,
         (0, 0, 960, 600),
         title,
         "TRAINING CPU TIME S (LOG)",
-        "EVAL PSNR DB",
+        "EVAL MASKED PSNR DB",
         true,
         &series,
         &labels,
@@ -822,12 +855,22 @@ pub fn pareto_plot(rows: &[SweepRow], front: &[bool], title: &str) -> Canvas {
     canvas
 }
 
-/// Markdown table of the rows, fastest first, front rows in bold.
+/// Masked PSNR beside black's with the ladder's verdict; rows read from a CSV without the
+/// ladder show the masked PSNR alone.
+pub(crate) fn masked_cell(r: &SweepRow) -> String {
+    match r.ladder.eval.as_ref() {
+        None => format!("{:.2}", r.masked_psnr_db),
+        eval => ladder::markdown_cell(eval),
+    }
+}
+
+/// Markdown table of the rows, fastest first, front rows in bold; the front is on masked
+/// PSNR (the target's own pixels), and the ladder of every row follows.
 pub fn to_markdown(rows: &[SweepRow], front: &[bool]) -> String {
     let mut order: Vec<usize> = (0..rows.len()).collect();
     order.sort_by(|&a, &b| rows[a].train_cpu_s.total_cmp(&rows[b].train_cpu_s));
     let mut out = String::from(
-        "| Setting | Front | Image | Cap | Feat. | Enc. L | W | Rounds/change | Passes | Steps | Train CPU s | Train wall s | ms/step | PSNR dB | masked PSNR dB | SSIM | Gaussians | Peak MB |\n\
+        "| Setting | Front | Image | Cap | Feat. | Enc. L | W | Rounds/change | Passes | Steps | Train CPU s | Train wall s | ms/step | masked PSNR dB (black) | PSNR dB | SSIM | Gaussians | Peak MB |\n\
          |---|:-:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for i in order {
@@ -840,7 +883,7 @@ pub fn to_markdown(rows: &[SweepRow], front: &[bool]) -> String {
         };
         let _ = writeln!(
             out,
-            "| {name} ({}) | {} | {}x{} | {} | {} | {} | {} | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.2} | {:.2} | {:.4} | {} | {:.0} |",
+            "| {name} ({}) | {} | {}x{} | {} | {} | {} | {} | {} | {} | {} | {:.1} | {:.1} | {:.1} | {} | {:.2} | {:.4} | {} | {:.0} |",
             r.config,
             if on { "yes" } else { "" },
             r.width,
@@ -855,8 +898,8 @@ pub fn to_markdown(rows: &[SweepRow], front: &[bool]) -> String {
             r.train_cpu_s,
             r.train_s,
             r.step_ms,
+            masked_cell(r),
             r.psnr_db,
-            r.masked_psnr_db,
             r.ssim,
             r.gaussians,
             r.peak_rss_mb
@@ -865,9 +908,18 @@ pub fn to_markdown(rows: &[SweepRow], front: &[bool]) -> String {
     if let Some(r) = rows.first() {
         let _ = writeln!(
             out,
-            "\nAn all-black render scores {:.2} dB on the same evaluation views ({}x{}).",
+            "\nAn all-black render scores {:.2} dB full frame on the same evaluation views ({}x{}).",
             r.black_psnr_db, r.width, r.height
         );
+    }
+    let ladders: Vec<(String, Ladder)> = rows
+        .iter()
+        .filter(|r| r.ladder.eval.is_some())
+        .map(|r| (format!("{} ({})", r.setting, r.config), r.ladder))
+        .collect();
+    if !ladders.is_empty() {
+        out.push('\n');
+        out.push_str(&ladder::to_markdown(&ladders));
     }
     out
 }
@@ -894,9 +946,12 @@ pub fn run_pareto(
         ));
     }
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let write = |rows: &[SweepRow]| -> Result<Vec<bool>, ExperimentError> {
-        let points: Vec<(f64, f64)> = rows.iter().map(|r| (r.train_cpu_s, r.psnr_db)).collect();
+        let points: Vec<(f64, f64)> = rows
+            .iter()
+            .map(|r| (r.train_cpu_s, r.masked_psnr_db))
+            .collect();
         let front = pareto_front(&points);
         write_text(&out.join("pareto.csv"), &to_csv(rows, &front))?;
         write_text(&out.join("pareto.md"), &to_markdown(rows, &front))?;
@@ -917,8 +972,11 @@ pub fn run_pareto(
 /// Writes `pareto.csv`, `pareto.md` and `pareto.png` for `rows` into `out` (the front
 /// computed over these rows); returns the front.
 pub fn write_outputs(out: &Path, rows: &[SweepRow]) -> Result<Vec<bool>, ExperimentError> {
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
-    let points: Vec<(f64, f64)> = rows.iter().map(|r| (r.train_cpu_s, r.psnr_db)).collect();
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
+    let points: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|r| (r.train_cpu_s, r.masked_psnr_db))
+        .collect();
     let front = pareto_front(&points);
     write_text(&out.join("pareto.csv"), &to_csv(rows, &front))?;
     write_text(&out.join("pareto.md"), &to_markdown(rows, &front))?;
@@ -995,6 +1053,7 @@ mod tests {
 
     #[test]
     fn peak_memory_and_cpu_time_are_measured() {
+        let process_cpu_s = || gs_core::machine::process_cpu_s().expect("Linux reports CPU time");
         let before = process_cpu_s();
         let mut x = 0u64;
         for i in 0..3_000_000u64 {

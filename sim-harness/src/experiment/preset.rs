@@ -2,6 +2,11 @@
 //! big a model to train, so the same table runs in under an hour on a 2-core machine (`cpu`)
 //! or at the paper's size on a bigger one (`paper`).
 //!
+//! A preset may start from another: `base = "NAME"` (looked up like `--preset NAME`, first
+//! beside the file) takes every setting of that preset, and the file's own settings replace
+//! them key by key (tables such as `[rates]` merge key by key too). Chains are allowed up to
+//! [`MAX_BASE_DEPTH`]; a cycle is an error.
+//!
 //! Invariants: unknown fields are errors; `validate` checks every value's range and names the
 //! bad field; `apply` changes only the scenario fields the preset names (resolution, cadence,
 //! duration, evaluation views, ray-tracing samples, Earth-albedo fill when named) and
@@ -270,13 +275,99 @@ impl Default for Preset {
     }
 }
 
+/// How many `base` links a preset may follow (a chain longer than this is taken for a cycle).
+pub const MAX_BASE_DEPTH: usize = 8;
+
+/// Finds a preset file: `name_or_path` as a path, else `NAME.toml` beside the preset that
+/// names it as its base, in `config/presets/` under the current folder, or in the workspace
+/// this binary was built from.
+fn find_preset_file(name_or_path: &str, beside: Option<&Path>) -> Result<PathBuf, PresetError> {
+    let file_name = format!("{name_or_path}.toml");
+    let mut candidates = vec![PathBuf::from(name_or_path)];
+    if let Some(dir) = beside {
+        candidates.push(dir.join(&file_name));
+    }
+    candidates.push(PathBuf::from("config/presets").join(&file_name));
+    candidates.push(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../config/presets")
+            .join(&file_name),
+    );
+    candidates
+        .iter()
+        .find(|p| p.is_file())
+        .cloned()
+        .ok_or_else(|| PresetError::Io {
+            path: PathBuf::from("config/presets").join(&file_name),
+            message: format!(
+                "no preset file {name_or_path:?} (looked for it as a path and in config/presets/)"
+            ),
+        })
+}
+
+/// The preset text as a TOML table with its `base` chain merged in (the file's own keys win).
+fn resolved_table(
+    text: &str,
+    source_name: &str,
+    dir: Option<&Path>,
+    depth: usize,
+) -> Result<toml::Table, PresetError> {
+    let parse_error = |message: String| PresetError::Parse {
+        source_name: source_name.to_string(),
+        message,
+    };
+    let mut table: toml::Table = toml::from_str(text).map_err(|e| parse_error(e.to_string()))?;
+    let Some(base) = table.remove("base") else {
+        return Ok(table);
+    };
+    let base_name = base
+        .as_str()
+        .ok_or_else(|| parse_error("`base` must be a preset name (a string)".into()))?;
+    if depth >= MAX_BASE_DEPTH {
+        return Err(parse_error(format!(
+            "`base` chain longer than {MAX_BASE_DEPTH} presets (a cycle?) at {base_name:?}"
+        )));
+    }
+    let path = find_preset_file(base_name, dir)?;
+    let base_text = std::fs::read_to_string(&path).map_err(|e| PresetError::Io {
+        path: path.clone(),
+        message: e.to_string(),
+    })?;
+    let mut merged = resolved_table(
+        &base_text,
+        &path.display().to_string(),
+        path.parent(),
+        depth + 1,
+    )?;
+    merge_into(&mut merged, table);
+    Ok(merged)
+}
+
+/// Overwrites `base` with `overrides`, key by key; tables present in both merge recursively.
+fn merge_into(base: &mut toml::Table, overrides: toml::Table) {
+    for (key, value) in overrides {
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(inner)), toml::Value::Table(more)) => merge_into(inner, more),
+            (_, value) => {
+                base.insert(key, value);
+            }
+        }
+    }
+}
+
 impl Preset {
-    /// Parses and validates preset text.
+    /// Parses and validates preset text (a `base` is looked up in `config/presets/`).
     pub fn from_toml_str(text: &str, source_name: &str) -> Result<Preset, PresetError> {
-        let preset: Preset = toml::from_str(text).map_err(|e| PresetError::Parse {
-            source_name: source_name.to_string(),
-            message: e.to_string(),
-        })?;
+        Self::from_resolved(resolved_table(text, source_name, None, 0)?, source_name)
+    }
+
+    fn from_resolved(table: toml::Table, source_name: &str) -> Result<Preset, PresetError> {
+        let preset: Preset = table
+            .try_into()
+            .map_err(|e: toml::de::Error| PresetError::Parse {
+                source_name: source_name.to_string(),
+                message: e.to_string(),
+            })?;
         preset.validate()?;
         Ok(preset)
     }
@@ -284,29 +375,16 @@ impl Preset {
     /// Reads `NAME_OR_PATH`: an existing file, else `config/presets/NAME.toml` under the
     /// current folder or the workspace root this binary was built from.
     pub fn load(name_or_path: &str) -> Result<Preset, PresetError> {
-        let direct = PathBuf::from(name_or_path);
-        let candidates = [
-            direct.clone(),
-            PathBuf::from("config/presets").join(format!("{name_or_path}.toml")),
-            Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("../config/presets")
-                .join(format!("{name_or_path}.toml")),
-        ];
-        let path = candidates
-            .iter()
-            .find(|p| p.is_file())
-            .cloned()
-            .ok_or_else(|| PresetError::Io {
-                path: candidates[1].clone(),
-                message: format!(
-                    "no preset file {name_or_path:?} (looked for it as a path and in config/presets/)"
-                ),
-            })?;
+        let path = find_preset_file(name_or_path, None)?;
         let text = std::fs::read_to_string(&path).map_err(|e| PresetError::Io {
             path: path.clone(),
             message: e.to_string(),
         })?;
-        Preset::from_toml_str(&text, &path.display().to_string())
+        let source_name = path.display().to_string();
+        Self::from_resolved(
+            resolved_table(&text, &source_name, path.parent(), 0)?,
+            &source_name,
+        )
     }
 
     /// gs-core's model settings for `variant` under this preset (the training loop's
@@ -504,10 +582,49 @@ mod tests {
     }
 
     #[test]
+    fn a_base_gives_every_setting_the_file_does_not_name() {
+        let dir = std::env::temp_dir().join(format!("preset-base-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(
+            dir.join("root.toml"),
+            "name = \"root\"\nwindow = 7\ncadence_s = 41.0\n[rates]\nsh_dc = 0.01\nopacity = 0.05\n",
+        )
+        .unwrap();
+        std::fs::write(
+            dir.join("child.toml"),
+            "base = \"root\"\nname = \"child\"\ncadence_s = 43.0\n[rates]\nopacity = 0.02\n",
+        )
+        .unwrap();
+        std::fs::write(dir.join("loop-a.toml"), "base = \"loop-b\"\n").unwrap();
+        std::fs::write(dir.join("loop-b.toml"), "base = \"loop-a\"\n").unwrap();
+        let child = Preset::load(dir.join("child.toml").to_str().unwrap()).unwrap();
+        assert_eq!(child.name, "child");
+        assert_eq!(child.window, 7, "inherited");
+        assert_eq!(child.cadence_s, 43.0, "overridden");
+        assert_eq!(child.rates.sh_dc, Some(0.01), "tables merge key by key");
+        assert_eq!(child.rates.opacity, Some(0.02));
+        let cycle = Preset::load(dir.join("loop-a.toml").to_str().unwrap()).unwrap_err();
+        assert!(cycle.to_string().contains("chain longer"), "{cycle}");
+        std::fs::write(dir.join("bad.toml"), "base = 3\n").unwrap();
+        let bad = Preset::load(dir.join("bad.toml").to_str().unwrap()).unwrap_err();
+        assert!(bad.to_string().contains("`base` must be"), "{bad}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
     fn shipped_presets_parse_and_apply() {
-        for name in ["cpu", "paper"] {
-            let p = Preset::load(name).unwrap();
-            assert_eq!(p.name, name);
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/presets");
+        let mut names: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+            .map(|p| p.file_stem().unwrap().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        assert!(names.len() >= 8, "{names:?}");
+        for name in &names {
+            let p = Preset::load(name).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(&p.name, name);
             let s = p.apply(&Scenario::default()).unwrap();
             assert_eq!(s.camera.downsample, p.downsample);
             assert_eq!(s.sequence.eval_views, p.eval_views);

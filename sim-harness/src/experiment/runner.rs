@@ -1,5 +1,5 @@
 //! One experiment run: a configuration (a-d) trained on one scene through the paper's online
-//! procedure (`fsw_component::online::OnlineTrainer`: frames offered in time order, keyframe
+//! procedure (`gs_online::online::OnlineTrainer`: frames offered in time order, keyframe
 //! window W, a round of W steps whenever the window changed, densify every few rounds), then
 //! evaluated on the scene's evaluation views.
 //!
@@ -19,11 +19,11 @@ use super::evaluate::{
 };
 use super::preset::{InitKind, Preset};
 use crate::raytrace::linear_to_srgb8;
-use fsw_component::keyframe::WindowConfig;
-use fsw_component::online::{Frame, Initialisation, OnlineConfig, OnlineError, OnlineTrainer};
 use glam::{DVec3, Vec3};
 use gs_core::nn::SceneBox;
 use gs_core::sunaware::{BackendKind, Variant};
+use gs_online::keyframe::WindowConfig;
+use gs_online::online::{Frame, Initialisation, OnlineConfig, OnlineError, OnlineTrainer};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -119,34 +119,6 @@ pub fn trained_frames<'a>(scene: &'a SceneData, preset: &Preset) -> Vec<&'a View
         .filter(|(i, v)| !is_held_out(preset, *i) && !v.eclipse)
         .map(|(_, v)| v)
         .collect()
-}
-
-/// One line with the accuracy ladder, masked PSNR first (the target's own pixels), each
-/// rung beside its all-black score, and a warning on any rung that does not beat black.
-pub fn ladder_line(label: &str, o: &RunOutcome) -> String {
-    let rungs = [
-        ("L0 window", &o.window_fit, &o.black_window),
-        ("L0 seen", &o.seen, &o.black_seen),
-        ("L1 held-out", &o.held_out, &o.black_held_out),
-        ("L2 eval", &o.eval, &o.black_eval),
-        ("L2 covered views", &o.eval_covered, &o.black_eval_covered),
-    ];
-    let mut line = format!("{label}: masked PSNR (all-black)");
-    for (name, model, black) in rungs {
-        if model.views == 0 {
-            continue;
-        }
-        let flag = if model.masked_psnr_db <= black.masked_psnr_db {
-            " BELOW BLACK"
-        } else {
-            ""
-        };
-        line.push_str(&format!(
-            "; {name} {:.2} ({:.2}) dB{flag}, full {:.2} ({:.2})",
-            model.masked_psnr_db, black.masked_psnr_db, model.psnr_db, black.psnr_db
-        ));
-    }
-    line
 }
 
 /// The scene box of the target: its vertex bounds grown by 5 % on each side.
@@ -320,11 +292,11 @@ pub fn run_config(
             0
         };
         for _ in 0..rounds_due {
-            let cpu_before_s = super::pareto::process_cpu_s();
+            let cpu_before_s = gs_core::machine::process_cpu_s().unwrap_or(0.0);
             let Some(report) = trainer.run_round_if_due()? else {
                 break;
             };
-            train_cpu_s += super::pareto::process_cpu_s() - cpu_before_s;
+            train_cpu_s += gs_core::machine::process_cpu_s().unwrap_or(0.0) - cpu_before_s;
             train_s += report.duration_s;
             curve.push(RoundPoint {
                 round: report.rounds,
@@ -432,7 +404,7 @@ pub fn run_config(
         eval_covered,
         black_eval_covered,
     };
-    progress(&ladder_line(&label, &outcome));
+    progress(&super::ladder::ladder_line(&label, &outcome));
     progress(&format!(
         "{label}: PSNR {:.2} dB, SSIM {:.4} (masked {:.2} dB / {:.4}; seen views {:.2} dB, all-black there {:.2} dB; all-black {:.2} dB), {} Gaussians, {} rounds, {} steps, train {:.0} s ({:.1} ms/step), eval {:.0} s",
         outcome.eval.psnr_db,

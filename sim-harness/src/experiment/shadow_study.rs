@@ -29,20 +29,21 @@ use super::evaluate::{camera_of, sun_of, to_rgb8};
 use super::figure::{grid_figure, Cell};
 use super::preset::Preset;
 use super::runner::{initialisation, online_config, run_config, scene_box};
+use super::write_text;
 use super::ExperimentError;
 use crate::dataset::{eval, files, frame_request, framing_radius_m, load_target};
-use crate::raytrace::rng::mix64;
 use crate::raytrace::sunlight::{render_sunlight, sun_reaches_point, SunClass, SunlightMap};
 use crate::raytrace::{try_render_frame_with, FrameRequest, PinholeCamera, Scene};
 use crate::scenario::{Scenario, TargetSize};
-use fsw_component::online::OnlineTrainer;
 use glam::Vec3;
 use gs_core::init::inverse_sigmoid;
-use gs_core::loss::{psnr, ImageShape};
+use gs_core::loss::{psnr, psnr_db_from_mse, ImageShape};
 use gs_core::model::{GaussianModel, Param};
 use gs_core::raster::{render, GaussianView, RasterSettings};
+use gs_core::rng::mix64;
 use gs_core::sunaware::light::{sun_visibility_with_margin, RECEIVER_EXTENT_SIGMAS};
 use gs_core::sunaware::{LightConfig, LightProjection, SunAwareModel, Variant};
+use gs_online::online::OnlineTrainer;
 use rayon::prelude::*;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -481,11 +482,7 @@ fn shadow_headroom(
     let pooled_mse = per_view.iter().map(|v| v.1).sum::<f64>() / n;
     Ok(ShadowHeadroom {
         mean_psnr_db: per_view.iter().map(|v| v.0).sum::<f64>() / n,
-        pooled_psnr_db: if pooled_mse > 0.0 {
-            -10.0 * pooled_mse.log10()
-        } else {
-            100.0
-        },
+        pooled_psnr_db: psnr_db_from_mse(pooled_mse).min(100.0),
         pooled_mse,
         per_view_psnr_db: per_view.iter().map(|v| v.0).collect(),
     })
@@ -938,13 +935,6 @@ fn write_png(
 ) -> Result<(), ExperimentError> {
     files::write_png_rgb(path, canvas.width, canvas.height, &canvas.rgb8)?;
     Ok(())
-}
-
-fn write_text(path: &std::path::Path, text: &str) -> Result<(), ExperimentError> {
-    std::fs::write(path, text).map_err(|e| ExperimentError::Io {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })
 }
 
 fn pct(v: f64) -> String {

@@ -12,8 +12,9 @@
 //! the skip saves time) and `cost` = PSNR without - PSNR with (positive: the skip loses
 //! quality).
 
-use super::pareto::{io_error, run_settings, write_text, Knob, Setting, SweepRow};
+use super::pareto::{run_settings, Knob, Setting, SweepRow};
 use super::preset::Preset;
+use super::write_text;
 use super::ExperimentError;
 use crate::scenario::Scenario;
 use std::fmt::Write as _;
@@ -121,6 +122,11 @@ impl SkipRow {
         self.without.psnr_db - self.with.psnr_db
     }
 
+    /// Masked PSNR (the target's own pixels) the skip costs, dB: the headline cost.
+    pub fn masked_psnr_cost_db(&self) -> f64 {
+        self.without.masked_psnr_db - self.with.masked_psnr_db
+    }
+
     pub fn ssim_cost(&self) -> f64 {
         self.without.ssim - self.with.ssim
     }
@@ -144,7 +150,7 @@ pub struct SkipsJob {
 /// The CSV header, exactly.
 pub const CSV_HEADER: &str = "skip,default_on,with_train_cpu_s,without_train_cpu_s,saved_cpu_s,\
 with_train_s,without_train_s,with_steps,without_steps,with_psnr_db,without_psnr_db,psnr_cost_db,\
-with_ssim,without_ssim,ssim_cost";
+with_ssim,without_ssim,ssim_cost,with_masked_psnr_db,without_masked_psnr_db,masked_psnr_cost_db";
 
 pub fn to_csv(rows: &[SkipRow]) -> String {
     let mut out = String::from(CSV_HEADER);
@@ -152,7 +158,7 @@ pub fn to_csv(rows: &[SkipRow]) -> String {
     for r in rows {
         let _ = writeln!(
             out,
-            "{},{},{:.2},{:.2},{:.2},{:.2},{:.2},{},{},{:.3},{:.3},{:.3},{:.4},{:.4},{:.4}",
+            "{},{},{:.2},{:.2},{:.2},{:.2},{:.2},{},{},{:.3},{:.3},{:.3},{:.4},{:.4},{:.4},{:.3},{:.3},{:.3}",
             r.spec.name,
             r.default_on,
             r.with.train_cpu_s,
@@ -167,7 +173,10 @@ pub fn to_csv(rows: &[SkipRow]) -> String {
             r.psnr_cost_db(),
             r.with.ssim,
             r.without.ssim,
-            r.ssim_cost()
+            r.ssim_cost(),
+            r.with.masked_psnr_db,
+            r.without.masked_psnr_db,
+            r.masked_psnr_cost_db()
         );
     }
     out
@@ -176,14 +185,14 @@ pub fn to_csv(rows: &[SkipRow]) -> String {
 /// Markdown: the measured skips, then the ones without a switch.
 pub fn to_markdown(rows: &[SkipRow]) -> String {
     let mut out = String::from(
-        "| Skip | Default | What it skips | Steps with / without | Train CPU s with / without | Saved CPU s (%) | Train wall s with / without | PSNR dB with / without | Cost dB | SSIM with / without |\n\
-         |---|---|---|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| Skip | Default | What it skips | Steps with / without | Train CPU s with / without | Saved CPU s (%) | Train wall s with / without | masked PSNR dB with / without | masked cost dB | full PSNR dB with / without | SSIM with / without |\n\
+         |---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in rows {
         let pct = 100.0 * r.saved_cpu_s() / r.without.train_cpu_s.max(1e-9);
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {} / {} | {:.1} / {:.1} | {:+.1} ({:+.0} %) | {:.1} / {:.1} | {:.2} / {:.2} | {:+.2} | {:.4} / {:.4} |",
+            "| {} | {} | {} | {} / {} | {:.1} / {:.1} | {:+.1} ({:+.0} %) | {:.1} / {:.1} | {:.2} / {:.2} | {:+.2} | {:.2} / {:.2} | {:.4} / {:.4} |",
             r.spec.name,
             if r.default_on { "on" } else { "off" },
             r.spec.what,
@@ -195,9 +204,11 @@ pub fn to_markdown(rows: &[SkipRow]) -> String {
             pct,
             r.with.train_s,
             r.without.train_s,
+            r.with.masked_psnr_db,
+            r.without.masked_psnr_db,
+            r.masked_psnr_cost_db(),
             r.with.psnr_db,
             r.without.psnr_db,
-            r.psnr_cost_db(),
             r.with.ssim,
             r.without.ssim
         );
@@ -224,7 +235,7 @@ pub fn run_skips(
     progress: &mut dyn FnMut(&str),
 ) -> Result<Vec<SkipRow>, ExperimentError> {
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let mut settings = vec![Setting::new("base", &[])];
     let mut default_on = Vec::new();
     let mut sides = Vec::new();

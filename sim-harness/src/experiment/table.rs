@@ -1,15 +1,26 @@
 //! The results table: one row per (target, configuration), written as CSV and as Markdown laid
-//! out like the paper's Table I (configurations down, targets across, SSIM / PSNR / number of
-//! Gaussians per target, best value per target in bold), followed by a training-time table.
+//! out like the paper's Table I (configurations down, targets across, best value per target
+//! in bold), with the target's own pixels as the headline: masked SSIM, masked PSNR beside an
+//! all-black render's, then full-frame PSNR and the number of Gaussians; then the accuracy
+//! ladder of every run ([`super::ladder`]) and a training-time table.
 //!
-//! Invariants: the CSV header is exactly `target,config,ssim,psnr,gaussians,train_s,step_ms`
-//! and rows keep the order they were given in; targets and configurations appear in the
-//! Markdown in order of first appearance; a missing (target, configuration) cell prints `-`.
+//! Invariants: the CSV header is exactly [`CSV_HEADER`] and rows keep the order they were
+//! given in; targets and configurations appear in the Markdown in order of first appearance;
+//! a missing (target, configuration) cell prints `-`; a configuration within
+//! [`super::ladder::CLEAR_MARGIN_DB`] of black says so in the cell.
 
+use super::ladder::{self, Ladder};
 use std::fmt::Write as _;
 
-/// The CSV header, exactly.
-pub const CSV_HEADER: &str = "target,config,ssim,psnr,gaussians,train_s,step_ms";
+/// The CSV header, exactly: full-frame SSIM and PSNR on the evaluation views, then the
+/// ladder's columns ([`ladder::CSV_COLUMNS`]).
+pub const CSV_HEADER: &str = concat!(
+    "target,config,ssim,psnr,gaussians,train_s,step_ms,",
+    "l0_window_masked_psnr,l0_window_black_masked_psnr,",
+    "l0_seen_masked_psnr,l0_seen_black_masked_psnr,l1_held_out_masked_psnr,",
+    "l1_held_out_black_masked_psnr,l2_eval_masked_psnr,l2_eval_black_masked_psnr,",
+    "l2_covered_masked_psnr,l2_covered_black_masked_psnr,l2_eval_masked_ssim"
+);
 
 /// One trained and evaluated configuration on one target.
 #[derive(Clone, Debug, PartialEq)]
@@ -26,6 +37,8 @@ pub struct ResultRow {
     pub train_s: f64,
     /// Mean wall time of one training step (forward, backward, Adam), milliseconds.
     pub step_ms: f64,
+    /// Masked metrics on every rung, beside black's.
+    pub ladder: Ladder,
 }
 
 /// The paper's row label of a configuration letter.
@@ -63,14 +76,15 @@ pub fn to_csv(rows: &[ResultRow]) -> String {
     for r in rows {
         let _ = writeln!(
             out,
-            "{},{},{:.4},{:.2},{},{:.1},{:.1}",
+            "{},{},{:.4},{:.2},{},{:.1},{:.1},{}",
             csv_field(&r.target),
             csv_field(&r.config),
             r.ssim,
             r.psnr,
             r.gaussians,
             r.train_s,
-            r.step_ms
+            r.step_ms,
+            r.ladder.csv_fields()
         );
     }
     out
@@ -95,7 +109,8 @@ pub fn gaussians_label(n: usize) -> String {
     }
 }
 
-/// Markdown: Table I layout, then training wall time and step time per target.
+/// Markdown: Table I layout (masked headline), the ladder, then training wall time and step
+/// time per target.
 pub fn to_markdown(rows: &[ResultRow]) -> String {
     let targets = first_appearance(rows.iter().map(|r| r.target.as_str()));
     let configs = first_appearance(rows.iter().map(|r| r.config.as_str()));
@@ -106,17 +121,24 @@ pub fn to_markdown(rows: &[ResultRow]) -> String {
             .map(value)
             .fold(f64::NEG_INFINITY, f64::max)
     };
-    let mut out = String::new();
-    out.push_str("| Config. |");
+    let mut out = String::from(
+        "Evaluation views (L2). Masked = the target's own pixels; an all-black render's masked \
+         PSNR in brackets.\n\n| Config. |",
+    );
     for t in &targets {
         let name = target_label(t);
-        let _ = write!(out, " {name} SSIM↑ | {name} PSNR↑ | {name} \\|G\\| |");
+        let _ = write!(
+            out,
+            " {name} masked SSIM↑ | {name} masked PSNR↑ (black) | {name} full PSNR | {name} \\|G\\| |"
+        );
     }
     out.push_str("\n|---|");
     for _ in &targets {
-        out.push_str("---:|---:|---:|");
+        out.push_str("---:|---:|---:|---:|");
     }
     out.push('\n');
+    let masked_ssim = |r: &ResultRow| r.ladder.eval.map_or(f64::NAN, |e| e.masked_ssim);
+    let masked_psnr = |r: &ResultRow| r.ladder.eval.map_or(f64::NAN, |e| e.masked_psnr_db);
     for c in &configs {
         let _ = write!(out, "| {} |", config_label(c));
         for t in &targets {
@@ -131,17 +153,37 @@ pub fn to_markdown(rows: &[ResultRow]) -> String {
                     };
                     let _ = write!(
                         out,
-                        " {} | {} | {} |",
-                        bold(r.ssim, best(t, |r| r.ssim), format!("{:.4}", r.ssim)),
-                        bold(r.psnr, best(t, |r| r.psnr), format!("{:.2}", r.psnr)),
+                        " {} | {} | {:.2} | {} |",
+                        bold(
+                            masked_ssim(r),
+                            best(t, masked_ssim),
+                            format!("{:.4}", masked_ssim(r))
+                        ),
+                        bold(
+                            masked_psnr(r),
+                            best(t, masked_psnr),
+                            ladder::markdown_cell(r.ladder.eval.as_ref())
+                        ),
+                        r.psnr,
                         gaussians_label(r.gaussians)
                     );
                 }
-                None => out.push_str(" - | - | - |"),
+                None => out.push_str(" - | - | - | - |"),
             }
         }
         out.push('\n');
     }
+    out.push('\n');
+    let ladders: Vec<(String, Ladder)> = rows
+        .iter()
+        .map(|r| {
+            (
+                format!("{} {}", target_label(&r.target), config_label(&r.config)),
+                r.ladder,
+            )
+        })
+        .collect();
+    out.push_str(&ladder::to_markdown(&ladders));
     out.push_str("\nTraining wall time (s) / mean step time (ms):\n\n| Config. |");
     for t in &targets {
         let name = target_label(t);

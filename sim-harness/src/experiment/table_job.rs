@@ -12,6 +12,7 @@ use super::figure::{grid_figure, Cell};
 use super::preset::Preset;
 use super::runner::{run_config, RunOutcome};
 use super::table::{config_label, target_label, to_csv, to_markdown, ResultRow};
+use super::write_text;
 use super::ExperimentError;
 use crate::dataset::{files, generate, GenerateOptions};
 use crate::scenario::Scenario;
@@ -67,17 +68,6 @@ pub struct TableResult {
     pub total_s: f64,
 }
 
-fn io_error(path: &Path, e: impl std::fmt::Display) -> ExperimentError {
-    ExperimentError::Io {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    }
-}
-
-fn write_text(path: &Path, text: &str) -> Result<(), ExperimentError> {
-    std::fs::write(path, text).map_err(|e| io_error(path, e))
-}
-
 fn row_of(run: &RunOutcome) -> ResultRow {
     ResultRow {
         target: run.target.clone(),
@@ -87,6 +77,7 @@ fn row_of(run: &RunOutcome) -> ResultRow {
         gaussians: run.gaussians,
         train_s: run.train_s,
         step_ms: run.step_ms,
+        ladder: super::ladder::Ladder::of(run),
     }
 }
 
@@ -192,7 +183,7 @@ pub fn run_table(
 ) -> Result<TableResult, ExperimentError> {
     let started = Instant::now();
     let out = &job.out_dir;
-    std::fs::create_dir_all(out).map_err(|e| io_error(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
     let variants: Vec<Variant> = job
         .preset
         .configs
@@ -236,7 +227,7 @@ pub fn run_table(
             write_text(&out.join("table.md"), &markdown)?;
             write_text(
                 &out.join("runs.json"),
-                &serde_json::to_string_pretty(&runs).map_err(|e| io_error(out, e))?,
+                &serde_json::to_string_pretty(&runs).map_err(|e| ExperimentError::io(out, e))?,
             )?;
             progress(&format!(
                 "{} of {} runs done, {:.0} s elapsed",

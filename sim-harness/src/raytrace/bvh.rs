@@ -410,7 +410,7 @@ fn partition_in_place(items: &mut [BuildItem], goes_left: impl Fn(&BuildItem) ->
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::raytrace::rng::SplitMix64;
+    use gs_core::rng::SplitMix64;
 
     fn random_vec(rng: &mut SplitMix64, scale: f32) -> Vec3 {
         Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * (2.0 * scale)

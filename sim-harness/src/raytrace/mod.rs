@@ -16,15 +16,14 @@
 //! finite and non-negative; depth is the camera z of the hit or +inf.
 
 pub mod bvh;
-pub mod rng;
 pub mod shading;
 pub mod sunlight;
 
 use crate::target::TargetMesh;
 use bvh::{Bvh, Ray};
 use glam::{Quat, Vec3};
+use gs_core::rng::{mix64, SplitMix64};
 use rayon::prelude::*;
-use rng::{mix64, SplitMix64};
 use std::fmt;
 
 /// Sun irradiance in normalised units (see the module header).

@@ -10,9 +10,9 @@
 //! Invariants: outputs are finite and non-negative for unit inputs; evaluation is a pure
 //! function of its arguments (deterministic).
 
-use crate::raytrace::rng::mix64;
 use crate::target::Material;
 use glam::Vec3;
+use gs_core::rng::mix64;
 use std::f32::consts::PI;
 
 /// Reflectance at normal incidence of the dielectrics we model (index of refraction ~1.5).

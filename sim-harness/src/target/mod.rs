@@ -14,8 +14,8 @@ pub use builder::MeshBuilder;
 pub use material::{Material, MIN_ROUGHNESS};
 pub use obj::load_obj;
 
-use crate::raytrace::rng::SplitMix64;
 use glam::Vec3;
+use gs_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::path::PathBuf;
