@@ -175,6 +175,9 @@ pub struct CheckpointConfig {
     pub period_s: u64,
     /// Resume at start from the newest slot the model accepts (`path`, else `path.prev`).
     pub resume: bool,
+    /// A checkpoint whose model (or window, shuffle seed, replay capacity) differs from the
+    /// configured one: refused, or used with a log line.
+    pub on_config_mismatch: crate::sunaware_learner::OnConfigMismatch,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -280,6 +283,7 @@ impl Default for CheckpointConfig {
             path: PathBuf::from("out/component/checkpoint.bin"),
             period_s: 300,
             resume: false,
+            on_config_mismatch: crate::sunaware_learner::OnConfigMismatch::Refuse,
         }
     }
 }

@@ -108,6 +108,7 @@ pub fn build_learner(
                 .model_config()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?;
             settings.model = config.model.clone();
+            settings.on_config_mismatch = config.checkpoint.on_config_mismatch;
             Box::new(SunAwareLearner::new(settings).map_err(RuntimeError::Config)?)
         }
     })

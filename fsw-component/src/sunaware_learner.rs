@@ -15,12 +15,19 @@
 //! random start stays when too few keyframes carry masks or carving fails). Each start is
 //! reported once as `EventKind::ModelInitialised`.
 //!
-//! Checkpoint format (little-endian): magic `FSWSAL01`, rounds u64, trainer length u64, the
-//! gs-core Sun-aware trainer checkpoint (Gaussians, features, latents, MLP weights, optimiser
-//! state, step counters, RNG state; its own magic and checksum), then CRC-32/IEEE of all
-//! before. Loading restores the model and optimiser exactly and continues the round count;
-//! the keyframe window restarts empty (`OnlineTrainer` has no window restore yet); a loaded
-//! model that has not trained yet (0 rounds) still waits for its hull start.
+//! Checkpoint format (little-endian), version 2: magic `FSWSAL02`, hull start pending u8,
+//! trainer length u64, the gs-core Sun-aware trainer checkpoint (Gaussians, features,
+//! latents, MLP weights, optimiser state, step counters, RNG state, the model
+//! configuration; its own magic and checksum), online state length u64, the online
+//! trainer's state (`gs_online::resume`: keyframe window as compact copies, round counter
+//! and so the shuffle, replay memory, counters), then CRC-32/IEEE of all before. Loading
+//! it resumes exactly: the next frames train the same model, bit for bit, as a run that
+//! never stopped (a resumed hull start is not carved again). Version 1 (`FSWSAL01`: rounds
+//! u64, trainer length u64, trainer, CRC) is still read: it resumes the model and the
+//! round count only, the window starts empty (logged), and a model of 0 rounds still waits
+//! for its hull start. A checkpoint whose model configuration differs from the configured
+//! one is refused, or used with a log line (`[checkpoint] on_config_mismatch`); with
+//! `use_checkpoint` the checkpoint's window, shuffle seed and replay capacity are used too.
 //! Invariants: frames the online trainer refuses are skipped, never half-applied; nothing
 //! non-finite enters the model (the online trainer validates, gs-core skips non-finite steps).
 
@@ -36,10 +43,26 @@ use gs_online::keyframe::WindowConfig;
 use gs_online::online::{
     Frame, Initialisation, OfferReport, OnlineConfig, OnlineTrainer, SkipReason,
 };
+use gs_online::resume;
 use interfaces::crc::crc32_ieee;
 use interfaces::messages::{EventKind, InitSource, PixelFormat};
 
-pub const CHECKPOINT_MAGIC: &[u8; 8] = b"FSWSAL01";
+pub const CHECKPOINT_MAGIC: &[u8; 8] = b"FSWSAL02";
+/// Version 1: the model and round count only.
+pub const CHECKPOINT_MAGIC_V1: &[u8; 8] = b"FSWSAL01";
+/// Largest frame a checkpoint's window may hold, in pixels (16 Mpx: 4096 x 4096).
+pub const MAX_CHECKPOINT_FRAME_PIXELS: usize = 1 << 24;
+
+/// What to do when a checkpoint's model configuration differs from the configured one.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OnConfigMismatch {
+    /// Refuse the checkpoint (the default).
+    #[default]
+    Refuse,
+    /// Load it and train on with its configuration (logged).
+    UseCheckpoint,
+}
 
 /// How the adapter builds its online trainer.
 #[derive(Clone, Debug)]
@@ -50,6 +73,8 @@ pub struct SunAwareSettings {
     /// Where the rasterizer and the shadow pass run (`[training] backend`, opened by the
     /// runtime); the networks and Adam stay on the CPU. Not saved in checkpoints.
     pub backend: gs_core::train::Backend,
+    /// `[checkpoint] on_config_mismatch`.
+    pub on_config_mismatch: OnConfigMismatch,
 }
 
 impl SunAwareSettings {
@@ -64,6 +89,7 @@ impl SunAwareSettings {
             },
             model: ModelSettings::default(),
             backend: gs_core::train::Backend::Cpu,
+            on_config_mismatch: OnConfigMismatch::Refuse,
         }
     }
 
@@ -82,8 +108,12 @@ impl SunAwareSettings {
 
     /// A trainer on the random start.
     fn build(&self) -> Result<OnlineTrainer, String> {
+        self.build_with(self.online.clone())
+    }
+
+    fn build_with(&self, online_config: OnlineConfig) -> Result<OnlineTrainer, String> {
         let mut online = OnlineTrainer::new(
-            self.online.clone(),
+            online_config,
             &self.random_init(),
             self.model.ball_scene_box()?,
         )
@@ -100,8 +130,6 @@ pub struct SunAwareLearner {
     settings: SunAwareSettings,
     init: InitKind,
     online: OnlineTrainer,
-    /// Rounds run before the last checkpoint load (the online trainer restarts at zero).
-    rounds_offset: u64,
     /// The hull start is still to be carved (when the window first fills).
     hull_pending: bool,
     /// Events for the bus, taken by [`Learner::take_events`].
@@ -116,7 +144,6 @@ impl SunAwareLearner {
             settings,
             init,
             online,
-            rounds_offset: 0,
             hull_pending: false,
             events: Vec::new(),
         };
@@ -197,7 +224,71 @@ impl SunAwareLearner {
     }
 
     fn rounds(&self) -> u64 {
-        self.rounds_offset + self.online.rounds()
+        self.online.rounds()
+    }
+
+    /// The online configuration to resume `parsed` with: the configured one when the
+    /// checkpoint agrees with it, else refused or the checkpoint's (logged), as
+    /// `on_config_mismatch` says.
+    fn resumed_config(&self, parsed: &Parsed) -> Result<OnlineConfig, LearnerError> {
+        let configured = &self.settings.online;
+        let stored_model = &parsed.trainer.model.config;
+        let stored = parsed
+            .resume
+            .map(|(state, _)| resume::peek_settings(state))
+            .transpose()
+            .map_err(|e| LearnerError::BadCheckpoint(e.to_string()))?;
+        let mut differences = Vec::new();
+        if stored_model != &configured.model {
+            differences.push(format!(
+                "model: checkpoint {stored_model:?}, configured {:?}",
+                configured.model
+            ));
+        }
+        if let Some(s) = stored {
+            if (s.shuffle_seed, s.window, s.replay_capacity)
+                != (
+                    configured.shuffle_seed,
+                    configured.window,
+                    configured.replay_capacity,
+                )
+            {
+                differences.push(format!(
+                    "online trainer: checkpoint window {:?}, shuffle seed {}, replay capacity \
+                     {}; configured {:?}, {}, {}",
+                    s.window,
+                    s.shuffle_seed,
+                    s.replay_capacity,
+                    configured.window,
+                    configured.shuffle_seed,
+                    configured.replay_capacity
+                ));
+            }
+        }
+        if differences.is_empty() {
+            return Ok(configured.clone());
+        }
+        let what = differences.join("; ");
+        match self.settings.on_config_mismatch {
+            OnConfigMismatch::Refuse => Err(LearnerError::BadCheckpoint(format!(
+                "configuration differs from the checkpoint's (refused: [checkpoint] \
+                 on_config_mismatch = \"refuse\"): {what}"
+            ))),
+            OnConfigMismatch::UseCheckpoint => {
+                eprintln!(
+                    "fsw-component: checkpoint configuration used instead of the configured \
+                     one (on_config_mismatch = \"use_checkpoint\"): {what}"
+                );
+                let mut online = configured.clone();
+                online.model = stored_model.clone();
+                if let Some(s) = stored {
+                    online.window = s.window;
+                    online.shuffle_seed = s.shuffle_seed;
+                    online.replay_capacity = s.replay_capacity;
+                }
+                Ok(online)
+            }
+        }
     }
 }
 
@@ -228,35 +319,74 @@ fn round_summary(report: &gs_online::online::RoundReport, rounds: u64) -> RoundS
     }
 }
 
-/// Checks the component wrapper (magic, length, CRC) and parses the gs-core trainer, which
-/// bounds every size and checks every value; returns the stored round count.
-fn parse_checkpoint(
-    bytes: &[u8],
-) -> Result<(u64, gs_core::sunaware::SunAwareTrainer), LearnerError> {
+/// A checkpoint, checked and parsed.
+struct Parsed<'a> {
+    /// Rounds run (version 1: the stored count; version 2: the online state's).
+    rounds: u64,
+    trainer: gs_core::sunaware::SunAwareTrainer,
+    /// Version 2: the online state and the hull start flag.
+    resume: Option<(&'a [u8], bool)>,
+}
+
+fn word(bytes: &[u8], at: usize) -> u64 {
+    let mut b = [0u8; 8];
+    b.copy_from_slice(&bytes[at..at + 8]);
+    u64::from_le_bytes(b)
+}
+
+/// Checks the component wrapper (magic, lengths, CRC) and parses the gs-core trainer, which
+/// bounds every size and checks every value, and the online state's header.
+fn parse_checkpoint(bytes: &[u8]) -> Result<Parsed<'_>, LearnerError> {
     let bad = |why: String| LearnerError::BadCheckpoint(why);
-    if bytes.len() < 28 || &bytes[..8] != CHECKPOINT_MAGIC {
+    let v2 = bytes.get(..8) == Some(CHECKPOINT_MAGIC);
+    if bytes.len() < 28 || !(v2 || &bytes[..8] == CHECKPOINT_MAGIC_V1) {
         return Err(bad("not a Sun-aware component checkpoint (magic)".into()));
     }
     let (body, crc) = bytes.split_at(bytes.len() - 4);
     if crc32_ieee(body).to_le_bytes() != crc {
         return Err(bad("checksum mismatch".into()));
     }
-    let word = |at: usize| {
-        let mut b = [0u8; 8];
-        b.copy_from_slice(&body[at..at + 8]);
-        u64::from_le_bytes(b)
+    let (rounds, trainer_bytes, resume) = if v2 {
+        let hull_pending = match body[8] {
+            0 => false,
+            1 => true,
+            v => return Err(bad(format!("hull start flag {v} is neither 0 nor 1"))),
+        };
+        let len = usize::try_from(word(body, 9)).unwrap_or(usize::MAX);
+        let trainer_end = len
+            .checked_add(17)
+            .filter(|&end| end.checked_add(8).is_some_and(|e| e <= body.len()))
+            .ok_or_else(|| bad(format!("trainer length {len} exceeds the file")))?;
+        let state_len = usize::try_from(word(body, trainer_end)).unwrap_or(usize::MAX);
+        let state = &body[trainer_end + 8..];
+        if state.len() != state_len {
+            return Err(bad(format!(
+                "online state length {state_len} disagrees with the file"
+            )));
+        }
+        let settings = resume::peek_settings(state).map_err(|e| bad(e.to_string()))?;
+        (
+            settings.rounds,
+            &body[17..trainer_end],
+            Some((state, hull_pending)),
+        )
+    } else {
+        let len = usize::try_from(word(body, 16)).unwrap_or(usize::MAX);
+        if body.len() - 24 != len {
+            return Err(bad(format!("trainer length {len} disagrees with the file")));
+        }
+        (word(body, 8), &body[24..], None)
     };
-    let rounds = word(8);
     // Health reports rounds as u32, and the count keeps growing after a load.
     if rounds > u64::from(u32::MAX / 2) {
         return Err(bad(format!("round count {rounds} is implausible")));
     }
-    let len = usize::try_from(word(16)).unwrap_or(usize::MAX);
-    if body.len() - 24 != len {
-        return Err(bad(format!("trainer length {len} disagrees with the file")));
-    }
-    let trainer = checkpoint::from_bytes(&body[24..]).map_err(|e| bad(e.to_string()))?;
-    Ok((rounds, trainer))
+    let trainer = checkpoint::from_bytes(trainer_bytes).map_err(|e| bad(e.to_string()))?;
+    Ok(Parsed {
+        rounds,
+        trainer,
+        resume,
+    })
 }
 
 impl Learner for SunAwareLearner {
@@ -334,42 +464,63 @@ impl Learner for SunAwareLearner {
 
     fn reset(&mut self) -> Result<(), LearnerError> {
         self.online = self.settings.build().map_err(LearnerError::Training)?;
-        self.rounds_offset = 0;
         self.started();
         Ok(())
     }
 
     fn save(&self) -> Vec<u8> {
         let trainer = checkpoint::to_bytes(self.online.trainer());
-        let mut out = Vec::with_capacity(trainer.len() + 32);
+        let state = self.online.state_bytes();
+        let mut out = Vec::with_capacity(trainer.len() + state.len() + 32);
         out.extend_from_slice(CHECKPOINT_MAGIC);
-        out.extend_from_slice(&self.rounds().to_le_bytes());
+        out.push(u8::from(self.hull_pending));
         out.extend_from_slice(&(trainer.len() as u64).to_le_bytes());
         out.extend_from_slice(&trainer);
+        out.extend_from_slice(&(state.len() as u64).to_le_bytes());
+        out.extend_from_slice(&state);
         let crc = crc32_ieee(&out);
         out.extend_from_slice(&crc.to_le_bytes());
         out
     }
 
     fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
-        let (rounds, trainer) = parse_checkpoint(bytes)?;
+        let parsed = parse_checkpoint(bytes)?;
         let bad = LearnerError::BadCheckpoint;
-        let mut online = self.settings.build().map_err(bad)?;
-        *online.trainer_mut() = trainer;
+        let online_config = self.resumed_config(&parsed)?;
+        let mut online = self.settings.build_with(online_config).map_err(bad)?;
+        *online.trainer_mut() = parsed.trainer;
         // A checkpoint holds no backend: the restored trainer runs where this one did.
         online
             .trainer_mut()
             .set_backend(&self.settings.backend)
             .map_err(|e| bad(e.to_string()))?;
-        self.online = online;
-        self.rounds_offset = rounds;
-        // A model that never trained is still the random start.
-        self.hull_pending = self.init == InitKind::Hull && rounds == 0;
+        match parsed.resume {
+            Some((state, hull_pending)) => {
+                online
+                    .restore_state(state, MAX_CHECKPOINT_FRAME_PIXELS)
+                    .map_err(|e| bad(e.to_string()))?;
+                self.online = online;
+                self.hull_pending = hull_pending;
+            }
+            None => {
+                eprintln!(
+                    "fsw-component: version-1 checkpoint: model and {} rounds resumed, the \
+                     keyframe window starts empty",
+                    parsed.rounds
+                );
+                online.set_rounds(parsed.rounds);
+                self.online = online;
+                // A model that never trained is still the random start.
+                self.hull_pending = self.init == InitKind::Hull && parsed.rounds == 0;
+            }
+        }
         Ok(())
     }
 
     fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
-        parse_checkpoint(bytes).map(|(rounds, _)| rounds)
+        let parsed = parse_checkpoint(bytes)?;
+        self.resumed_config(&parsed)?;
+        Ok(parsed.rounds)
     }
 
     fn stats(&self) -> LearnerStats {
@@ -413,14 +564,18 @@ mod tests {
         let mut settings = SunAwareSettings::with_window(WindowConfig::default());
         settings.model.initial_gaussians = 50;
         let mut learner = SunAwareLearner::new(settings).unwrap();
-        learner.rounds_offset = 7;
+        learner.online.set_rounds(7);
         let bytes = learner.save();
         assert_eq!(learner.inspect(&bytes), Ok(7));
         learner.load(&bytes).unwrap();
         assert_eq!(learner.stats().rounds, 7);
         // A checksummed file with an absurd round count is refused by both.
         let mut hostile = bytes[..bytes.len() - 4].to_vec();
-        hostile[8..16].copy_from_slice(&u64::MAX.to_le_bytes());
+        // Version 2: the round count follows the online state's magic and settings.
+        let trainer_len = word(&hostile, 9) as usize;
+        let rounds_at = 17 + trainer_len + 8 + 8 + 32;
+        assert_eq!(word(&hostile, rounds_at), 7);
+        hostile[rounds_at..rounds_at + 8].copy_from_slice(&u64::MAX.to_le_bytes());
         let crc = crc32_ieee(&hostile);
         hostile.extend_from_slice(&crc.to_le_bytes());
         assert!(learner.inspect(&hostile).is_err());

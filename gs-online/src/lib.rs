@@ -9,3 +9,4 @@
 pub mod imagemetrics;
 pub mod keyframe;
 pub mod online;
+pub mod resume;

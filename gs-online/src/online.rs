@@ -271,16 +271,16 @@ pub struct RoundReport {
 /// Keyframe window + Sun-aware trainer + round bookkeeping.
 #[derive(Clone, Debug)]
 pub struct OnlineTrainer {
-    config: OnlineConfig,
-    window: KeyframeWindow<Frame>,
-    trainer: SunAwareTrainer,
-    last_trained_generation: Option<u64>,
-    rounds: u64,
-    counters: OfferCounters,
+    pub(crate) config: OnlineConfig,
+    pub(crate) window: KeyframeWindow<Frame>,
+    pub(crate) trainer: SunAwareTrainer,
+    pub(crate) last_trained_generation: Option<u64>,
+    pub(crate) rounds: u64,
+    pub(crate) counters: OfferCounters,
     /// Evicted keyframes (at most `replay_capacity`), in the order they were kept.
-    replay: Vec<Frame>,
+    pub(crate) replay: Vec<Frame>,
     /// Evictions seen so far: seeds which replay slot a new eviction replaces.
-    evictions: u64,
+    pub(crate) evictions: u64,
 }
 
 fn check_vec(what: &str, v: Vec3) -> Result<(), OnlineError> {
@@ -430,7 +430,13 @@ impl OnlineTrainer {
         self.rounds
     }
 
-    fn validate(&self, frame: &Frame) -> Result<ViewDirection, OnlineError> {
+    /// Sets the round count (which seeds the next round's shuffle and sets the densify
+    /// cadence): how a model restored without its online state continues its count.
+    pub fn set_rounds(&mut self, rounds: u64) {
+        self.rounds = rounds;
+    }
+
+    pub(crate) fn validate(&self, frame: &Frame) -> Result<ViewDirection, OnlineError> {
         let bad = |m: String| Err(OnlineError::BadFrame(format!("frame {}: {m}", frame.id)));
         let cam = &frame.camera;
         check_vec("camera translation", cam.translation)?;
