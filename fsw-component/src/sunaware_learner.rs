@@ -229,8 +229,8 @@ impl SunAwareLearner {
 
     /// The online configuration to resume `parsed` with: the configured one when the
     /// checkpoint agrees with it, else refused or the checkpoint's (logged), as
-    /// `on_config_mismatch` says.
-    fn resumed_config(&self, parsed: &Parsed) -> Result<OnlineConfig, LearnerError> {
+    /// `on_config_mismatch` says; `log` reports a used mismatch.
+    fn resumed_config(&self, parsed: &Parsed, log: bool) -> Result<OnlineConfig, LearnerError> {
         let configured = &self.settings.online;
         let stored_model = &parsed.trainer.model.config;
         let stored = parsed
@@ -275,10 +275,12 @@ impl SunAwareLearner {
                  on_config_mismatch = \"refuse\"): {what}"
             ))),
             OnConfigMismatch::UseCheckpoint => {
-                eprintln!(
-                    "fsw-component: checkpoint configuration used instead of the configured \
+                if log {
+                    eprintln!(
+                        "fsw-component: checkpoint configuration used instead of the configured \
                      one (on_config_mismatch = \"use_checkpoint\"): {what}"
-                );
+                    );
+                }
                 let mut online = configured.clone();
                 online.model = stored_model.clone();
                 if let Some(s) = stored {
@@ -486,7 +488,7 @@ impl Learner for SunAwareLearner {
     fn load(&mut self, bytes: &[u8]) -> Result<(), LearnerError> {
         let parsed = parse_checkpoint(bytes)?;
         let bad = LearnerError::BadCheckpoint;
-        let online_config = self.resumed_config(&parsed)?;
+        let online_config = self.resumed_config(&parsed, true)?;
         let mut online = self.settings.build_with(online_config).map_err(bad)?;
         *online.trainer_mut() = parsed.trainer;
         // A checkpoint holds no backend: the restored trainer runs where this one did.
@@ -519,7 +521,8 @@ impl Learner for SunAwareLearner {
 
     fn inspect(&self, bytes: &[u8]) -> Result<u64, LearnerError> {
         let parsed = parse_checkpoint(bytes)?;
-        self.resumed_config(&parsed)?;
+        // Inspecting is not using: the log line comes with the load.
+        self.resumed_config(&parsed, false)?;
         Ok(parsed.rounds)
     }
 
