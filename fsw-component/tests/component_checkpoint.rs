@@ -181,6 +181,11 @@ async fn a_restart_without_resume_never_saves_an_untrained_model_over_a_trained_
 
     // RESET_MODEL is the explicit command that discards the trained model: then a save
     // goes through, and the trained model is still the previous slot.
+    let arm = CommandKind::Arm(CommandKind::RESET_MODEL);
+    assert_eq!(
+        command_status(&mut peer, 30, arm, &handle).await,
+        AckStatus::Ok
+    );
     let reset = CommandKind::ResetModel;
     assert_eq!(
         command_status(&mut peer, 3, reset, &handle).await,
