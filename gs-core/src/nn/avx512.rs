@@ -27,6 +27,8 @@
 //! is checked against its shape before any unsafe code (a mismatch is a bug in this crate
 //! and panics, like `matmul.rs`). Each call runs on the calling thread only.
 
+use super::matmul::Strided;
+
 /// Rows of the largest register tile.
 pub const TILE_ROWS: usize = 14;
 
@@ -52,84 +54,25 @@ impl Avx512Kernels {
         None
     }
 
-    /// `C (m x n) = A (m x k) * B (k x n)` (row-major), or `C += ...` when `accumulate`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn matmul(
+    /// `C = A B`, or `C += A B` when `accumulate` (`C` row-major `m x n`), for
+    /// `Products`: `m, n, k >= 1` and every operand checked against its shape there.
+    pub(crate) fn product(
         self,
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        m: usize,
-        k: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (m * k, k * n, m * n));
-        self.product(m, k, n, (a, k, 1), (b, n, 1), c, accumulate);
-    }
-
-    /// `C (m x n) = A^T * B` with `A` stored `k x m`, `B` stored `k x n`, or `C += ...`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn matmul_at_b(
-        self,
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        k: usize,
-        m: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (k * m, k * n, m * n));
-        self.product(m, k, n, (a, 1, m), (b, n, 1), c, accumulate);
-    }
-
-    /// `C (m x n) = A (m x k) * B^T` with `B` stored `n x k`, or `C += ...`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn matmul_a_bt(
-        self,
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        m: usize,
-        k: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (m * k, n * k, m * n));
-        self.product(m, k, n, (a, k, 1), (b, 1, k), c, accumulate);
-    }
-
-    /// `C = A B` with `A(i, t) = a[i * a.1 + t * a.2]` and `B(t, j) = b[t * b.1 + j * b.2]`.
-    #[allow(clippy::too_many_arguments)]
-    fn product(
-        self,
-        m: usize,
-        k: usize,
-        n: usize,
-        a: (&[f32], usize, usize),
-        b: (&[f32], usize, usize),
+        (m, k, n): (usize, usize, usize),
+        a: Strided,
+        b: Strided,
         c: &mut [f32],
         accumulate: bool,
     ) {
-        if m == 0 || n == 0 {
-            return;
-        }
-        if k == 0 {
-            if !accumulate {
-                c.fill(0.0);
-            }
-            return;
-        }
         #[cfg(target_arch = "x86_64")]
         {
-            // SAFETY: `self` exists only when the CPU has avx512f (`detect`); the public
-            // entry points checked every slice against its shape.
+            // SAFETY: `self` exists only when the CPU has avx512f (`detect`);
+            // `Layout::operands` checked every slice against its shape.
             unsafe { x86::product(m, k, n, a, b, c, accumulate) }
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let _ = (a, b, c, accumulate);
+            let _ = (m, k, n, a, b, c, accumulate);
             unreachable!("Avx512Kernels cannot be constructed off x86_64");
         }
     }
@@ -313,7 +256,7 @@ mod x86 {
         c: &mut [f32],
         accumulate: bool,
     ) {
-        debug_assert!(TILE_ROWS <= 14, "tile_dispatch covers 14 rows at most");
+        const { assert!(TILE_ROWS <= 14, "tile_dispatch covers 14 rows at most") };
         SCRATCH.with(|scratch| {
             let mut packed = scratch.borrow_mut();
             // A transposed B (the weight matrix of `dZ W^T`) is packed; a row-major one
@@ -370,12 +313,14 @@ mod x86 {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
+    use crate::nn::avx512::Avx512Kernels;
+    use crate::nn::matmul::{F32Kernel, Products};
     use crate::rng::SplitMix64;
 
     /// The kernels, or `None` after a printed skip notice; a failure instead when
     /// `GS_REQUIRE_AVX512=1` (a CI machine that must run these tests).
-    fn kernels() -> Option<Avx512Kernels> {
+    /// The AVX-512 products (the kernels behind `Products`' shape checks), or `None`.
+    fn kernels() -> Option<Products> {
         let found = Avx512Kernels::detect();
         if found.is_none() {
             if std::env::var("GS_REQUIRE_AVX512").is_ok_and(|v| v == "1") {
@@ -383,7 +328,7 @@ mod tests {
             }
             eprintln!("SKIPPED (set GS_REQUIRE_AVX512=1 to fail instead): no avx512f");
         }
-        found
+        found.map(|k| Products::f32_on(F32Kernel::Avx512(k)))
     }
 
     /// Values over several binades, signed, with exact zeros.

@@ -128,11 +128,7 @@ impl Products {
         n: usize,
         accumulate: bool,
     ) {
-        match (self.bf16, self.f32_kernel) {
-            (Some(kernels), _) => kernels.matmul(a, b, c, m, k, n, accumulate),
-            (None, F32Kernel::Avx512(kernels)) => kernels.matmul(a, b, c, m, k, n, accumulate),
-            (None, F32Kernel::Portable) => portable::matmul(a, b, c, m, k, n, accumulate),
-        }
+        self.run(Layout::AB, a, b, c, (m, k, n), accumulate);
     }
 
     /// [`matmul_at_b`] in this precision.
@@ -147,11 +143,7 @@ impl Products {
         n: usize,
         accumulate: bool,
     ) {
-        match (self.bf16, self.f32_kernel) {
-            (Some(kernels), _) => kernels.matmul_at_b(a, b, c, k, m, n, accumulate),
-            (None, F32Kernel::Avx512(kernels)) => kernels.matmul_at_b(a, b, c, k, m, n, accumulate),
-            (None, F32Kernel::Portable) => portable::matmul_at_b(a, b, c, k, m, n, accumulate),
-        }
+        self.run(Layout::AtB, a, b, c, (m, k, n), accumulate);
     }
 
     /// [`matmul_a_bt`] in this precision.
@@ -166,55 +158,94 @@ impl Products {
         n: usize,
         accumulate: bool,
     ) {
+        self.run(Layout::ABt, a, b, c, (m, k, n), accumulate);
+    }
+
+    /// `C (m x n)` from `A` and `B` stored as `layout` says, on this value's kernel.
+    fn run(
+        self,
+        layout: Layout,
+        a: &[f32],
+        b: &[f32],
+        c: &mut [f32],
+        (m, k, n): (usize, usize, usize),
+        accumulate: bool,
+    ) {
+        let Some((a, b)) = layout.operands(a, b, c, (m, k, n), accumulate) else {
+            return;
+        };
         match (self.bf16, self.f32_kernel) {
-            (Some(kernels), _) => kernels.matmul_a_bt(a, b, c, m, k, n, accumulate),
-            (None, F32Kernel::Avx512(kernels)) => kernels.matmul_a_bt(a, b, c, m, k, n, accumulate),
-            (None, F32Kernel::Portable) => portable::matmul_a_bt(a, b, c, m, k, n, accumulate),
+            (Some(kernel), _) => kernel.product((m, k, n), a, b, c, accumulate),
+            (None, F32Kernel::Avx512(kernel)) => kernel.product((m, k, n), a, b, c, accumulate),
+            (None, F32Kernel::Portable) => portable::product((m, k, n), a, b, c, accumulate),
         }
     }
 }
 
-/// The `gemm` crate's products, with the same shapes and modes as the public functions.
-mod portable {
-    use super::Parallelism;
+/// One operand of a strided product: `X(r, s) = slice[r * .1 + s * .2]`.
+pub(crate) type Strided<'a> = (&'a [f32], usize, usize);
 
-    /// Row-major stride pair `(column stride, row stride)` of a dense `rows x cols` matrix.
-    const fn row_major(cols: usize) -> (isize, isize) {
-        (1, cols as isize)
-    }
+/// How the operands of `C (m x n) = A (m x k) B (k x n)` are stored (all row-major).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Layout {
+    /// `A` is `m x k`, `B` is `k x n` ([`matmul`]).
+    AB,
+    /// `A` is stored `k x m` ([`matmul_at_b`]).
+    AtB,
+    /// `B` is stored `n x k` ([`matmul_a_bt`]).
+    ABt,
+}
 
-    /// Stride pair of the transpose of a dense row-major matrix with `cols` columns.
-    const fn transposed(cols: usize) -> (isize, isize) {
-        (cols as isize, 1)
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    fn gemm_raw(
-        m: usize,
-        k: usize,
-        n: usize,
-        a: &[f32],
-        a_strides: (isize, isize),
-        b: &[f32],
-        b_strides: (isize, isize),
+impl Layout {
+    /// `A` and `B` as strided operands, after checking every slice against the shape (a
+    /// mismatch is a bug in this crate: it panics). `None` when nothing is left to compute
+    /// (`m` or `n` zero; `k` zero, with `C` zeroed unless accumulating).
+    fn operands<'a>(
+        self,
+        a: &'a [f32],
+        b: &'a [f32],
         c: &mut [f32],
+        (m, k, n): (usize, usize, usize),
         accumulate: bool,
-    ) {
-        assert!(a.len() >= m * k && b.len() >= k * n && c.len() >= m * n);
+    ) -> Option<(Strided<'a>, Strided<'a>)> {
+        assert_eq!((a.len(), b.len(), c.len()), (m * k, k * n, m * n));
         if m == 0 || n == 0 {
-            return;
+            return None;
         }
         if k == 0 {
             if !accumulate {
-                c[..m * n].fill(0.0);
+                c.fill(0.0);
             }
-            return;
+            return None;
         }
-        // SAFETY: the asserts above guarantee that every element addressed through the given
-        // strides, (i, j) -> i * rs + j * cs with i < rows, j < cols, lies inside its slice:
-        // row-major strides address at most (rows - 1) * cols + cols - 1 < rows * cols, and
-        // transposed strides address the same set of elements. `c` is borrowed mutably and
-        // cannot alias `a` or `b`.
+        Some(match self {
+            Layout::AB => ((a, k, 1), (b, n, 1)),
+            Layout::AtB => ((a, 1, m), (b, n, 1)),
+            Layout::ABt => ((a, k, 1), (b, 1, k)),
+        })
+    }
+}
+
+/// The `gemm` crate's product on strided operands.
+mod portable {
+    use super::{Parallelism, Strided};
+
+    /// `C = A B`, or `C += A B`; `m, n, k >= 1`, operands checked by `Layout::operands`.
+    pub fn product(
+        (m, k, n): (usize, usize, usize),
+        (a, a_rs, a_cs): Strided,
+        (b, b_rs, b_cs): Strided,
+        c: &mut [f32],
+        accumulate: bool,
+    ) {
+        // Re-checked here because the unsafe call below relies on it: the largest index
+        // addressed in each operand lies inside its slice.
+        assert!(a.len() > (m - 1) * a_rs + (k - 1) * a_cs);
+        assert!(b.len() > (k - 1) * b_rs + (n - 1) * b_cs);
+        assert_eq!(c.len(), m * n);
+        // SAFETY: the asserts above bound every element addressed through the strides,
+        // `(i, t) -> i * rs + t * cs` with `i < rows`, `t < cols`, by the slices' lengths.
+        // `c` is borrowed mutably and cannot alias `a` or `b`.
         unsafe {
             gemm::gemm(
                 m,
@@ -225,11 +256,11 @@ mod portable {
                 n as isize,
                 accumulate,
                 a.as_ptr(),
-                a_strides.0,
-                a_strides.1,
+                a_cs as isize,
+                a_rs as isize,
                 b.as_ptr(),
-                b_strides.0,
-                b_strides.1,
+                b_cs as isize,
+                b_rs as isize,
                 1.0f32,
                 1.0f32,
                 false,
@@ -238,50 +269,6 @@ mod portable {
                 Parallelism::None,
             );
         }
-    }
-
-    /// `C (m x n) = A (m x k) * B (k x n)`, or `C += ...` when `accumulate`.
-    pub fn matmul(
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        m: usize,
-        k: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (m * k, k * n, m * n));
-        gemm_raw(m, k, n, a, row_major(k), b, row_major(n), c, accumulate);
-    }
-
-    /// `C (m x n) = A^T * B` with `A` stored `k x m` and `B` stored `k x n`, or `C += ...`.
-    /// This is the weight-gradient product `X^T dZ` (reduction over the `k` batch rows).
-    pub fn matmul_at_b(
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        k: usize,
-        m: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (k * m, k * n, m * n));
-        gemm_raw(m, k, n, a, transposed(m), b, row_major(n), c, accumulate);
-    }
-
-    /// `C (m x n) = A (m x k) * B^T` with `B` stored `n x k`, or `C += ...`.
-    /// This is the input-gradient product `dZ W^T`.
-    pub fn matmul_a_bt(
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        m: usize,
-        k: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (m * k, n * k, m * n));
-        gemm_raw(m, k, n, a, row_major(k), b, transposed(k), c, accumulate);
     }
 }
 
