@@ -6,10 +6,19 @@
 //! gradient reduction, finiteness checks) shows.
 //!
 //! Run: `cargo run --release -p gs-core --example mlp_bench -- [--json] [--quick] [--reps N]
-//! [--mlp-only] [--net phi|psi] [--precision f32|bf16] [--width N]`. `--mlp-only` skips the
-//! GEMM table; `--net` keeps one network; `--precision` picks the products (both the
-//! networks' and the floor's; bf16 needs AVX-512 BF16); `--width` sets Phi's hidden width
-//! (default 256); `--json` prints one JSON object per line instead of the tables.
+//! [--mlp-only] [--net phi|psi] [--precision f32|bf16] [--kernel avx512|gemm-crate]
+//! [--width N] [--reference-python PATH | --no-reference]`. `--mlp-only` skips the GEMM
+//! table; `--net` keeps one network; `--precision` picks the products (both the networks'
+//! and the floor's; bf16 needs AVX-512 BF16); `--kernel` the f32 kernel (default: the
+//! fastest this CPU runs); `--width` sets Phi's hidden width (default 256); `--json`
+//! prints one JSON object per line instead of the tables.
+//!
+//! The machine's own rate: before the tables, numpy's `matmul` (its BLAS, OpenBLAS in the
+//! PyPI wheels) is timed in a subprocess on 100,000 x 256 x 256 and 2048^3 on 1 and 2
+//! threads (`bench_util/reference.rs`; `--reference-python` names the Python, default
+//! `python3`). Every GEMM and MLP rate is then also printed as a percentage of the
+//! tall-skinny reference on the same thread count ("%ref"). Without numpy the header says
+//! the reference is unavailable and the percentages are left out.
 //!
 //! Times are minima over repetitions (the machine is shared; the minimum is the least
 //! disturbed run). Floor and MLP are measured alternately within each repetition, so a
@@ -18,11 +27,13 @@
 use std::time::Instant;
 
 mod bench_util;
+use bench_util::reference::{self, Reference};
 use bench_util::{arg_str, exit_if_help, init_threads, json_machine_fields};
 
 use gs_core::nn::mlp::BLOCK_ROWS;
 use gs_core::nn::{
-    AppearanceNet, MatmulPrecision, Mlp, PositionalEncoding, Products, ShadowNet, TapeMode,
+    AppearanceNet, F32Kernel, MatmulPrecision, Mlp, PositionalEncoding, Products, ShadowNet,
+    TapeMode,
 };
 use rayon::prelude::*;
 
@@ -160,7 +171,11 @@ usage: cargo run --release -p gs-core --example mlp_bench -- [FLAGS]
   --mlp-only       skip the GEMM table
   --net NAME       phi or psi: keep one network
   --precision P    f32 or bf16 products (bf16 needs AVX-512 BF16; default f32)
+  --kernel K       f32 kernel: avx512 or gemm-crate (default: the fastest present)
   --width N        Phi's hidden width (default 256)
+  --reference-python PATH
+                   Python with numpy for the reference SGEMM rate (default python3)
+  --no-reference   skip the reference SGEMM
   -h, --help       this text";
 
 fn main() {
@@ -183,10 +198,26 @@ fn main() {
             std::process::exit(2);
         }
     };
-    let products = match Products::new(precision) {
-        Ok(p) => p,
-        Err(e) => {
+    let products = match (Products::new(precision), arg_str(&args, "--kernel")) {
+        (Err(e), _) => {
             eprintln!("mlp_bench: {e}");
+            std::process::exit(2);
+        }
+        (Ok(p), None) => p,
+        (Ok(_), Some(_)) if precision != MatmulPrecision::F32 => {
+            eprintln!("mlp_bench: --kernel applies to f32 products only");
+            std::process::exit(2);
+        }
+        (Ok(_), Some("gemm-crate")) => Products::f32_on(F32Kernel::Portable),
+        (Ok(_), Some("avx512")) => match F32Kernel::detect() {
+            kernel @ F32Kernel::Avx512(_) => Products::f32_on(kernel),
+            F32Kernel::Portable => {
+                eprintln!("mlp_bench: --kernel avx512: this CPU lacks avx512f");
+                std::process::exit(2);
+            }
+        },
+        (Ok(_), Some(other)) => {
+            eprintln!("mlp_bench: --kernel {other:?}: expected avx512 or gemm-crate");
             std::process::exit(2);
         }
     };
@@ -214,7 +245,7 @@ fn main() {
     .into_iter()
     .filter(|n| net_filter.is_none_or(|f| n.name.starts_with(f)))
     .map(|mut n| {
-        n.mlp.set_precision(precision).expect("checked above");
+        n.mlp.set_products(products);
         n
     })
     .collect();
@@ -228,17 +259,35 @@ fn main() {
         .collect();
 
     let machine = json_machine_fields();
+    let kernel = products.f32_kernel().map_or("bf16", F32Kernel::name);
+    let header = format!("{}; products: {kernel}", gs_core::machine::header_line());
     if json {
-        eprintln!("{}", gs_core::machine::header_line());
+        eprintln!("{header}");
     } else {
-        println!("{}", gs_core::machine::header_line());
+        println!("{header}");
     }
+    let reference = if args.iter().any(|a| a == "--no-reference") {
+        Err("skipped (--no-reference)".to_string())
+    } else {
+        let python = arg_str(&args, "--reference-python").unwrap_or("python3");
+        let threads: Vec<usize> = pools.iter().map(|(t, _)| *t).collect();
+        reference::measure(python, &threads, reps.max(5))
+    };
+    print_reference(&reference, json, &machine);
+    let reference = reference.ok();
+    // "x.y" percent of the tall-skinny reference on `threads`, or "-" without one.
+    let percent = |gflops: f64, threads: usize| -> String {
+        reference
+            .as_ref()
+            .and_then(|r| r.tall_skinny(threads))
+            .map_or("-".to_string(), |r| format!("{:.0}", 100.0 * gflops / r))
+    };
     if !mlp_only {
         if !json {
             println!("GEMM (row-blocked, {BLOCK_ROWS} rows per block), GFLOP/s");
             println!(
-                "{:>8} {:>8} {:>8} {:>10} {:>10}",
-                "product", "rows", "k->n", "1 thread", "2 threads"
+                "{:>8} {:>8} {:>8} {:>10} {:>5} {:>10} {:>5}",
+                "product", "rows", "k->n", "1 thread", "%ref", "2 threads", "%ref"
             );
         }
         let mut shapes: Vec<(usize, usize, usize)> = Vec::new();
@@ -271,12 +320,14 @@ fn main() {
                 }
                 if !json {
                     println!(
-                        "{:>8} {:>8} {:>8} {:>10.1} {:>10.1}",
+                        "{:>8} {:>8} {:>8} {:>10.1} {:>5} {:>10.1} {:>5}",
                         product.name(),
                         rows,
                         format!("{k}->{n}"),
                         rates[0],
-                        rates[1]
+                        percent(rates[0], 1),
+                        rates[1],
+                        percent(rates[1], 2)
                     );
                 }
             }
@@ -292,7 +343,7 @@ fn main() {
              without tape; bwd: backward with d_input)"
         );
         println!(
-            "{:>9} {:>7} {:>3} {:>8} {:>8} {:>8} {:>6} {:>8} {:>8} {:>6} {:>8} {:>8}",
+            "{:>9} {:>7} {:>3} {:>8} {:>8} {:>8} {:>6} {:>8} {:>8} {:>6} {:>8} {:>5} {:>8} {:>5}",
             "net",
             "rows",
             "thr",
@@ -304,7 +355,9 @@ fn main() {
             "floor",
             "ratio",
             "fwd GF/s",
-            "bwd GF/s"
+            "%ref",
+            "bwd GF/s",
+            "%ref"
         );
     }
     for net in &nets {
@@ -363,7 +416,7 @@ fn main() {
                     );
                 } else {
                     println!(
-                        "{:>9} {:>7} {:>3} {:>8.2} {:>8.2} {:>8.2} {:>6.2} {:>8.2} {:>8.2} {:>6.2} {:>8.1} {:>8.1}",
+                        "{:>9} {:>7} {:>3} {:>8.2} {:>8.2} {:>8.2} {:>6.2} {:>8.2} {:>8.2} {:>6.2} {:>8.1} {:>5} {:>8.1} {:>5}",
                         net.name,
                         rows,
                         threads,
@@ -375,10 +428,52 @@ fn main() {
                         fb * 1e3,
                         t_bwd / fb,
                         gf_fwd,
-                        gf_bwd
+                        percent(gf_fwd, *threads),
+                        gf_bwd,
+                        percent(gf_bwd, *threads)
                     );
                 }
             }
         }
+    }
+}
+
+/// The reference block: a table (or JSON lines) of the numpy rates, or why there are none.
+fn print_reference(reference: &Result<Reference, String>, json: bool, machine: &str) {
+    match reference {
+        Ok(r) if json => {
+            for rate in &r.rates {
+                println!(
+                    "{{\"kind\":\"reference\",{machine},\"library\":{},\"m\":{},\"k\":{},\"n\":{},\"threads\":{},\"gflops\":{:.2}}}",
+                    bench_util::json_string(&r.library),
+                    rate.m,
+                    rate.k,
+                    rate.n,
+                    rate.threads,
+                    rate.gflops
+                );
+            }
+        }
+        Ok(r) => {
+            println!("reference SGEMM in this run ({}), GFLOP/s", r.library);
+            println!("{:>16} {:>10} {:>10}", "m x k x n", "1 thread", "2 threads");
+            for shape in reference::SHAPES {
+                let show = |t| r.rate(shape, t).map_or("-".into(), |g| format!("{g:.1}"));
+                println!(
+                    "{:>16} {:>10} {:>10}",
+                    format!("{}x{}x{}", shape.0, shape.1, shape.2),
+                    show(1),
+                    show(2)
+                );
+            }
+            println!(
+                "(%ref below: percent of the {}x{}x{} rate on the same thread count)\n",
+                reference::SHAPES[0].0,
+                reference::SHAPES[0].1,
+                reference::SHAPES[0].2
+            );
+        }
+        Err(e) if json => eprintln!("reference SGEMM unavailable: {e}"),
+        Err(e) => println!("reference SGEMM unavailable: {e}\n"),
     }
 }

@@ -3,12 +3,15 @@
 //! are NaN, printed as such, never an error); and the setup several of them share:
 //! `--help`, `--name VALUE` arguments, the denormal mode of their threads (`GS_DENORMALS`,
 //! as the binaries do: [`init_threads`]), the machine fields of their JSON lines, the
-//! random Gaussian cloud of the rasterizer benchmarks, and the `main` of an example that
-//! needs the `wgpu` feature ([`wgpu_main!`]).
+//! random Gaussian cloud of the rasterizer benchmarks, the `main` of an example that
+//! needs the `wgpu` feature ([`wgpu_main!`]), and the machine's tuned GEMM rate measured
+//! beside a benchmark (`reference.rs`).
 //!
 //! Included with `#[macro_use] mod bench_util;` (a folder without `main.rs`, so cargo
 //! does not take it for an example of its own). Not every example uses every item.
 #![allow(dead_code, unused_macros)]
+
+pub mod reference;
 
 use gs_core::raster::GaussianView;
 use gs_core::rng::SplitMix64;

@@ -22,6 +22,7 @@
 //! from Rust 1.89.
 
 use super::error::NnError;
+use super::matmul::Strided;
 
 /// The bfloat16 bits of `x`, rounded to nearest with ties to even (the upper half of the
 /// f32 after rounding). Finite inputs whose magnitude rounds past bfloat16's largest value
@@ -70,84 +71,25 @@ impl Bf16Kernels {
         ))
     }
 
-    /// `C (m x n) = A (m x k) * B (k x n)` (row-major), or `C += ...` when `accumulate`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn matmul(
+    /// `C = A B`, or `C += A B` when `accumulate` (`C` row-major `m x n`), for
+    /// `Products`: `m, n, k >= 1` and every operand checked against its shape there.
+    pub(crate) fn product(
         self,
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        m: usize,
-        k: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (m * k, k * n, m * n));
-        self.product(m, k, n, (a, k, 1), (b, n, 1), c, accumulate);
-    }
-
-    /// `C (m x n) = A^T * B` with `A` stored `k x m`, `B` stored `k x n`, or `C += ...`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn matmul_at_b(
-        self,
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        k: usize,
-        m: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (k * m, k * n, m * n));
-        self.product(m, k, n, (a, 1, m), (b, n, 1), c, accumulate);
-    }
-
-    /// `C (m x n) = A (m x k) * B^T` with `B` stored `n x k`, or `C += ...`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn matmul_a_bt(
-        self,
-        a: &[f32],
-        b: &[f32],
-        c: &mut [f32],
-        m: usize,
-        k: usize,
-        n: usize,
-        accumulate: bool,
-    ) {
-        assert_eq!((a.len(), b.len(), c.len()), (m * k, n * k, m * n));
-        self.product(m, k, n, (a, k, 1), (b, 1, k), c, accumulate);
-    }
-
-    /// `C = A B` with `A(i, t) = a[i * a.1 + t * a.2]` and `B(t, j) = b[t * b.1 + j * b.2]`.
-    #[allow(clippy::too_many_arguments)]
-    fn product(
-        self,
-        m: usize,
-        k: usize,
-        n: usize,
-        a: (&[f32], usize, usize),
-        b: (&[f32], usize, usize),
+        (m, k, n): (usize, usize, usize),
+        a: Strided,
+        b: Strided,
         c: &mut [f32],
         accumulate: bool,
     ) {
-        if m == 0 || n == 0 {
-            return;
-        }
-        if k == 0 {
-            if !accumulate {
-                c.fill(0.0);
-            }
-            return;
-        }
         #[cfg(target_arch = "x86_64")]
         {
-            // SAFETY: `self` exists only when the CPU has avx512bf16 and avx512f
-            // (`detect`); the public entry points checked every slice against its shape.
+            // SAFETY: `self` exists only when the CPU has avx512bf16 and avx512f (`detect`);
+            // `Layout::operands` checked every slice against its shape.
             unsafe { x86::product(m, k, n, a, b, c, accumulate) }
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let _ = (a, b, c, accumulate);
+            let _ = (m, k, n, a, b, c, accumulate);
             unreachable!("Bf16Kernels cannot be constructed off x86_64");
         }
     }
@@ -424,10 +366,12 @@ mod x86 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::nn::matmul::{MatmulPrecision, Products};
     use crate::rng::SplitMix64;
 
-    fn kernels() -> Option<Bf16Kernels> {
-        match Bf16Kernels::detect() {
+    /// The bf16 products (the kernels behind `Products`' shape checks), or `None`.
+    fn kernels() -> Option<Products> {
+        match Products::new(MatmulPrecision::Bf16) {
             Ok(k) => Some(k),
             Err(e) => {
                 eprintln!("skipping the bf16 kernel test: {e}");
@@ -656,7 +600,7 @@ mod tests {
 
     #[test]
     fn empty_shapes_and_missing_cpu_feature() {
-        match Bf16Kernels::detect() {
+        match Products::new(MatmulPrecision::Bf16) {
             Ok(kernels) => {
                 let mut c = vec![5.0; 6];
                 kernels.matmul(&[], &[], &mut c, 2, 0, 3, true);

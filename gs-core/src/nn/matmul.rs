@@ -1,5 +1,10 @@
-//! Single-threaded row-major f32 matrix products on the `gemm` crate, and [`Products`]: the
-//! networks' choice between these and the bfloat16 kernels of `bf16.rs`.
+//! Single-threaded row-major f32 matrix products, and [`Products`]: the networks' choice
+//! between these and the bfloat16 kernels of `bf16.rs`.
+//!
+//! The f32 products run on the AVX-512 kernels of `avx512.rs` where the CPU has AVX-512F
+//! (detected at run time, never by compile flags: the same binary runs on CPUs without
+//! it), else on the portable `gemm` crate ([`F32Kernel`]). The two sum in different orders,
+//! so their results differ in the last bits; each is bit-reproducible on its own.
 //!
 //! Invariants: every matrix is a dense row-major slice whose length is checked against its
 //! shape before the unsafe call (a mismatch is a bug in this crate, so it panics here rather
@@ -10,17 +15,20 @@
 //!
 //! `gemm` was chosen over `matrixmultiply` by measurement on the target machine (see
 //! `examples/mlp_bench.rs`): similar on the 256-wide shapes, several times faster on the
-//! narrow shapes of the shadow network (55 x 32, 32 x 32).
+//! narrow shapes of the shadow network (55 x 32, 32 x 32). On stable Rust it has only
+//! AVX2 kernels; the AVX-512 kernels replace it where they can run (`mlp_bench --kernel`
+//! compares the two).
 
 use gemm::Parallelism;
 
+use super::avx512::Avx512Kernels;
 use super::bf16::Bf16Kernels;
 use super::error::NnError;
 
 /// Arithmetic of the networks' matrix products.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum MatmulPrecision {
-    /// f32 inputs, f32 accumulation (the `gemm` crate).
+    /// f32 inputs, f32 accumulation ([`F32Kernel::detect`] picks the kernel).
     #[default]
     F32,
     /// Inputs rounded to bfloat16, f32 accumulation (AVX-512 BF16 where the CPU has it).
@@ -35,23 +43,70 @@ impl MatmulPrecision {
     }
 }
 
+/// The kernel of the f32 products.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum F32Kernel {
+    /// The `gemm` crate (AVX2/FMA or scalar, its own run-time choice): runs everywhere.
+    Portable,
+    /// `avx512.rs` (its value proves the CPU has AVX-512F).
+    Avx512(Avx512Kernels),
+}
+
+impl F32Kernel {
+    /// The fastest kernel this CPU runs: AVX-512 where present, else portable.
+    pub fn detect() -> Self {
+        Avx512Kernels::detect().map_or(Self::Portable, Self::Avx512)
+    }
+
+    /// The name the benchmarks print.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Portable => "gemm-crate",
+            Self::Avx512(_) => "avx512",
+        }
+    }
+}
+
+impl Default for F32Kernel {
+    fn default() -> Self {
+        Self::detect()
+    }
+}
+
 /// The matrix products of one precision, checked against the CPU when chosen: the three
 /// layouts the MLP uses, each single-threaded and deterministic.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Products {
     /// `Some` for bfloat16 products (its existence proves the CPU runs them).
     bf16: Option<Bf16Kernels>,
+    /// The f32 products' kernel (unused when `bf16` is set).
+    f32_kernel: F32Kernel,
 }
 
 impl Products {
-    /// Products of `precision`, or an error when the CPU lacks what it needs.
+    /// Products of `precision`, or an error when the CPU lacks what it needs. f32 products
+    /// take the fastest kernel the CPU runs ([`F32Kernel::detect`]).
     pub fn new(precision: MatmulPrecision) -> Result<Self, NnError> {
         Ok(Self {
             bf16: match precision {
                 MatmulPrecision::F32 => None,
                 MatmulPrecision::Bf16 => Some(Bf16Kernels::detect()?),
             },
+            f32_kernel: F32Kernel::detect(),
         })
+    }
+
+    /// f32 products on `kernel` (benchmarks and tests compare kernels).
+    pub fn f32_on(kernel: F32Kernel) -> Self {
+        Self {
+            bf16: None,
+            f32_kernel: kernel,
+        }
+    }
+
+    /// The kernel of the f32 products (`None` for bfloat16 products).
+    pub fn f32_kernel(self) -> Option<F32Kernel> {
+        self.bf16.is_none().then_some(self.f32_kernel)
     }
 
     pub fn precision(self) -> MatmulPrecision {
@@ -73,10 +128,7 @@ impl Products {
         n: usize,
         accumulate: bool,
     ) {
-        match self.bf16 {
-            None => matmul(a, b, c, m, k, n, accumulate),
-            Some(kernels) => kernels.matmul(a, b, c, m, k, n, accumulate),
-        }
+        self.run(Layout::AB, a, b, c, (m, k, n), accumulate);
     }
 
     /// [`matmul_at_b`] in this precision.
@@ -91,10 +143,7 @@ impl Products {
         n: usize,
         accumulate: bool,
     ) {
-        match self.bf16 {
-            None => matmul_at_b(a, b, c, k, m, n, accumulate),
-            Some(kernels) => kernels.matmul_at_b(a, b, c, k, m, n, accumulate),
-        }
+        self.run(Layout::AtB, a, b, c, (m, k, n), accumulate);
     }
 
     /// [`matmul_a_bt`] in this precision.
@@ -109,79 +158,124 @@ impl Products {
         n: usize,
         accumulate: bool,
     ) {
-        match self.bf16 {
-            None => matmul_a_bt(a, b, c, m, k, n, accumulate),
-            Some(kernels) => kernels.matmul_a_bt(a, b, c, m, k, n, accumulate),
+        self.run(Layout::ABt, a, b, c, (m, k, n), accumulate);
+    }
+
+    /// `C (m x n)` from `A` and `B` stored as `layout` says, on this value's kernel.
+    fn run(
+        self,
+        layout: Layout,
+        a: &[f32],
+        b: &[f32],
+        c: &mut [f32],
+        (m, k, n): (usize, usize, usize),
+        accumulate: bool,
+    ) {
+        let Some((a, b)) = layout.operands(a, b, c, (m, k, n), accumulate) else {
+            return;
+        };
+        match (self.bf16, self.f32_kernel) {
+            (Some(kernel), _) => kernel.product((m, k, n), a, b, c, accumulate),
+            (None, F32Kernel::Avx512(kernel)) => kernel.product((m, k, n), a, b, c, accumulate),
+            (None, F32Kernel::Portable) => portable::product((m, k, n), a, b, c, accumulate),
         }
     }
 }
 
-/// Row-major stride pair `(column stride, row stride)` of a dense `rows x cols` matrix.
-const fn row_major(cols: usize) -> (isize, isize) {
-    (1, cols as isize)
+/// One operand of a strided product: `X(r, s) = slice[r * .1 + s * .2]`.
+pub(crate) type Strided<'a> = (&'a [f32], usize, usize);
+
+/// How the operands of `C (m x n) = A (m x k) B (k x n)` are stored (all row-major).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Layout {
+    /// `A` is `m x k`, `B` is `k x n` ([`matmul`]).
+    AB,
+    /// `A` is stored `k x m` ([`matmul_at_b`]).
+    AtB,
+    /// `B` is stored `n x k` ([`matmul_a_bt`]).
+    ABt,
 }
 
-/// Stride pair of the transpose of a dense row-major matrix with `cols` columns.
-const fn transposed(cols: usize) -> (isize, isize) {
-    (cols as isize, 1)
-}
-
-#[allow(clippy::too_many_arguments)]
-fn gemm_raw(
-    m: usize,
-    k: usize,
-    n: usize,
-    a: &[f32],
-    a_strides: (isize, isize),
-    b: &[f32],
-    b_strides: (isize, isize),
-    c: &mut [f32],
-    accumulate: bool,
-) {
-    assert!(a.len() >= m * k && b.len() >= k * n && c.len() >= m * n);
-    if m == 0 || n == 0 {
-        return;
-    }
-    if k == 0 {
-        if !accumulate {
-            c[..m * n].fill(0.0);
+impl Layout {
+    /// `A` and `B` as strided operands, after checking every slice against the shape (a
+    /// mismatch is a bug in this crate: it panics). `None` when nothing is left to compute
+    /// (`m` or `n` zero; `k` zero, with `C` zeroed unless accumulating).
+    fn operands<'a>(
+        self,
+        a: &'a [f32],
+        b: &'a [f32],
+        c: &mut [f32],
+        (m, k, n): (usize, usize, usize),
+        accumulate: bool,
+    ) -> Option<(Strided<'a>, Strided<'a>)> {
+        assert_eq!((a.len(), b.len(), c.len()), (m * k, k * n, m * n));
+        if m == 0 || n == 0 {
+            return None;
         }
-        return;
-    }
-    // SAFETY: the asserts above guarantee that every element addressed through the given
-    // strides, (i, j) -> i * rs + j * cs with i < rows, j < cols, lies inside its slice:
-    // row-major strides address at most (rows - 1) * cols + cols - 1 < rows * cols, and
-    // transposed strides address the same set of elements. `c` is borrowed mutably and
-    // cannot alias `a` or `b`.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            c.as_mut_ptr(),
-            1,
-            n as isize,
-            accumulate,
-            a.as_ptr(),
-            a_strides.0,
-            a_strides.1,
-            b.as_ptr(),
-            b_strides.0,
-            b_strides.1,
-            1.0f32,
-            1.0f32,
-            false,
-            false,
-            false,
-            Parallelism::None,
-        );
+        if k == 0 {
+            if !accumulate {
+                c.fill(0.0);
+            }
+            return None;
+        }
+        Some(match self {
+            Layout::AB => ((a, k, 1), (b, n, 1)),
+            Layout::AtB => ((a, 1, m), (b, n, 1)),
+            Layout::ABt => ((a, k, 1), (b, 1, k)),
+        })
     }
 }
 
-/// `C (m x n) = A (m x k) * B (k x n)`, or `C += ...` when `accumulate`.
+/// The `gemm` crate's product on strided operands.
+mod portable {
+    use super::{Parallelism, Strided};
+
+    /// `C = A B`, or `C += A B`; `m, n, k >= 1`, operands checked by `Layout::operands`.
+    pub fn product(
+        (m, k, n): (usize, usize, usize),
+        (a, a_rs, a_cs): Strided,
+        (b, b_rs, b_cs): Strided,
+        c: &mut [f32],
+        accumulate: bool,
+    ) {
+        // Re-checked here because the unsafe call below relies on it: the largest index
+        // addressed in each operand lies inside its slice.
+        assert!(a.len() > (m - 1) * a_rs + (k - 1) * a_cs);
+        assert!(b.len() > (k - 1) * b_rs + (n - 1) * b_cs);
+        assert_eq!(c.len(), m * n);
+        // SAFETY: the asserts above bound every element addressed through the strides,
+        // `(i, t) -> i * rs + t * cs` with `i < rows`, `t < cols`, by the slices' lengths.
+        // `c` is borrowed mutably and cannot alias `a` or `b`.
+        unsafe {
+            gemm::gemm(
+                m,
+                n,
+                k,
+                c.as_mut_ptr(),
+                1,
+                n as isize,
+                accumulate,
+                a.as_ptr(),
+                a_cs as isize,
+                a_rs as isize,
+                b.as_ptr(),
+                b_cs as isize,
+                b_rs as isize,
+                1.0f32,
+                1.0f32,
+                false,
+                false,
+                false,
+                Parallelism::None,
+            );
+        }
+    }
+}
+
+/// `C (m x n) = A (m x k) * B (k x n)`, or `C += ...` when `accumulate`, on the fastest f32
+/// kernel of this CPU ([`F32Kernel::detect`]).
 pub fn matmul(a: &[f32], b: &[f32], c: &mut [f32], m: usize, k: usize, n: usize, accumulate: bool) {
-    assert_eq!((a.len(), b.len(), c.len()), (m * k, k * n, m * n));
-    gemm_raw(m, k, n, a, row_major(k), b, row_major(n), c, accumulate);
+    Products::default().matmul(a, b, c, m, k, n, accumulate);
 }
 
 /// `C (m x n) = A^T * B` with `A` stored `k x m` and `B` stored `k x n`, or `C += ...`.
@@ -195,8 +289,7 @@ pub fn matmul_at_b(
     n: usize,
     accumulate: bool,
 ) {
-    assert_eq!((a.len(), b.len(), c.len()), (k * m, k * n, m * n));
-    gemm_raw(m, k, n, a, transposed(m), b, row_major(n), c, accumulate);
+    Products::default().matmul_at_b(a, b, c, k, m, n, accumulate);
 }
 
 /// `C (m x n) = A (m x k) * B^T` with `B` stored `n x k`, or `C += ...`.
@@ -210,8 +303,7 @@ pub fn matmul_a_bt(
     n: usize,
     accumulate: bool,
 ) {
-    assert_eq!((a.len(), b.len(), c.len()), (m * k, n * k, m * n));
-    gemm_raw(m, k, n, a, row_major(k), b, transposed(k), c, accumulate);
+    Products::default().matmul_a_bt(a, b, c, m, k, n, accumulate);
 }
 
 #[cfg(test)]
@@ -257,6 +349,15 @@ mod tests {
         }
     }
 
+    /// Every f32 kernel this CPU runs: the portable one and the detected one.
+    fn kernels() -> Vec<Products> {
+        let mut all = vec![Products::f32_on(F32Kernel::Portable)];
+        if F32Kernel::detect() != F32Kernel::Portable {
+            all.push(Products::default());
+        }
+        all
+    }
+
     #[test]
     fn products_match_naive_reference_in_all_three_layouts() {
         // Odd sizes exercise the kernels' edge handling.
@@ -264,33 +365,51 @@ mod tests {
         let a = filled(m * k, 1);
         let b = filled(k * n, 2);
         let want = naive(&a, &b, m, k, n);
-
-        let mut c = vec![0.0; m * n];
-        matmul(&a, &b, &mut c, m, k, n, false);
-        assert_close(&c, &want);
-
         let a_t = transpose(&a, m, k); // stored k x m
-        let mut c2 = vec![0.0; m * n];
-        matmul_at_b(&a_t, &b, &mut c2, k, m, n, false);
-        assert_close(&c2, &want);
-
         let b_t = transpose(&b, k, n); // stored n x k
-        let mut c3 = vec![0.0; m * n];
-        matmul_a_bt(&a, &b_t, &mut c3, m, k, n, false);
-        assert_close(&c3, &want);
+        for products in kernels() {
+            let mut c = vec![0.0; m * n];
+            products.matmul(&a, &b, &mut c, m, k, n, false);
+            assert_close(&c, &want);
 
-        // Accumulation adds to what is there.
-        matmul(&a, &b, &mut c, m, k, n, true);
-        let doubled: Vec<f64> = want.iter().map(|w| 2.0 * w).collect();
-        assert_close(&c, &doubled);
+            let mut c2 = vec![0.0; m * n];
+            products.matmul_at_b(&a_t, &b, &mut c2, k, m, n, false);
+            assert_close(&c2, &want);
+
+            let mut c3 = vec![0.0; m * n];
+            products.matmul_a_bt(&a, &b_t, &mut c3, m, k, n, false);
+            assert_close(&c3, &want);
+
+            // Accumulation adds to what is there.
+            products.matmul(&a, &b, &mut c, m, k, n, true);
+            let doubled: Vec<f64> = want.iter().map(|w| 2.0 * w).collect();
+            assert_close(&c, &doubled);
+        }
+    }
+
+    #[test]
+    fn the_detected_kernel_is_the_fastest_present_and_the_default() {
+        let detected = F32Kernel::detect();
+        assert_eq!(Products::default().f32_kernel(), Some(detected));
+        assert_eq!(
+            Products::new(MatmulPrecision::F32).unwrap().f32_kernel(),
+            Some(detected)
+        );
+        #[cfg(target_arch = "x86_64")]
+        assert_eq!(
+            matches!(detected, F32Kernel::Avx512(_)),
+            std::arch::is_x86_feature_detected!("avx512f")
+        );
     }
 
     #[test]
     fn empty_reduction_gives_zero_or_leaves_accumulator() {
-        let mut c = vec![5.0; 6];
-        matmul(&[], &[], &mut c, 2, 0, 3, true);
-        assert_eq!(c, vec![5.0; 6]);
-        matmul(&[], &[], &mut c, 2, 0, 3, false);
-        assert_eq!(c, vec![0.0; 6]);
+        for products in kernels() {
+            let mut c = vec![5.0; 6];
+            products.matmul(&[], &[], &mut c, 2, 0, 3, true);
+            assert_eq!(c, vec![5.0; 6]);
+            products.matmul(&[], &[], &mut c, 2, 0, 3, false);
+            assert_eq!(c, vec![0.0; 6]);
+        }
     }
 }

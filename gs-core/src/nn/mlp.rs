@@ -330,6 +330,12 @@ impl Mlp {
         Ok(())
     }
 
+    /// Runs every later product on `products` (benchmarks compare the f32 kernels; a
+    /// `Products` value exists only for what this CPU runs).
+    pub fn set_products(&mut self, products: Products) {
+        self.products = products;
+    }
+
     /// Runs every later forward and backward on `gpu` (f32 products), or on the CPU for
     /// `None`. A forward's result must be passed to a backward on the same device.
     #[cfg(feature = "wgpu")]

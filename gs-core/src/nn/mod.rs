@@ -31,6 +31,7 @@
 //! ```
 
 pub mod appearance;
+pub mod avx512;
 pub mod bf16;
 pub mod encoding;
 pub mod error;
@@ -42,6 +43,6 @@ pub mod shadow;
 pub use appearance::AppearanceNet;
 pub use encoding::PositionalEncoding;
 pub use error::NnError;
-pub use matmul::{MatmulPrecision, Products};
+pub use matmul::{F32Kernel, MatmulPrecision, Products};
 pub use mlp::{HiddenActivation, Init, Mlp, MlpForward, TapeMode};
 pub use shadow::{SceneBox, ShadowNet};
