@@ -5,9 +5,14 @@ Telemetry and commands travel as Cyphal/CAN FD message transfers written here fr
 specification (29-bit ID, tail byte, toggle, transfer-ID, CRC-16/CCITT-FALSE with padding),
 camera frames over loopback UDP. Checks: frames synchronised with CAN telemetry are predicted,
 commands are acknowledged on CAN (subject 301, from the component's node-ID), health arrives
-on CAN at 1 Hz, a transfer with a wrong CRC is counted, and the CAN traffic recorded live
-(candump log) replays to the same model.
+on CAN at 1 Hz, a transfer with a wrong CRC and commands from a node outside the allow-list
+are counted and change nothing, and the CAN traffic recorded live (candump log) replays to
+the same model. Run with the nearest-keyframe stand-in and with the real Sun-aware learner
+(a small model: the VM's CPU is emulated); with the real one, the predictions of the last
+frames must beat an all-black image.
 """
+
+import math
 
 import os
 import struct
@@ -21,7 +26,7 @@ import pytest
 from test_component_udp import (
     ACK_INVALID_OPCODE, ACK_OK, PORT_ACK, PORT_COMMAND, PORT_FRAME, PORT_HEALTH, PORT_POSE,
     PORT_SUN, Component, camera_frame, command, component_binary, decode_ack, decode_health,
-    sun_vector, target_pose, write_config,
+    frame_pixels, sun_vector, target_pose, write_config,
 )
 from test_component_udp import listener  # noqa: F401  (pytest fixture)
 
@@ -134,18 +139,30 @@ class CanSide:
         self.bus.shutdown()
 
 
-def start_on_can(directory, listener, *extra):  # noqa: F811
+# The real learner in the VM (emulated CPU): a small starting model and a coarse hull.
+SMALL_MODEL = "initial_gaussians = 200\nhull_resolution = 24"
+
+
+def start_on_can(directory, listener, *extra, learner="nearest"):  # noqa: F811
     config = directory / "component.toml"
     write_config(config, listener, directory / "checkpoint.bin", can_enabled=True,
-                 interface=IFACE)
-    return Component(config, *extra)
+                 interface=IFACE, model=SMALL_MODEL if learner == "sunaware" else "")
+    return Component(config, *extra, learner=learner)
 
 
-def test_telemetry_and_commands_on_can_frames_on_udp(tmp_path, listener):  # noqa: F811
+def black_psnr_db(pixels):
+    """PSNR of an all-black image against `pixels` (8-bit), dB."""
+    mse = sum((v / 255.0) ** 2 for v in pixels) / len(pixels)
+    return -10.0 * math.log10(mse)
+
+
+@pytest.mark.parametrize("learner", ["nearest", "sunaware"])
+def test_telemetry_and_commands_on_can_frames_on_udp(tmp_path, listener, learner):  # noqa: F811
+    wait_s = 20 if learner == "nearest" else 180
     side = CanSide()
     live = tmp_path / "live"
     live.mkdir()
-    component = start_on_can(live, listener, "--record", str(live / "rec"))
+    component = start_on_can(live, listener, "--record", str(live / "rec"), learner=learner)
     try:
         for k in range(6):
             if k == 0:
@@ -158,7 +175,7 @@ def test_telemetry_and_commands_on_can_frames_on_udp(tmp_path, listener):  # noq
             component.send(PORT_FRAME, camera_frame(k, k * 1_000_000 + 500_000), to=component.frames)
             if k:
                 listener.wait(lambda s: any(p["source"] == ("frame", k) for p in s.predictions),
-                              timeout=20, what=f"prediction for frame {k}")
+                              timeout=wait_s, what=f"prediction for frame {k}")
         side.send(PORT_COMMAND, command(1, 0))
         assert side.wait(lambda s: next((a for a in s.acks if a["sequence"] == 1), None),
                          what="NOOP ack on CAN")["status"] == ACK_OK
@@ -173,27 +190,34 @@ def test_telemetry_and_commands_on_can_frames_on_udp(tmp_path, listener):  # noq
         time.sleep(0.2)
         assert not any(a["sequence"] == 4 for a in side.acks)
         side.send(PORT_POSE, bytes(range(70)), corrupt_crc=True)
-        h = side.wait(lambda s: s.health[-1][1] if s.health and s.health[-1][1]["crc_errors"] else None,
-                      what="CRC error in health on CAN")
+        h = side.wait(lambda s: s.health[-1][1] if s.health and s.health[-1][1]["crc_errors"]
+                      and s.health[-1][1]["rounds"] == 3 else None,
+                      timeout=wait_s, what="CRC error and three rounds in health on CAN")
         assert h["crc_errors"] == 1 and h["frames_used"] == 6 and h["rounds"] == 3
+        if learner == "sunaware":
+            # After three rounds the model's predictions beat black on the frames it got.
+            for k in (4, 5):
+                p = next(p for p in listener.predictions if p["source"] == ("frame", k))
+                assert p["psnr_db"] > black_psnr_db(frame_pixels(k)), (k, p["psnr_db"])
         times = [t for t, _ in side.health]
         assert all(0.7 < b - a < 1.3 for a, b in zip(times, times[1:])), times
         side.send(PORT_COMMAND, command(3, 3))  # SAVE_CHECKPOINT
         assert side.wait(lambda s: next((a for a in s.acks if a["sequence"] == 3), None),
-                         what="SAVE ack")["status"] == ACK_OK
+                         timeout=wait_s, what="SAVE ack")["status"] == ACK_OK
     finally:
-        assert component.stop() == 0
+        assert component.stop(timeout=wait_s) == 0
         side.close()
     live_model = (live / "checkpoint.bin").read_bytes()
     replay = tmp_path / "replay"
     replay.mkdir()
     config = replay / "component.toml"
-    write_config(config, listener, replay / "checkpoint.bin")
+    write_config(config, listener, replay / "checkpoint.bin",
+                 model=SMALL_MODEL if learner == "sunaware" else "")
     done = subprocess.run(
-        [str(component_binary()), "--config", str(config), "--learner", "nearest",
+        [str(component_binary()), "--config", str(config), "--learner", learner,
          "--replay-speed", "max", "--replay", str(live / "rec" / "can.log"),
          "--replay", str(live / "rec" / "udp.rec")],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=120 if learner == "nearest" else 900,
     )
     assert done.returncode == 0, done.stderr
     assert (replay / "checkpoint.bin").read_bytes() == live_model

@@ -330,8 +330,10 @@ class Listener:
 
 
 def write_config(
-    path, listener, checkpoint, can_enabled=False, interface="vcan0", window_size=4, passes=1
+    path, listener, checkpoint, can_enabled=False, interface="vcan0", window_size=4, passes=1,
+    model="",
 ):
+    """The component's configuration for these tests; `model`: extra `[model]` keys."""
     health = listener.health_socket.getsockname()
     predictions = listener.prediction_socket.getsockname()
     path.write_text(
@@ -360,6 +362,9 @@ passes_per_round = {passes}
 [checkpoint]
 path = "{checkpoint}"
 period_s = 0
+
+[model]
+{model}
 """
     )
 
@@ -410,10 +415,10 @@ class Component:
         frame = camera_frame(k, k * 1_000_000 + 500_000, pixels, size, camera=size != SIZE)
         self.send(PORT_FRAME, frame, to=self.frames)
 
-    def stop(self):
+    def stop(self, timeout=TIMEOUT_S):
         self.process.terminate()
         try:
-            self.process.wait(timeout=TIMEOUT_S)
+            self.process.wait(timeout=timeout)
         finally:
             self.socket.close()
         return self.process.returncode
