@@ -34,10 +34,11 @@ fn committed_corpus_replays_without_findings() {
 /// Inputs that fuzzing found and whose fix belongs to issue 16, finding 4 (bound every size
 /// field before allocating): `oversized-appearance-mlp` passes the checksum with a
 /// `feature_dim` that makes `SunAwareModel::new` ask `Mlp::new` for ~256 GiB before any
-/// weight is read (found by the `sunaware_checkpoint` target under `-malloc_limit_mb=512`);
+/// weight is read (found by the `sunaware_checkpoint` target under `-malloc_limit_mb=512`),
+/// `oversized-shadow-mlp` the same through `shadow_latent_dim` and `ShadowNet::new`;
 /// `gaussian-row-width-wraps` panics with "capacity overflow" in `ParamSet::push_zeros`
-/// (`from_bytes` line "push_zeros(n)"): the row width `dims().sum() * 4` is unchecked, so
-/// with a huge dimension the "count fits the file" check passes on a wrapped product.
+/// (`from_bytes`, "push_zeros(n)"), presumably because the row width `dims().sum() * 4` is
+/// unchecked: with a huge dimension the "count fits the file" check sees a wrapped product.
 /// They live outside the corpus so that the fuzzer and the replay above can start.
 #[test]
 #[ignore = "fails until issue 16 finding 4 bounds the network sizes in checkpoint::from_bytes"]
