@@ -233,7 +233,7 @@ impl Learner for NearestKeyframeLearner {
         for _ in 0..count {
             let id = reader.u64()?;
             let view = [reader.f64()?, reader.f64()?, reader.f64()?];
-            let view = ViewDirection::new(glam::DVec3::from_array(view))
+            let view = ViewDirection::restore(glam::DVec3::from_array(view))
                 .map_err(|e| bad(&format!("keyframe {id}: {e}")))?;
             let width = reader.u16()?;
             let height = reader.u16()?;

@@ -182,6 +182,24 @@ pub struct QueueDepths {
 }
 
 impl WorkerShared {
+    /// Empty queues with these limits. [`Worker::start`] builds one for its thread; the bus
+    /// core alone (fuzzing, tests) can run on one that no thread drains, since every queue
+    /// is bounded.
+    pub fn new(limits: QueueLimits, learner: LearnerStats, round_deadline: Duration) -> Self {
+        Self {
+            limits,
+            queues: Mutex::new(Queues::default()),
+            work_ready: Condvar::new(),
+            snapshot: Mutex::new(WorkerSnapshot {
+                learner,
+                ..WorkerSnapshot::default()
+            }),
+            job_started: Mutex::new(None),
+            round_deadline,
+            output_ready: tokio::sync::Notify::new(),
+        }
+    }
+
     /// Queues a frame; returns true when the oldest queued frame was dropped to make room.
     pub fn push_frame(&self, job: FrameJob) -> bool {
         let mut q = lock(&self.queues);
@@ -330,18 +348,7 @@ impl Worker {
             .thread_name(|i| format!("trainer-{i}"))
             .build()
             .map_err(std::io::Error::other)?;
-        let shared = Arc::new(WorkerShared {
-            limits,
-            queues: Mutex::new(Queues::default()),
-            work_ready: Condvar::new(),
-            snapshot: Mutex::new(WorkerSnapshot {
-                learner: learner.stats(),
-                ..WorkerSnapshot::default()
-            }),
-            job_started: Mutex::new(None),
-            round_deadline,
-            output_ready: tokio::sync::Notify::new(),
-        });
+        let shared = Arc::new(WorkerShared::new(limits, learner.stats(), round_deadline));
         let thread_shared = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
             .name("trainer".into())
