@@ -5,8 +5,9 @@
 //!
 //! `cyphal_node heartbeat --node N [--mtu 8|64] [--mode idle|train|predict] [--uptime U]
 //!   [--count K] [--dropped-per-beat D] [--trainer ok|restarting|gave-up]`
-//!   prints K heartbeats' frames, one line each; heartbeat k has uptime U + k and D * k
-//!   dropped frames (so with D > 0 every heartbeat after the first is ADVISORY).
+//!   prints K heartbeats' frames, one line each, the first followed by the port.List frames;
+//!   heartbeat k has uptime U + k and D * k dropped frames (so with D > 0 every heartbeat
+//!   after the first is ADVISORY).
 //! `cyphal_node serve --node N [--mtu 8|64] [--name NAME] [--unique-id HEX32]`
 //!   reads request frames from stdin, one per line, and prints for each either the response
 //!   frames on one line separated by spaces, or `IGNORED` (not a request this node answers).

@@ -1,4 +1,6 @@
-//! The component as a Cyphal node: the 1 Hz `uavcan.node.Heartbeat` and the
+//! The component as a Cyphal node: the 1 Hz `uavcan.node.Heartbeat`, the
+//! `uavcan.node.port.List` every 10 heartbeats (the first with the first heartbeat; the
+//! ports are fixed at start, so there is no other change to announce) and the
 //! `uavcan.node.GetInfo` server, framed for the CAN transport.
 //!
 //! Invariants: the node-ID is the configured, validated one (never anonymous: a node that
@@ -13,14 +15,34 @@
 
 use crate::transport::RawCanFrame;
 use interfaces::cyphal::node::{
-    GetInfoResponse, Heartbeat, NodeHealth, NodeMode, ServiceRequest, GET_INFO_MAX_BYTES,
-    GET_INFO_SERVICE_ID, HEARTBEAT_SUBJECT_ID,
+    GetInfoResponse, Heartbeat, NodeHealth, NodeMode, PortList, ServiceRequest, GET_INFO_MAX_BYTES,
+    GET_INFO_SERVICE_ID, HEARTBEAT_SUBJECT_ID, PORT_LIST_SUBJECT_ID,
 };
 use interfaces::cyphal::{
     service_transfer_frames, transfer_frames, Mtu, Priority, ServiceCanId, TransferFrames,
     TransferHeader,
 };
-use interfaces::messages::{HealthStatus, Mode};
+use interfaces::messages::{port, HealthStatus, Mode};
+
+/// Heartbeats between two port lists (uavcan.node.port.List: at most every 10 s).
+pub const PORT_LIST_EVERY_HEARTBEATS: u64 = 10;
+/// Subjects the component publishes on CAN (predictions go out on UDP only).
+pub const PUBLISHED_SUBJECTS: [u16; 5] = [
+    HEARTBEAT_SUBJECT_ID,
+    PORT_LIST_SUBJECT_ID,
+    port::COMMAND_ACK,
+    port::HEALTH_STATUS,
+    port::EVENT,
+];
+/// Subjects the component takes from CAN.
+pub const SUBSCRIBED_SUBJECTS: [u16; 4] = [
+    port::SUN_VECTOR,
+    port::TARGET_POSE,
+    port::CAMERA_FRAME,
+    port::COMMAND,
+];
+/// Services the component serves.
+pub const SERVED_SERVICES: [u16; 1] = [GET_INFO_SERVICE_ID];
 
 /// What GetInfo reports about this node.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -65,6 +87,7 @@ pub struct CyphalNode {
     mtu: Mtu,
     identity: NodeIdentity,
     heartbeat_transfer_id: u64,
+    port_list_transfer_id: u64,
     last_troubles: Option<NodeStatus>,
     trainer_restarting: bool,
     trainer_gave_up: bool,
@@ -95,6 +118,7 @@ impl CyphalNode {
             mtu: if fd { Mtu::Fd } else { Mtu::Classic },
             identity,
             heartbeat_transfer_id: 0,
+            port_list_transfer_id: 0,
             last_troubles: None,
             trainer_restarting: false,
             trainer_gave_up: false,
@@ -153,17 +177,41 @@ impl CyphalNode {
         }
     }
 
-    /// The CAN frames of one heartbeat; advances the heartbeat transfer-ID.
+    /// The CAN frames of one heartbeat, followed by those of the port list when it is due;
+    /// advances the transfer-IDs.
     pub fn heartbeat_frames(&mut self, heartbeat: &Heartbeat) -> Vec<RawCanFrame> {
+        let port_list_due = self
+            .heartbeat_transfer_id
+            .is_multiple_of(PORT_LIST_EVERY_HEARTBEATS);
+        let mut frames = self.message_frames(HEARTBEAT_SUBJECT_ID, &heartbeat.encode());
+        self.heartbeat_transfer_id += 1;
+        if port_list_due {
+            let list = PortList {
+                publishers: &PUBLISHED_SUBJECTS,
+                subscribers: &SUBSCRIBED_SUBJECTS,
+                servers: &SERVED_SERVICES,
+            };
+            let mut payload = vec![0u8; list.encoded_len()];
+            if let Ok(len) = list.encode(&mut payload) {
+                frames.extend(self.message_frames(PORT_LIST_SUBJECT_ID, &payload[..len]));
+                self.port_list_transfer_id += 1;
+            }
+        }
+        frames
+    }
+
+    fn message_frames(&self, subject_id: u16, payload: &[u8]) -> Vec<RawCanFrame> {
         let header = TransferHeader {
             priority: Priority::Nominal,
-            subject_id: HEARTBEAT_SUBJECT_ID,
+            subject_id,
             source_node_id: self.node_id,
-            transfer_id: self.heartbeat_transfer_id,
+            transfer_id: if subject_id == PORT_LIST_SUBJECT_ID {
+                self.port_list_transfer_id
+            } else {
+                self.heartbeat_transfer_id
+            },
         };
-        self.heartbeat_transfer_id += 1;
-        let payload = heartbeat.encode();
-        match transfer_frames(&header, &payload, self.mtu) {
+        match transfer_frames(&header, payload, self.mtu) {
             Ok(frames) => collect(frames),
             Err(_) => Vec::new(), // unreachable: node-ID validated at start
         }
@@ -341,7 +389,13 @@ mod tests {
         let hb = n.heartbeat(&status(Mode::Train, 0, 0));
         for expected_tid in 0..3u8 {
             let frames = n.heartbeat_frames(&hb);
-            assert_eq!(frames.len(), 1);
+            let port_list = frames.len() - 1;
+            // 166-byte port list + CRC on classic CAN: 24 frames, with the first heartbeat only.
+            assert_eq!(port_list, if expected_tid == 0 { 24 } else { 0 });
+            if port_list > 0 {
+                let id = frames[1].id();
+                assert_eq!((id >> 8) & 0x1FFF, u32::from(PORT_LIST_SUBJECT_ID));
+            }
             assert_eq!(frames[0].id(), 0x107D_552A, "subject 7509 from node 42");
             let tail = TailByte::from_byte(*frames[0].data().last().unwrap());
             assert_eq!(tail.transfer_id, expected_tid);

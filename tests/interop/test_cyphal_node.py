@@ -7,7 +7,8 @@ The Rust side is fsw-component's example `cyphal_node` (built here, or named by 
 environment variable CYPHAL_NODE_BIN), which runs the same `fsw_component::node` code as the
 live component. pycyphal compiles the vendored `uavcan` DSDL (tests/interop/dsdl/) and:
 1. decodes our `uavcan.node.Heartbeat.1.0` transfers on subject 7509 (uptime, health, mode,
-   vendor-specific status, source node-ID, advancing transfer-IDs), classic CAN and CAN FD;
+   vendor-specific status, source node-ID, advancing transfer-IDs), classic CAN and CAN FD,
+   and the `uavcan.node.port.List.1.0` sent with the first heartbeat (subject 7510);
 2. calls `uavcan.node.GetInfo.1.0` (service 430) as a client: its request frames go to our
    server, our response frames go back on the bus, and pycyphal's client must accept the
    response (right IDs, transfer-ID, CRC) and decode name, versions and unique-ID.
@@ -40,7 +41,9 @@ def uavcan(tmp_path_factory):
     pycyphal.dsdl.compile(DSDL_ROOT, output_directory=out)
     sys.path.insert(0, str(out))
     try:
-        yield importlib.import_module("uavcan.node")
+        node = importlib.import_module("uavcan.node")
+        node.port = importlib.import_module("uavcan.node.port")
+        yield node
     finally:
         sys.path.remove(str(out))
 
@@ -84,26 +87,38 @@ def test_pycyphal_decodes_our_heartbeat(uavcan, node_bin, mtu, mode, trainer, dr
          "--uptime", "1000", "--count", "3", "--dropped-per-beat", str(dropped)],
         check=True, capture_output=True, text=True,
     ).stdout.split()
-    assert len(lines) == 3, "a heartbeat is one frame"
+    heartbeat_lines = [line for line in lines if line.startswith("107D55")]
+    assert len(heartbeat_lines) == 3, "a heartbeat is one frame"
 
     async def run():
         channel = f"hb-{uuid.uuid4().hex}"
         presentation = Presentation(CANTransport(media(channel, mtu), local_node_id=None))
         subscriber = presentation.make_subscriber(uavcan.Heartbeat_1_0, pycyphal.dsdl.get_fixed_port_id(uavcan.Heartbeat_1_0))
+        port_lists = presentation.make_subscriber(uavcan.port.List_1_0, pycyphal.dsdl.get_fixed_port_id(uavcan.port.List_1_0))
         bus = can.Bus(interface="virtual", channel=channel)
         received = []
         try:
             for line in lines:
                 bus.send(to_message(line))
-                got = await subscriber.receive(asyncio.get_running_loop().time() + TIMEOUT_S)
-                assert got is not None, f"pycyphal did not accept heartbeat frame {line}"
-                received.append(got)
+                if line in heartbeat_lines:
+                    got = await subscriber.receive(asyncio.get_running_loop().time() + TIMEOUT_S)
+                    assert got is not None, f"pycyphal did not accept heartbeat frame {line}"
+                    received.append(got)
+            port_list = await port_lists.receive(asyncio.get_running_loop().time() + TIMEOUT_S)
+            assert await port_lists.receive(asyncio.get_running_loop().time() + 0.2) is None, "one list"
         finally:
             presentation.close()
             bus.shutdown()
-        return received
+        return received, port_list
 
-    received = asyncio.run(run())
+    received, port_list = asyncio.run(run())
+    assert port_list is not None, "pycyphal did not accept our port.List"
+    ports, transfer = port_list
+    assert transfer.source_node_id == NODE_ID and transfer.transfer_id == 0
+    assert [p.value for p in ports.publishers.sparse_list] == [7509, 7510, 301, 400, 401]
+    assert [p.value for p in ports.subscribers.sparse_list] == [100, 101, 200, 300]
+    assert not ports.clients.mask.any()
+    assert [i for i, bit in enumerate(ports.servers.mask) if bit] == [430]
     for k, (message, transfer) in enumerate(received):
         assert transfer.source_node_id == NODE_ID
         assert transfer.transfer_id == k

@@ -1,10 +1,16 @@
 //! DSDL serialisation of the standard `uavcan.node` types a Cyphal node must speak:
-//! `uavcan.node.Heartbeat.1.0` (subject 7509) and `uavcan.node.GetInfo.1.0` (service 430).
+//! `uavcan.node.Heartbeat.1.0` (subject 7509), `uavcan.node.port.List.1.0` (subject 7510)
+//! and `uavcan.node.GetInfo.1.0` (service 430).
 //!
 //! Layouts follow the DSDL definitions of the public regulated data types (little-endian,
 //! composite fields byte-aligned, variable-length arrays with a `uint8` length prefix):
 //! - Heartbeat: `uint32 uptime | Health.1.0 (uint2, padded to a byte) | Mode.1.0 (uint3,
 //!   padded) | uint8 vendor_specific_status_code` = 7 bytes, one classic CAN frame.
+//! - port.List (`uavcan.node.port.List.1.0`, sealed): four delimited fields, each
+//!   `uint32 delimiter (its byte length) | body`: publishers and subscribers as
+//!   `SubjectIDList.1.0` (a union: `uint8 tag = 1 | uint8 count | count x uint16 subject-ID`,
+//!   the sparse list), clients and servers as `ServiceIDList.1.0` (`bool[512]` mask, 64 bytes,
+//!   service-ID `i` at bit `i % 8` of byte `i / 8`).
 //! - GetInfo response: `Version protocol | Version hardware | Version software` (2 bytes each)
 //!   `| uint64 software_vcs_revision_id | uint8[16] unique_id | uint8[<=50] name
 //!   | uint64[<=1] software_image_crc | uint8[<=222] certificate_of_authenticity`.
@@ -16,6 +22,8 @@ use super::frame::{ServiceCanId, TailByte};
 
 /// Fixed subject-ID of `uavcan.node.Heartbeat`.
 pub const HEARTBEAT_SUBJECT_ID: u16 = 7509;
+/// Fixed subject-ID of `uavcan.node.port.List`.
+pub const PORT_LIST_SUBJECT_ID: u16 = 7510;
 /// Fixed service-ID of `uavcan.node.GetInfo`.
 pub const GET_INFO_SERVICE_ID: u16 = 430;
 /// The Cyphal specification version this node implements (GetInfo's protocol_version).
@@ -111,6 +119,69 @@ impl GetInfoResponse<'_> {
     }
 }
 
+/// `uavcan.node.port.List.1.0`: the ports a node uses (it is a client of no service here).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PortList<'a> {
+    pub publishers: &'a [u16],
+    pub subscribers: &'a [u16],
+    pub servers: &'a [u16],
+}
+
+/// Why a port list cannot be encoded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PortListError {
+    /// A subject-ID above 8191, a service-ID above 511, or 256 subjects or more in one list.
+    OutOfRange,
+    /// The output buffer is too small.
+    BufferTooSmall,
+}
+
+const SERVICE_MASK_BYTES: usize = 64;
+
+impl PortList<'_> {
+    /// Serialised size, bytes.
+    pub fn encoded_len(&self) -> usize {
+        let subjects = |list: &[u16]| 4 + 2 + 2 * list.len();
+        subjects(self.publishers) + subjects(self.subscribers) + 2 * (4 + SERVICE_MASK_BYTES)
+    }
+
+    /// Writes the list into `out`; returns the used length.
+    pub fn encode(&self, out: &mut [u8]) -> Result<usize, PortListError> {
+        if out.len() < self.encoded_len() {
+            return Err(PortListError::BufferTooSmall);
+        }
+        let mut at = 0;
+        for list in [self.publishers, self.subscribers] {
+            if list.len() > 255 || list.iter().any(|&id| id > super::frame::MAX_SUBJECT_ID) {
+                return Err(PortListError::OutOfRange);
+            }
+            let body = 2 + 2 * list.len();
+            out[at..at + 4].copy_from_slice(&(body as u32).to_le_bytes());
+            out[at + 4] = 1; // union tag: sparse_list
+            out[at + 5] = list.len() as u8;
+            at += 6;
+            for id in list {
+                out[at..at + 2].copy_from_slice(&id.to_le_bytes());
+                at += 2;
+            }
+        }
+        for list in [&[][..], self.servers] {
+            out[at..at + 4].copy_from_slice(&(SERVICE_MASK_BYTES as u32).to_le_bytes());
+            let mask = &mut out[at + 4..at + 4 + SERVICE_MASK_BYTES];
+            mask.fill(0);
+            for &id in list {
+                let id = usize::from(id);
+                if id >= SERVICE_MASK_BYTES * 8 {
+                    return Err(PortListError::OutOfRange);
+                }
+                mask[id / 8] |= 1 << (id % 8);
+            }
+            at += 4 + SERVICE_MASK_BYTES;
+        }
+        Ok(at)
+    }
+}
+
 /// A single-frame service request addressed to `local_node_id`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ServiceRequest<'a> {
@@ -200,6 +271,41 @@ mod tests {
             ..info
         };
         assert_eq!(max.encode(&mut out), Ok(GET_INFO_MAX_BYTES));
+    }
+
+    #[test]
+    fn port_list_layout_and_limits() {
+        let list = PortList {
+            publishers: &[7509, 301],
+            subscribers: &[100],
+            servers: &[430, 0],
+        };
+        let mut out = [0xEEu8; 200];
+        let n = list.encode(&mut out).unwrap();
+        assert_eq!(n, list.encoded_len());
+        assert_eq!(n, 10 + 8 + 68 + 68);
+        assert_eq!(&out[..10], &[6, 0, 0, 0, 1, 2, 0x55, 0x1D, 0x2D, 0x01]);
+        assert_eq!(&out[10..18], &[4, 0, 0, 0, 1, 1, 100, 0]);
+        assert_eq!(&out[18..22], &[64, 0, 0, 0]);
+        assert!(out[22..86].iter().all(|&b| b == 0), "no clients");
+        let servers = &out[90..154];
+        assert_eq!(servers[0], 1, "service 0");
+        assert_eq!(servers[430 / 8], 1 << (430 % 8));
+        assert_eq!(servers.iter().map(|b| b.count_ones()).sum::<u32>(), 2);
+        assert_eq!(
+            list.encode(&mut [0u8; 100]),
+            Err(PortListError::BufferTooSmall)
+        );
+        let bad = PortList {
+            servers: &[512],
+            ..list
+        };
+        assert_eq!(bad.encode(&mut out), Err(PortListError::OutOfRange));
+        let bad = PortList {
+            publishers: &[8192],
+            ..list
+        };
+        assert_eq!(bad.encode(&mut out), Err(PortListError::OutOfRange));
     }
 
     #[test]
