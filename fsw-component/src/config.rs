@@ -8,6 +8,7 @@
 
 use crate::cmdauth::{CommandConfig, CommandPolicy};
 use crate::hull_start::ModelSettings;
+use crate::node::{parse_unique_id, DEFAULT_NODE_NAME};
 use crate::sync::SyncConfig;
 use crate::timeguard::TimeGuardConfig;
 use glam::DQuat;
@@ -49,6 +50,12 @@ pub struct ComponentConfig {
 pub struct NodeConfig {
     /// Cyphal node-ID of this component, 0-127.
     pub node_id: u8,
+    /// Node name reported by uavcan.node.GetInfo, 1-50 bytes.
+    pub name: String,
+    /// 128-bit unique-ID reported by GetInfo, 32 hex digits; "" derives it from
+    /// /etc/machine-id (a per-machine 128-bit ID) XOR the node-ID, or from the name and
+    /// node-ID where that file is missing.
+    pub unique_id: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -195,7 +202,11 @@ pub struct QueueConfig {
 
 impl Default for NodeConfig {
     fn default() -> Self {
-        Self { node_id: 42 }
+        Self {
+            node_id: 42,
+            name: DEFAULT_NODE_NAME.into(),
+            unique_id: String::new(),
+        }
     }
 }
 
@@ -365,6 +376,18 @@ impl ComponentConfig {
     }
 
     pub fn validate(&self) -> Result<(), ConfigError> {
+        if self.node.name.is_empty() || self.node.name.len() > 50 {
+            return Err(invalid(
+                "node.name",
+                format!("{:?} must be 1 to 50 bytes", self.node.name),
+            ));
+        }
+        if !self.node.unique_id.is_empty() && parse_unique_id(&self.node.unique_id).is_none() {
+            return Err(invalid(
+                "node.unique_id",
+                format!("{:?} is not 32 hex digits", self.node.unique_id),
+            ));
+        }
         if self.node.node_id > MAX_NODE_ID {
             return Err(invalid(
                 "node.node_id",

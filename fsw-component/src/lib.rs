@@ -12,6 +12,7 @@ pub mod learner;
 pub mod logfmt;
 pub mod model_store;
 pub mod nearest_learner;
+pub mod node;
 pub mod outbound;
 pub mod recorder;
 pub mod replay;

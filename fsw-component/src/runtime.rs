@@ -15,6 +15,9 @@ use crate::inbound::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoin
 use crate::learner::Learner;
 use crate::model_store::ModelStore;
 use crate::nearest_learner::NearestKeyframeLearner;
+use crate::node::{
+    derived_unique_id, parse_unique_id, software_version, CyphalNode, NodeIdentity, NodeStatus,
+};
 use crate::outbound::{CanFramer, UdpFramer};
 use crate::recorder::Recorder;
 use crate::replay::{self, ReplayInput};
@@ -151,6 +154,7 @@ struct Engine {
     started: Instant,
     udp_framer: UdpFramer,
     can_framer: CanFramer,
+    node: CyphalNode,
     tx: UdpTransport,
     can: Option<CanTransport>,
     health_to: SocketAddr,
@@ -229,6 +233,7 @@ impl Engine {
                 started: Instant::now(),
                 udp_framer: UdpFramer::default(),
                 can_framer: CanFramer::new(config.node.node_id, config.can.fd),
+                node: CyphalNode::new(config.node.node_id, config.can.fd, node_identity(config)),
                 tx,
                 can,
                 health_to: config.udp.health_to,
@@ -280,8 +285,14 @@ impl Engine {
                 match notice {
                     Notice::Ack(ack) => core.worker_ack(ack),
                     Notice::Event(kind) => core.worker_event(kind),
-                    Notice::TrainerFault { gave_up } => core.trainer_faulted(gave_up),
-                    Notice::TrainerRestored => core.trainer_restored(),
+                    Notice::TrainerFault { gave_up } => {
+                        self.node.trainer_faulted(gave_up);
+                        core.trainer_faulted(gave_up);
+                    }
+                    Notice::TrainerRestored => {
+                        self.node.trainer_restored();
+                        core.trainer_restored();
+                    }
                 }
             }
             if overdue {
@@ -338,8 +349,57 @@ impl Engine {
             memory_bytes: memory_bytes().unwrap_or(0),
             publish_queue_depth: 0,
         };
-        let health = lock(&self.core).health(context);
+        let (health, send_errors) = {
+            let core = lock(&self.core);
+            (core.health(context), core.counters().bus.send_errors)
+        };
         self.send_status(&health).await;
+        if let Some(can) = &self.can {
+            let heartbeat = self
+                .node
+                .heartbeat(&NodeStatus::from_health(&health, send_errors));
+            let mut failed = false;
+            for frame in self.node.heartbeat_frames(&heartbeat) {
+                failed |= can.send(&frame).await.is_err();
+            }
+            if failed {
+                lock(&self.core).count_send_error();
+            }
+        }
+    }
+
+    /// Answers a service request addressed to this node (GetInfo); `false` when the frame
+    /// is not one, so that the message path takes (and counts) it as before.
+    async fn serve_request(&mut self, id: u32, data: &[u8]) -> bool {
+        let Ok(request) =
+            interfaces::cyphal::node::parse_service_request(id, data, self.node.node_id())
+        else {
+            return false;
+        };
+        let Some(frames) = self.node.answer(&request) else {
+            return true;
+        };
+        let mut failed = false;
+        if let Some(can) = &self.can {
+            for frame in frames {
+                failed |= can.send(&frame).await.is_err();
+            }
+        }
+        if failed {
+            lock(&self.core).count_send_error();
+        }
+        true
+    }
+}
+
+/// GetInfo's identity from the configuration (a derived unique-ID when none is set).
+fn node_identity(config: &ComponentConfig) -> NodeIdentity {
+    NodeIdentity {
+        name: config.node.name.clone(),
+        unique_id: parse_unique_id(&config.node.unique_id)
+            .unwrap_or_else(|| derived_unique_id(&config.node.name, config.node.node_id)),
+        software_version: software_version(),
+        software_vcs_revision_id: 0,
     }
 }
 
@@ -490,7 +550,9 @@ pub async fn start(
                             if let Some(r) = recorder.as_mut() {
                                 r.can(now, frame.id(), frame.data(), frame.is_fd());
                             }
-                            lock(&engine.core).handle_can_frame(true, frame.id(), frame.data(), now);
+                            if !engine.serve_request(frame.id(), frame.data()).await {
+                                lock(&engine.core).handle_can_frame(true, frame.id(), frame.data(), now);
+                            }
                         }
                         Err(error) => receive_failed(&engine, &error).await,
                     }

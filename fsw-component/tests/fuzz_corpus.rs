@@ -227,6 +227,7 @@ fn sun(time_us: u64) -> Vec<u8> {
         time_us,
         sun_body: [0.6, 0.0, 0.8],
         valid: true,
+        eclipse: None,
     })
 }
 
@@ -242,6 +243,13 @@ fn frame(frame_id: u32, time_us: u64) -> Vec<u8> {
         },
         mask: None,
         pixels: &pixels,
+        camera: Some(interfaces::messages::CameraModel {
+            fx_px: 4.0,
+            fy_px: 4.0,
+            cx_px: 2.0,
+            cy_px: 2.0,
+            distortion: interfaces::messages::Distortion::None,
+        }),
     })
 }
 
@@ -435,7 +443,7 @@ fn checkpoint_seeds() -> Vec<Vec<u8>> {
         let mut learner = harness::nearest_checkpoint::learner(3);
         for (i, view) in views.iter().take(keyframes).enumerate() {
             learner.offer(&harness::nearest_checkpoint::frame(i as u32, *view));
-            learner.run_round_if_due();
+            learner.run_round_if_due().expect("round");
         }
         let bytes = learner.save();
         // Capacity 3 (selector >> 1 = 1): even with the stored CRC, odd with it recomputed.

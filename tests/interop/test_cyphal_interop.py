@@ -19,14 +19,12 @@ No CAN hardware or kernel support is needed: frames travel over python-can's in-
 """
 
 import asyncio
-import json
-import os
-import pathlib
 import random
 import subprocess
 import uuid
 
 import can
+from conftest import example_binary
 import pytest
 from pycyphal.transport import (
     InputSessionSpecifier,
@@ -40,7 +38,6 @@ from pycyphal.transport import (
 from pycyphal.transport.can import CANTransport
 from pycyphal.transport.can.media.pythoncan import PythonCANMedia
 
-REPO = pathlib.Path(__file__).resolve().parents[2]
 EXTENT_BYTES = 4096
 
 # Payload sizes around every framing boundary: empty, classic single-frame limit (7),
@@ -50,21 +47,7 @@ SIZES = [0, 1, 5, 7, 8, 11, 12, 13, 14, 30, 47, 60, 61, 62, 63, 64, 94, 120, 125
 
 @pytest.fixture(scope="module")
 def frames_bin() -> str:
-    explicit = os.environ.get("CYPHAL_FRAMES_BIN")
-    if explicit:
-        return explicit
-    out = subprocess.run(
-        ["cargo", "build", "-q", "-p", "interfaces", "--example", "cyphal_frames", "--message-format=json"],
-        cwd=REPO,
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
-    for line in out.splitlines():
-        msg = json.loads(line)
-        if msg.get("reason") == "compiler-artifact" and msg.get("executable") and msg["target"]["name"] == "cyphal_frames":
-            return msg["executable"]
-    raise RuntimeError("cargo did not report the cyphal_frames executable")
+    return example_binary("interfaces", "cyphal_frames", "CYPHAL_FRAMES_BIN")
 
 
 def payload_of(size: int, seed: int) -> bytes:

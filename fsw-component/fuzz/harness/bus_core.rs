@@ -14,11 +14,13 @@
 //! and one error event per error code. A RESET_COUNTERS command restarts the accounting.
 
 use super::Bytes;
-use fsw_component::core::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
+use fsw_component::cmdauth::UdpIngress;
+use fsw_component::config::ComponentConfig;
+use fsw_component::inbound::{BusCore, CoreCounters, CoreSettings, HealthContext, Outgoing};
 use fsw_component::learner::LearnerStats;
 use fsw_component::sync::SyncConfig;
 use fsw_component::worker::{QueueLimits, WorkerShared};
-use interfaces::messages::{AckStatus, CommandKind, EventKind, Mode};
+use interfaces::messages::{AckStatus, CommandKind, ErrorCode, EventKind, Mode};
 use std::sync::Arc;
 
 const LIMITS: QueueLimits = QueueLimits {
@@ -28,7 +30,7 @@ const LIMITS: QueueLimits = QueueLimits {
 };
 const PENDING_CAPACITY: usize = 4;
 /// Error codes in the ICD (one rate-limited event each per input at most).
-const ERROR_CODES: usize = 11;
+const ERROR_CODES: usize = ErrorCode::COUNT;
 
 pub fn run(input: &[u8]) {
     let mut b = Bytes::new(input);
@@ -37,12 +39,20 @@ pub fn run(input: &[u8]) {
         1 => Mode::PredictOnly,
         _ => Mode::Idle,
     };
-    let worker = Arc::new(WorkerShared::new(LIMITS, LearnerStats::default(), std::time::Duration::from_secs(60)));
+    let worker = Arc::new(WorkerShared::new(
+        LIMITS,
+        LearnerStats::default(),
+        std::time::Duration::from_secs(60),
+    ));
+    let config = ComponentConfig::default();
     let settings = CoreSettings {
         sync: SyncConfig::default(),
         max_wait_us: 500_000,
         pending_capacity: PENDING_CAPACITY,
         initial_mode: mode,
+        camera: config.camera_intrinsics().expect("default camera"),
+        time_guard: config.time_guard_config().expect("default guard"),
+        commands: config.command_policy().expect("default policy"),
     };
     let mut core = BusCore::new(settings, Arc::clone(&worker)).expect("valid settings");
     let mut now_us = 1_000_000u64;
@@ -55,7 +65,12 @@ pub fn run(input: &[u8]) {
         match op % 3 {
             0 => {
                 let len = usize::from(b.u16()) % 1500;
-                core.handle_datagram(b.take(len), now_us);
+                let ingress = if op & 16 == 0 {
+                    UdpIngress::Telemetry
+                } else {
+                    UdpIngress::Frames
+                };
+                core.handle_datagram(b.take(len), ingress, now_us);
             }
             1 => {
                 let id = b.u32();
@@ -132,12 +147,17 @@ impl Tally {
                 + bus.frames_received
                 + bus.commands_accepted
                 + bus.commands_rejected
+                + bus.commands_unauthorised
+                // Dropped by the time-tag guard before the synchronizer sees them.
+                + bus.telemetry_time_out_of_bounds
                 // The synchronizer counts telemetry drops itself too: count it once there.
                 + stored(sync.pose)
                 + stored(sync.sun),
             frames_in: bus.frames_received,
             frames_out: bus.frames_ignored_idle
+                + bus.frames_camera_mismatch
                 + f.synced
+                + f.eclipse
                 + f.rejected_missing
                 + f.rejected_stale
                 + f.rejected_invalid

@@ -49,6 +49,7 @@ pub fn run(input: &[u8]) {
             width: 5,
             height: 3,
             format,
+            intrinsics: gs_core::Intrinsics::from_fov_x(0.5, 5, 3),
         };
         if let Ok(image) = learner.predict(&request) {
             assert_eq!((image.width, image.height, image.format), (5, 3, format));
@@ -60,11 +61,11 @@ pub fn run(input: &[u8]) {
             );
         }
     }
-    if let Some(round) = learner.run_round_if_due() {
+    if let Ok(Some(round)) = learner.run_round_if_due() {
         assert!((0.0..=1.0).contains(&round.loss), "{round:?}");
     }
     learner.offer(&frame(u32::MAX, DVec3::NEG_Y));
-    if let Some(round) = learner.run_round_if_due() {
+    if let Ok(Some(round)) = learner.run_round_if_due() {
         assert!((0.0..=1.0).contains(&round.loss), "{round:?}");
     }
 }
@@ -87,6 +88,7 @@ pub fn frame(id: u32, view: DVec3) -> ObservedFrame {
         format: PixelFormat::Rgb8,
         pixels: (0..24).map(|i| (i * 10 + id as usize) as u8).collect(),
         mask: None,
+        camera: gs_core::Intrinsics::from_fov_x(0.5, 4, 2),
         telemetry: SyncedTelemetry {
             time_us: u64::from(id) * 1_000_000,
             camera_from_target: DQuat::IDENTITY,
@@ -97,6 +99,7 @@ pub fn frame(id: u32, view: DVec3) -> ObservedFrame {
             sun_in_target: DVec3::Z,
             view_in_target: view,
             range_m: 10.0,
+            eclipse: false,
         },
     }
 }

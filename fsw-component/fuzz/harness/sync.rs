@@ -57,6 +57,7 @@ pub fn run(input: &[u8]) {
                     time_us,
                     sun_in_body: vector(&mut b, raw),
                     valid: op & 0x20 == 0,
+                    eclipse: (op & 0x40 != 0).then_some(op & 0x80 != 0),
                 };
                 let result = sync.push_sun(sample);
                 streams[1].check_push(time_us, result, capacity);

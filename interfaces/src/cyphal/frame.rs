@@ -6,6 +6,9 @@
 //!  | subject-ID [20:8] | reserved=0 [7] | source node-ID [6:0]`.
 //! Bits 22 and 21 are set on transmit and ignored on receive; bits 23 and 7 must be zero
 //! (a frame with either set belongs to another protocol and is rejected).
+//! Service CAN ID layout (same section):
+//! `priority[28:26] | service=1 [25] | request-not-response [24] | reserved=0 [23]
+//!  | service-ID [22:14] | destination node-ID [13:7] | source node-ID [6:0]`.
 //! Tail byte: `start [7] | end [6] | toggle [5] | transfer-ID [4:0]`.
 
 use core::fmt;
@@ -16,6 +19,8 @@ pub const CLASSIC_MTU: usize = 8;
 pub const FD_MTU: usize = 64;
 /// Subject-IDs are 13 bits.
 pub const MAX_SUBJECT_ID: u16 = 8191;
+/// Service-IDs are 9 bits.
+pub const MAX_SERVICE_ID: u16 = 511;
 /// Node-IDs are 7 bits.
 pub const MAX_NODE_ID: u8 = 127;
 /// Transfer-IDs on CAN are 5 bits and wrap modulo 32.
@@ -100,6 +105,8 @@ pub enum CanIdError {
     ReservedBitSet,
     /// A field is out of its range on transmit.
     FieldOutOfRange,
+    /// A message ID where a service ID was expected.
+    NotService,
 }
 
 impl core::error::Error for CanIdError {}
@@ -110,7 +117,10 @@ impl fmt::Display for CanIdError {
             CanIdError::NotExtended => f.write_str("CAN ID wider than 29 bits"),
             CanIdError::ServiceTransfer => f.write_str("service transfers are not supported"),
             CanIdError::ReservedBitSet => f.write_str("reserved bit 23 or 7 set: not Cyphal"),
-            CanIdError::FieldOutOfRange => f.write_str("subject-ID or node-ID out of range"),
+            CanIdError::FieldOutOfRange => {
+                f.write_str("subject-ID, service-ID or node-ID out of range")
+            }
+            CanIdError::NotService => f.write_str("message CAN ID where a service ID was expected"),
         }
     }
 }
@@ -172,6 +182,58 @@ impl MessageCanId {
             } else {
                 Some((raw & 0x7F) as u8)
             },
+        })
+    }
+}
+
+/// The header fields carried by a service (request or response) frame's CAN ID.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ServiceCanId {
+    pub priority: Priority,
+    /// 0..=511.
+    pub service_id: u16,
+    /// `true` for a request, `false` for a response.
+    pub is_request: bool,
+    /// 0..=127: the server (request) or the client (response).
+    pub destination_node_id: u8,
+    /// 0..=127: service transfers are never anonymous.
+    pub source_node_id: u8,
+}
+
+impl ServiceCanId {
+    /// The 29-bit identifier.
+    pub fn to_raw(&self) -> Result<u32, CanIdError> {
+        if self.service_id > MAX_SERVICE_ID
+            || self.destination_node_id > MAX_NODE_ID
+            || self.source_node_id > MAX_NODE_ID
+        {
+            return Err(CanIdError::FieldOutOfRange);
+        }
+        Ok(((self.priority as u32) << 26)
+            | BIT_SERVICE
+            | (u32::from(self.is_request) << 24)
+            | (u32::from(self.service_id) << 14)
+            | (u32::from(self.destination_node_id) << 7)
+            | u32::from(self.source_node_id))
+    }
+
+    /// Parses a received service identifier; a message ID is [`CanIdError::NotService`].
+    pub fn from_raw(raw: u32) -> Result<Self, CanIdError> {
+        if raw & !CAN_EXT_ID_MASK != 0 {
+            return Err(CanIdError::NotExtended);
+        }
+        if raw & BIT_SERVICE == 0 {
+            return Err(CanIdError::NotService);
+        }
+        if raw & BIT_R23 != 0 {
+            return Err(CanIdError::ReservedBitSet);
+        }
+        Ok(Self {
+            priority: Priority::from_bits((raw >> 26) as u8),
+            service_id: ((raw >> 14) & u32::from(MAX_SERVICE_ID)) as u16,
+            is_request: raw & BIT_ANONYMOUS != 0,
+            destination_node_id: ((raw >> 7) & 0x7F) as u8,
+            source_node_id: (raw & 0x7F) as u8,
         })
     }
 }
@@ -268,6 +330,42 @@ mod tests {
             MessageCanId::from_raw(1 << 29),
             Err(CanIdError::NotExtended)
         );
+    }
+
+    #[test]
+    fn service_can_ids_match_the_spec_examples() {
+        // Cyphal Specification v1.0, 4.2.3: uavcan.node.GetInfo request from node 123 to
+        // node 42 is 0x136B957B; the response from 42 to 123 is 0x126BBDAA.
+        let request = ServiceCanId {
+            priority: Priority::Nominal,
+            service_id: 430,
+            is_request: true,
+            destination_node_id: 42,
+            source_node_id: 123,
+        };
+        assert_eq!(request.to_raw().unwrap(), 0x136B_957B);
+        assert_eq!(ServiceCanId::from_raw(0x136B_957B).unwrap(), request);
+        let response = ServiceCanId {
+            is_request: false,
+            destination_node_id: 123,
+            source_node_id: 42,
+            ..request
+        };
+        assert_eq!(response.to_raw().unwrap(), 0x126B_BDAA);
+        assert_eq!(ServiceCanId::from_raw(0x126B_BDAA).unwrap(), response);
+        assert_eq!(
+            ServiceCanId::from_raw(0x107D_552A),
+            Err(CanIdError::NotService)
+        );
+        assert_eq!(
+            ServiceCanId::from_raw(0x136B_957B | (1 << 23)),
+            Err(CanIdError::ReservedBitSet)
+        );
+        let too_big = ServiceCanId {
+            service_id: 512,
+            ..request
+        };
+        assert_eq!(too_big.to_raw(), Err(CanIdError::FieldOutOfRange));
     }
 
     #[test]

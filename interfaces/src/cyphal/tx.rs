@@ -1,4 +1,4 @@
-//! Cyphal/CAN transmit side: split one message transfer's payload into CAN frames.
+//! Cyphal/CAN transmit side: split one message or service transfer's payload into CAN frames.
 //!
 //! The frames are a view of the byte stream `payload ++ padding ++ crc` cut into pieces of
 //! `mtu - 1` bytes, each followed by a tail byte:
@@ -12,7 +12,8 @@
 //! The iterator allocates nothing and never panics; the header is checked up front.
 
 use super::frame::{
-    round_up_frame_length, CanFrame, CanIdError, MessageCanId, Mtu, Priority, TailByte,
+    round_up_frame_length, CanFrame, CanIdError, MessageCanId, Mtu, Priority, ServiceCanId,
+    TailByte,
 };
 use crate::crc::Crc16CcittFalse;
 
@@ -72,6 +73,21 @@ pub fn transfer_frames<'a>(
         source_node_id: Some(header.source_node_id),
     }
     .to_raw()?;
+    Ok(frames_for_id(can_id, header.transfer_id, payload, mtu))
+}
+
+/// Frames for one service transfer (a request or a response). A response must repeat the
+/// request's priority and transfer-ID (Cyphal v1.0, 4.2.1), so the caller passes both.
+pub fn service_transfer_frames<'a>(
+    id: &ServiceCanId,
+    transfer_id: u64,
+    payload: &'a [u8],
+    mtu: Mtu,
+) -> Result<TransferFrames<'a>, CanIdError> {
+    Ok(frames_for_id(id.to_raw()?, transfer_id, payload, mtu))
+}
+
+fn frames_for_id(can_id: u32, transfer_id: u64, payload: &[u8], mtu: Mtu) -> TransferFrames<'_> {
     let (multi_frame, padding) = padding_for(payload.len(), mtu);
     let mut crc_be = [0u8; 2];
     let mut stream_len = payload.len() + padding;
@@ -84,9 +100,9 @@ pub fn transfer_frames<'a>(
         crc_be = crc.value().to_be_bytes();
         stream_len += 2;
     }
-    Ok(TransferFrames {
+    TransferFrames {
         can_id,
-        transfer_id: (header.transfer_id % 32) as u8,
+        transfer_id: (transfer_id % 32) as u8,
         mtu,
         payload,
         multi_frame,
@@ -95,7 +111,7 @@ pub fn transfer_frames<'a>(
         stream_len,
         offset: 0,
         frame_index: 0,
-    })
+    }
 }
 
 impl TransferFrames<'_> {
@@ -242,6 +258,42 @@ mod tests {
         let crc = crate::crc::crc16_ccitt_false(&payload).to_be_bytes();
         assert_eq!(out[1].data[6], crc[0]);
         assert_eq!(&out[2].data[..], &[crc[1], 0x7F]); // end, toggle 1 (third frame), TID 31
+    }
+
+    #[test]
+    fn spec_get_info_request_and_response_ids() {
+        // Cyphal spec 4.2.3: GetInfo request (empty) from 123 to 42, transfer-ID 1: 0x136B957B, E1.
+        let request = ServiceCanId {
+            priority: Priority::Nominal,
+            service_id: 430,
+            is_request: true,
+            destination_node_id: 42,
+            source_node_id: 123,
+        };
+        let out: Vec<CanFrame> = service_transfer_frames(&request, 1, &[], Mtu::Classic)
+            .unwrap()
+            .collect();
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].id, 0x136B_957B);
+        assert_eq!(&out[0].data[..], &[0xE1]);
+        let response = ServiceCanId {
+            is_request: false,
+            destination_node_id: 123,
+            source_node_id: 42,
+            ..request
+        };
+        let payload: Vec<u8> = (0u8..40).collect();
+        let out: Vec<CanFrame> = service_transfer_frames(&response, 1, &payload, Mtu::Classic)
+            .unwrap()
+            .collect();
+        assert_eq!(out.len(), 6, "40 bytes + CRC on classic CAN: 6 frames of 7");
+        assert!(out.iter().all(|f| f.id == 0x126B_BDAA));
+        assert_eq!(*out[0].data.last().unwrap(), 0xA1);
+        let bad = ServiceCanId {
+            destination_node_id: 128,
+            ..response
+        };
+        assert!(service_transfer_frames(&bad, 0, &[], Mtu::Fd).is_err());
     }
 
     #[test]
