@@ -299,20 +299,33 @@ async fn bad_input_is_counted_and_neither_the_model_nor_valid_messages_are_lost(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flood_at_ten_times_the_scenario_rate_loses_no_valid_message() {
-    let dir = temp_dir("flood");
+    flood_loses_no_valid_message(LearnerKind::NearestKeyframe, "flood").await;
+}
+
+/// The same flood with the real Sun-aware learner behind the queues.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_loses_no_valid_message_with_the_real_learner() {
+    flood_loses_no_valid_message(LearnerKind::SunAware, "flood-sunaware").await;
+}
+
+async fn flood_loses_no_valid_message(learner: LearnerKind, name: &str) {
+    let dir = temp_dir(name);
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start(&config, build_learner(&config, learner).unwrap(), None)
+        .await
+        .unwrap();
     for k in 0..5 {
         send_step(&mut peer, k, &handle).await;
     }
     wait_prediction(&peer, 4).await;
+    // A prediction goes out before its frame's training: let the trainer finish frame 4
+    // (the real learner runs a round after it) before taking the baseline.
+    wait_counter(&handle, "the first frames processed", |h| {
+        let w = h.worker_snapshot();
+        w.frames_processed == 5 && !w.busy
+    })
+    .await;
     let base = handle.counters();
     let base_worker = handle.worker_snapshot();
     let base_depths = handle.queue_depths();
