@@ -323,8 +323,11 @@ async fn the_first_full_window_is_carved_into_a_hull_start() {
     assert_eq!(peer.wait_ack(1).await.status, AckStatus::Ok);
     let bytes = std::fs::read(&config.checkpoint.path).unwrap();
     handle.shutdown().await;
-    // Sun-aware component checkpoint: magic, rounds, length, then gs-core's trainer.
-    let trainer = gs_core::sunaware::checkpoint::from_bytes(&bytes[24..bytes.len() - 4]).unwrap();
+    // Sun-aware component checkpoint v2 (`sunaware_learner.rs`): magic, hull start pending
+    // u8, trainer length u64, then gs-core's trainer.
+    assert_eq!(&bytes[..8], b"FSWSAL02");
+    let trainer_len = u64::from_le_bytes(bytes[9..17].try_into().unwrap()) as usize;
+    let trainer = gs_core::sunaware::checkpoint::from_bytes(&bytes[17..17 + trainer_len]).unwrap();
     let scene = &trainer.model.scene_box;
     for axis in 0..3 {
         let (lo, hi) = (scene.min_m()[axis], scene.max_m()[axis]);
