@@ -102,12 +102,24 @@ impl Adam {
     }
 
     /// Index of the first gradient a step would refuse (non-finite or oversized), if any.
-    pub fn first_non_finite(grads: &ParamSet) -> Option<(Param, usize)> {
+    pub fn first_unusable_gradient(grads: &ParamSet) -> Option<(Param, usize)> {
         Param::ALL.iter().find_map(|&p| {
             grads
                 .get(p)
                 .iter()
                 .position(|&g| !is_usable_gradient(g))
+                .map(|i| (p, i))
+        })
+    }
+
+    /// Index of the first NaN or infinite value (of a model's parameters), if any. Large
+    /// finite parameters are the model's business; only gradients are bounded.
+    pub fn first_non_finite(values: &ParamSet) -> Option<(Param, usize)> {
+        Param::ALL.iter().find_map(|&p| {
+            values
+                .get(p)
+                .iter()
+                .position(|v| !v.is_finite())
                 .map(|i| (p, i))
         })
     }
@@ -128,7 +140,7 @@ impl Adam {
                 moment_rows: self.m.len(),
             });
         }
-        if let Some((param, index)) = Self::first_non_finite(grads) {
+        if let Some((param, index)) = Self::first_unusable_gradient(grads) {
             return Err(OptimError::NonFiniteGradient { param, index });
         }
         self.step += 1;

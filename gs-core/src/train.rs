@@ -779,7 +779,7 @@ impl Trainer {
                     &g.d_channels,
                     &mut grads,
                 )?;
-                Adam::first_non_finite(&grads)
+                Adam::first_unusable_gradient(&grads)
                     .is_none()
                     .then_some((g, grads))
             }
