@@ -61,12 +61,21 @@ pub struct Ladder {
     pub covered: Option<Rung>,
 }
 
-/// The ladder's CSV columns: masked PSNR of the model and of black per rung, then the
-/// masked SSIM of L2.
-pub const CSV_COLUMNS: &str = "l0_window_masked_psnr,l0_window_black_masked_psnr,\
+/// The ladder's CSV column names as a string literal, so that the reports' own headers can
+/// `concat!` them (one list for `table`, `pareto` and [`CSV_COLUMNS`]).
+macro_rules! ladder_csv_columns {
+    () => {
+        "l0_window_masked_psnr,l0_window_black_masked_psnr,\
 l0_seen_masked_psnr,l0_seen_black_masked_psnr,l1_held_out_masked_psnr,\
 l1_held_out_black_masked_psnr,l2_eval_masked_psnr,l2_eval_black_masked_psnr,\
-l2_covered_masked_psnr,l2_covered_black_masked_psnr,l2_eval_masked_ssim";
+l2_covered_masked_psnr,l2_covered_black_masked_psnr,l2_eval_masked_ssim"
+    };
+}
+pub(crate) use ladder_csv_columns;
+
+/// The ladder's CSV columns: masked PSNR of the model and of black per rung, then the
+/// masked SSIM of L2.
+pub const CSV_COLUMNS: &str = ladder_csv_columns!();
 
 impl Ladder {
     pub fn of(run: &RunOutcome) -> Ladder {

@@ -300,10 +300,7 @@ pub const CSV_HEADER: &str = concat!(
     "max_gaussians,init_points,feature_dim,encoding_frequencies,window,rounds_per_window_change,",
     "passes_per_round,skip_eclipse,skip_unlit,skip_unchanged_window,frames,rounds,steps,train_s,",
     "train_cpu_s,step_ms,psnr_db,ssim,masked_psnr_db,black_psnr_db,gaussians,peak_rss_mb,pareto,",
-    "l0_window_masked_psnr,l0_window_black_masked_psnr,",
-    "l0_seen_masked_psnr,l0_seen_black_masked_psnr,l1_held_out_masked_psnr,",
-    "l1_held_out_black_masked_psnr,l2_eval_masked_psnr,l2_eval_black_masked_psnr,",
-    "l2_covered_masked_psnr,l2_covered_black_masked_psnr,l2_eval_masked_ssim"
+    ladder::ladder_csv_columns!()
 );
 
 /// CSV text; `front[i]` marks row i on the Pareto front (missing entries: false).

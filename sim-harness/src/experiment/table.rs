@@ -16,10 +16,7 @@ use std::fmt::Write as _;
 /// ladder's columns ([`ladder::CSV_COLUMNS`]).
 pub const CSV_HEADER: &str = concat!(
     "target,config,ssim,psnr,gaussians,train_s,step_ms,",
-    "l0_window_masked_psnr,l0_window_black_masked_psnr,",
-    "l0_seen_masked_psnr,l0_seen_black_masked_psnr,l1_held_out_masked_psnr,",
-    "l1_held_out_black_masked_psnr,l2_eval_masked_psnr,l2_eval_black_masked_psnr,",
-    "l2_covered_masked_psnr,l2_covered_black_masked_psnr,l2_eval_masked_ssim"
+    ladder::ladder_csv_columns!()
 );
 
 /// One trained and evaluated configuration on one target.
