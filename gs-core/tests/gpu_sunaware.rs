@@ -689,4 +689,9 @@ fn a_shadow_gain_the_device_lacks_is_refused_with_a_clear_error() {
     let (mut plain, _) = setup(Variant::B, 1);
     plain.config.shadow_gain = 2.0;
     plain.set_backend(&backend).unwrap();
+    // Lambertian shading is CPU-only.
+    let (mut shaded, _) = setup(Variant::B, 1);
+    shaded.config.shading = gs_core::sunaware::Shading::Lambert;
+    let err = shaded.set_backend(&backend).unwrap_err().to_string();
+    assert!(err.contains("shading"), "{err}");
 }

@@ -10,8 +10,11 @@ use gs_core::camera::{Camera, Intrinsics};
 use gs_core::init::{inverse_sigmoid, SplitMix64};
 use gs_core::model::{GaussianModel, Param};
 use gs_core::nn::SceneBox;
+use gs_core::sunaware::shading::facing_normal;
 use gs_core::sunaware::trainer::loss_and_grads;
-use gs_core::sunaware::{Observation, ShadowRefinement, SunAwareConfig, SunAwareModel, Variant};
+use gs_core::sunaware::{
+    Observation, Shading, ShadowRefinement, SunAwareConfig, SunAwareModel, Variant,
+};
 
 fn scene(variant: Variant) -> SunAwareModel {
     scene_with(variant, SunAwareConfig::default().shadow_refinement)
@@ -241,6 +244,82 @@ fn appearance_colour_gradients_match_finite_differences() {
     check_group(&model, &grads.params, Param::Feature, 8, 1e-3, &f);
     check_group(&model, &grads.params, Param::Mean, 6, 1e-3, &f);
     check_group(&model, &grads.params, Param::OpacityLogit, 4, 1e-3, &f);
+}
+
+#[test]
+fn lambert_shading_gradients_match_finite_differences() {
+    for variant in [Variant::B, Variant::D] {
+        let mut model = scene(variant);
+        model.config.shading = Shading::Lambert;
+        model.config.shading_ambient = 0.2;
+        let vis = model.sun_visibility(&camera(), sun()).unwrap();
+        let settings = model.raster_settings(true);
+        let vis_arg = variant.uses_shadow().then_some(vis.as_slice());
+        let pass = model
+            .forward(&camera(), sun(), 0, &settings, vis_arg)
+            .unwrap();
+        // Both branches of max(0, n . s) are exercised: some Gaussians lit, some at the
+        // ambient floor.
+        let f = pass.shading_factors().expect("shading is on");
+        let lit = pass.visible_list.iter().filter(|&&g| f[g as usize] > 0.2);
+        let unlit = pass.visible_list.iter().filter(|&&g| f[g as usize] == 0.2);
+        assert!(lit.count() >= 2 && unlit.count() >= 2, "{variant}: {f:?}");
+        let w = weights(pass.image.len());
+        let grads = model.backward(&pass, &w).unwrap();
+        let objective = |m: &SunAwareModel| {
+            let pass = m.forward(&camera(), sun(), 0, &settings, vis_arg).unwrap();
+            pass.image
+                .iter()
+                .zip(&w)
+                .map(|(&a, &b)| a as f64 * b as f64)
+                .sum::<f64>()
+        };
+        for i in top(&grads.appearance, 6) {
+            let numeric = central(
+                &model,
+                1e-3,
+                |m, d| m.appearance.as_mut().unwrap().mlp.params_mut()[i] += d,
+                objective,
+            );
+            assert_close(
+                &format!("{variant}: phi weight {i}"),
+                grads.appearance[i],
+                numeric,
+                0.03,
+                2e-4,
+            );
+        }
+        // Rotation: the rasterizer's term plus the normal's, on the Gaussians whose normal
+        // is well away from its flip toward the camera (where the factor jumps).
+        let away_from_flip = |i: usize| {
+            facing_normal(&model.gaussians.params, i / 4, camera().position())
+                .is_some_and(|n| n.facing_cos > 0.2)
+        };
+        let rotation = grads.params.get(Param::Rotation);
+        let checked: Vec<usize> = top(rotation, rotation.len())
+            .into_iter()
+            .filter(|&i| away_from_flip(i))
+            .take(10)
+            .collect();
+        assert!(checked.len() == 10, "{variant}: {checked:?}");
+        for i in checked {
+            let numeric = central(
+                &model,
+                1e-3,
+                |m, d| m.gaussians.params.get_mut(Param::Rotation)[i] += d,
+                objective,
+            );
+            assert_close(
+                &format!("{variant}: rotation[{i}]"),
+                rotation[i],
+                numeric,
+                0.03,
+                2e-4,
+            );
+        }
+        check_group(&model, &grads.params, Param::Feature, 6, 1e-3, &objective);
+        check_group(&model, &grads.params, Param::Mean, 6, 1e-3, &objective);
+    }
 }
 
 #[test]

@@ -17,7 +17,8 @@ usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
   --tumble DEG_S       target tumble rate (default: the scenario's; 0: a static target)
   --spp N              ray-tracing samples per pixel (default: the preset's)
   --earth F            Earth-albedo fill (default: the preset's)
-  --extra TOML         preset lines appended to the demo preset (\\n for new lines)
+  --extra TOML         preset lines added to the demo preset's top-level keys, before
+                       its tables such as [rates] (\\n for new lines)
   --max-gaussians N    densification cap
   --steps N            offline steps (default 3000)
   --densify-every N    offline: densify every N steps in the first half (default 100)
@@ -56,7 +57,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let variant: Variant = arg("--config").unwrap_or("a".into()).parse()?;
     let masked = arg("--masked").is_some_and(|s| s == "1");
     let extra = arg("--extra").unwrap_or_default().replace("\\n", "\n");
-    let mut preset = Preset::from_toml_str(&format!("{DEMO_PRESET}\n{extra}\n"), "demo")?;
+    // Top-level keys must come before the preset's first table, or TOML files them in it.
+    let tables_at = DEMO_PRESET.find("\n[").unwrap_or(DEMO_PRESET.len());
+    let (top, tables) = DEMO_PRESET.split_at(tables_at);
+    let mut preset = Preset::from_toml_str(&format!("{top}\n{extra}\n{tables}\n"), "demo")?;
     let base = match arg("--scenario") {
         Some(path) => Scenario::load(std::path::Path::new(&path))?,
         None => Scenario::from_toml_str(

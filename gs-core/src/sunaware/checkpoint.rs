@@ -3,8 +3,9 @@
 //! File layout (all integers and floats little-endian):
 //! ```text
 //! magic     8 bytes  b"SUNGSCKP"
-//! version   u32      3 (2 is still read: no hidden-width field, Phi is 256 wide; 1 also
-//!                    has no shadow refinement byte and means Replace)
+//! version   u32      5 (older ones are still read: 4 has no shading fields and means
+//!                    none; 3 also no shadow gain, meaning 1; 2 also no hidden-width
+//!                    field, Phi is 256 wide; 1 also no shadow refinement byte, Replace)
 //! length    u64      payload bytes
 //! payload   length bytes (below)
 //! checksum  u64      FNV-1a 64 of the payload
@@ -21,7 +22,9 @@
 //!    densify_from_step u64,
 //!    background 3 f32, near_m f32, seed u64, feature_init_std f32, from version 2
 //!    shadow refinement u8 (0 replace, 1 multiply), from version 3 appearance hidden width
-//!    u64 (the width of Phi's hidden layers: the weights' shape depends on it);
+//!    u64 (the width of Phi's hidden layers: the weights' shape depends on it), from
+//!    version 4 shadow gain f32, from version 5 shading u8 (0 none, 1 Lambert) and shading
+//!    ambient f32;
 //! 2. scene box: min 3 f32, max 3 f32;
 //! 3. Gaussians: count u64, then each group of `Param::ALL` in order (count x width f32,
 //!    widths from the config's layout);
@@ -53,14 +56,14 @@ use crate::optim::Adam;
 use crate::regularizer::IsoReduction;
 
 use super::config::{
-    LightConfig, LightProjection, ShadowRefinement, SunAwareConfig, SunAwareRates, Variant,
+    LightConfig, LightProjection, Shading, ShadowRefinement, SunAwareConfig, SunAwareRates, Variant,
 };
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
 use super::trainer::{FlatAdam, SunAwareTrainer};
 
 pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
-pub const VERSION: u32 = 4;
+pub const VERSION: u32 = 5;
 /// Oldest version [`from_bytes`] reads.
 pub const OLDEST_READABLE_VERSION: u32 = 1;
 /// Largest Adam step a checkpoint may hold: the bias correction raises the betas to the
@@ -227,6 +230,8 @@ fn write_config(w: &mut Writer, c: &SunAwareConfig) {
     });
     w.u64(c.appearance_hidden_width as u64);
     w.f32(c.shadow_gain);
+    w.u8(c.shading.code());
+    w.f32(c.shading_ambient);
 }
 
 fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareError> {
@@ -325,6 +330,18 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
             r.f32("shadow gain")?
         } else {
             1.0
+        },
+        // Before version 5, the paper's unshaded colour.
+        shading: if version >= 5 {
+            let code = r.u8("shading")?;
+            Shading::from_code(code).ok_or_else(|| ck(format!("unknown shading {code}")))?
+        } else {
+            Shading::None
+        },
+        shading_ambient: if version >= 5 {
+            r.f32("shading ambient")?
+        } else {
+            SunAwareConfig::default().shading_ambient
         },
         ..SunAwareConfig::default()
     };
@@ -665,6 +682,38 @@ mod tests {
         read_config(&mut Reader { buf: bytes, pos: 0 }, version)
     }
 
+    /// The version-5 fields at the end of the config section: shading u8, ambient f32.
+    const SHADING_BYTES: usize = 5;
+
+    #[test]
+    fn shading_round_trips_and_versions_before_5_mean_none() {
+        let config = SunAwareConfig {
+            shading: Shading::Lambert,
+            shading_ambient: 0.25,
+            ..SunAwareConfig::for_variant(Variant::D)
+        };
+        let mut w = Writer(Vec::new());
+        write_config(&mut w, &config);
+        let bytes = w.0;
+        let back = read(&bytes, 5).unwrap();
+        assert_eq!(
+            (back.shading, back.shading_ambient),
+            (Shading::Lambert, 0.25)
+        );
+        let v4 = read(&bytes[..bytes.len() - SHADING_BYTES], 4).unwrap();
+        assert_eq!(v4.shading, Shading::None);
+        let mut bad = bytes.clone();
+        let at = bad.len() - SHADING_BYTES;
+        bad[at] = 9;
+        let err = read(&bad, 5).unwrap_err().to_string();
+        assert!(err.contains("unknown shading 9"), "{err}");
+        let mut bad = bytes.clone();
+        let at = bad.len() - 4;
+        bad[at..].copy_from_slice(&1.5f32.to_le_bytes());
+        let err = read(&bad, 5).unwrap_err().to_string();
+        assert!(err.contains("shading_ambient"), "{err}");
+    }
+
     #[test]
     fn shadow_gain_round_trips_and_versions_before_4_mean_1() {
         let config = SunAwareConfig {
@@ -673,7 +722,8 @@ mod tests {
         };
         let mut w = Writer(Vec::new());
         write_config(&mut w, &config);
-        let bytes = w.0;
+        // The version-4 section: without the trailing shading fields.
+        let bytes = w.0[..w.0.len() - SHADING_BYTES].to_vec();
         assert_eq!(read(&bytes, 4).unwrap().shadow_gain, 2.0);
         assert_eq!(read(&bytes[..bytes.len() - 4], 3).unwrap().shadow_gain, 1.0);
         // A gain the model refuses is refused on load too.
@@ -687,7 +737,8 @@ mod tests {
     #[test]
     fn shadow_refinement_round_trips_and_version_1_means_replace() {
         for refinement in [ShadowRefinement::Replace, ShadowRefinement::Multiply] {
-            let bytes = config_bytes(refinement);
+            let full = config_bytes(refinement);
+            let bytes = &full[..full.len() - SHADING_BYTES];
             assert_eq!(read(&bytes, 4).unwrap().shadow_refinement, refinement);
             // A version-3 config section ends before the shadow gain (4 bytes), a version-2
             // one also before the hidden width (8 bytes), a version-1 one also before the
@@ -700,6 +751,7 @@ mod tests {
             assert_eq!(v1.shadow_refinement, ShadowRefinement::Replace);
         }
         let mut bad = config_bytes(ShadowRefinement::Multiply);
+        bad.truncate(bad.len() - SHADING_BYTES);
         let at = bad.len() - 13;
         bad[at] = 7;
         let err = read(&bad, 4).unwrap_err().to_string();
@@ -714,8 +766,8 @@ mod tests {
             ..SunAwareConfig::for_variant(Variant::D)
         };
         write_config(&mut w, &config);
-        // The version-3 section: without the trailing shadow gain (4 bytes).
-        let bytes = &w.0[..w.0.len() - 4];
+        // The version-3 section: without the trailing shadow gain (4 bytes) and shading.
+        let bytes = &w.0[..w.0.len() - 4 - SHADING_BYTES];
         assert_eq!(read(bytes, 3).unwrap().appearance_hidden_width, 64);
         let v2 = read(&bytes[..bytes.len() - 8], 2).unwrap();
         assert_eq!(v2.appearance_hidden_width, 256);

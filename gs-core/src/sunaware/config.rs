@@ -12,6 +12,7 @@ use crate::model::ModelLayout;
 use crate::regularizer::IsoReduction;
 
 use super::error::SunAwareError;
+pub use super::shading::Shading;
 
 /// The four configurations of the paper's Table I.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -322,6 +323,14 @@ pub struct SunAwareConfig {
     /// experiment presets set 2. A model knob, stored in checkpoints (from version 4; older
     /// ones load as 1).
     pub shadow_gain: f32,
+    /// Colour times a Lambertian factor of each Gaussian's normal and the Sun
+    /// ([`Shading`], `super::shading`): `None` is the paper's form. A model knob, stored in
+    /// checkpoints (from version 5; older ones load as `None`). The wgpu backend refuses
+    /// `Lambert`.
+    pub shading: Shading,
+    /// The ambient floor `k_a` of [`Shading::Lambert`], in [0, 1): the factor is
+    /// `k_a + (1 - k_a) max(0, n . s)`. Stored in checkpoints with `shading`.
+    pub shading_ambient: f32,
     pub lr: SunAwareRates,
     pub densify: DensifyConfig,
     /// Prune Gaussians whose screen radius or world size is too big at densification.
@@ -404,6 +413,8 @@ impl Default for SunAwareConfig {
             light: LightConfig::default(),
             shadow_refinement: ShadowRefinement::Multiply,
             shadow_gain: 1.0,
+            shading: Shading::None,
+            shading_ambient: 0.1,
             lr: SunAwareRates::default(),
             densify: DensifyConfig::default(),
             size_prune: false,
@@ -463,6 +474,19 @@ impl SunAwareConfig {
             return bad(format!(
                 "shadow_gain {} is outside [0.5, 8]",
                 self.shadow_gain
+            ));
+        }
+        if !(self.shading_ambient.is_finite() && (0.0..1.0).contains(&self.shading_ambient)) {
+            return bad(format!(
+                "shading_ambient {} is outside [0, 1)",
+                self.shading_ambient
+            ));
+        }
+        if self.shading != Shading::None && !self.variant.uses_appearance_mlp() {
+            return bad(format!(
+                "shading = {:?} needs the appearance MLP (configurations b-d), not {}",
+                self.shading.name(),
+                self.variant
             ));
         }
         if self.sh_degree > 3 {

@@ -2,9 +2,9 @@
 //!
 //! Viewers know SH colour only. Configuration (a) is written as it is (its SH already is
 //! the colour model). For (b)-(d), Phi's colour for the given Sun and the view vector from
-//! each Gaussian to `camera_centre` becomes the SH DC term (degree 0), multiplied for
-//! (c)-(d) by the refined visibility `V'` of that Sun: the file shows the target as lit and
-//! shadowed for that geometry. Geometry and opacity are copied unchanged. Features,
+//! each Gaussian to `camera_centre` (times the Lambertian factor when `config.shading` is
+//! on) becomes the SH DC term (degree 0), multiplied for (c)-(d) by the refined visibility
+//! `V'` of that Sun: the file shows the target as lit and shadowed for that geometry. Geometry and opacity are copied unchanged. Features,
 //! latents and network weights are not representable in a PLY: they live in the checkpoint.
 
 use std::io::Write;
@@ -19,6 +19,7 @@ use crate::sh::rgb_to_sh_dc;
 use super::config::ShadowRefinement;
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
+use super::shading::{shade_forward, Shading};
 
 /// The colour (and for c-d shadow) of every Gaussian for one Sun and viewpoint, `N * 3`.
 pub fn baked_colours(
@@ -52,6 +53,16 @@ pub fn baked_colours(
         &mut input,
     )?;
     let mut rgb = phi.mlp.forward(&input, n)?;
+    if model.config.shading == Shading::Lambert {
+        shade_forward(
+            p,
+            &all,
+            camera_centre,
+            sun,
+            model.config.shading_ambient,
+            &mut rgb,
+        );
+    }
     if let Some(psi) = &model.shadow {
         let vis = super::light::sun_visibility(
             &model.gaussians,

@@ -9,7 +9,8 @@
 //! - (d) + the isotropic scale loss `lambda_iso L_iso`.
 //!
 //! Modules: [`config`] (variants and settings), [`light`] (the shadow pass),
-//! [`model`] (model, forward and backward of one image), [`trainer`] (Adam, steps,
+//! [`model`] (model, forward and backward of one image), [`shading`] (an optional
+//! Lambertian factor from a normal and the Sun, beyond the paper), [`trainer`] (Adam, steps,
 //! densification, evaluation), [`checkpoint`] (bit-exact save/load), [`export`] (PLY baked
 //! for one Sun and view), [`synthetic`] (a Sun-lit test scene with self-shadowing).
 //!
@@ -22,12 +23,13 @@ pub mod error;
 pub mod export;
 pub mod light;
 pub mod model;
+pub mod shading;
 pub mod synthetic;
 pub mod trainer;
 
 pub use config::{
-    BackendKind, LightConfig, LightProjection, ShadowRefinement, SunAwareConfig, SunAwareRates,
-    Variant,
+    BackendKind, LightConfig, LightProjection, Shading, ShadowRefinement, SunAwareConfig,
+    SunAwareRates, Variant,
 };
 pub use error::SunAwareError;
 pub use model::{FramePass, SunAwareGrads, SunAwareModel};

@@ -64,6 +64,7 @@ use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 use super::config::{ShadowRefinement, SunAwareConfig};
 use super::error::SunAwareError;
 use super::light::sun_visibility;
+use super::shading::{shade_backward, shade_forward, ShadePass, Shading};
 
 /// Where the camera pass's rasterizer and the shadow pass run (see the module header).
 /// Not part of the model's value: equality ignores it, checkpoints never hold it.
@@ -335,6 +336,8 @@ pub struct FramePass {
     n_channels: usize,
     phi: Option<NetPass>,
     psi: Option<ShadowPass>,
+    /// The Lambertian factors ([`super::shading`]) when `config.shading` is on.
+    shade: Option<ShadePass>,
     render: PassRender,
     settings: RasterSettings,
 }
@@ -347,6 +350,11 @@ impl FramePass {
 
     pub fn radii_px(&self) -> &[f32] {
         self.render.radii_px()
+    }
+
+    /// Per Gaussian the Lambertian factor of `config.shading` (`None` when it is off).
+    pub fn shading_factors(&self) -> Option<&[f32]> {
+        self.shade.as_ref().map(|s| s.factor.as_slice())
     }
 }
 
@@ -463,6 +471,13 @@ impl SunAwareModel {
                     return Err(SunAwareError::Config(format!(
                         "the wgpu backend supports shadow_gain = 1 only (this model has \
                          {gain}): train configurations c-d with another gain on the CPU"
+                    )));
+                }
+                if self.config.shading != Shading::None {
+                    return Err(SunAwareError::Config(format!(
+                        "the wgpu backend supports shading = \"none\" only (this model has \
+                         {:?}): train with shading on the CPU",
+                        self.config.shading.name()
                     )));
                 }
                 let shadow = crate::gpu::GpuShadow::new(raster.clone()).map_err(from_gpu)?;
@@ -735,6 +750,27 @@ impl SunAwareModel {
                 Some(NetPass { input, forward })
             }
         };
+        let shade = match self.config.shading {
+            Shading::None => None,
+            Shading::Lambert => {
+                let mut colour = vec![0.0f32; n * 3];
+                for i in 0..n {
+                    colour[i * 3..i * 3 + 3].copy_from_slice(&channels[i * nc..i * nc + 3]);
+                }
+                let pass = shade_forward(
+                    p,
+                    &network_list,
+                    cam_pos,
+                    sun_dir,
+                    self.config.shading_ambient,
+                    &mut colour,
+                );
+                for i in 0..n {
+                    channels[i * nc..i * nc + 3].copy_from_slice(&colour[i * 3..i * 3 + 3]);
+                }
+                Some(pass)
+            }
+        };
         timings.phi_forward_ms = ms_since(t2);
         let t_psi = Instant::now();
         let mut refined = Vec::new();
@@ -826,6 +862,7 @@ impl SunAwareModel {
             n_channels: nc,
             phi,
             psi,
+            shade,
             render: render_out,
             settings: settings.clone(),
         })
@@ -963,6 +1000,25 @@ impl SunAwareModel {
         };
         let p = &self.gaussians.params;
         let mut params = gather_geometry(p, &g);
+        let mut g = g;
+        if let Some(shade) = &pass.shade {
+            // dL/d colour before shading, and the normal's share of the rotation gradient.
+            let mut d_colour = vec![0.0f32; n * 3];
+            for i in 0..n {
+                d_colour[i * 3..i * 3 + 3].copy_from_slice(&g.d_channels[i * nc..i * nc + 3]);
+            }
+            shade_backward(
+                shade,
+                p,
+                pass.sun_dir,
+                self.config.shading_ambient,
+                &mut d_colour,
+                &mut params,
+            );
+            for i in 0..n {
+                g.d_channels[i * nc..i * nc + 3].copy_from_slice(&d_colour[i * 3..i * 3 + 3]);
+            }
+        }
         timings.raster = g.timings;
         let r = &timings.raster;
         timings.raster_other_ms = (ms_since(t1) - r.blend_ms - r.reduce_project_ms).max(0.0);

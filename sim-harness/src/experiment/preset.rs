@@ -14,7 +14,9 @@
 
 use crate::scenario::{Scenario, ScenarioError};
 use gs_core::nn::MatmulPrecision;
-use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, SunAwareRates, Variant};
+use gs_core::sunaware::{
+    BackendKind, Shading, SunAwareConfig, SunAwareError, SunAwareRates, Variant,
+};
 use serde::Deserialize;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -161,6 +163,12 @@ pub struct Preset {
     /// `V' = shadow_gain * V * Psi` in configurations (c)-(d) (`SunAwareConfig`; gs-core's
     /// default 1; the wgpu backend supports only 1).
     pub shadow_gain: f32,
+    /// Colour times a Lambertian factor of a per-Gaussian normal and the Sun: "none" (the
+    /// paper) or "lambert" (`SunAwareConfig::shading`; configurations b-d, (a) stays plain;
+    /// the wgpu backend refuses it).
+    pub shading: String,
+    /// Ambient floor `k_a` of "lambert" shading, in [0, 1).
+    pub shading_ambient: f32,
     /// Evicted keyframes kept for replay (0: none, the paper; `OnlineConfig`).
     pub replay_capacity: usize,
     /// Steps per round on replayed keyframes.
@@ -264,6 +272,8 @@ impl Default for Preset {
             appearance_hidden_width: 256,
             mlp_precision: "f32".into(),
             shadow_gain: 1.0,
+            shading: "none".into(),
+            shading_ambient: SunAwareConfig::default().shading_ambient,
             replay_capacity: 0,
             replay_steps_per_round: 0,
             earth_albedo: None,
@@ -405,6 +415,12 @@ impl Preset {
         model.mlp_precision = self.mlp_precision_kind().unwrap_or_default();
         model.lr = self.rates.applied_to(model.lr);
         model.shadow_gain = self.shadow_gain;
+        // Shading scales Phi's colour: configuration (a) has none (`validate` refuses a bad
+        // name).
+        if variant.uses_appearance_mlp() {
+            model.shading = self.shading_kind().unwrap_or_default();
+        }
+        model.shading_ambient = self.shading_ambient;
         if let Some(interval) = self.sh_degree_interval {
             model.sh_degree_interval = interval;
         }
@@ -435,6 +451,13 @@ impl Preset {
                 "mlp_precision {other:?} is not \"f32\" or \"bf16\""
             ))),
         }
+    }
+
+    /// The shading named by `shading`.
+    pub fn shading_kind(&self) -> Result<Shading, PresetError> {
+        self.shading
+            .parse()
+            .map_err(|e: SunAwareError| PresetError::Invalid(format!("shading: {e}")))
     }
 
     /// Checks every value; the error names the field.
@@ -522,6 +545,7 @@ impl Preset {
         }
         self.backend_kind()?;
         self.mlp_precision_kind()?;
+        self.shading_kind()?;
         if !(1..=4096).contains(&self.appearance_hidden_width) {
             return bad(format!(
                 "appearance_hidden_width {} is outside 1..=4096",
@@ -641,11 +665,14 @@ mod tests {
     #[test]
     fn accuracy_knobs_reach_the_model_and_bad_values_are_refused_at_load() {
         let text = "shadow_gain = 2.0\nsh_degree_interval = 100\nearth_albedo = 0.0\n\
+                    shading = \"lambert\"\nshading_ambient = 0.2\n\
                     [rates]\nsh_dc = 0.01\nopacity = 0.05\n";
         let p = Preset::from_toml_str(text, "t.toml").unwrap();
         let m = p.model_config(Variant::D);
         let base = SunAwareConfig::for_variant(Variant::D);
         assert_eq!((m.shadow_gain, m.sh_degree_interval), (2.0, 100));
+        assert_eq!((m.shading, m.shading_ambient), (Shading::Lambert, 0.2));
+        assert_eq!(p.model_config(Variant::A).shading, Shading::None);
         assert_eq!((m.lr.sh_dc, m.lr.opacity), (0.01, 0.05));
         assert_eq!(
             m.lr.feature, base.lr.feature,
@@ -661,6 +688,8 @@ mod tests {
             ("sh_degree_interval = 0\n", "sh_degree_interval"),
             ("shadow_gain = 0.0\n", "shadow_gain"),
             ("shadow_gain = inf\n", "shadow_gain"),
+            ("shading = \"phong\"\n", "shading"),
+            ("shading_ambient = 1.0\n", "shading_ambient"),
         ] {
             let e = Preset::from_toml_str(text, "t.toml")
                 .unwrap_err()
