@@ -739,7 +739,7 @@ mod tests {
         for refinement in [ShadowRefinement::Replace, ShadowRefinement::Multiply] {
             let full = config_bytes(refinement);
             let bytes = &full[..full.len() - SHADING_BYTES];
-            assert_eq!(read(&bytes, 4).unwrap().shadow_refinement, refinement);
+            assert_eq!(read(bytes, 4).unwrap().shadow_refinement, refinement);
             // A version-3 config section ends before the shadow gain (4 bytes), a version-2
             // one also before the hidden width (8 bytes), a version-1 one also before the
             // refinement byte.
