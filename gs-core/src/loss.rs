@@ -12,7 +12,7 @@
 //! symmetric and zero padding makes the transpose the same operation) and combined as
 //! `dL/dx = F^T g_mu + 2 x F^T g_xx + y F^T g_xy`.
 //!
-//! One fused pass computes it all ([`fused_pass`](fused::fused_pass)): bands of rows in
+//! One fused pass computes it all (`fused::fused_pass`): bands of rows in
 //! parallel, each streaming rows through two ring buffers of 11 rows (moments filtered along
 //! rows; the map's derivatives filtered along rows), so nothing image-sized is stored but the
 //! result; the L1 term rides along. Filters are lane loops over 16 columns at a time, compiled

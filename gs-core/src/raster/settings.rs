@@ -7,6 +7,8 @@
 
 use super::bin::TileSelection;
 use super::project::GaussianParams;
+#[cfg(doc)]
+use super::{bin, blend, project, render_prepared};
 use crate::model::{GaussianModel, Param};
 
 /// Largest accepted image side, pixels.

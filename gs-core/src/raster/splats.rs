@@ -10,6 +10,8 @@ use rayon::prelude::*;
 use super::bin::{self, PixelRect};
 use super::blend::{AlphaMode, Splat};
 use super::project::{self, CameraFrame, JACOBIAN_CLAMP_FACTOR};
+#[cfg(doc)]
+use super::RasterSettings;
 use super::{GaussianView, RasterError, MAX_IMAGE_SIDE_PX};
 use crate::camera::Camera;
 
