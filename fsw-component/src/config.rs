@@ -25,6 +25,12 @@ use std::path::{Path, PathBuf};
 pub const MAX_NODE_ID: u8 = 127;
 /// Linux interface names are at most IFNAMSIZ - 1 = 15 bytes.
 pub const MAX_INTERFACE_NAME_BYTES: usize = 15;
+/// Largest `[can] prediction_max_bytes`: 64 KiB, about 1,040 CAN FD frames.
+pub const MAX_PREDICTION_CAN_BYTES: usize = 1 << 16;
+/// Default `[can] prediction_max_bytes`: 4 KiB, 66 CAN FD frames (a 32x32 RGB image).
+pub const DEFAULT_PREDICTION_CAN_BYTES: usize = 4096;
+/// Largest Cyphal subject-ID.
+pub const MAX_SUBJECT_ID: u16 = 8191;
 /// Upper bound of `training.passes_per_round`: a round must still end within minutes.
 pub const MAX_PASSES_PER_ROUND: u32 = 100;
 /// Range of `training.round_deadline_ms`: 100 ms to one hour.
@@ -66,6 +72,16 @@ pub struct CanConfig {
     pub interface: String,
     /// Use CAN FD (64-byte frames; the interface needs MTU 72).
     pub fd: bool,
+    /// With `fd`: publish each rendered prediction whose encoding is at most
+    /// `prediction_max_bytes` also as a multi-frame Cyphal/CAN FD transfer; larger ones go
+    /// on UDP only (counted, and one `PredictionNotOnCan` event per run). Classic CAN
+    /// never carries predictions.
+    pub predictions: bool,
+    /// Largest encoded `RenderedPrediction` sent on CAN FD, bytes (1 to
+    /// [`MAX_PREDICTION_CAN_BYTES`]).
+    pub prediction_max_bytes: usize,
+    /// Subject-ID of predictions on CAN (0-8191, none of the node's other subjects).
+    pub prediction_subject_id: u16,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -217,6 +233,9 @@ impl Default for CanConfig {
             enabled: false,
             interface: "vcan0".to_string(),
             fd: true,
+            predictions: true,
+            prediction_max_bytes: DEFAULT_PREDICTION_CAN_BYTES,
+            prediction_subject_id: interfaces::messages::port::RENDERED_PREDICTION,
         }
     }
 }
@@ -375,6 +394,32 @@ impl ComponentConfig {
         toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot serialise: {e}\n"))
     }
 
+    /// `[can] prediction_max_bytes` and `prediction_subject_id`.
+    fn validate_can_predictions(&self) -> Result<(), ConfigError> {
+        let c = &self.can;
+        if !(1..=MAX_PREDICTION_CAN_BYTES).contains(&c.prediction_max_bytes) {
+            return Err(invalid(
+                "can.prediction_max_bytes",
+                format!(
+                    "{} is not 1 to {MAX_PREDICTION_CAN_BYTES} bytes",
+                    c.prediction_max_bytes
+                ),
+            ));
+        }
+        let subject = c.prediction_subject_id;
+        let taken = crate::node::PUBLISHED_SUBJECTS
+            .iter()
+            .chain(&crate::node::SUBSCRIBED_SUBJECTS)
+            .any(|&s| s == subject);
+        if subject > MAX_SUBJECT_ID || taken {
+            return Err(invalid(
+                "can.prediction_subject_id",
+                format!("{subject} is above {MAX_SUBJECT_ID} or another subject of this node"),
+            ));
+        }
+        Ok(())
+    }
+
     pub fn validate(&self) -> Result<(), ConfigError> {
         if self.node.name.is_empty() || self.node.name.len() > 50 {
             return Err(invalid(
@@ -409,6 +454,7 @@ impl ComponentConfig {
                 format!("{name:?} is not a network interface name (1-15 of [A-Za-z0-9_.-])"),
             ));
         }
+        self.validate_can_predictions()?;
         if !self.can.enabled && !self.udp.enabled {
             return Err(invalid(
                 "can.enabled",
@@ -704,6 +750,21 @@ mod tests {
     fn validation_names_the_key() {
         assert_eq!(invalid_key("[node]\nnode_id = 128\n"), "node.node_id");
         assert_eq!(invalid_key("[can]\ninterface = \"\"\n"), "can.interface");
+        for bad in ["prediction_max_bytes = 0", "prediction_max_bytes = 65537"] {
+            assert_eq!(
+                invalid_key(&format!("[can]\n{bad}\n")),
+                "can.prediction_max_bytes"
+            );
+        }
+        // Above 8191, and subjects the node already uses (heartbeat, health, pose).
+        for subject in [8192, 7509, 400, 101] {
+            assert_eq!(
+                invalid_key(&format!("[can]\nprediction_subject_id = {subject}\n")),
+                "can.prediction_subject_id"
+            );
+        }
+        let moved = parse("[can]\nprediction_subject_id = 8000\n").unwrap();
+        assert_eq!(moved.can.prediction_subject_id, 8000);
         assert_eq!(
             invalid_key("[can]\ninterface = \"a_very_long_ifname0\"\n"),
             "can.interface"

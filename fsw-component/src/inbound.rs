@@ -98,6 +98,8 @@ pub struct BusCounters {
     pub oversized_datagrams: u64,
     /// Socket receive errors (UDP or CAN).
     pub receive_errors: u64,
+    /// Rendered predictions too large for CAN FD, sent on UDP only.
+    pub predictions_not_on_can: u64,
 }
 
 /// Everything the core counts, for tests and health.
@@ -231,6 +233,18 @@ impl BusCore {
 
     pub fn count_send_error(&mut self) {
         self.counters.send_errors += 1;
+    }
+
+    /// A prediction too large for CAN FD went on UDP only; `first` sends the run's one
+    /// `PredictionNotOnCan` event (detail: its encoded size, bytes).
+    pub fn prediction_not_on_can(&mut self, encoded_bytes: usize, first: bool) {
+        self.counters.predictions_not_on_can += 1;
+        if first {
+            self.push_event(EventKind::Error {
+                code: ErrorCode::PredictionNotOnCan,
+                detail: u32::try_from(encoded_bytes).unwrap_or(u32::MAX),
+            });
+        }
     }
 
     /// A socket receive error; true for the first one (worth a log line).

@@ -26,7 +26,8 @@ use interfaces::messages::{port, HealthStatus, Mode};
 
 /// Heartbeats between two port lists (uavcan.node.port.List: at most every 10 s).
 pub const PORT_LIST_EVERY_HEARTBEATS: u64 = 10;
-/// Subjects the component publishes on CAN (predictions go out on UDP only).
+/// Subjects the component always publishes on CAN (predictions on CAN FD are added when
+/// configured: [`CyphalNode::publish_also`]).
 pub const PUBLISHED_SUBJECTS: [u16; 5] = [
     HEARTBEAT_SUBJECT_ID,
     PORT_LIST_SUBJECT_ID,
@@ -88,6 +89,8 @@ pub struct CyphalNode {
     identity: NodeIdentity,
     heartbeat_transfer_id: u64,
     port_list_transfer_id: u64,
+    /// Subjects listed as published in port.List.
+    published: Vec<u16>,
     last_troubles: Option<NodeStatus>,
     trainer_restarting: bool,
     trainer_gave_up: bool,
@@ -119,11 +122,20 @@ impl CyphalNode {
             identity,
             heartbeat_transfer_id: 0,
             port_list_transfer_id: 0,
+            published: PUBLISHED_SUBJECTS.to_vec(),
             last_troubles: None,
             trainer_restarting: false,
             trainer_gave_up: false,
             requests_answered: 0,
             requests_unserved: 0,
+        }
+    }
+
+    /// Lists `subject_id` as published too (predictions on CAN FD), before the first
+    /// heartbeat: the ports are fixed at start.
+    pub fn publish_also(&mut self, subject_id: u16) {
+        if !self.published.contains(&subject_id) {
+            self.published.push(subject_id);
         }
     }
 
@@ -187,7 +199,7 @@ impl CyphalNode {
         self.heartbeat_transfer_id += 1;
         if port_list_due {
             let list = PortList {
-                publishers: &PUBLISHED_SUBJECTS,
+                publishers: &self.published,
                 subscribers: &SUBSCRIBED_SUBJECTS,
                 servers: &SERVED_SERVICES,
             };

@@ -4,11 +4,15 @@
 //! count per APID and a Cyphal transfer-ID per subject. Messages are validated by
 //! `interfaces::messages::encode` before anything is sent, so nothing invalid (NaN, non-unit
 //! rotations) leaves the component.
+//!
+//! Rendered predictions ([`CanPredictions`]) go on CAN FD only when their encoding fits the
+//! configured size; a larger one is never cut or dropped silently: it stays on UDP, is
+//! counted, and the first one is flagged for the caller to report.
 
 use crate::transport::RawCanFrame;
 use interfaces::ccsds::{message_packets, MAX_DATAGRAM_BYTES};
 use interfaces::cyphal::{transfer_frames, Mtu, Priority, TransferHeader};
-use interfaces::messages::{encode, encoded_len, CodecError, Message};
+use interfaces::messages::{encode, encoded_len, CodecError, Message, RenderedPrediction};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::fmt;
@@ -100,26 +104,35 @@ impl CanFramer {
         }
     }
 
-    /// The frames carrying `msg`.
+    /// The frames carrying `msg` on its catalogue subject (its port ID).
     pub fn frames<M: Message + Serialize>(
         &mut self,
         msg: &M,
     ) -> Result<Vec<RawCanFrame>, OutboundError> {
-        let payload = encode_owned(msg)?;
-        let transfer_id = self.next_transfer_id.entry(M::PORT_ID).or_insert(0);
+        self.frames_on(M::PORT_ID, &encode_owned(msg)?, M::NAME)
+    }
+
+    /// The frames carrying the encoded `payload` of message `name` on `subject_id`.
+    fn frames_on(
+        &mut self,
+        subject_id: u16,
+        payload: &[u8],
+        name: &'static str,
+    ) -> Result<Vec<RawCanFrame>, OutboundError> {
+        let transfer_id = self.next_transfer_id.entry(subject_id).or_insert(0);
         let header = TransferHeader {
             priority: Priority::Nominal,
-            subject_id: M::PORT_ID,
+            subject_id,
             source_node_id: self.node_id,
             transfer_id: *transfer_id,
         };
         *transfer_id += 1;
         let framing = |detail: String| OutboundError::Framing {
-            message: M::NAME,
+            message: name,
             detail,
         };
         let frames =
-            transfer_frames(&header, &payload, self.mtu).map_err(|e| framing(e.to_string()))?;
+            transfer_frames(&header, payload, self.mtu).map_err(|e| framing(e.to_string()))?;
         frames
             .map(|f| {
                 let built = if f.is_fd {
@@ -130,6 +143,72 @@ impl CanFramer {
                 built.map_err(|e| framing(e.to_string()))
             })
             .collect()
+    }
+}
+
+/// What happens to a rendered prediction on CAN FD (it goes on UDP in every case).
+#[derive(Debug, PartialEq)]
+pub enum PredictionOnCan {
+    /// The frames of its multi-frame CAN FD transfer.
+    Frames(Vec<RawCanFrame>),
+    /// Its encoding exceeds the configured size: UDP only. `first` for the first such
+    /// prediction of this publisher (the one to report).
+    TooLarge { encoded_bytes: usize, first: bool },
+}
+
+/// Rendered predictions as Cyphal/CAN FD transfers on a configured subject, up to a
+/// configured encoded size; one transfer-ID counter for the subject.
+#[derive(Debug)]
+pub struct CanPredictions {
+    framer: CanFramer,
+    subject_id: u16,
+    max_bytes: usize,
+    /// Predictions framed for CAN FD.
+    pub framed: u64,
+    /// Predictions too large for CAN FD (UDP only).
+    pub too_large: u64,
+}
+
+impl CanPredictions {
+    /// Predictions from `node_id` on `subject_id`, at most `max_bytes` encoded.
+    pub fn new(node_id: u8, subject_id: u16, max_bytes: usize) -> Self {
+        Self {
+            framer: CanFramer::new(node_id, true),
+            subject_id,
+            max_bytes,
+            framed: 0,
+            too_large: 0,
+        }
+    }
+
+    pub fn subject_id(&self) -> u16 {
+        self.subject_id
+    }
+
+    /// The CAN FD frames of `prediction`, or why it stays on UDP.
+    pub fn route(
+        &mut self,
+        prediction: &RenderedPrediction<'_>,
+    ) -> Result<PredictionOnCan, OutboundError> {
+        let codec = |error| OutboundError::Codec {
+            message: RenderedPrediction::NAME,
+            error,
+        };
+        // Sized before encoding: an image far over the limit is never copied.
+        let encoded_bytes = encoded_len(prediction).map_err(codec)?;
+        if encoded_bytes > self.max_bytes {
+            self.too_large += 1;
+            return Ok(PredictionOnCan::TooLarge {
+                encoded_bytes,
+                first: self.too_large == 1,
+            });
+        }
+        let payload = encode_owned(prediction)?;
+        let frames = self
+            .framer
+            .frames_on(self.subject_id, &payload, RenderedPrediction::NAME)?;
+        self.framed += 1;
+        Ok(PredictionOnCan::Frames(frames))
     }
 }
 

@@ -3,8 +3,9 @@
 //! One tokio task owns the [`BusCore`] and multiplexes the UDP sockets, the CAN socket, the
 //! 1 Hz health timer, a 50 ms housekeeping timer and the trainer thread's output signal.
 //! The core does no I/O and never waits on the trainer, so health keeps its cadence during a
-//! training round. Outputs: predictions to `udp.predictions_to`; acknowledgements, health
-//! and events to `udp.health_to` and, when CAN is up, as Cyphal transfers on the bus.
+//! training round. Outputs: predictions to `udp.predictions_to` and, on CAN FD when they
+//! fit `[can] prediction_max_bytes`, on `[can] prediction_subject_id`; acknowledgements,
+//! health and events to `udp.health_to` and, when CAN is up, as Cyphal transfers on the bus.
 //! Replay drives the same core from logs (no listening sockets); it waits for room in the
 //! trainer queues instead of dropping, so a replay processes every frame.
 
@@ -18,7 +19,7 @@ use crate::nearest_learner::NearestKeyframeLearner;
 use crate::node::{
     derived_unique_id, parse_unique_id, software_version, CyphalNode, NodeIdentity, NodeStatus,
 };
-use crate::outbound::{CanFramer, UdpFramer};
+use crate::outbound::{CanFramer, CanPredictions, PredictionOnCan, UdpFramer};
 use crate::recorder::Recorder;
 use crate::replay::{self, ReplayInput};
 use crate::sunaware_learner::{SunAwareLearner, SunAwareSettings};
@@ -154,6 +155,8 @@ struct Engine {
     started: Instant,
     udp_framer: UdpFramer,
     can_framer: CanFramer,
+    /// Predictions on CAN FD (None: UDP only).
+    can_predictions: Option<CanPredictions>,
     node: CyphalNode,
     tx: UdpTransport,
     can: Option<CanTransport>,
@@ -218,6 +221,11 @@ impl Engine {
             .await
             .map_err(RuntimeError::Transport)?;
         let clock = ReceiveClock::start();
+        let mut node = CyphalNode::new(config.node.node_id, config.can.fd, node_identity(config));
+        let can_predictions = can_predictions(config, can.is_some());
+        if let Some(p) = &can_predictions {
+            node.publish_also(p.subject_id());
+        }
         let events = resume_events
             .into_iter()
             .map(|kind| Event {
@@ -233,7 +241,8 @@ impl Engine {
                 started: Instant::now(),
                 udp_framer: UdpFramer::default(),
                 can_framer: CanFramer::new(config.node.node_id, config.can.fd),
-                node: CyphalNode::new(config.node.node_id, config.can.fd, node_identity(config)),
+                can_predictions,
+                node,
                 tx,
                 can,
                 health_to: config.udp.health_to,
@@ -332,6 +341,23 @@ impl Engine {
                     failed = true;
                 }
             }
+            if let (Some(can), Some(publisher)) = (&self.can, self.can_predictions.as_mut()) {
+                match publisher.route(&message) {
+                    Ok(PredictionOnCan::Frames(frames)) => {
+                        for f in frames {
+                            failed |= can.send(&f).await.is_err();
+                        }
+                    }
+                    Ok(PredictionOnCan::TooLarge {
+                        encoded_bytes,
+                        first,
+                    }) => lock(&self.core).prediction_not_on_can(encoded_bytes, first),
+                    Err(e) => {
+                        eprintln!("fsw-component: prediction {:?} on CAN: {e}", p.source);
+                        failed = true;
+                    }
+                }
+            }
             if failed {
                 lock(&self.core).count_send_error();
             } else {
@@ -390,6 +416,18 @@ impl Engine {
         }
         true
     }
+}
+
+/// The CAN FD prediction publisher when CAN is up, FD and `[can] predictions` is set.
+fn can_predictions(config: &ComponentConfig, can_up: bool) -> Option<CanPredictions> {
+    let c = &config.can;
+    (can_up && c.fd && c.predictions).then(|| {
+        CanPredictions::new(
+            config.node.node_id,
+            c.prediction_subject_id,
+            c.prediction_max_bytes,
+        )
+    })
 }
 
 /// GetInfo's identity from the configuration (a derived unique-ID when none is set).
