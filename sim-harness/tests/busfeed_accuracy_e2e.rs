@@ -21,11 +21,17 @@
 //! component's FSWSAL02 checkpoint, and the evaluation scores. A frame dropped or
 //! reordered on the bus, or a camera, pose, Sun or mask convention that differs from the
 //! reference, changes all of them.
+//!
+//! The same dataset as bus logs (`sim-harness buslogs`: telemetry as Cyphal/CAN FD transfers
+//! in a candump log, frames in a UDP recording), with a SAVE_CHECKPOINT telecommand after
+//! the last frame, replayed through the component (`fsw-component --replay`) writes the
+//! same checkpoint file, byte for byte.
 
 use fsw_component::config::ComponentConfig;
 use fsw_component::hull_start;
 use fsw_component::outbound::UdpFramer;
-use fsw_component::runtime::{build_learner, start, LearnerKind};
+use fsw_component::recorder::{Recorder, CAN_FILE, UDP_FILE};
+use fsw_component::runtime::{build_learner, run_replay, start, LearnerKind, ReplaySpeed};
 use fsw_component::sunaware_learner::CHECKPOINT_MAGIC;
 use glam::{DQuat, DVec3, Quat, Vec3};
 use gs_core::fpmode;
@@ -37,7 +43,7 @@ use interfaces::messages::{
     decode, port, AckStatus, Command, CommandAck, CommandKind, PredictionSource,
     RenderedPrediction, SunVector, TargetPose,
 };
-use sim_harness::busfeed::{BusFeed, BusFeedOptions};
+use sim_harness::busfeed::{load_telemetry, write_bus_logs, BusFeed, BusFeedOptions};
 use sim_harness::dataset::{generate, GenerateOptions};
 use sim_harness::experiment::data::{render_scene, SceneData};
 use sim_harness::experiment::evaluate::{camera_of, evaluate_model, intrinsics, sun_of};
@@ -192,6 +198,41 @@ async fn run_component(dataset: &Path, config: &ComponentConfig, sinks: &[UdpSoc
     handle.shutdown().await;
     run.checkpoint = std::fs::read(&config.checkpoint.path).unwrap();
     run
+}
+
+/// The dataset as bus logs plus a SAVE_CHECKPOINT one second after the last frame,
+/// replayed as fast as the trainer takes them; the checkpoint file it saved.
+async fn run_replay_logs(dataset: &Path, config: &ComponentConfig, dir: &Path) -> Vec<u8> {
+    let logs = dir.join("logs");
+    let options = BusFeedOptions::from_config(config);
+    let written = write_bus_logs(dataset, &logs, &options, config.node.node_id).unwrap();
+    let save_dir = dir.join("save");
+    let last_us = load_telemetry(dataset).unwrap().last().unwrap().time_us;
+    {
+        let mut recorder = Recorder::create(&save_dir, &options.can_interface).unwrap();
+        let save = Command {
+            sequence: 1,
+            kind: CommandKind::SaveCheckpoint,
+        };
+        for d in UdpFramer::default().datagrams(&save).unwrap() {
+            recorder.udp(last_us + 1_000_000, 15_300, config.udp.telemetry_port, &d);
+        }
+    }
+    let mut config = config.clone();
+    config.checkpoint.path = dir.join("checkpoint.bin");
+    let learner = build_learner(&config, LearnerKind::SunAware).unwrap();
+    let logs = [
+        logs.join(CAN_FILE),
+        logs.join(UDP_FILE),
+        save_dir.join(UDP_FILE),
+    ];
+    let summary = run_replay(&config, learner, &logs, ReplaySpeed::AsFastAsPossible)
+        .await
+        .unwrap();
+    assert_eq!(summary.counters.sync.frames.synced, u64::from(FRAMES));
+    assert!(summary.load.can_frames > 0, "{written:?}");
+    assert_eq!(summary.counters.bus.commands_accepted, 1);
+    std::fs::read(&config.checkpoint.path).unwrap()
 }
 
 /// The camera and target-frame Sun of a bus step, by the ICD's conventions.
@@ -414,7 +455,20 @@ async fn the_bus_trains_the_model_the_in_process_trainer_trains() {
     );
     assert!(bus_eval.masked_psnr_db.is_finite());
     assert_eq!(bus_eval, reference_eval);
-    for dir in [dataset, out] {
+
+    // The logged bus (telemetry on CAN FD) replayed: the same checkpoint file.
+    let replay_dir = temp_dir("e2e-replay");
+    let started = Instant::now();
+    let replayed = run_replay_logs(&dataset, &config, &replay_dir).await;
+    eprintln!(
+        "replay of the bus logs {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(
+        replayed == bus.checkpoint,
+        "the replayed logs' checkpoint differs from the live bus run's"
+    );
+    for dir in [dataset, out, replay_dir] {
         std::fs::remove_dir_all(dir).unwrap();
     }
 }
