@@ -16,20 +16,22 @@
 use fsw_component::config::ComponentConfig;
 use fsw_component::outbound::UdpFramer;
 use fsw_component::sunaware_learner::CHECKPOINT_MAGIC;
-use glam::Vec3;
-use gs_core::{Camera, Intrinsics};
+use gs_core::Intrinsics;
 use interfaces::ccsds::CcsdsReassembler;
 use interfaces::messages::{
     decode, port, AckStatus, CameraFrame, CameraModel, Command, CommandAck, CommandKind,
     Distortion, FrameHeader, PixelFormat, PredictionSource, RenderedPrediction, SunVector,
     TargetPose,
 };
+use orbit_disc::{disc_frame, DiscFrame};
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command as Process, Stdio};
 use std::time::{Duration, Instant};
+
+mod orbit_disc;
 
 const SIDE: u16 = 16;
 /// Frames before the kill, and after the restart.
@@ -79,30 +81,18 @@ impl Step {
     }
 }
 
-/// Step `k`: the camera 25 degrees further round an orbit at 8 m, a lit textured disc
-/// (masked) on black; the Sun fixed in the target frame, sent in the servicer body frame
-/// (= camera frame: the configured mounting is the identity).
+/// Step `k`: frame k of the disc orbit (`orbit_disc`); the Sun sent in the servicer body
+/// frame (= camera frame: the configured mounting is the identity).
 fn step(k: u32) -> Step {
-    let azimuth = k as f32 * 25f32.to_radians();
-    let eye = Vec3::new(azimuth.cos(), azimuth.sin(), 0.3).normalize() * 8.0;
-    let camera = Camera::look_at(intrinsics(), eye, Vec3::ZERO, Vec3::Z);
+    let DiscFrame {
+        camera,
+        sun_target,
+        pixels,
+        mask,
+        ..
+    } = disc_frame(k, SIDE, intrinsics());
     let q = camera.rotation;
-    let sun_target = Vec3::new(0.6, -0.3, 0.74).normalize();
     let sun_body = (q * sun_target).normalize();
-    let (mut pixels, mut mask) = (Vec::new(), Vec::new());
-    for y in 0..SIDE {
-        for x in 0..SIDE {
-            let (dx, dy) = (f32::from(x) - 7.5, f32::from(y) - 7.5);
-            let inside = dx * dx + dy * dy < 25.0;
-            let shade = ((x * 13 + y * 7 + k as u16 * 31) % 200) as u8;
-            if inside {
-                pixels.extend_from_slice(&[55 + shade, 40 + shade / 2, 90]);
-            } else {
-                pixels.extend_from_slice(&[0, 0, 0]);
-            }
-            mask.push(u8::from(inside) * 255);
-        }
-    }
     let pose = TargetPose {
         time_us: time_us(k),
         q_camera_from_target: [q.w, q.x, q.y, q.z],

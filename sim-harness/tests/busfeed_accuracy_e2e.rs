@@ -53,6 +53,9 @@ use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+mod udp_step;
+use udp_step::send_step;
+
 const FRAMES: u32 = 10;
 const DOWNSAMPLE: u32 = 24;
 const EVAL_VIEWS: u32 = 4;
@@ -154,17 +157,7 @@ async fn run_component(dataset: &Path, config: &ComponentConfig, sinks: &[UdpSoc
     };
     for k in 0..feed.lines().len() {
         let step = feed.step(k).unwrap();
-        for d in &step.telemetry_datagrams {
-            sender.send_to(d, handle.telemetry_addr).unwrap();
-        }
-        // Telemetry and frames use different sockets: give the telemetry a head start.
-        tokio::time::sleep(Duration::from_millis(20)).await;
-        for (i, d) in step.frame_datagrams.iter().enumerate() {
-            sender.send_to(d, handle.frames_addr).unwrap();
-            if i % 32 == 31 {
-                tokio::time::sleep(Duration::from_millis(2)).await;
-            }
-        }
+        send_step(&sender, &step, handle.telemetry_addr, handle.frames_addr).await;
         let id = step.line.index;
         let check = wait(format!("the prediction of frame {id}"));
         while !run.predictions.contains_key(&id) {
