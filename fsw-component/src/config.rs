@@ -7,6 +7,7 @@
 //! Quaternions are written `[w, x, y, z]` like the bus messages.
 
 use crate::cmdauth::{CommandConfig, CommandPolicy};
+use crate::cyphal_config::{CyphalConfig, CyphalConfigError};
 use crate::hull_start::ModelSettings;
 use crate::node::{parse_unique_id, DEFAULT_NODE_NAME};
 use crate::sync::SyncConfig;
@@ -43,6 +44,7 @@ pub struct ComponentConfig {
     pub checkpoint: CheckpointConfig,
     pub queues: QueueConfig,
     pub commands: CommandConfig,
+    pub cyphal: CyphalConfig,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -56,6 +58,8 @@ pub struct NodeConfig {
     /// /etc/machine-id (a per-machine 128-bit ID) XOR the node-ID, or from the name and
     /// node-ID where that file is missing.
     pub unique_id: String,
+    /// Free text for operators: the `uavcan.node.description` register, at most 256 bytes.
+    pub description: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -206,6 +210,7 @@ impl Default for NodeConfig {
             node_id: 42,
             name: DEFAULT_NODE_NAME.into(),
             unique_id: String::new(),
+            description: String::new(),
         }
     }
 }
@@ -325,6 +330,8 @@ pub enum ConfigError {
         key: &'static str,
         problem: String,
     },
+    /// A `[cyphal]` key (its name is built from the port).
+    Cyphal(CyphalConfigError),
 }
 
 impl fmt::Display for ConfigError {
@@ -337,6 +344,9 @@ impl fmt::Display for ConfigError {
                 write!(f, "config {} is not valid: {message}", path.display())
             }
             Self::Invalid { key, problem } => write!(f, "config key `{key}`: {problem}"),
+            Self::Cyphal(CyphalConfigError { key, problem }) => {
+                write!(f, "config key `{key}`: {problem}")
+            }
         }
     }
 }
@@ -353,10 +363,12 @@ fn invalid(key: &'static str, problem: impl Into<String>) -> ConfigError {
 impl ComponentConfig {
     /// Parses TOML text (`origin` names it in errors) and validates it.
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
-        let config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
+        let mut config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: origin.to_path_buf(),
             message: e.to_string(),
         })?;
+        // Registers written over the bus win over the file (Cyphal: values persist).
+        crate::registers::apply_register_file(&mut config)?;
         config.validate()?;
         Ok(config)
     }
@@ -397,6 +409,16 @@ impl ComponentConfig {
                 ),
             ));
         }
+        let description_capacity = interfaces::cyphal::register::ValueKind::String.capacity();
+        if self.node.description.len() > description_capacity {
+            return Err(invalid(
+                "node.description",
+                format!("longer than {description_capacity} bytes"),
+            ));
+        }
+        self.cyphal
+            .validate(self.node.node_id)
+            .map_err(ConfigError::Cyphal)?;
         let name = &self.can.interface;
         if name.is_empty()
             || name.len() > MAX_INTERFACE_NAME_BYTES

@@ -1,10 +1,12 @@
 //! Outbound framing: catalogue messages to CCSDS datagrams (UDP) and Cyphal/CAN frames.
 //!
 //! Each framer keeps the per-port counters the protocols require: a 14-bit CCSDS sequence
-//! count per APID and a Cyphal transfer-ID per subject. Messages are validated by
+//! count per APID and a Cyphal transfer-ID per subject. On CAN a message goes out on its
+//! configured subject-ID (`crate::cyphal_config`; the ICD port when not configured). Messages are validated by
 //! `interfaces::messages::encode` before anything is sent, so nothing invalid (NaN, non-unit
 //! rotations) leaves the component.
 
+use crate::cyphal_config::SubjectIds;
 use crate::transport::RawCanFrame;
 use interfaces::ccsds::{message_packets, MAX_DATAGRAM_BYTES};
 use interfaces::cyphal::{transfer_frames, Mtu, Priority, TransferHeader};
@@ -88,6 +90,7 @@ impl UdpFramer {
 pub struct CanFramer {
     node_id: u8,
     mtu: Mtu,
+    subjects: SubjectIds,
     next_transfer_id: BTreeMap<u16, u64>,
 }
 
@@ -96,8 +99,15 @@ impl CanFramer {
         Self {
             node_id,
             mtu: if fd { Mtu::Fd } else { Mtu::Classic },
+            subjects: SubjectIds::default(),
             next_transfer_id: BTreeMap::new(),
         }
+    }
+
+    /// Sends each message on its configured subject-ID.
+    pub fn with_subjects(mut self, subjects: SubjectIds) -> Self {
+        self.subjects = subjects;
+        self
     }
 
     /// The frames carrying `msg`.
@@ -106,10 +116,11 @@ impl CanFramer {
         msg: &M,
     ) -> Result<Vec<RawCanFrame>, OutboundError> {
         let payload = encode_owned(msg)?;
-        let transfer_id = self.next_transfer_id.entry(M::PORT_ID).or_insert(0);
+        let subject_id = self.subjects.subject_of(M::PORT_ID).unwrap_or(M::PORT_ID);
+        let transfer_id = self.next_transfer_id.entry(subject_id).or_insert(0);
         let header = TransferHeader {
             priority: Priority::Nominal,
-            subject_id: M::PORT_ID,
+            subject_id,
             source_node_id: self.node_id,
             transfer_id: *transfer_id,
         };
