@@ -252,6 +252,8 @@ pub struct CanReassembler<B, const N: usize> {
 
 /// Which subjects get a session: a predicate, or a set fixed at run time (configured
 /// subject-IDs), 8192 bits inline so that no allocator is needed.
+// No allocator here, so the set stays inline: one 1 KiB filter per reassembler.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Copy)]
 enum SubjectFilter {
     Predicate(fn(u16) -> bool),
