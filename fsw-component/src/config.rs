@@ -7,6 +7,7 @@
 //! Quaternions are written `[w, x, y, z]` like the bus messages.
 
 use crate::cmdauth::{CommandConfig, CommandPolicy};
+use crate::cyphal_config::{CyphalConfig, CyphalConfigError};
 use crate::hull_start::ModelSettings;
 use crate::node::{parse_unique_id, DEFAULT_NODE_NAME};
 use crate::sync::SyncConfig;
@@ -29,8 +30,6 @@ pub const MAX_INTERFACE_NAME_BYTES: usize = 15;
 pub const MAX_PREDICTION_CAN_BYTES: usize = 1 << 16;
 /// Default `[can] prediction_max_bytes`: 4 KiB, 66 CAN FD frames (a 32x32 RGB image).
 pub const DEFAULT_PREDICTION_CAN_BYTES: usize = 4096;
-/// Largest Cyphal subject-ID.
-pub const MAX_SUBJECT_ID: u16 = 8191;
 /// Upper bound of `training.passes_per_round`: a round must still end within minutes.
 pub const MAX_PASSES_PER_ROUND: u32 = 100;
 /// Range of `training.round_deadline_ms`: 100 ms to one hour.
@@ -49,6 +48,7 @@ pub struct ComponentConfig {
     pub checkpoint: CheckpointConfig,
     pub queues: QueueConfig,
     pub commands: CommandConfig,
+    pub cyphal: CyphalConfig,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -62,6 +62,8 @@ pub struct NodeConfig {
     /// /etc/machine-id (a per-machine 128-bit ID) XOR the node-ID, or from the name and
     /// node-ID where that file is missing.
     pub unique_id: String,
+    /// Free text for operators: the `uavcan.node.description` register, at most 256 bytes.
+    pub description: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -78,10 +80,8 @@ pub struct CanConfig {
     /// never carries predictions.
     pub predictions: bool,
     /// Largest encoded `RenderedPrediction` sent on CAN FD, bytes (1 to
-    /// [`MAX_PREDICTION_CAN_BYTES`]).
+    /// [`MAX_PREDICTION_CAN_BYTES`]); the subject is `[cyphal.subjects] rendered_prediction`.
     pub prediction_max_bytes: usize,
-    /// Subject-ID of predictions on CAN (0-8191, none of the node's other subjects).
-    pub prediction_subject_id: u16,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -222,6 +222,7 @@ impl Default for NodeConfig {
             node_id: 42,
             name: DEFAULT_NODE_NAME.into(),
             unique_id: String::new(),
+            description: String::new(),
         }
     }
 }
@@ -235,7 +236,6 @@ impl Default for CanConfig {
             fd: true,
             predictions: true,
             prediction_max_bytes: DEFAULT_PREDICTION_CAN_BYTES,
-            prediction_subject_id: interfaces::messages::port::RENDERED_PREDICTION,
         }
     }
 }
@@ -344,6 +344,8 @@ pub enum ConfigError {
         key: &'static str,
         problem: String,
     },
+    /// A `[cyphal]` key (its name is built from the port).
+    Cyphal(CyphalConfigError),
 }
 
 impl fmt::Display for ConfigError {
@@ -356,6 +358,9 @@ impl fmt::Display for ConfigError {
                 write!(f, "config {} is not valid: {message}", path.display())
             }
             Self::Invalid { key, problem } => write!(f, "config key `{key}`: {problem}"),
+            Self::Cyphal(CyphalConfigError { key, problem }) => {
+                write!(f, "config key `{key}`: {problem}")
+            }
         }
     }
 }
@@ -372,10 +377,12 @@ fn invalid(key: &'static str, problem: impl Into<String>) -> ConfigError {
 impl ComponentConfig {
     /// Parses TOML text (`origin` names it in errors) and validates it.
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
-        let config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
+        let mut config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: origin.to_path_buf(),
             message: e.to_string(),
         })?;
+        // Registers written over the bus win over the file (Cyphal: values persist).
+        crate::registers::apply_register_file(&mut config)?;
         config.validate()?;
         Ok(config)
     }
@@ -394,7 +401,7 @@ impl ComponentConfig {
         toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot serialise: {e}\n"))
     }
 
-    /// `[can] prediction_max_bytes` and `prediction_subject_id`.
+    /// `[can] prediction_max_bytes`.
     fn validate_can_predictions(&self) -> Result<(), ConfigError> {
         let c = &self.can;
         if !(1..=MAX_PREDICTION_CAN_BYTES).contains(&c.prediction_max_bytes) {
@@ -404,17 +411,6 @@ impl ComponentConfig {
                     "{} is not 1 to {MAX_PREDICTION_CAN_BYTES} bytes",
                     c.prediction_max_bytes
                 ),
-            ));
-        }
-        let subject = c.prediction_subject_id;
-        let taken = crate::node::PUBLISHED_SUBJECTS
-            .iter()
-            .chain(&crate::node::SUBSCRIBED_SUBJECTS)
-            .any(|&s| s == subject);
-        if subject > MAX_SUBJECT_ID || taken {
-            return Err(invalid(
-                "can.prediction_subject_id",
-                format!("{subject} is above {MAX_SUBJECT_ID} or another subject of this node"),
             ));
         }
         Ok(())
@@ -442,6 +438,16 @@ impl ComponentConfig {
                 ),
             ));
         }
+        let description_capacity = interfaces::cyphal::register::ValueKind::String.capacity();
+        if self.node.description.len() > description_capacity {
+            return Err(invalid(
+                "node.description",
+                format!("longer than {description_capacity} bytes"),
+            ));
+        }
+        self.cyphal
+            .validate(self.node.node_id)
+            .map_err(ConfigError::Cyphal)?;
         let name = &self.can.interface;
         if name.is_empty()
             || name.len() > MAX_INTERFACE_NAME_BYTES
@@ -756,15 +762,18 @@ mod tests {
                 "can.prediction_max_bytes"
             );
         }
-        // Above 8191, and subjects the node already uses (heartbeat, health, pose).
+        // The prediction subject is one of [cyphal.subjects]: above 6143 (the heartbeat's
+        // 7509 included) and subjects of other ports (health, pose) are refused there.
         for subject in [8192, 7509, 400, 101] {
-            assert_eq!(
-                invalid_key(&format!("[can]\nprediction_subject_id = {subject}\n")),
-                "can.prediction_subject_id"
-            );
+            match parse(&format!("[cyphal.subjects]\nrendered_prediction = {subject}\n")) {
+                Err(ConfigError::Cyphal(e)) => {
+                    assert_eq!(e.key, "cyphal.subjects.rendered_prediction", "{subject}")
+                }
+                other => panic!("subject {subject}: expected a refusal, got {other:?}"),
+            }
         }
-        let moved = parse("[can]\nprediction_subject_id = 8000\n").unwrap();
-        assert_eq!(moved.can.prediction_subject_id, 8000);
+        let moved = parse("[cyphal.subjects]\nrendered_prediction = 6000\n").unwrap();
+        assert_eq!(moved.cyphal.subjects.rendered_prediction, 6000);
         assert_eq!(
             invalid_key("[can]\ninterface = \"a_very_long_ifname0\"\n"),
             "can.interface"

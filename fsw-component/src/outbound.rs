@@ -1,7 +1,8 @@
 //! Outbound framing: catalogue messages to CCSDS datagrams (UDP) and Cyphal/CAN frames.
 //!
 //! Each framer keeps the per-port counters the protocols require: a 14-bit CCSDS sequence
-//! count per APID and a Cyphal transfer-ID per subject. Messages are validated by
+//! count per APID and a Cyphal transfer-ID per subject. On CAN a message goes out on its
+//! configured subject-ID (`crate::cyphal_config`; the ICD port when not configured). Messages are validated by
 //! `interfaces::messages::encode` before anything is sent, so nothing invalid (NaN, non-unit
 //! rotations) leaves the component.
 //!
@@ -9,6 +10,7 @@
 //! configured size; a larger one is never cut or dropped silently: it stays on UDP, is
 //! counted, and the first one is flagged for the caller to report.
 
+use crate::cyphal_config::SubjectIds;
 use crate::transport::RawCanFrame;
 use interfaces::ccsds::{message_packets, MAX_DATAGRAM_BYTES};
 use interfaces::cyphal::{transfer_frames, Mtu, Priority, TransferHeader};
@@ -92,6 +94,7 @@ impl UdpFramer {
 pub struct CanFramer {
     node_id: u8,
     mtu: Mtu,
+    subjects: SubjectIds,
     next_transfer_id: BTreeMap<u16, u64>,
 }
 
@@ -100,16 +103,24 @@ impl CanFramer {
         Self {
             node_id,
             mtu: if fd { Mtu::Fd } else { Mtu::Classic },
+            subjects: SubjectIds::default(),
             next_transfer_id: BTreeMap::new(),
         }
     }
 
-    /// The frames carrying `msg` on its catalogue subject (its port ID).
+    /// Sends each message on its configured subject-ID.
+    pub fn with_subjects(mut self, subjects: SubjectIds) -> Self {
+        self.subjects = subjects;
+        self
+    }
+
+    /// The frames carrying `msg` on its configured subject.
     pub fn frames<M: Message + Serialize>(
         &mut self,
         msg: &M,
     ) -> Result<Vec<RawCanFrame>, OutboundError> {
-        self.frames_on(M::PORT_ID, &encode_owned(msg)?, M::NAME)
+        let subject_id = self.subjects.subject_of(M::PORT_ID).unwrap_or(M::PORT_ID);
+        self.frames_on(subject_id, &encode_owned(msg)?, M::NAME)
     }
 
     /// The frames carrying the encoded `payload` of message `name` on `subject_id`.
