@@ -765,7 +765,9 @@ mod tests {
         // The prediction subject is one of [cyphal.subjects]: above 6143 (the heartbeat's
         // 7509 included) and subjects of other ports (health, pose) are refused there.
         for subject in [8192, 7509, 400, 101] {
-            match parse(&format!("[cyphal.subjects]\nrendered_prediction = {subject}\n")) {
+            match parse(&format!(
+                "[cyphal.subjects]\nrendered_prediction = {subject}\n"
+            )) {
                 Err(ConfigError::Cyphal(e)) => {
                     assert_eq!(e.key, "cyphal.subjects.rendered_prediction", "{subject}")
                 }

@@ -330,7 +330,9 @@ mod tests {
         assert_eq!(config.subjects.subject_of(port::SUN_VECTOR), Some(1000));
         *config.subjects.get_mut(6).unwrap() = 7;
         assert_eq!(config.subjects.event, 7);
-        assert!(config.subjects.get_mut(7).is_none());
+        *config.subjects.get_mut(7).unwrap() = 8;
+        assert_eq!(config.subjects.rendered_prediction, 8);
+        assert!(config.subjects.get_mut(PORTS.len()).is_none());
     }
 
     #[test]
