@@ -14,6 +14,11 @@ cargo fmt --all -- --check
 step "cargo clippy"
 cargo clippy --workspace --all-targets -- -D warnings
 step "cargo test (unit, integration, gradient checks, fits, live UDP component)"
+# Tests that need a CPU extension skip visibly where the CPU lacks it; where the CPU has
+# it, a skip would hide a detection bug, so it is made a failure.
+if grep -qw avx512f /proc/cpuinfo; then export GS_REQUIRE_AVX512=1; fi
+if grep -qw avx512_bf16 /proc/cpuinfo; then export GS_REQUIRE_BF16=1; fi
+echo "GS_REQUIRE_AVX512=${GS_REQUIRE_AVX512:-0} GS_REQUIRE_BF16=${GS_REQUIRE_BF16:-0}"
 cargo test --workspace
 
 step "GPU backend: wgpu on Mesa's software Vulkan driver (lint and CPU parity tests)"

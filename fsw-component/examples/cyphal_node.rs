@@ -10,15 +10,23 @@
 //!   after the first is ADVISORY).
 //! `cyphal_node serve --node N [--mtu 8|64] [--name NAME] [--unique-id HEX32]`
 //!   reads request frames from stdin, one per line, and prints for each either the response
-//!   frames on one line separated by spaces, or `IGNORED` (not a request this node answers).
+//!   frames on one line separated by spaces, `PENDING` (a frame of a multi-frame request
+//!   not yet complete), or `IGNORED` (not a request this node answers).
+//!
+//! Both take `--config FILE`: a component.toml whose `[cyphal]` subject-IDs the port list
+//! announces and whose registers (with its register file, read at start and written by
+//! register Access requests) the node serves, as the live component does; without it, the
+//! default configuration's (registers read-only). `--node` defaults to the file's node-ID.
 //!
 //! Exit status 2 on bad arguments or unparsable lines.
 
+use fsw_component::config::ComponentConfig;
 use fsw_component::node::{
     parse_unique_id, software_version, CyphalNode, NodeIdentity, NodeStatus,
 };
+use fsw_component::registers::Registers;
 use fsw_component::transport::RawCanFrame;
-use interfaces::cyphal::node::parse_service_request;
+use interfaces::cyphal::service_rx::{ServiceRequestRx, ServiceRxError};
 use interfaces::messages::Mode;
 use std::io::{self, BufRead};
 use std::process::ExitCode;
@@ -61,6 +69,12 @@ fn parse_line(line: &str) -> Result<(u32, Vec<u8>), String> {
 }
 
 fn node(args: &[String]) -> Result<CyphalNode, String> {
+    let config = match arg(args, "--config") {
+        Some(path) => {
+            ComponentConfig::load(std::path::Path::new(path)).map_err(|e| e.to_string())?
+        }
+        None => ComponentConfig::default(),
+    };
     let unique_id = match arg(args, "--unique-id") {
         Some(text) => parse_unique_id(text).ok_or("--unique-id: not 32 hex digits")?,
         None => [0; 16],
@@ -71,7 +85,7 @@ fn node(args: &[String]) -> Result<CyphalNode, String> {
         other => return Err(format!("--mtu {other}: 8 or 64")),
     };
     Ok(CyphalNode::new(
-        num(args, "--node", 42u8)?,
+        num(args, "--node", config.node.node_id)?,
         fd,
         NodeIdentity {
             name: arg(args, "--name")
@@ -81,7 +95,9 @@ fn node(args: &[String]) -> Result<CyphalNode, String> {
             software_version: software_version(),
             software_vcs_revision_id: 0,
         },
-    ))
+    )
+    .with_subjects(&config.cyphal.subjects)
+    .with_registers(Registers::new(&config)))
 }
 
 fn heartbeat(args: &[String]) -> Result<(), String> {
@@ -118,15 +134,27 @@ fn heartbeat(args: &[String]) -> Result<(), String> {
 
 fn serve(args: &[String]) -> Result<(), String> {
     let mut node = node(args)?;
+    let mut requests = ServiceRequestRx::<_, 4>::new(vec![0u8; 4 * 1024]);
+    let started = std::time::Instant::now();
     for line in io::stdin().lock().lines() {
         let line = line.map_err(|e| e.to_string())?;
         if line.trim().is_empty() {
             continue;
         }
         let (id, data) = parse_line(&line)?;
-        let answer = parse_service_request(id, &data, node.node_id())
-            .ok()
-            .and_then(|request| node.answer(&request));
+        let answer = match requests.push(
+            id,
+            &data,
+            node.node_id(),
+            started.elapsed().as_micros() as u64,
+        ) {
+            Ok(Some(request)) => node.answer(&request),
+            Ok(None) => {
+                println!("PENDING");
+                continue;
+            }
+            Err(ServiceRxError::NotOurs(_) | ServiceRxError::Rejected(_)) => None,
+        };
         match answer {
             Some(frames) => {
                 let text: Vec<String> = frames.iter().map(format_frame).collect();

@@ -7,6 +7,7 @@
 //! Quaternions are written `[w, x, y, z]` like the bus messages.
 
 use crate::cmdauth::{CommandConfig, CommandPolicy};
+use crate::cyphal_config::{CyphalConfig, CyphalConfigError};
 use crate::hull_start::ModelSettings;
 use crate::node::{parse_unique_id, DEFAULT_NODE_NAME};
 use crate::sync::SyncConfig;
@@ -25,6 +26,10 @@ use std::path::{Path, PathBuf};
 pub const MAX_NODE_ID: u8 = 127;
 /// Linux interface names are at most IFNAMSIZ - 1 = 15 bytes.
 pub const MAX_INTERFACE_NAME_BYTES: usize = 15;
+/// Largest `[can] prediction_max_bytes`: 64 KiB, about 1,040 CAN FD frames.
+pub const MAX_PREDICTION_CAN_BYTES: usize = 1 << 16;
+/// Default `[can] prediction_max_bytes`: 4 KiB, 66 CAN FD frames (a 32x32 RGB image).
+pub const DEFAULT_PREDICTION_CAN_BYTES: usize = 4096;
 /// Upper bound of `training.passes_per_round`: a round must still end within minutes.
 pub const MAX_PASSES_PER_ROUND: u32 = 100;
 /// Range of `training.round_deadline_ms`: 100 ms to one hour.
@@ -43,6 +48,7 @@ pub struct ComponentConfig {
     pub checkpoint: CheckpointConfig,
     pub queues: QueueConfig,
     pub commands: CommandConfig,
+    pub cyphal: CyphalConfig,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -56,6 +62,8 @@ pub struct NodeConfig {
     /// /etc/machine-id (a per-machine 128-bit ID) XOR the node-ID, or from the name and
     /// node-ID where that file is missing.
     pub unique_id: String,
+    /// Free text for operators: the `uavcan.node.description` register, at most 256 bytes.
+    pub description: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -66,6 +74,14 @@ pub struct CanConfig {
     pub interface: String,
     /// Use CAN FD (64-byte frames; the interface needs MTU 72).
     pub fd: bool,
+    /// With `fd`: publish each rendered prediction whose encoding is at most
+    /// `prediction_max_bytes` also as a multi-frame Cyphal/CAN FD transfer; larger ones go
+    /// on UDP only (counted, and one `PredictionNotOnCan` event per run). Classic CAN
+    /// never carries predictions.
+    pub predictions: bool,
+    /// Largest encoded `RenderedPrediction` sent on CAN FD, bytes (1 to
+    /// [`MAX_PREDICTION_CAN_BYTES`]); the subject is `[cyphal.subjects] rendered_prediction`.
+    pub prediction_max_bytes: usize,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -206,6 +222,7 @@ impl Default for NodeConfig {
             node_id: 42,
             name: DEFAULT_NODE_NAME.into(),
             unique_id: String::new(),
+            description: String::new(),
         }
     }
 }
@@ -217,6 +234,8 @@ impl Default for CanConfig {
             enabled: false,
             interface: "vcan0".to_string(),
             fd: true,
+            predictions: true,
+            prediction_max_bytes: DEFAULT_PREDICTION_CAN_BYTES,
         }
     }
 }
@@ -325,6 +344,8 @@ pub enum ConfigError {
         key: &'static str,
         problem: String,
     },
+    /// A `[cyphal]` key (its name is built from the port).
+    Cyphal(CyphalConfigError),
 }
 
 impl fmt::Display for ConfigError {
@@ -337,6 +358,9 @@ impl fmt::Display for ConfigError {
                 write!(f, "config {} is not valid: {message}", path.display())
             }
             Self::Invalid { key, problem } => write!(f, "config key `{key}`: {problem}"),
+            Self::Cyphal(CyphalConfigError { key, problem }) => {
+                write!(f, "config key `{key}`: {problem}")
+            }
         }
     }
 }
@@ -353,10 +377,12 @@ fn invalid(key: &'static str, problem: impl Into<String>) -> ConfigError {
 impl ComponentConfig {
     /// Parses TOML text (`origin` names it in errors) and validates it.
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self, ConfigError> {
-        let config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
+        let mut config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: origin.to_path_buf(),
             message: e.to_string(),
         })?;
+        // Registers written over the bus win over the file (Cyphal: values persist).
+        crate::registers::apply_register_file(&mut config)?;
         config.validate()?;
         Ok(config)
     }
@@ -373,6 +399,21 @@ impl ComponentConfig {
     /// The TOML text of this configuration.
     pub fn to_toml_string(&self) -> String {
         toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot serialise: {e}\n"))
+    }
+
+    /// `[can] prediction_max_bytes`.
+    fn validate_can_predictions(&self) -> Result<(), ConfigError> {
+        let c = &self.can;
+        if !(1..=MAX_PREDICTION_CAN_BYTES).contains(&c.prediction_max_bytes) {
+            return Err(invalid(
+                "can.prediction_max_bytes",
+                format!(
+                    "{} is not 1 to {MAX_PREDICTION_CAN_BYTES} bytes",
+                    c.prediction_max_bytes
+                ),
+            ));
+        }
+        Ok(())
     }
 
     pub fn validate(&self) -> Result<(), ConfigError> {
@@ -397,6 +438,16 @@ impl ComponentConfig {
                 ),
             ));
         }
+        let description_capacity = interfaces::cyphal::register::ValueKind::String.capacity();
+        if self.node.description.len() > description_capacity {
+            return Err(invalid(
+                "node.description",
+                format!("longer than {description_capacity} bytes"),
+            ));
+        }
+        self.cyphal
+            .validate(self.node.node_id)
+            .map_err(ConfigError::Cyphal)?;
         let name = &self.can.interface;
         if name.is_empty()
             || name.len() > MAX_INTERFACE_NAME_BYTES
@@ -409,6 +460,7 @@ impl ComponentConfig {
                 format!("{name:?} is not a network interface name (1-15 of [A-Za-z0-9_.-])"),
             ));
         }
+        self.validate_can_predictions()?;
         if !self.can.enabled && !self.udp.enabled {
             return Err(invalid(
                 "can.enabled",
@@ -704,6 +756,26 @@ mod tests {
     fn validation_names_the_key() {
         assert_eq!(invalid_key("[node]\nnode_id = 128\n"), "node.node_id");
         assert_eq!(invalid_key("[can]\ninterface = \"\"\n"), "can.interface");
+        for bad in ["prediction_max_bytes = 0", "prediction_max_bytes = 65537"] {
+            assert_eq!(
+                invalid_key(&format!("[can]\n{bad}\n")),
+                "can.prediction_max_bytes"
+            );
+        }
+        // The prediction subject is one of [cyphal.subjects]: above 6143 (the heartbeat's
+        // 7509 included) and subjects of other ports (health, pose) are refused there.
+        for subject in [8192, 7509, 400, 101] {
+            match parse(&format!(
+                "[cyphal.subjects]\nrendered_prediction = {subject}\n"
+            )) {
+                Err(ConfigError::Cyphal(e)) => {
+                    assert_eq!(e.key, "cyphal.subjects.rendered_prediction", "{subject}")
+                }
+                other => panic!("subject {subject}: expected a refusal, got {other:?}"),
+            }
+        }
+        let moved = parse("[cyphal.subjects]\nrendered_prediction = 6000\n").unwrap();
+        assert_eq!(moved.cyphal.subjects.rendered_prediction, 6000);
         assert_eq!(
             invalid_key("[can]\ninterface = \"a_very_long_ifname0\"\n"),
             "can.interface"

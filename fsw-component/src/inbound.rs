@@ -7,6 +7,10 @@
 //! trainer thread, executes or queues commands, and collects acknowledgements and events
 //! for the shell (`runtime.rs`) to send. It never blocks and never waits on the trainer.
 //!
+//! On CAN, messages arrive on the configured subject-IDs (`crate::cyphal_config`, the ICD
+//! ports by default) and are dispatched by their ICD port; Sun vectors and poses are taken
+//! only from the configured AOCS / navigation node-IDs when those are set.
+//!
 //! Telemetry passes the time-tag guard (`timeguard.rs`) before the synchronizer, and
 //! commands pass the command gate (`cmdauth.rs`): a command from a source outside the
 //! allow-list is counted and evented, never decoded and never acknowledged.
@@ -21,6 +25,7 @@
 
 use crate::camera;
 use crate::cmdauth::{CommandGate, CommandPolicy, CommandSource, Refusal, UdpIngress};
+use crate::cyphal_config::{CyphalConfig, Direction, PORTS};
 use crate::learner::{ObservedFrame, ViewRequest};
 use crate::sync::{PoseSample, Stream, SunSample, SyncError, Synchronizer, WaitPolicy};
 use crate::timeguard::{Admission, TelemetrySample, TimeGuardConfig, TimeTagGuard};
@@ -28,7 +33,7 @@ use crate::worker::{CommandJob, FrameJob, FrameUse, ModelCommand, WorkerShared};
 use glam::{DQuat, DVec3};
 use gs_core::Intrinsics;
 use interfaces::ccsds::{CcsdsReassembler, CcsdsRxError};
-use interfaces::cyphal::{CanReassembler, CanRxError};
+use interfaces::cyphal::{CanReassembler, CanRxError, SubjectSet};
 use interfaces::messages::{
     decode, decode_command, port, AckStatus, CameraFrame, Command, CommandAck, CommandKind,
     ErrorCode, Event, EventKind, HealthStatus, Mode, SunVector, TargetPose,
@@ -98,6 +103,12 @@ pub struct BusCounters {
     pub oversized_datagrams: u64,
     /// Socket receive errors (UDP or CAN).
     pub receive_errors: u64,
+    /// Rendered predictions too large for CAN FD, sent on UDP only.
+    pub predictions_not_on_can: u64,
+    /// CAN telemetry from a node other than the configured AOCS / navigation node.
+    pub telemetry_wrong_source: u64,
+    /// Service requests to this node that failed reassembly (CRC, toggle, ...) or decoding.
+    pub service_requests_rejected: u64,
 }
 
 /// Everything the core counts, for tests and health.
@@ -154,6 +165,8 @@ pub struct BusCore {
     settings: CoreSettings,
     udp_rx: CcsdsReassembler<Vec<u8>, UDP_SLOTS>,
     can_rx: CanReassembler<Vec<u8>, CAN_SLOTS>,
+    /// Subject-IDs of the messages on CAN and the telemetry source node-IDs.
+    can_ports: CyphalConfig,
     sync: Synchronizer,
     pose_guard: TimeTagGuard,
     sun_guard: TimeTagGuard,
@@ -204,6 +217,7 @@ impl BusCore {
                 .with_apid_filter(is_inbound_port),
             can_rx: CanReassembler::new(vec![0; CAN_SLOTS * CAN_SLOT_BYTES])
                 .with_subject_filter(is_inbound_port),
+            can_ports: CyphalConfig::default(),
             sync,
             pending: VecDeque::new(),
             counters: BusCounters::default(),
@@ -214,6 +228,32 @@ impl BusCore {
             now_us: 0,
             render_camera,
         })
+    }
+
+    /// Takes CAN messages on the configured subject-IDs (and telemetry only from the
+    /// configured source nodes) instead of the ICD defaults; `can_ports` is validated.
+    pub fn with_can_ports(mut self, can_ports: &CyphalConfig) -> Self {
+        let mut subjects = SubjectSet::default();
+        for (spec, id) in PORTS.iter().zip(can_ports.subjects.as_array()) {
+            if spec.direction == Direction::Subscribe && spec.always {
+                subjects.insert(id);
+            }
+        }
+        self.can_rx =
+            CanReassembler::new(vec![0; CAN_SLOTS * CAN_SLOT_BYTES]).with_subject_set(subjects);
+        self.can_ports = can_ports.clone();
+        self
+    }
+
+    /// A service request to this node that failed reassembly or decoding: counted, and an
+    /// error event (rate-limited like the others).
+    pub fn count_service_request_rejected(&mut self, crc: bool) {
+        self.counters.service_requests_rejected += 1;
+        self.error_event(if crc {
+            ErrorCode::CrcError
+        } else {
+            ErrorCode::DecodeError
+        });
     }
 
     pub fn mode(&self) -> Mode {
@@ -231,6 +271,18 @@ impl BusCore {
 
     pub fn count_send_error(&mut self) {
         self.counters.send_errors += 1;
+    }
+
+    /// A prediction too large for CAN FD went on UDP only; `first` sends the run's one
+    /// `PredictionNotOnCan` event (detail: its encoded size, bytes).
+    pub fn prediction_not_on_can(&mut self, encoded_bytes: usize, first: bool) {
+        self.counters.predictions_not_on_can += 1;
+        if first {
+            self.push_event(EventKind::Error {
+                code: ErrorCode::PredictionNotOnCan,
+                detail: u32::try_from(encoded_bytes).unwrap_or(u32::MAX),
+            });
+        }
     }
 
     /// A socket receive error; true for the first one (worth a log line).
@@ -303,12 +355,23 @@ impl BusCore {
         self.now_us = now_us;
         match self.can_rx.push_frame(extended, id, data, now_us) {
             Ok(Some(transfer)) => {
-                let subject = transfer.subject_id;
+                // The subject filter admits configured subjects only, so the lookup succeeds.
+                let Some(port_id) = self.can_ports.subjects.icd_port_of(transfer.subject_id) else {
+                    return;
+                };
+                if !self
+                    .can_ports
+                    .accepts_source(port_id, transfer.source_node_id)
+                {
+                    self.counters.telemetry_wrong_source += 1;
+                    self.error_event(ErrorCode::TelemetryInvalid);
+                    return;
+                }
                 let source = CommandSource::Can {
                     node_id: transfer.source_node_id,
                 };
                 let payload = transfer.payload.to_vec();
-                self.handle_message(subject, &payload, source);
+                self.handle_message(port_id, &payload, source);
             }
             Ok(None) | Err(CanRxError::NotSubscribed) => {}
             Err(CanRxError::CrcMismatch) => self.error_event(ErrorCode::CrcError),
@@ -673,7 +736,9 @@ impl BusCore {
             + c.bus.frame_decode_errors
             + c.bus.telemetry_out_of_order
             + c.bus.telemetry_time_out_of_bounds
-            + c.bus.oversized_datagrams;
+            + c.bus.oversized_datagrams
+            + c.bus.telemetry_wrong_source
+            + c.bus.service_requests_rejected;
         let learner = worker.learner;
         HealthStatus {
             time_us: self.now_us,

@@ -1,7 +1,9 @@
 //! The component as a Cyphal node: the 1 Hz `uavcan.node.Heartbeat`, the
 //! `uavcan.node.port.List` every 10 heartbeats (the first with the first heartbeat; the
-//! ports are fixed at start, so there is no other change to announce) and the
-//! `uavcan.node.GetInfo` server, framed for the CAN transport.
+//! ports are fixed at start, so there is no other change to announce), the
+//! `uavcan.node.GetInfo` server and, with registers attached, the `uavcan.register.Access`
+//! and `List` servers (`crate::registers`), framed for the CAN transport. A malformed
+//! register request is counted in `requests_malformed` and not answered.
 //!
 //! Invariants: the node-ID is the configured, validated one (never anonymous: a node that
 //! publishes heartbeats must have an ID); the heartbeat transfer-ID advances by one per
@@ -13,36 +15,29 @@
 //! component is listening in each of its modes); the vendor-specific status code is the
 //! component's mode (0 Idle, 1 Train, 2 PredictOnly).
 
+use crate::cyphal_config::{Direction, SubjectIds};
+use crate::registers::Registers;
 use crate::transport::RawCanFrame;
 use interfaces::cyphal::node::{
     GetInfoResponse, Heartbeat, NodeHealth, NodeMode, PortList, ServiceRequest, GET_INFO_MAX_BYTES,
     GET_INFO_SERVICE_ID, HEARTBEAT_SUBJECT_ID, PORT_LIST_SUBJECT_ID,
 };
+use interfaces::cyphal::register::{
+    decode_list_request, encode_list_response, AccessRequest, AccessResponse,
+    ACCESS_RESPONSE_MAX_BYTES, ACCESS_SERVICE_ID, LIST_SERVICE_ID,
+};
 use interfaces::cyphal::{
     service_transfer_frames, transfer_frames, Mtu, Priority, ServiceCanId, TransferFrames,
     TransferHeader,
 };
-use interfaces::messages::{port, HealthStatus, Mode};
+use interfaces::messages::{HealthStatus, Mode};
 
 /// Heartbeats between two port lists (uavcan.node.port.List: at most every 10 s).
 pub const PORT_LIST_EVERY_HEARTBEATS: u64 = 10;
-/// Subjects the component publishes on CAN (predictions go out on UDP only).
-pub const PUBLISHED_SUBJECTS: [u16; 5] = [
-    HEARTBEAT_SUBJECT_ID,
-    PORT_LIST_SUBJECT_ID,
-    port::COMMAND_ACK,
-    port::HEALTH_STATUS,
-    port::EVENT,
-];
-/// Subjects the component takes from CAN.
-pub const SUBSCRIBED_SUBJECTS: [u16; 4] = [
-    port::SUN_VECTOR,
-    port::TARGET_POSE,
-    port::CAMERA_FRAME,
-    port::COMMAND,
-];
-/// Services the component serves.
+/// Services the component serves without registers, and with them.
 pub const SERVED_SERVICES: [u16; 1] = [GET_INFO_SERVICE_ID];
+pub const SERVED_SERVICES_WITH_REGISTERS: [u16; 3] =
+    [ACCESS_SERVICE_ID, LIST_SERVICE_ID, GET_INFO_SERVICE_ID];
 
 /// What GetInfo reports about this node.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -91,6 +86,13 @@ pub struct CyphalNode {
     last_troubles: Option<NodeStatus>,
     trainer_restarting: bool,
     trainer_gave_up: bool,
+    /// Subjects published on CAN (predictions only when configured: [`Self::publish_also`])
+    /// and taken from CAN; listed in port.List.
+    published: Vec<u16>,
+    subscribed: Vec<u16>,
+    registers: Option<Registers>,
+    /// Register requests that do not decode (not answered).
+    pub requests_malformed: u64,
     /// Service requests answered, by any service.
     pub requests_answered: u64,
     /// Requests to this node for a service it does not serve (ignored, as the spec allows).
@@ -122,8 +124,39 @@ impl CyphalNode {
             last_troubles: None,
             trainer_restarting: false,
             trainer_gave_up: false,
+            published: Vec::new(),
+            subscribed: Vec::new(),
+            registers: None,
+            requests_malformed: 0,
             requests_answered: 0,
             requests_unserved: 0,
+        }
+        .with_subjects(&SubjectIds::default())
+    }
+
+    /// Announces these subject-IDs in `uavcan.node.port.List`.
+    pub fn with_subjects(mut self, subjects: &SubjectIds) -> Self {
+        self.published = [HEARTBEAT_SUBJECT_ID, PORT_LIST_SUBJECT_ID].to_vec();
+        self.published.extend(subjects.of(Direction::Publish));
+        self.subscribed = subjects.of(Direction::Subscribe);
+        self
+    }
+
+    /// Serves `uavcan.register.Access` and `List` from `registers`.
+    pub fn with_registers(mut self, registers: Registers) -> Self {
+        self.registers = Some(registers);
+        self
+    }
+
+    pub fn registers(&self) -> Option<&Registers> {
+        self.registers.as_ref()
+    }
+
+    /// Lists `subject_id` as published too (predictions on CAN FD), before the first
+    /// heartbeat: the ports are fixed at start.
+    pub fn publish_also(&mut self, subject_id: u16) {
+        if !self.published.contains(&subject_id) {
+            self.published.push(subject_id);
         }
     }
 
@@ -187,9 +220,13 @@ impl CyphalNode {
         self.heartbeat_transfer_id += 1;
         if port_list_due {
             let list = PortList {
-                publishers: &PUBLISHED_SUBJECTS,
-                subscribers: &SUBSCRIBED_SUBJECTS,
-                servers: &SERVED_SERVICES,
+                publishers: &self.published,
+                subscribers: &self.subscribed,
+                servers: if self.registers.is_some() {
+                    &SERVED_SERVICES_WITH_REGISTERS
+                } else {
+                    &SERVED_SERVICES
+                },
             };
             let mut payload = vec![0u8; list.encoded_len()];
             if let Ok(len) = list.encode(&mut payload) {
@@ -217,23 +254,61 @@ impl CyphalNode {
         }
     }
 
+    /// The response payload to a request, or `None` (unserved or malformed, counted).
+    fn respond(&mut self, request: &ServiceRequest<'_>, out: &mut [u8]) -> Option<usize> {
+        match (request.id.service_id, self.registers.as_mut()) {
+            (GET_INFO_SERVICE_ID, _) => {
+                let mut payload = [0u8; GET_INFO_MAX_BYTES];
+                let len = GetInfoResponse {
+                    hardware_version: (0, 0),
+                    software_version: self.identity.software_version,
+                    software_vcs_revision_id: self.identity.software_vcs_revision_id,
+                    unique_id: self.identity.unique_id,
+                    name: &self.identity.name,
+                }
+                .encode(&mut payload)
+                .ok()?;
+                out.get_mut(..len)?.copy_from_slice(&payload[..len]);
+                Some(len)
+            }
+            (ACCESS_SERVICE_ID, Some(registers)) => {
+                let Ok(access) = AccessRequest::decode(request.payload) else {
+                    self.requests_malformed += 1;
+                    return None;
+                };
+                let outcome = registers.access(access.name, &access.value);
+                let empty = crate::registers::RegValue::empty();
+                let (value, mutable, persistent) = match &outcome {
+                    Some(o) => (&o.value, o.mutable, o.persistent),
+                    None => (&empty, false, false),
+                };
+                AccessResponse {
+                    timestamp_us: 0, // no time synchronisation: unknown
+                    mutable,
+                    persistent,
+                    value: value.as_value(),
+                }
+                .encode(out)
+                .ok()
+            }
+            (LIST_SERVICE_ID, Some(registers)) => {
+                let index = decode_list_request(request.payload);
+                let name = registers.name_at(index).unwrap_or("");
+                encode_list_response(name.as_bytes(), out).ok()
+            }
+            _ => {
+                self.requests_unserved += 1;
+                None
+            }
+        }
+    }
+
     /// The response frames to a request addressed to this node, or `None` for a service it
-    /// does not serve (counted in `requests_unserved`).
+    /// does not serve (counted in `requests_unserved`) or a malformed request (counted in
+    /// `requests_malformed`).
     pub fn answer(&mut self, request: &ServiceRequest<'_>) -> Option<Vec<RawCanFrame>> {
-        if request.id.service_id != GET_INFO_SERVICE_ID {
-            self.requests_unserved += 1;
-            return None;
-        }
-        let mut payload = [0u8; GET_INFO_MAX_BYTES];
-        let len = GetInfoResponse {
-            hardware_version: (0, 0),
-            software_version: self.identity.software_version,
-            software_vcs_revision_id: self.identity.software_vcs_revision_id,
-            unique_id: self.identity.unique_id,
-            name: &self.identity.name,
-        }
-        .encode(&mut payload)
-        .ok()?;
+        let mut payload = [0u8; ACCESS_RESPONSE_MAX_BYTES];
+        let len = self.respond(request, &mut payload)?;
         let response = ServiceCanId {
             priority: request.id.priority,
             service_id: request.id.service_id,
@@ -468,5 +543,67 @@ mod tests {
         };
         assert!(n.answer(&other).is_none());
         assert_eq!(n.requests_unserved, 1);
+    }
+
+    #[test]
+    fn register_requests_are_answered_and_malformed_ones_counted() {
+        use crate::config::ComponentConfig;
+        use crate::registers::{RegValue, Registers};
+        use interfaces::cyphal::service_rx::ServiceRequestRx;
+        use interfaces::cyphal::{service_transfer_frames, Mtu};
+        let mut n = node().with_registers(Registers::new(&ComponentConfig::default()));
+        let mut rx = ServiceRequestRx::<_, 1>::new(vec![0u8; 1024]);
+        let mut call = |n: &mut CyphalNode, service_id: u16, payload: &[u8], tid: u64| {
+            let id = ServiceCanId {
+                priority: Priority::Nominal,
+                service_id,
+                is_request: true,
+                destination_node_id: 42,
+                source_node_id: 9,
+            };
+            let frames: Vec<_> = service_transfer_frames(&id, tid, payload, Mtu::Classic)
+                .unwrap()
+                .collect();
+            let mut answer = None;
+            for f in &frames {
+                if let Some(request) = rx.push(f.id, &f.data, 42, 0).unwrap() {
+                    answer = n.answer(&request);
+                }
+            }
+            answer.map(|frames| {
+                // Our response's payload: the frames' data without tail bytes (and the CRC).
+                let mut bytes: Vec<u8> = frames
+                    .iter()
+                    .flat_map(|f| f.data()[..f.data().len() - 1].to_vec())
+                    .collect();
+                if frames.len() > 1 {
+                    bytes.truncate(bytes.len() - 2);
+                }
+                bytes
+            })
+        };
+        // Access read of a port-ID register: a multi-frame request on classic CAN.
+        let mut request = vec![27u8];
+        request.extend_from_slice(b"uavcan.pub.health_status.id");
+        request.push(0);
+        let response = call(&mut n, ACCESS_SERVICE_ID, &request, 0).unwrap();
+        let decoded = AccessResponse::decode(&response).unwrap();
+        assert_eq!(
+            RegValue::from_value(&decoded.value),
+            RegValue::natural16(400)
+        );
+        assert!(decoded.persistent && !decoded.mutable);
+        // List index 0 is uavcan.node.id; far past the end the name is empty.
+        let response = call(&mut n, LIST_SERVICE_ID, &[0, 0], 1).unwrap();
+        assert_eq!(&response[..15], b"\x0euavcan.node.id");
+        assert_eq!(
+            call(&mut n, LIST_SERVICE_ID, &[0xFF, 0xFF], 2).unwrap(),
+            [0]
+        );
+        // An unknown union tag is malformed: counted, not answered.
+        let bad = [1u8, b'x', 99];
+        assert!(call(&mut n, ACCESS_SERVICE_ID, &bad, 3).is_none());
+        assert_eq!(n.requests_malformed, 1);
+        assert_eq!(n.requests_answered, 3);
     }
 }

@@ -1,14 +1,20 @@
 //! Outbound framing: catalogue messages to CCSDS datagrams (UDP) and Cyphal/CAN frames.
 //!
 //! Each framer keeps the per-port counters the protocols require: a 14-bit CCSDS sequence
-//! count per APID and a Cyphal transfer-ID per subject. Messages are validated by
+//! count per APID and a Cyphal transfer-ID per subject. On CAN a message goes out on its
+//! configured subject-ID (`crate::cyphal_config`; the ICD port when not configured). Messages are validated by
 //! `interfaces::messages::encode` before anything is sent, so nothing invalid (NaN, non-unit
 //! rotations) leaves the component.
+//!
+//! Rendered predictions ([`CanPredictions`]) go on CAN FD only when their encoding fits the
+//! configured size; a larger one is never cut or dropped silently: it stays on UDP, is
+//! counted, and the first one is flagged for the caller to report.
 
+use crate::cyphal_config::SubjectIds;
 use crate::transport::RawCanFrame;
 use interfaces::ccsds::{message_packets, MAX_DATAGRAM_BYTES};
 use interfaces::cyphal::{transfer_frames, Mtu, Priority, TransferHeader};
-use interfaces::messages::{encode, encoded_len, CodecError, Message};
+use interfaces::messages::{encode, encoded_len, CodecError, Message, RenderedPrediction};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::fmt;
@@ -88,6 +94,7 @@ impl UdpFramer {
 pub struct CanFramer {
     node_id: u8,
     mtu: Mtu,
+    subjects: SubjectIds,
     next_transfer_id: BTreeMap<u16, u64>,
 }
 
@@ -96,30 +103,47 @@ impl CanFramer {
         Self {
             node_id,
             mtu: if fd { Mtu::Fd } else { Mtu::Classic },
+            subjects: SubjectIds::default(),
             next_transfer_id: BTreeMap::new(),
         }
     }
 
-    /// The frames carrying `msg`.
+    /// Sends each message on its configured subject-ID.
+    pub fn with_subjects(mut self, subjects: SubjectIds) -> Self {
+        self.subjects = subjects;
+        self
+    }
+
+    /// The frames carrying `msg` on its configured subject.
     pub fn frames<M: Message + Serialize>(
         &mut self,
         msg: &M,
     ) -> Result<Vec<RawCanFrame>, OutboundError> {
-        let payload = encode_owned(msg)?;
-        let transfer_id = self.next_transfer_id.entry(M::PORT_ID).or_insert(0);
+        let subject_id = self.subjects.subject_of(M::PORT_ID).unwrap_or(M::PORT_ID);
+        self.frames_on(subject_id, &encode_owned(msg)?, M::NAME)
+    }
+
+    /// The frames carrying the encoded `payload` of message `name` on `subject_id`.
+    fn frames_on(
+        &mut self,
+        subject_id: u16,
+        payload: &[u8],
+        name: &'static str,
+    ) -> Result<Vec<RawCanFrame>, OutboundError> {
+        let transfer_id = self.next_transfer_id.entry(subject_id).or_insert(0);
         let header = TransferHeader {
             priority: Priority::Nominal,
-            subject_id: M::PORT_ID,
+            subject_id,
             source_node_id: self.node_id,
             transfer_id: *transfer_id,
         };
         *transfer_id += 1;
         let framing = |detail: String| OutboundError::Framing {
-            message: M::NAME,
+            message: name,
             detail,
         };
         let frames =
-            transfer_frames(&header, &payload, self.mtu).map_err(|e| framing(e.to_string()))?;
+            transfer_frames(&header, payload, self.mtu).map_err(|e| framing(e.to_string()))?;
         frames
             .map(|f| {
                 let built = if f.is_fd {
@@ -130,6 +154,72 @@ impl CanFramer {
                 built.map_err(|e| framing(e.to_string()))
             })
             .collect()
+    }
+}
+
+/// What happens to a rendered prediction on CAN FD (it goes on UDP in every case).
+#[derive(Debug, PartialEq)]
+pub enum PredictionOnCan {
+    /// The frames of its multi-frame CAN FD transfer.
+    Frames(Vec<RawCanFrame>),
+    /// Its encoding exceeds the configured size: UDP only. `first` for the first such
+    /// prediction of this publisher (the one to report).
+    TooLarge { encoded_bytes: usize, first: bool },
+}
+
+/// Rendered predictions as Cyphal/CAN FD transfers on a configured subject, up to a
+/// configured encoded size; one transfer-ID counter for the subject.
+#[derive(Debug)]
+pub struct CanPredictions {
+    framer: CanFramer,
+    subject_id: u16,
+    max_bytes: usize,
+    /// Predictions framed for CAN FD.
+    pub framed: u64,
+    /// Predictions too large for CAN FD (UDP only).
+    pub too_large: u64,
+}
+
+impl CanPredictions {
+    /// Predictions from `node_id` on `subject_id`, at most `max_bytes` encoded.
+    pub fn new(node_id: u8, subject_id: u16, max_bytes: usize) -> Self {
+        Self {
+            framer: CanFramer::new(node_id, true),
+            subject_id,
+            max_bytes,
+            framed: 0,
+            too_large: 0,
+        }
+    }
+
+    pub fn subject_id(&self) -> u16 {
+        self.subject_id
+    }
+
+    /// The CAN FD frames of `prediction`, or why it stays on UDP.
+    pub fn route(
+        &mut self,
+        prediction: &RenderedPrediction<'_>,
+    ) -> Result<PredictionOnCan, OutboundError> {
+        let codec = |error| OutboundError::Codec {
+            message: RenderedPrediction::NAME,
+            error,
+        };
+        // Sized before encoding: an image far over the limit is never copied.
+        let encoded_bytes = encoded_len(prediction).map_err(codec)?;
+        if encoded_bytes > self.max_bytes {
+            self.too_large += 1;
+            return Ok(PredictionOnCan::TooLarge {
+                encoded_bytes,
+                first: self.too_large == 1,
+            });
+        }
+        let payload = encode_owned(prediction)?;
+        let frames = self
+            .framer
+            .frames_on(self.subject_id, &payload, RenderedPrediction::NAME)?;
+        self.framed += 1;
+        Ok(PredictionOnCan::Frames(frames))
     }
 }
 

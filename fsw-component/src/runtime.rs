@@ -3,8 +3,9 @@
 //! One tokio task owns the [`BusCore`] and multiplexes the UDP sockets, the CAN socket, the
 //! 1 Hz health timer, a 50 ms housekeeping timer and the trainer thread's output signal.
 //! The core does no I/O and never waits on the trainer, so health keeps its cadence during a
-//! training round. Outputs: predictions to `udp.predictions_to`; acknowledgements, health
-//! and events to `udp.health_to` and, when CAN is up, as Cyphal transfers on the bus.
+//! training round. Outputs: predictions to `udp.predictions_to` and, on CAN FD when they
+//! fit `[can] prediction_max_bytes`, on `[cyphal.subjects] rendered_prediction`; acknowledgements,
+//! health and events to `udp.health_to` and, when CAN is up, as Cyphal transfers on the bus.
 //! Replay drives the same core from logs (no listening sockets); it waits for room in the
 //! trainer queues instead of dropping, so a replay processes every frame.
 
@@ -18,12 +19,15 @@ use crate::nearest_learner::NearestKeyframeLearner;
 use crate::node::{
     derived_unique_id, parse_unique_id, software_version, CyphalNode, NodeIdentity, NodeStatus,
 };
-use crate::outbound::{CanFramer, UdpFramer};
+use crate::outbound::{CanFramer, CanPredictions, PredictionOnCan, UdpFramer};
 use crate::recorder::Recorder;
+use crate::registers::Registers;
 use crate::replay::{self, ReplayInput};
 use crate::sunaware_learner::{SunAwareLearner, SunAwareSettings};
 use crate::transport::{CanTransport, CanTransportConfig, TransportError, UdpTransport};
 use crate::worker::{load_events, CheckpointSettings, Notice, QueueLimits, Worker};
+use interfaces::cyphal::service_rx::{ServiceRequestRx, ServiceRxError};
+use interfaces::cyphal::CanRxError;
 use interfaces::messages::{
     ErrorCode, Event, EventKind, Message, Mode, PredictionSource, RenderedPrediction,
 };
@@ -142,6 +146,11 @@ fn grow_receive_buffer(socket: &UdpTransport, bytes: usize) -> Result<(), Runtim
     Ok(())
 }
 
+/// Concurrent service requests in reassembly, and bytes per request: the largest register
+/// Access request (515 bytes) with CAN FD padding and the CRC.
+const SERVICE_SESSIONS: usize = 4;
+const SERVICE_SLOT_BYTES: usize = 1024;
+
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(|p| p.into_inner())
 }
@@ -154,7 +163,11 @@ struct Engine {
     started: Instant,
     udp_framer: UdpFramer,
     can_framer: CanFramer,
+    /// Predictions on CAN FD (None: UDP only).
+    can_predictions: Option<CanPredictions>,
     node: CyphalNode,
+    /// Requests to this node, reassembled apart from the message path.
+    service_rx: ServiceRequestRx<Vec<u8>, SERVICE_SESSIONS>,
     tx: UdpTransport,
     can: Option<CanTransport>,
     health_to: SocketAddr,
@@ -213,11 +226,19 @@ impl Engine {
             source,
         })?;
         let core = BusCore::new(settings, Arc::clone(&worker.shared))
-            .map_err(|e| RuntimeError::Config(e.to_string()))?;
+            .map_err(|e| RuntimeError::Config(e.to_string()))?
+            .with_can_ports(&config.cyphal);
         let tx = UdpTransport::bind(SocketAddr::new(config.udp.bind_ip, 0))
             .await
             .map_err(RuntimeError::Transport)?;
         let clock = ReceiveClock::start();
+        let mut node = CyphalNode::new(config.node.node_id, config.can.fd, node_identity(config))
+            .with_subjects(&config.cyphal.subjects)
+            .with_registers(Registers::new(config));
+        let can_predictions = can_predictions(config, can.is_some());
+        if let Some(p) = &can_predictions {
+            node.publish_also(p.subject_id());
+        }
         let events = resume_events
             .into_iter()
             .map(|kind| Event {
@@ -232,8 +253,11 @@ impl Engine {
                 clock,
                 started: Instant::now(),
                 udp_framer: UdpFramer::default(),
-                can_framer: CanFramer::new(config.node.node_id, config.can.fd),
-                node: CyphalNode::new(config.node.node_id, config.can.fd, node_identity(config)),
+                can_framer: CanFramer::new(config.node.node_id, config.can.fd)
+                    .with_subjects(config.cyphal.subjects),
+                can_predictions,
+                node,
+                service_rx: ServiceRequestRx::new(vec![0; SERVICE_SESSIONS * SERVICE_SLOT_BYTES]),
                 tx,
                 can,
                 health_to: config.udp.health_to,
@@ -332,6 +356,23 @@ impl Engine {
                     failed = true;
                 }
             }
+            if let (Some(can), Some(publisher)) = (&self.can, self.can_predictions.as_mut()) {
+                match publisher.route(&message) {
+                    Ok(PredictionOnCan::Frames(frames)) => {
+                        for f in frames {
+                            failed |= can.send(&f).await.is_err();
+                        }
+                    }
+                    Ok(PredictionOnCan::TooLarge {
+                        encoded_bytes,
+                        first,
+                    }) => lock(&self.core).prediction_not_on_can(encoded_bytes, first),
+                    Err(e) => {
+                        eprintln!("fsw-component: prediction {:?} on CAN: {e}", p.source);
+                        failed = true;
+                    }
+                }
+            }
             if failed {
                 lock(&self.core).count_send_error();
             } else {
@@ -368,15 +409,25 @@ impl Engine {
         }
     }
 
-    /// Answers a service request addressed to this node (GetInfo); `false` when the frame
-    /// is not one, so that the message path takes (and counts) it as before.
-    async fn serve_request(&mut self, id: u32, data: &[u8]) -> bool {
-        let Ok(request) =
-            interfaces::cyphal::node::parse_service_request(id, data, self.node.node_id())
-        else {
-            return false;
+    /// Takes a frame of a service request addressed to this node and answers the request
+    /// once complete; `false` when the frame is not one, so that the message path takes
+    /// (and counts) it as before. Rejected request frames and undecodable requests are
+    /// counted and evented by the core.
+    async fn serve_request(&mut self, id: u32, data: &[u8], now_us: u64) -> bool {
+        let malformed_before = self.node.requests_malformed;
+        let answer = match self.service_rx.push(id, data, self.node.node_id(), now_us) {
+            Err(ServiceRxError::NotOurs(_)) => return false,
+            Err(ServiceRxError::Rejected(error)) => {
+                lock(&self.core).count_service_request_rejected(error == CanRxError::CrcMismatch);
+                return true;
+            }
+            Ok(None) => return true,
+            Ok(Some(request)) => self.node.answer(&request),
         };
-        let Some(frames) = self.node.answer(&request) else {
+        if self.node.requests_malformed > malformed_before {
+            lock(&self.core).count_service_request_rejected(false);
+        }
+        let Some(frames) = answer else {
             return true;
         };
         let mut failed = false;
@@ -390,6 +441,18 @@ impl Engine {
         }
         true
     }
+}
+
+/// The CAN FD prediction publisher when CAN is up, FD and `[can] predictions` is set.
+fn can_predictions(config: &ComponentConfig, can_up: bool) -> Option<CanPredictions> {
+    let c = &config.can;
+    (can_up && c.fd && c.predictions).then(|| {
+        CanPredictions::new(
+            config.node.node_id,
+            config.cyphal.subjects.rendered_prediction,
+            c.prediction_max_bytes,
+        )
+    })
 }
 
 /// GetInfo's identity from the configuration (a derived unique-ID when none is set).
@@ -550,7 +613,7 @@ pub async fn start(
                             if let Some(r) = recorder.as_mut() {
                                 r.can(now, frame.id(), frame.data(), frame.is_fd());
                             }
-                            if !engine.serve_request(frame.id(), frame.data()).await {
+                            if !engine.serve_request(frame.id(), frame.data(), now).await {
                                 lock(&engine.core).handle_can_frame(true, frame.id(), frame.data(), now);
                             }
                         }
@@ -560,6 +623,7 @@ pub async fn start(
                 _ = housekeeping.tick() => {
                     let now = engine.clock.now_us();
                     lock(&engine.core).tick(now);
+                    engine.service_rx.expire(now);
                     if let Some(r) = recorder.as_mut() {
                         r.flush();
                     }

@@ -11,11 +11,14 @@ use fsw_component::sunaware_learner::{
     OnConfigMismatch, SunAwareLearner, SunAwareSettings, CHECKPOINT_MAGIC,
 };
 use fsw_component::sync::SyncedTelemetry;
-use glam::{DQuat, DVec3, Vec3};
-use gs_core::{Camera, Intrinsics};
+use glam::{DQuat, DVec3};
+use gs_core::Intrinsics;
 use gs_online::keyframe::WindowConfig;
 use interfaces::crc::crc32_ieee;
 use interfaces::messages::{EventKind, InitSource, PixelFormat};
+use orbit_disc::{disc_frame, DiscFrame};
+
+mod orbit_disc;
 
 const SIDE: u16 = 16;
 const FRAMES: u32 = 14;
@@ -34,28 +37,17 @@ fn settings() -> SunAwareSettings {
     s
 }
 
-/// Frame k: the camera 25 degrees further round an orbit at 8 m, a lit disc (masked) on
-/// black, 8-bit RGB.
+/// Frame k of the disc orbit (`orbit_disc`), with exact telemetry.
 fn frame(k: u32) -> ObservedFrame {
-    let azimuth = k as f32 * 25f32.to_radians();
-    let eye = Vec3::new(azimuth.cos(), azimuth.sin(), 0.3).normalize() * 8.0;
     let intrinsics = Intrinsics::from_fov_x(0.5, u32::from(SIDE), u32::from(SIDE));
-    let camera = Camera::look_at(intrinsics, eye, Vec3::ZERO, Vec3::Z);
+    let DiscFrame {
+        camera,
+        eye_m: eye,
+        pixels,
+        mask,
+        ..
+    } = disc_frame(k, SIDE, intrinsics);
     let r = camera.rotation.as_dquat();
-    let (mut pixels, mut mask) = (Vec::new(), Vec::new());
-    for y in 0..SIDE {
-        for x in 0..SIDE {
-            let (dx, dy) = (f32::from(x) - 7.5, f32::from(y) - 7.5);
-            let inside = dx * dx + dy * dy < 25.0;
-            let shade = ((x * 13 + y * 7 + k as u16 * 31) % 200) as u8;
-            if inside {
-                pixels.extend_from_slice(&[55 + shade, 40 + shade / 2, 90]);
-            } else {
-                pixels.extend_from_slice(&[0, 0, 0]);
-            }
-            mask.push(u8::from(inside) * 255);
-        }
-    }
     let view = eye.as_dvec3().normalize();
     let sun = DVec3::new(0.6, -0.3, 0.74).normalize();
     ObservedFrame {

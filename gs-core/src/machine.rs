@@ -95,6 +95,17 @@ pub fn process_cpu_s() -> Option<f64> {
     None
 }
 
+/// For a test that needs something this machine may lack (a CPU extension, a GPU): prints
+/// a visible `SKIPPED` notice naming `why` and the variable that forbids the skip, or
+/// panics when `require_env` is set to `1` (a machine that must run the test: `tests/run.sh`
+/// sets it where the CPU has the feature). The caller returns after it.
+pub fn skip_unless_required(require_env: &str, why: &str) {
+    if std::env::var(require_env).is_ok_and(|v| v == "1") {
+        panic!("{require_env}=1 but this test cannot run here: {why}");
+    }
+    eprintln!("SKIPPED (set {require_env}=1 to fail instead): {why}");
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -112,5 +123,18 @@ mod tests {
             line.starts_with("cpu: ") && line.contains("; denormals: "),
             "{line}"
         );
+    }
+
+    #[test]
+    fn a_skip_returns_unless_required_and_panics_when_required() {
+        // Variable names used by no other test, so setting one races with nothing.
+        skip_unless_required("GS_TEST_SKIP_NEVER_SET", "nothing");
+        std::env::set_var("GS_TEST_SKIP_REQUIRED", "1");
+        let required = std::panic::catch_unwind(|| {
+            skip_unless_required("GS_TEST_SKIP_REQUIRED", "the feature is absent")
+        });
+        let message = required.expect_err("a required skip must panic");
+        let text = message.downcast_ref::<String>().expect("formatted message");
+        assert!(text.contains("the feature is absent"), "{text}");
     }
 }

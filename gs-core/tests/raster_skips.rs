@@ -6,7 +6,7 @@
 //! - `early_termination` off blends past T < 1e-4: the image moves by at most the stopped
 //!   pixel's residual transmittance times the largest |channel - background| (the bound in
 //!   `RasterSettings::early_termination`), pixels do move, and the backward stays finite
-//!   (its exactness against finite differences is checked tile by tile in `blend.rs`);
+//!   (its exactness against finite differences is checked tile by tile in `raster/blend/tests.rs`);
 //! - `blend_tiles` from a foreground mask (the Sun-aware step's
 //!   `skip_masked_background_tiles`): with the masked photometric loss, the loss, its
 //!   pixel gradient and every Gaussian gradient are the same bits as with every tile

@@ -25,6 +25,9 @@ use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+mod udp_step;
+use udp_step::send_step;
+
 const FRAMES: u32 = 16;
 /// The first frames train nothing yet (the window fills at W = 4, then the hull start):
 /// the model is judged on the predictions of the frames after these.
@@ -199,17 +202,7 @@ async fn run(dataset: &Path, with_bad_input: bool) -> Run {
     let mut last_telemetry: Vec<Vec<u8>> = Vec::new();
     for k in 0..feed.lines().len() {
         let step = feed.step(k).unwrap();
-        for d in &step.telemetry_datagrams {
-            sender.send_to(d, handle.telemetry_addr).unwrap();
-        }
-        // Telemetry and frames use different sockets: give the telemetry a head start.
-        tokio::time::sleep(Duration::from_millis(20)).await;
-        for (i, d) in step.frame_datagrams.iter().enumerate() {
-            sender.send_to(d, handle.frames_addr).unwrap();
-            if i % 32 == 31 {
-                tokio::time::sleep(Duration::from_millis(2)).await;
-            }
-        }
+        send_step(&sender, &step, handle.telemetry_addr, handle.frames_addr).await;
         let id = step.line.index;
         let deadline = Instant::now() + WAIT;
         while !predictions.contains_key(&id) {

@@ -25,8 +25,8 @@ import pytest
 
 from test_component_udp import (
     ACK_INVALID_OPCODE, ACK_OK, PORT_ACK, PORT_COMMAND, PORT_FRAME, PORT_HEALTH, PORT_POSE,
-    PORT_SUN, Component, camera_frame, command, component_binary, decode_ack, decode_health,
-    frame_pixels, sun_vector, target_pose, write_config,
+    PORT_PREDICTION, PORT_SUN, Component, camera_frame, command, component_binary, decode_ack,
+    decode_health, decode_prediction, frame_pixels, sun_vector, target_pose, write_config,
 )
 from test_component_udp import listener  # noqa: F401  (pytest fixture)
 
@@ -87,7 +87,7 @@ class CanSide:
     def __init__(self):
         self.bus = can.Bus(interface="socketcan", channel=IFACE, fd=True)
         self.tids = {}
-        self.acks, self.health = [], []
+        self.acks, self.health, self.predictions = [], [], []
         self.partial = {}
         self.stop = False
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -123,6 +123,8 @@ class CanSide:
                 self.acks.append(decode_ack(payload))
             elif subject == PORT_HEALTH:
                 self.health.append((time.monotonic(), decode_health(payload)))
+            elif subject == PORT_PREDICTION:
+                self.predictions.append(decode_prediction(payload))
 
     def wait(self, condition, timeout=20.0, what="condition"):
         deadline = time.monotonic() + timeout
@@ -150,6 +152,18 @@ def start_on_can(directory, listener, *extra, learner="nearest"):  # noqa: F811
     return Component(config, *extra, learner=learner)
 
 
+def send_step(side, component, k):
+    """Step k: telemetry on CAN at k + 1 s (and at 0 s first), then frame k (k + 0.5 s) on UDP."""
+    if k == 0:
+        side.send(PORT_POSE, target_pose(0))
+        side.send(PORT_SUN, sun_vector(0))
+    t = (k + 1) * 1_000_000
+    side.send(PORT_POSE, target_pose(t))
+    side.send(PORT_SUN, sun_vector(t))
+    time.sleep(0.2)  # CAN and UDP are different sockets: telemetry first
+    component.send(PORT_FRAME, camera_frame(k, k * 1_000_000 + 500_000), to=component.frames)
+
+
 def black_psnr_db(pixels):
     """PSNR of an all-black image against `pixels` (8-bit), dB."""
     mse = sum((v / 255.0) ** 2 for v in pixels) / len(pixels)
@@ -165,14 +179,7 @@ def test_telemetry_and_commands_on_can_frames_on_udp(tmp_path, listener, learner
     component = start_on_can(live, listener, "--record", str(live / "rec"), learner=learner)
     try:
         for k in range(6):
-            if k == 0:
-                side.send(PORT_POSE, target_pose(0))
-                side.send(PORT_SUN, sun_vector(0))
-            t = (k + 1) * 1_000_000
-            side.send(PORT_POSE, target_pose(t))
-            side.send(PORT_SUN, sun_vector(t))
-            time.sleep(0.2)  # CAN and UDP are different sockets: telemetry first
-            component.send(PORT_FRAME, camera_frame(k, k * 1_000_000 + 500_000), to=component.frames)
+            send_step(side, component, k)
             if k:
                 listener.wait(lambda s: any(p["source"] == ("frame", k) for p in s.predictions),
                               timeout=wait_s, what=f"prediction for frame {k}")

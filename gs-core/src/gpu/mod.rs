@@ -131,10 +131,7 @@ pub fn context_or_skip(options: GpuOptions) -> Option<GpuContext> {
             Some(ctx)
         }
         Err(e) => {
-            if std::env::var("GS_REQUIRE_GPU").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_GPU=1 but no usable GPU: {e}");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_GPU=1 to fail instead): {e}");
+            crate::machine::skip_unless_required("GS_REQUIRE_GPU", &format!("no usable GPU: {e}"));
             None
         }
     }

@@ -317,16 +317,12 @@ mod tests {
     use crate::nn::matmul::{F32Kernel, Products};
     use crate::rng::SplitMix64;
 
-    /// The kernels, or `None` after a printed skip notice; a failure instead when
-    /// `GS_REQUIRE_AVX512=1` (a CI machine that must run these tests).
-    /// The AVX-512 products (the kernels behind `Products`' shape checks), or `None`.
+    /// The AVX-512 products (the kernels behind `Products`' shape checks), or `None` after
+    /// a visible skip (a failure under `GS_REQUIRE_AVX512=1`).
     fn kernels() -> Option<Products> {
         let found = Avx512Kernels::detect();
         if found.is_none() {
-            if std::env::var("GS_REQUIRE_AVX512").is_ok_and(|v| v == "1") {
-                panic!("GS_REQUIRE_AVX512=1 but this CPU lacks avx512f");
-            }
-            eprintln!("SKIPPED (set GS_REQUIRE_AVX512=1 to fail instead): no avx512f");
+            crate::machine::skip_unless_required("GS_REQUIRE_AVX512", "no avx512f");
         }
         found.map(|k| Products::f32_on(F32Kernel::Avx512(k)))
     }

@@ -374,7 +374,7 @@ mod tests {
         match Products::new(MatmulPrecision::Bf16) {
             Ok(k) => Some(k),
             Err(e) => {
-                eprintln!("skipping the bf16 kernel test: {e}");
+                crate::machine::skip_unless_required("GS_REQUIRE_BF16", &e.to_string());
                 None
             }
         }

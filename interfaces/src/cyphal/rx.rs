@@ -246,8 +246,47 @@ pub struct CanReassembler<B, const N: usize> {
     slot_len: usize,
     sessions: [Session; N],
     transfer_id_timeout_us: u64,
-    subject_filter: Option<fn(u16) -> bool>,
+    subject_filter: Option<SubjectFilter>,
     counters: CanRxCounters,
+}
+
+/// Which subjects get a session: a predicate, or a set fixed at run time (configured
+/// subject-IDs), 8192 bits inline so that no allocator is needed.
+// No allocator here, so the set stays inline: one 1 KiB filter per reassembler.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Copy)]
+enum SubjectFilter {
+    Predicate(fn(u16) -> bool),
+    Set(SubjectSet),
+}
+
+/// A set of subject-IDs (0..=8191).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SubjectSet([u64; 128]);
+
+impl Default for SubjectSet {
+    fn default() -> Self {
+        Self([0; 128])
+    }
+}
+
+impl SubjectSet {
+    /// Adds `subject_id`; false (and nothing added) above 8191.
+    pub fn insert(&mut self, subject_id: u16) -> bool {
+        let i = usize::from(subject_id);
+        match self.0.get_mut(i / 64) {
+            Some(word) => {
+                *word |= 1 << (i % 64);
+                true
+            }
+            None => false,
+        }
+    }
+
+    pub fn contains(&self, subject_id: u16) -> bool {
+        let i = usize::from(subject_id);
+        self.0.get(i / 64).is_some_and(|w| w & (1 << (i % 64)) != 0)
+    }
 }
 
 impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CanReassembler<B, N> {
@@ -271,7 +310,13 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CanReassembler<B, N> {
     /// Only subjects for which `filter` returns true get a session; others are rejected as
     /// [`CanRxError::NotSubscribed`] before they can occupy memory.
     pub fn with_subject_filter(mut self, filter: fn(u16) -> bool) -> Self {
-        self.subject_filter = Some(filter);
+        self.subject_filter = Some(SubjectFilter::Predicate(filter));
+        self
+    }
+
+    /// Like [`Self::with_subject_filter`] with the subjects in `set` (configured at start).
+    pub fn with_subject_set(mut self, set: SubjectSet) -> Self {
+        self.subject_filter = Some(SubjectFilter::Set(set));
         self
     }
 
@@ -364,10 +409,13 @@ impl<B: AsRef<[u8]> + AsMut<[u8]>, const N: usize> CanReassembler<B, N> {
             CanIdError::ServiceTransfer => CanRxError::ServiceFrame,
             _ => CanRxError::ForeignCanId,
         })?;
-        if let Some(filter) = self.subject_filter {
-            if !filter(meta.subject_id) {
-                return Err(CanRxError::NotSubscribed);
-            }
+        let subscribed = match &self.subject_filter {
+            None => true,
+            Some(SubjectFilter::Predicate(filter)) => filter(meta.subject_id),
+            Some(SubjectFilter::Set(set)) => set.contains(meta.subject_id),
+        };
+        if !subscribed {
+            return Err(CanRxError::NotSubscribed);
         }
         let Some((&tail_byte, body)) = data.split_last() else {
             return Err(CanRxError::MissingTailByte);

@@ -95,11 +95,15 @@ pub enum ErrorCode {
     /// A camera frame without its own camera model whose size is not the configured
     /// camera's (detail: frames since the last such event).
     CameraMismatch,
+    // Version 1.3 of `Event` appends this.
+    /// A rendered prediction too large for CAN FD (`[can] prediction_max_bytes`) went out
+    /// on UDP only; sent once per run, for the first one (detail: its encoded size, bytes).
+    PredictionNotOnCan,
 }
 
 impl ErrorCode {
     /// Every code in wire order (index = wire value).
-    pub const ALL: [ErrorCode; 17] = [
+    pub const ALL: [ErrorCode; 18] = [
         ErrorCode::DecodeError,
         ErrorCode::CrcError,
         ErrorCode::QueueOverflow,
@@ -117,6 +121,7 @@ impl ErrorCode {
         ErrorCode::TelemetryTimeOutOfBounds,
         ErrorCode::TelemetryClockJump,
         ErrorCode::CameraMismatch,
+        ErrorCode::PredictionNotOnCan,
     ];
     /// Number of codes: size per-code tables with this, never with a literal.
     pub const COUNT: usize = Self::ALL.len();
@@ -178,7 +183,7 @@ impl Event {
 
 impl Message for Event {
     const PORT_ID: u16 = port::EVENT;
-    const VERSION: Version = Version { major: 1, minor: 2 };
+    const VERSION: Version = Version { major: 1, minor: 3 };
     const NAME: &'static str = "Event";
     const DIRECTION: Direction = Direction::FromComponent;
 

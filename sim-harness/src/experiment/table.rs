@@ -141,11 +141,15 @@ pub fn to_markdown(rows: &[ResultRow]) -> String {
         for t in &targets {
             match cell(t, c) {
                 Some(r) => {
+                    // The best value in bold: only the number, the cell may carry a
+                    // bold verdict after it.
                     let bold = |v: f64, b: f64, text: String| {
-                        if v == b {
-                            format!("**{text}**")
-                        } else {
-                            text
+                        if v != b {
+                            return text;
+                        }
+                        match text.split_once(' ') {
+                            Some((number, rest)) => format!("**{number}** {rest}"),
+                            None => format!("**{text}**"),
                         }
                     };
                     let _ = write!(
@@ -204,4 +208,48 @@ pub fn to_markdown(rows: &[ResultRow]) -> String {
         out.push('\n');
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::experiment::ladder::Rung;
+
+    fn row(config: &str, masked_psnr_db: f64) -> ResultRow {
+        let eval = Rung {
+            views: 4,
+            masked_psnr_db,
+            masked_ssim: 0.3,
+            psnr_db: 20.0,
+            black_masked_psnr_db: 10.0,
+            black_psnr_db: 19.0,
+        };
+        ResultRow {
+            target: "cassini".into(),
+            config: config.into(),
+            ssim: 0.9,
+            psnr: 20.0,
+            gaussians: 4000,
+            train_s: 1.0,
+            step_ms: 1.0,
+            ladder: Ladder {
+                eval: Some(eval),
+                ..Ladder::default()
+            },
+        }
+    }
+
+    #[test]
+    fn the_best_cell_bolds_its_number_not_its_verdict() {
+        let md = to_markdown(&[row("a", 11.5), row("b", 11.0)]);
+        assert!(
+            md.contains("| **11.50** (10.00) **< 3 dB over black** |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("| 11.00 (10.00) **< 3 dB over black** |"),
+            "{md}"
+        );
+        assert!(!md.contains("****"), "{md}");
+    }
 }

@@ -4,7 +4,9 @@
 //! forward and the alpha-only pass, and the 8-lane backward with its skip of unreached
 //! groups.
 
+use super::backward::BackwardPass;
 use super::*;
+use crate::raster::bin::TILE_PIXELS;
 
 /// `exp(power)` of splat `s` at the pixel centres of row `py`, lanes `i` (pixel
 /// `x_origin + i`) for every 8-lane group that meets the columns `cols`, and the mask of
