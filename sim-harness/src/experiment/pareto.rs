@@ -218,7 +218,7 @@ pub fn run_settings(
         let scene = &last.as_ref().expect("scene_for filled it").1;
         let row = run_one(scene, preset, &setting.name, &mut |l| progress(l))?;
         progress(&format!(
-            "[{}/{}] {}: masked PSNR {} dB, full {:.2} dB, SSIM {:.4}, train {:.1} s wall / {:.1} s CPU, {:.1} ms/step, {} Gaussians, peak {:.0} MB; {:.0} s elapsed",
+            "[{}/{}] {}: masked PSNR dB (black) {}, full {:.2} dB, SSIM {:.4}, train {:.1} s wall / {:.1} s CPU, {:.1} ms/step, {} Gaussians, peak {:.0} MB; {:.0} s elapsed",
             i + 1,
             settings.len(),
             setting.name,
