@@ -66,7 +66,34 @@ fn report(
     );
 }
 
+const USAGE: &str =
+    "framing_throughput: encode/frame/reassemble/decode throughput of representative messages
+usage: cargo run --release -p interfaces --example framing_throughput
+  (no options; prints a Markdown table, the CPU model first)";
+
+/// The CPU model (Linux `/proc/cpuinfo`) and the CPUs available, for the header: timings
+/// from different machines must not be compared unnamed. (gs-core's `machine` module says
+/// more; this crate does not depend on it.)
+fn cpu_line() -> String {
+    let model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, v)| v.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
+    format!("cpu: {model}, {cpus} CPUs available")
+}
+
 fn main() {
+    if std::env::args().any(|a| a == "--help" || a == "-h") {
+        println!("{USAGE}");
+        return;
+    }
+    println!("{}\n", cpu_line());
     println!("| message / path                       | msg bytes | units            | us / message | MB/s     |");
     println!("|--------------------------------------|-----------|------------------|--------------|----------|");
 
