@@ -1,0 +1,262 @@
+//! Tests of `config` (a child module, so they reach its private items).
+
+use super::*;
+
+fn parse(text: &str) -> Result<ComponentConfig, ConfigError> {
+    ComponentConfig::from_toml_str(text, Path::new("test.toml"))
+}
+
+fn invalid_key(text: &str) -> &'static str {
+    match parse(text) {
+        Err(ConfigError::Invalid { key, .. }) => key,
+        other => panic!("expected an invalid key for {text:?}, got {other:?}"),
+    }
+}
+
+#[test]
+fn empty_file_gives_the_defaults() {
+    let config = parse("").unwrap();
+    assert_eq!(config, ComponentConfig::default());
+    assert_eq!(config.window_config().unwrap(), WindowConfig::default());
+    assert_eq!(config.sync_config().unwrap(), SyncConfig::default());
+}
+
+#[test]
+fn defaults_round_trip_through_toml() {
+    let text = ComponentConfig::default().to_toml_string();
+    assert_eq!(parse(&text).unwrap(), ComponentConfig::default());
+}
+
+#[test]
+fn unknown_keys_and_wrong_types_are_parse_errors() {
+    for text in [
+        "[node]\nnode_idd = 3\n",
+        "[nodes]\nnode_id = 3\n",
+        "[node]\nnode_id = \"three\"\n",
+        "[node]\nnode_id = 300\n",
+        "[udp]\nbind_ip = \"localhost\"\n",
+        "[camera]\ncamera_from_body_wxyz = [1.0, 0.0, 0.0]\n",
+    ] {
+        match parse(text) {
+            Err(ConfigError::Parse { message, .. }) => {
+                assert!(!message.is_empty(), "{text:?}")
+            }
+            other => panic!("expected a parse error for {text:?}, got {other:?}"),
+        }
+    }
+    let message = parse("[node]\nnode_idd = 3\n").unwrap_err().to_string();
+    assert!(message.contains("node_idd"), "{message}");
+}
+
+#[test]
+fn training_backend_is_validated_against_the_build() {
+    let config = parse("[training]\nbackend = \"cpu\"\n").unwrap();
+    assert_eq!(config.backend().unwrap(), BackendKind::Cpu);
+    assert_eq!(
+        invalid_key("[training]\nbackend = \"cuda\"\n"),
+        "training.backend"
+    );
+    let wgpu = parse("[training]\nbackend = \"wgpu\"\n");
+    if cfg!(feature = "wgpu") {
+        assert_eq!(wgpu.unwrap().backend().unwrap(), BackendKind::Wgpu);
+    } else {
+        let message = wgpu.unwrap_err().to_string();
+        assert!(
+            message.contains("training.backend") && message.contains("feature `wgpu`"),
+            "{message}"
+        );
+    }
+}
+
+#[test]
+fn validation_names_the_key() {
+    assert_eq!(invalid_key("[node]\nnode_id = 128\n"), "node.node_id");
+    assert_eq!(invalid_key("[can]\ninterface = \"\"\n"), "can.interface");
+    for bad in ["prediction_max_bytes = 0", "prediction_max_bytes = 65537"] {
+        assert_eq!(
+            invalid_key(&format!("[can]\n{bad}\n")),
+            "can.prediction_max_bytes"
+        );
+    }
+    // The prediction subject is one of [cyphal.subjects]: above 6143 (the heartbeat's
+    // 7509 included) and subjects of other ports (health, pose) are refused there.
+    for subject in [8192, 7509, 400, 101] {
+        match parse(&format!(
+            "[cyphal.subjects]\nrendered_prediction = {subject}\n"
+        )) {
+            Err(ConfigError::Cyphal(e)) => {
+                assert_eq!(e.key, "cyphal.subjects.rendered_prediction", "{subject}")
+            }
+            other => panic!("subject {subject}: expected a refusal, got {other:?}"),
+        }
+    }
+    let moved = parse("[cyphal.subjects]\nrendered_prediction = 6000\n").unwrap();
+    assert_eq!(moved.cyphal.subjects.rendered_prediction, 6000);
+    assert_eq!(
+        invalid_key("[can]\ninterface = \"a_very_long_ifname0\"\n"),
+        "can.interface"
+    );
+    assert_eq!(
+        invalid_key("[can]\nenabled = false\n[udp]\nenabled = false\n"),
+        "can.enabled"
+    );
+    assert_eq!(
+        invalid_key("[udp]\nframes_port = 9000\ntelemetry_port = 9000\n"),
+        "udp.telemetry_port"
+    );
+    assert_eq!(
+        invalid_key("[udp]\npredictions_to = \"0.0.0.0:9000\"\n"),
+        "udp.predictions_to"
+    );
+    assert_eq!(
+        invalid_key("[udp]\nhealth_to = \"127.0.0.1:0\"\n"),
+        "udp.health_to"
+    );
+    assert_eq!(
+        invalid_key("[camera]\ncamera_from_body_wxyz = [1.0, 1.0, 0.0, 0.0]\n"),
+        "camera.camera_from_body_wxyz"
+    );
+    assert_eq!(
+        invalid_key("[camera]\ncamera_from_body_wxyz = [nan, 0.0, 0.0, 0.0]\n"),
+        "camera.camera_from_body_wxyz"
+    );
+    assert_eq!(
+        invalid_key("[sync]\nbuffer_capacity = 1\n"),
+        "sync.buffer_capacity"
+    );
+    assert_eq!(invalid_key("[sync]\nmax_gap_ms = 0\n"), "sync.max_gap_ms");
+    assert_eq!(
+        invalid_key("[sync]\ntime_tag_tolerance_ms = 0\n"),
+        "sync.time_tag_tolerance_ms"
+    );
+    assert_eq!(
+        invalid_key("[sync]\nresync_after_samples = 1\n"),
+        "sync.resync_after_samples"
+    );
+    assert_eq!(
+        invalid_key("[commands]\ncan_source_nodes = [1, 128]\n"),
+        "commands.can_source_nodes"
+    );
+    assert_eq!(
+        invalid_key("[commands]\narm_timeout_ms = 0\n"),
+        "commands.arm_timeout_ms"
+    );
+    assert_eq!(
+        invalid_key("[sync]\nunit_norm_tolerance = 0.0\n"),
+        "sync.unit_norm_tolerance"
+    );
+    assert_eq!(
+        invalid_key("[sync]\nmax_wait_ms = 20000\n"),
+        "sync.max_wait_ms"
+    );
+    assert_eq!(
+        invalid_key("[training]\nwindow_size = 1\n"),
+        "training.window_size"
+    );
+    assert_eq!(
+        invalid_key("[training]\nmin_view_angle_deg = -5.0\n"),
+        "training.min_view_angle_deg"
+    );
+    assert_eq!(
+        invalid_key("[training]\nvariant = \"e\"\n"),
+        "training.variant"
+    );
+    assert_eq!(invalid_key("[training]\nthreads = 0\n"), "training.threads");
+    assert_eq!(
+        invalid_key("[training]\nappearance_hidden_width = 0\n"),
+        "training.appearance_hidden_width"
+    );
+    assert_eq!(
+        invalid_key("[training]\nencoding_frequencies = 0\n"),
+        "training.encoding_frequencies"
+    );
+    assert_eq!(
+        invalid_key("[training]\nmlp_precision = \"f16\"\n"),
+        "training.mlp_precision"
+    );
+    assert_eq!(
+        invalid_key("[training]\npasses_per_round = 0\n"),
+        "training.passes_per_round"
+    );
+    assert_eq!(
+        invalid_key("[training]\nround_deadline_ms = 99\n"),
+        "training.round_deadline_ms"
+    );
+    assert_eq!(
+        invalid_key("[training]\ndenormals = \"fast\"\n"),
+        "training.denormals"
+    );
+    assert_eq!(
+        invalid_key("[checkpoint]\npath = \"\"\n"),
+        "checkpoint.path"
+    );
+    assert_eq!(
+        invalid_key("[checkpoint]\npath = \"out/..\"\n"),
+        "checkpoint.path"
+    );
+    assert_eq!(invalid_key("[queues]\ncommands = 0\n"), "queues.commands");
+    for (text, key) in [
+        ("[camera]\nwidth_px = 0\n", "camera.width_px"),
+        ("[camera]\nfy_px = -1.0\n", "camera.fy_px"),
+        ("[camera]\ncx_px = 1921.0\n", "camera.cx_px"),
+        ("[camera]\ncy_px = nan\n", "camera.cy_px"),
+        ("[camera]\ndistortion = \"brown\"\n", "camera.distortion"),
+        ("[model]\ninit = \"surface\"\n", "model.init"),
+        ("[model]\nhull_resolution = 1000\n", "model.hull_resolution"),
+    ] {
+        assert_eq!(invalid_key(text), key, "{text}");
+    }
+    let message = parse("[node]\nnode_id = 128\n").unwrap_err().to_string();
+    assert_eq!(
+        message,
+        "config key `node.node_id`: 128 is above the Cyphal maximum 127"
+    );
+}
+
+#[test]
+fn training_denormals_parse_and_name_the_values() {
+    assert_eq!(
+        ComponentConfig::default().denormals().unwrap(),
+        DenormalMode::FlushToZero
+    );
+    let ieee = parse("[training]\ndenormals = \"ieee\"\n").unwrap();
+    assert_eq!(ieee.denormals().unwrap(), DenormalMode::Ieee);
+    let message = parse("[training]\ndenormals = \"FTZ\"\n")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        message.contains("training.denormals")
+            && message.contains("\"FTZ\"")
+            && message.contains("flush-to-zero")
+            && message.contains("ieee"),
+        "{message}"
+    );
+}
+
+#[test]
+fn mounting_rotates_as_documented() {
+    // 90 degrees about camera-body z: body x maps to camera y.
+    let half = std::f64::consts::FRAC_1_SQRT_2;
+    let config = parse(&format!(
+        "[camera]\ncamera_from_body_wxyz = [{half}, 0.0, 0.0, {half}]\n"
+    ))
+    .unwrap();
+    let q = config.camera_from_body().unwrap();
+    assert!((q * glam::DVec3::X - glam::DVec3::Y).length() < 1e-12);
+    assert_eq!(config.sync_config().unwrap().camera_from_body, q);
+}
+
+#[test]
+fn committed_component_toml_parses_and_validates() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/component.toml");
+    let config = ComponentConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
+    // The committed file documents the defaults: it must state them exactly.
+    assert_eq!(config, ComponentConfig::default());
+}
+
+#[test]
+fn missing_file_is_a_read_error() {
+    let e = ComponentConfig::load(Path::new("/nonexistent/component.toml")).unwrap_err();
+    assert!(matches!(e, ConfigError::Read { .. }));
+    assert!(e.to_string().contains("/nonexistent/component.toml"));
+}
