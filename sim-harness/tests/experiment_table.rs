@@ -77,11 +77,11 @@ fn markdown_is_laid_out_like_table_one_with_the_target_pixels_first() {
     // Best per target in bold, per metric; within 3 dB of black said in words.
     assert_eq!(
         lines[4],
-        "| (a) 3DGS | 0.5871 | 16.51 (10.00) | 26.51 | 42.7K | 0.5539 | **15.05 (10.00)** | 25.05 | 42.7K |"
+        "| (a) 3DGS | 0.5871 | 16.51 (10.00) | 26.51 | 42.7K | 0.5539 | **15.05** (10.00) | 25.05 | 42.7K |"
     );
     assert_eq!(
         lines[5],
-        "| (b) + Illum. | **0.6894** | **20.63 (10.00)** | 30.63 | 42.7K | **0.5600** | 11.00 (10.00) **< 3 dB over black** | 21.00 | 42.7K |"
+        "| (b) + Illum. | **0.6894** | **20.63** (10.00) | 30.63 | 42.7K | **0.5600** | 11.00 (10.00) **< 3 dB over black** | 21.00 | 42.7K |"
     );
     assert!(
         md.contains("| Cassini (a) 3DGS | - | - | - | 16.51 (10.00) | - |"),
@@ -95,7 +95,7 @@ fn markdown_is_laid_out_like_table_one_with_the_target_pixels_first() {
     let md = to_markdown(&rows[..3]);
     assert!(
         md.contains(
-            "| (b) + Illum. | **0.6894** | **20.63 (10.00)** | 30.63 | 42.7K | - | - | - | - |"
+            "| (b) + Illum. | **0.6894** | **20.63** (10.00) | 30.63 | 42.7K | - | - | - | - |"
         ),
         "{md}"
     );
