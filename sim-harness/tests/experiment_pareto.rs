@@ -435,3 +435,37 @@ fn tiny_window_ablation_writes_one_row_per_window() {
     assert_eq!((png.width(), png.height()), (900, 1040));
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn window_plot_draws_each_targets_all_black_floor() {
+    use sim_harness::experiment::ablation::window_plot;
+    let mut rows = Vec::new();
+    for (target, w) in [
+        ("cassini", 5),
+        ("cassini", 10),
+        ("rosetta", 5),
+        ("rosetta", 10),
+    ] {
+        let mut r = row(&format!("w{w}"), 10.0, 20.0);
+        r.target = target.into();
+        r.window = w;
+        rows.push(r);
+    }
+    let count = |canvas: &sim_harness::dataset::plots::Canvas| {
+        canvas
+            .rgb8
+            .chunks(3)
+            .filter(|p| p[0] != p[1] || p[1] != p[2])
+            .count()
+    };
+    let with_floors = count(&window_plot(&rows));
+    // Without a black score there is no floor to draw: fewer coloured pixels.
+    for r in &mut rows {
+        r.ladder.eval.as_mut().unwrap().black_masked_psnr_db = f64::NAN;
+    }
+    let without = count(&window_plot(&rows));
+    assert!(
+        with_floors > without,
+        "{with_floors} coloured pixels with floors, {without} without"
+    );
+}

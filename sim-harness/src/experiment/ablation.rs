@@ -103,8 +103,9 @@ pub fn to_markdown(rows: &[SweepRow]) -> String {
     out
 }
 
-/// Two panels: evaluation masked PSNR (the target's pixels) against W (top) and training CPU time against W (bottom),
-/// one line per target; W on a log axis.
+/// Two panels: evaluation masked PSNR (the target's pixels) against W (top, with each
+/// target's all-black score as a pale line) and training CPU time against W (bottom), one
+/// line per target; W on a log axis.
 pub fn window_plot(rows: &[SweepRow]) -> Canvas {
     let mut targets: Vec<&str> = Vec::new();
     for r in rows {
@@ -132,16 +133,30 @@ pub fn window_plot(rows: &[SweepRow]) -> Canvas {
             })
             .collect()
     };
+    // Each target's all-black score on the same views, in a pale shade of its colour: the
+    // floor a model must clear (the same views at every W, so a flat line).
+    let black_masked = |r: &SweepRow| r.ladder.eval.map_or(f64::NAN, |e| e.black_masked_psnr_db);
+    let mut psnr = series(|r| r.masked_psnr_db);
+    let floors: Vec<PlotSeries> = series(black_masked)
+        .into_iter()
+        .filter(|s| s.points.iter().all(|p| p.1.is_finite()))
+        .map(|s| PlotSeries {
+            name: format!("{} ALL-BLACK", s.name),
+            color: s.color.map(|c| c / 2 + 128),
+            ..s
+        })
+        .collect();
+    psnr.extend(floors);
     let (w, h) = (900i64, 520i64);
     let mut canvas = Canvas::new(w as u32, 2 * h as u32, [255, 255, 255]);
     draw_xy_panel(
         &mut canvas,
         (0, 0, w, h),
-        "EVAL MASKED PSNR VS KEYFRAME WINDOW W",
+        "EVAL MASKED PSNR VS KEYFRAME WINDOW W (PALE: ALL-BLACK RENDER)",
         "W (LOG)",
         "MASKED PSNR DB",
         true,
-        &series(|r| r.masked_psnr_db),
+        &psnr,
         &[],
     );
     draw_xy_panel(
