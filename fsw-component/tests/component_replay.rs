@@ -9,7 +9,7 @@ use fsw_component::logfmt::candump::{CanId, CanLogFrame, CanLogRecord, CanLogWri
 use fsw_component::logfmt::udprec::{UdpRecord, UdpRecordingWriter};
 use fsw_component::outbound::{CanFramer, UdpFramer};
 use fsw_component::runtime::{build_learner, run_replay, start, LearnerKind, ReplaySpeed};
-use interfaces::messages::{AckStatus, CameraFrame, Command, CommandKind};
+use interfaces::messages::{AckStatus, Command, CommandKind};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -69,12 +69,7 @@ fn write_mixed_logs(dir: &Path) -> Vec<PathBuf> {
         write_can(can.frames(&pose_at(next)).unwrap(), &mut time_us);
         write_can(can.frames(&sun_at(next)).unwrap(), &mut time_us);
         let pixels = frame_pixels(k);
-        let frame = CameraFrame {
-            header: frame_header(k, frame_time_us(k)),
-            mask: None,
-            pixels: &pixels,
-            camera: None,
-        };
+        let frame = step_frame(k, &pixels);
         for d in udp.datagrams(&frame).unwrap() {
             time_us += 100;
             udp_log

@@ -16,7 +16,7 @@ use fsw_component::logfmt::udprec::{UdpRecord, UdpRecordingWriter};
 use fsw_component::outbound::{CanFramer, UdpFramer};
 use fsw_component::runtime::{build_learner, run_replay, LearnerKind, ReplaySpeed};
 use fsw_component::transport::RawCanFrame;
-use interfaces::messages::{CameraFrame, Command, CommandKind};
+use interfaces::messages::{Command, CommandKind};
 use std::path::{Path, PathBuf};
 
 const STEPS: u32 = 6;
@@ -83,12 +83,7 @@ fn write_logs(dir: &Path) -> (Vec<PathBuf>, u64, u64) {
             wrong_source += 1;
         }
         let pixels = frame_pixels(k);
-        let frame = CameraFrame {
-            header: frame_header(k, frame_time_us(k)),
-            mask: None,
-            pixels: &pixels,
-            camera: None,
-        };
+        let frame = step_frame(k, &pixels);
         for d in udp.datagrams(&frame).unwrap() {
             time_us += 100;
             let record = UdpRecord {

@@ -307,6 +307,16 @@ pub fn frame_header(frame_id: u32, time_us: u64) -> FrameHeader {
     }
 }
 
+/// Frame `k` of the scenario (no mask, no camera model) over `pixels` (`frame_pixels(k)`).
+pub fn step_frame(k: u32, pixels: &[u8]) -> CameraFrame<'_> {
+    CameraFrame {
+        header: frame_header(k, frame_time_us(k)),
+        mask: None,
+        pixels,
+        camera: None,
+    }
+}
+
 /// Scenario time of frame `k`: half way between telemetry samples k and k+1 (seconds).
 pub fn frame_time_us(k: u32) -> u64 {
     u64::from(k) * 1_000_000 + 500_000
@@ -341,13 +351,7 @@ pub async fn send_step(peer: &mut Peer, k: u32, handle: &ComponentHandle) {
         tokio::time::sleep(Duration::from_millis(2)).await;
     }
     let pixels = frame_pixels(k);
-    let frame = CameraFrame {
-        header: frame_header(k, frame_time_us(k)),
-        mask: None,
-        pixels: &pixels,
-        camera: None,
-    };
-    peer.send(&frame, frames).await;
+    peer.send(&step_frame(k, &pixels), frames).await;
 }
 
 /// Unit direction from the target to the camera, target frame, at `time_us`.
