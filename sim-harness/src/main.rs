@@ -224,7 +224,7 @@ enum Command {
         scenario: Vec<PathBuf>,
         /// Initialisations to compare, in order: surface, random, or a hull start named
         /// hull with any of the suffixes -grey, -volume, -silhouette, -photo, -recarve, e.g.
-        /// hull-silhouette, the start that meets the 0.5 dB goal (docs/initialisation.md).
+        /// hull-silhouette, the best hull start (docs/initialisation.md).
         #[arg(long, value_delimiter = ',', default_value = "surface,random,hull")]
         inits: Vec<String>,
         /// Evaluate every N rounds during training (0: only at the end).
@@ -239,6 +239,16 @@ enum Command {
         /// Only write hull.png (surface samples beside each target's hull), no training.
         #[arg(long)]
         hull_figure_only: bool,
+    },
+    /// The tables and figure of several `ablation-init` jobs together (e.g. one job per
+    /// target): init.csv, init.md and init.png from their runs.json files.
+    AblationInitPlot {
+        /// Output folder.
+        #[arg(long)]
+        out: PathBuf,
+        /// runs.json files written by `ablation-init`, in the order their runs are listed.
+        #[arg(long, value_delimiter = ',', required = true)]
+        runs: Vec<PathBuf>,
     },
     /// Shadow splatting (configuration c) against the ray tracer's ground-truth shadows on
     /// one target: shadow_study.json, shadow_study.md, before.png, after.png.
@@ -572,6 +582,16 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 result.total_s,
                 result.total_cpu_s,
                 result.render_s,
+                out.display()
+            );
+            Ok(())
+        }
+        Command::AblationInitPlot { out, runs } => {
+            let merged = ablation_init::merge_runs(&runs, &out)?;
+            eprintln!("{}", ablation_init::to_markdown(&merged));
+            eprintln!(
+                "{} runs; wrote init.csv, init.md, init.png to {}",
+                merged.len(),
                 out.display()
             );
             Ok(())

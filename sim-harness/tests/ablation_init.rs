@@ -5,8 +5,8 @@
 use glam::Vec3;
 use gs_online::online::Initialisation;
 use sim_harness::experiment::ablation_init::{
-    first_keyframes, hull_initialisation, mean_nearest_distance, parse_init, run_init_ablation,
-    write_hull_figure, InitAblationJob, CSV_HEADER,
+    first_keyframes, hull_initialisation, mean_nearest_distance, merge_runs, parse_init,
+    run_init_ablation, write_hull_figure, InitAblationJob, CSV_HEADER,
 };
 use sim_harness::experiment::data::{render_scene, SceneData};
 use sim_harness::experiment::preset::{InitKind, Preset};
@@ -177,6 +177,18 @@ fn tiny_ablation_writes_every_file_with_finite_metrics() {
     );
     let md = std::fs::read_to_string(out.join("init.md")).unwrap();
     assert!(md.contains("| Quick | hull |"), "{md}");
+    // The ladder of every run, and each start paired against surface samples on every rung
+    // (the same views for both starts: a number, never `-`, on L0 and L2).
+    assert!(md.contains("Accuracy ladder"), "{md}");
+    assert!(md.contains("| Quick hull |"), "{md}");
+    for init in ["random", "hull"] {
+        let row = md
+            .lines()
+            .find(|l| l.starts_with(&format!("| Quick | {init} − surface |")))
+            .unwrap_or_else(|| panic!("no paired row for {init}: {md}"));
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        assert!(cells[3].contains('±') && cells[6].contains('±'), "{row}");
+    }
     // Every row of a table has as many cells as its header (pipes in text are escaped).
     let cells = |line: &str| line.replace("\\|", "").matches('|').count();
     for table in md.split("\n\n").filter(|t| t.starts_with('|')) {
@@ -184,6 +196,25 @@ fn tiny_ablation_writes_every_file_with_finite_metrics() {
         assert!(table.lines().all(|l| cells(l) == header), "{table}");
     }
     assert!(md.contains("Visual hulls"));
+    // runs.json reads back: merged on its own it rewrites the same tables; merged twice,
+    // every run appears twice (and the merge refuses a file that is not a runs.json).
+    let merged_dir = out.join("merged");
+    let runs_json = out.join("runs.json");
+    let merged = merge_runs(std::slice::from_ref(&runs_json), &merged_dir).unwrap();
+    assert_eq!(merged.len(), 3);
+    assert_eq!(
+        std::fs::read_to_string(merged_dir.join("init.md")).unwrap(),
+        md
+    );
+    assert_eq!(
+        std::fs::read_to_string(merged_dir.join("init.csv")).unwrap(),
+        csv
+    );
+    let twice = merge_runs(&[runs_json.clone(), runs_json], &merged_dir).unwrap();
+    assert_eq!(twice.len(), 6);
+    assert!(image::open(merged_dir.join("init.png")).is_ok());
+    let err = merge_runs(&[out.join("init.csv")], &merged_dir).unwrap_err();
+    assert!(err.to_string().contains("init.csv"), "{err}");
     let curves = std::fs::read_to_string(out.join("init_curves.csv")).unwrap();
     let rounds: usize = result.runs.iter().map(|r| r.run.curve.len()).sum();
     assert_eq!(curves.lines().count(), rounds + 1);

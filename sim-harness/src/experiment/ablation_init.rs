@@ -24,7 +24,9 @@
 //! Invariants: every number written comes from a run in this process; runs go one after
 //! another, targets in order, initialisations in the order asked; the CSV and Markdown are
 //! rewritten after every run; `cpu_s` is this process's CPU time (all threads) over the run,
-//! the steadier cost measure on a shared machine.
+//! the steadier cost measure on a shared machine. [`merge_runs`] reads several jobs'
+//! `runs.json` back and writes the tables and `init.png` of all their runs together (one job
+//! per target keeps each paired comparison within one process).
 
 mod figure;
 mod hull;
@@ -47,7 +49,7 @@ use crate::scenario::Scenario;
 use glam::Vec3;
 use gs_core::model::Param;
 use gs_core::sunaware::Variant;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -120,8 +122,8 @@ pub fn parse_init(name: &str) -> Result<(InitKind, bool), ExperimentError> {
     parse_init_variant(name).map(|(kind, v)| (kind, v.grey))
 }
 
-/// One run of the ablation.
-#[derive(Clone, Debug, Serialize)]
+/// One run of the ablation (as written to, and read back from, `runs.json`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct InitRun {
     pub init: String,
     pub initial_gaussians: usize,
@@ -266,13 +268,7 @@ pub fn run_init_ablation(
             ));
         }
     }
-    let canvas = plot(&runs, &names);
-    files::write_png_rgb(
-        &out.join("init.png"),
-        canvas.width,
-        canvas.height,
-        &canvas.rgb8,
-    )?;
+    write_plot(out, &runs, &names)?;
     let total_cpu_s = match (cpu_started, gs_core::machine::process_cpu_s()) {
         (Some(a), Some(b)) => b - a,
         _ => f64::NAN,
@@ -283,6 +279,57 @@ pub fn run_init_ablation(
         total_s: started.elapsed().as_secs_f64(),
         total_cpu_s,
     })
+}
+
+/// Writes `init.png` of `runs`, one colour per name of `names`.
+fn write_plot(
+    out: &std::path::Path,
+    runs: &[InitRun],
+    names: &[String],
+) -> Result<(), ExperimentError> {
+    let canvas = plot(runs, names);
+    files::write_png_rgb(
+        &out.join("init.png"),
+        canvas.width,
+        canvas.height,
+        &canvas.rgb8,
+    )?;
+    Ok(())
+}
+
+/// Reads the `runs.json` of several jobs (in the order given) and writes `init.csv`,
+/// `init.md` and `init.png` of all their runs to `out`; the starts keep the order in which
+/// they first appear. Paired differences are taken only within one target, so runs of one
+/// target should come from one job (one binary). Returns the runs.
+pub fn merge_runs(
+    paths: &[PathBuf],
+    out: &std::path::Path,
+) -> Result<Vec<InitRun>, ExperimentError> {
+    let mut runs: Vec<InitRun> = Vec::new();
+    for path in paths {
+        let text = std::fs::read_to_string(path).map_err(|e| ExperimentError::io(path, e))?;
+        let job: Vec<InitRun> = serde_json::from_str(&text).map_err(|e| {
+            ExperimentError::Invalid(format!(
+                "{}: not an ablation-init runs.json: {e}",
+                path.display()
+            ))
+        })?;
+        runs.extend(job);
+    }
+    if runs.is_empty() {
+        return Err(ExperimentError::Invalid("no runs to merge".into()));
+    }
+    let mut names: Vec<String> = Vec::new();
+    for r in &runs {
+        if !names.contains(&r.init) {
+            names.push(r.init.clone());
+        }
+    }
+    std::fs::create_dir_all(out).map_err(|e| ExperimentError::io(out, e))?;
+    write_text(&out.join("init.csv"), &to_csv(&runs))?;
+    write_text(&out.join("init.md"), &to_markdown(&runs))?;
+    write_plot(out, &runs, &names)?;
+    Ok(runs)
 }
 
 #[cfg(test)]

@@ -16,7 +16,7 @@ use gs_core::camera::{Camera, Intrinsics};
 use gs_core::loss::{psnr, ssim, ImageShape};
 use gs_core::sunaware::trainer::{masked_psnr, masked_ssim};
 use gs_core::sunaware::{SunAwareError, SunAwareModel};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// gs-core intrinsics of a scene.
 pub fn intrinsics(k: &SceneIntrinsics) -> Intrinsics {
@@ -46,7 +46,7 @@ pub fn sun_of(view: &ViewData) -> Vec3 {
 }
 
 /// Scores of one evaluation view.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ViewMetrics {
     pub index: u32,
     pub psnr_db: f64,
@@ -56,7 +56,7 @@ pub struct ViewMetrics {
 }
 
 /// Means over the evaluation set.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EvalSummary {
     pub views: usize,
     /// Full frame (the headline numbers).

@@ -8,9 +8,10 @@
 //!
 //! Invariants: a rung with no views is `None` (NaN in CSV, `-` in Markdown), never a number; a
 //! model that does not beat black by [`CLEAR_MARGIN_DB`] on a rung says so in words
-//! ([`verdict`]); the CSV columns are exactly [`CSV_COLUMNS`], in that order.
+//! ([`verdict`]); the CSV columns are exactly [`CSV_COLUMNS`], in that order; a paired
+//! difference ([`paired_masked_difference`]) exists only over the same views in the same order.
 
-use super::evaluate::EvalSummary;
+use super::evaluate::{EvalSummary, ViewMetrics};
 use super::runner::RunOutcome;
 use super::ExperimentError;
 use serde::Serialize;
@@ -230,6 +231,66 @@ pub fn ladder_line(label: &str, o: &RunOutcome) -> String {
     line
 }
 
+/// A paired difference between two runs' scores on the same views: `b - a` per view.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Paired {
+    pub views: usize,
+    pub mean_db: f64,
+    /// Standard error of the mean (sample standard deviation over sqrt(views)); NaN for
+    /// one view.
+    pub standard_error_db: f64,
+    /// Views where `b` scores higher than `a`.
+    pub b_better: usize,
+}
+
+/// Masked PSNR of `b` minus `a`, paired view by view (each capped at 100 dB as in the
+/// means); `None` when the two were not scored on the same views in the same order (or on
+/// none), since an unpaired difference would carry the views' own scatter.
+pub fn paired_masked_difference(a: &EvalSummary, b: &EvalSummary) -> Option<Paired> {
+    let same_views = a.per_view.len() == b.per_view.len()
+        && a.per_view
+            .iter()
+            .zip(&b.per_view)
+            .all(|(x, y)| x.index == y.index);
+    if !same_views || a.per_view.is_empty() {
+        return None;
+    }
+    let score = |m: &ViewMetrics| m.masked_psnr_db.min(100.0);
+    let d: Vec<f64> = a
+        .per_view
+        .iter()
+        .zip(&b.per_view)
+        .map(|(x, y)| score(y) - score(x))
+        .collect();
+    let n = d.len() as f64;
+    let mean = d.iter().sum::<f64>() / n;
+    let variance = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    Some(Paired {
+        views: d.len(),
+        mean_db: mean,
+        standard_error_db: if d.len() > 1 {
+            (variance / n).sqrt()
+        } else {
+            f64::NAN
+        },
+        b_better: d.iter().filter(|&&v| v > 0.0).count(),
+    })
+}
+
+/// `+0.12 ± 0.05 (37/100)` for a paired difference, `-` for none.
+pub fn paired_cell(p: Option<&Paired>) -> String {
+    match p {
+        Some(p) if p.standard_error_db.is_nan() => {
+            format!("{:+.2} ({}/{})", p.mean_db, p.b_better, p.views)
+        }
+        Some(p) => format!(
+            "{:+.2} ± {:.2} ({}/{})",
+            p.mean_db, p.standard_error_db, p.b_better, p.views
+        ),
+        None => "-".into(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -283,5 +344,42 @@ mod tests {
         bad[4] = "x";
         let err = Ladder::from_csv_fields(&bad, 3).unwrap_err();
         assert!(err.to_string().contains("l1_held_out_masked_psnr"), "{err}");
+    }
+
+    fn summary(indices: &[u32], masked: &[f64]) -> EvalSummary {
+        super::super::evaluate::summarise(
+            indices
+                .iter()
+                .zip(masked)
+                .map(|(&index, &m)| ViewMetrics {
+                    index,
+                    psnr_db: m + 10.0,
+                    ssim: 0.5,
+                    masked_psnr_db: m,
+                    masked_ssim: 0.5,
+                })
+                .collect(),
+        )
+    }
+
+    #[test]
+    fn paired_differences_need_the_same_views() {
+        let a = summary(&[3, 5, 9], &[10.0, 12.0, 14.0]);
+        let b = summary(&[3, 5, 9], &[11.0, 12.0, 16.0]);
+        let p = paired_masked_difference(&a, &b).unwrap();
+        assert_eq!((p.views, p.b_better), (3, 2));
+        assert!((p.mean_db - 1.0).abs() < 1e-12);
+        // Differences 1, 0, 2: sample variance 1, so the standard error is 1/sqrt(3).
+        assert!((p.standard_error_db - (1.0f64 / 3.0).sqrt()).abs() < 1e-12);
+        assert_eq!(paired_cell(Some(&p)), "+1.00 ± 0.58 (2/3)");
+        let reordered = summary(&[5, 3, 9], &[11.0, 12.0, 16.0]);
+        assert_eq!(paired_masked_difference(&a, &reordered), None);
+        let shorter = summary(&[3, 5], &[11.0, 12.0]);
+        assert_eq!(paired_masked_difference(&a, &shorter), None);
+        let empty = summary(&[], &[]);
+        assert_eq!(paired_masked_difference(&empty, &empty), None);
+        assert_eq!(paired_cell(None), "-");
+        let one = paired_masked_difference(&summary(&[1], &[5.0]), &summary(&[1], &[4.0]));
+        assert_eq!(paired_cell(one.as_ref()), "-1.00 (0/1)");
     }
 }

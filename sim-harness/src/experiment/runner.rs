@@ -24,11 +24,11 @@ use gs_core::nn::SceneBox;
 use gs_core::sunaware::{BackendKind, Variant};
 use gs_online::keyframe::WindowConfig;
 use gs_online::online::{Frame, Initialisation, OnlineConfig, OnlineError, OnlineTrainer};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 /// One training round, for loss curves.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RoundPoint {
     pub round: u64,
     /// Index of the last frame offered before the round.
@@ -40,7 +40,7 @@ pub struct RoundPoint {
 }
 
 /// Evaluation during training.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EvalPoint {
     pub round: u64,
     pub psnr_db: f64,
@@ -50,7 +50,7 @@ pub struct EvalPoint {
 }
 
 /// Everything a run produced.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct RunOutcome {
     pub target: String,
     pub config: String,

@@ -1,4 +1,4 @@
-//! The ablation's figures: `init.png` ([`plot`]: PSNR bars per target, Gaussian count over
+//! The ablation's figures: `init.png` ([`plot`]: masked PSNR bars per target, Gaussian count over
 //! rounds) and `hull.png` ([`write_hull_figure`]: each target's surface samples beside its
 //! hull).
 //!
@@ -23,9 +23,12 @@ const PALETTE: [Rgb; 4] = [[30, 80, 200], [210, 40, 40], [30, 150, 60], [150, 90
 const AXIS: Rgb = [60, 60, 60];
 const PANEL_W: f64 = 360.0;
 const PANEL_H: f64 = 260.0;
+/// Space between panels: the next panel's axis labels sit left of its axis.
+const PANEL_GAP: f64 = 60.0;
+const GREY_NOTE: &str = "GREY LINE: ALL-BLACK IMAGE";
 
-/// init.png: top, evaluation PSNR per target as grouped bars (one colour per
-/// initialisation, the all-black image's PSNR as a grey tick); below, one panel per target
+/// init.png: top, evaluation masked PSNR (the target's own pixels) per target as grouped
+/// bars (one colour per initialisation, the all-black image's masked PSNR as a grey line); below, one panel per target
 /// with the Gaussian count over rounds.
 pub fn plot(runs: &[InitRun], inits: &[String]) -> Canvas {
     let mut targets: Vec<String> = Vec::new();
@@ -35,7 +38,10 @@ pub fn plot(runs: &[InitRun], inits: &[String]) -> Canvas {
         }
     }
     let columns = targets.len().max(1) as f64;
-    let width = (40.0 + columns * (PANEL_W + 30.0)) as u32;
+    // Wide enough for the legend too (8 pixels a character at text scale 2).
+    let legend_w: usize =
+        40 + inits.iter().map(|n| 52 + 8 * n.len()).sum::<usize>() + 8 * GREY_NOTE.len() + 20;
+    let width = (40.0 + columns * (PANEL_W + PANEL_GAP)).max(legend_w as f64) as u32;
     let height = (70.0 + 2.0 * (PANEL_H + 60.0)) as u32;
     let mut canvas = Canvas::new(width, height, [255, 255, 255]);
     // Legend.
@@ -46,16 +52,9 @@ pub fn plot(runs: &[InitRun], inits: &[String]) -> Canvas {
         draw_text(&mut canvas, x + 22, 14, &name.to_uppercase(), 2, AXIS);
         x += 22 + (name.len() as i64 * 8) + 30;
     }
-    draw_text(
-        &mut canvas,
-        x + 10,
-        14,
-        "GREY TICK: ALL-BLACK IMAGE",
-        2,
-        [150, 150, 150],
-    );
+    draw_text(&mut canvas, x + 10, 14, GREY_NOTE, 2, [150, 150, 150]);
     for (t, target) in targets.iter().enumerate() {
-        let left = 50.0 + t as f64 * (PANEL_W + 30.0);
+        let left = 50.0 + t as f64 * (PANEL_W + PANEL_GAP);
         let top = 60.0;
         let of_target: Vec<&InitRun> = runs.iter().filter(|r| &r.run.target == target).collect();
         bar_panel(&mut canvas, left, top, target, &of_target, inits);
@@ -99,12 +98,12 @@ fn bar_panel(
         canvas,
         left,
         top,
-        &format!("{} PSNR DB", target_label(target).to_uppercase()),
+        &format!("{} MASKED PSNR DB", target_label(target).to_uppercase()),
     );
     let values: Vec<f64> = runs
         .iter()
-        .map(|r| r.run.eval.psnr_db)
-        .chain(runs.first().map(|r| r.run.black_eval.psnr_db))
+        .map(|r| r.run.eval.masked_psnr_db)
+        .chain(runs.first().map(|r| r.run.black_eval.masked_psnr_db))
         .filter(|v| v.is_finite())
         .collect();
     if values.is_empty() {
@@ -124,7 +123,7 @@ fn bar_panel(
     );
     let slot = PANEL_W / runs.len().max(1) as f64;
     for (i, r) in runs.iter().enumerate() {
-        let v = r.run.eval.psnr_db;
+        let v = r.run.eval.masked_psnr_db;
         if !v.is_finite() {
             continue;
         }
@@ -146,7 +145,7 @@ fn bar_panel(
             AXIS,
         );
     }
-    if let Some(black) = runs.first().map(|r| r.run.black_eval.psnr_db) {
+    if let Some(black) = runs.first().map(|r| r.run.black_eval.masked_psnr_db) {
         if black.is_finite() {
             let y = y_of(black);
             canvas.line((left, y), (left + PANEL_W, y), 2, [150, 150, 150]);

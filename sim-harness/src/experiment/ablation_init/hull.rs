@@ -18,14 +18,14 @@ use gs_core::model::Param;
 use gs_online::keyframe::{Keyframe, KeyframeWindow, ViewDirection, WindowConfig};
 use gs_online::online::OnlineTrainer;
 use gs_online::online::{Initialisation, OnlineError};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 /// Grey for hull points no keyframe colours (and for `hull_grey_colours`).
 pub const GREY: [f32; 3] = [0.5; 3];
 
 /// What carving produced, for the report.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct HullReport {
     /// Sequence indices of the keyframes carved from.
     pub frames: Vec<u32>,

@@ -1,14 +1,23 @@
 //! The ablation's tables: `init.csv` ([`to_csv`]), the Markdown report `init.md`
-//! ([`to_markdown`]) and the per-round curves `init_curves.csv` ([`curves_csv`]).
+//! ([`to_markdown`]) and the per-round curves `init_curves.csv` ([`curves_csv`]). Both
+//! tables carry the accuracy ladder ([`crate::experiment::ladder`]), and the Markdown the
+//! paired difference of every start against surface samples on each rung.
 //!
 //! Invariant: every number written comes from the runs handed in, in their order.
 
 use super::InitRun;
+use crate::experiment::evaluate::EvalSummary;
+use crate::experiment::ladder::{self, Ladder};
+use crate::experiment::runner::RunOutcome;
 use crate::experiment::table::target_label;
 use std::fmt::Write as _;
 
-/// CSV header of `init.csv`.
-pub const CSV_HEADER: &str = "target,init,psnr,ssim,masked_psnr,masked_ssim,seen_psnr,black_psnr,initial_gaussians,final_gaussians,rounds,steps,train_s,step_ms,run_wall_s,run_cpu_s,hull_frames,hull_points,hull_voxel_m,hull_mean_dist_m,hull_carve_s,hull_far_fraction,final_mean_dist_m,final_far_fraction";
+/// CSV header of `init.csv`: the run's settings and results, then the ladder's columns
+/// ([`ladder::CSV_COLUMNS`]).
+pub const CSV_HEADER: &str = concat!(
+    "target,init,psnr,ssim,masked_psnr,masked_ssim,seen_psnr,black_psnr,initial_gaussians,final_gaussians,rounds,steps,train_s,step_ms,run_wall_s,run_cpu_s,hull_frames,hull_points,hull_voxel_m,hull_mean_dist_m,hull_carve_s,hull_far_fraction,final_mean_dist_m,final_far_fraction,",
+    ladder::ladder_csv_columns!()
+);
 
 /// One line per run.
 pub fn to_csv(runs: &[InitRun]) -> String {
@@ -32,7 +41,7 @@ pub fn to_csv(runs: &[InitRun]) -> String {
             .map_or(String::new(), |h| format!("{:.4}", h.far_fraction));
         let _ = writeln!(
             out,
-            "{},{},{:.2},{:.4},{:.2},{:.4},{:.2},{:.2},{},{},{},{},{:.1},{:.1},{:.1},{:.1},{},{},{:.4},{:.4}",
+            "{},{},{:.2},{:.4},{:.2},{:.4},{:.2},{:.2},{},{},{},{},{:.1},{:.1},{:.1},{:.1},{},{},{:.4},{:.4},{}",
             o.target,
             r.init,
             o.eval.psnr_db,
@@ -52,18 +61,21 @@ pub fn to_csv(runs: &[InitRun]) -> String {
             hull,
             hull_far,
             r.final_mean_distance_m,
-            r.final_far_fraction
+            r.final_far_fraction,
+            Ladder::of(o).csv_fields()
         );
     }
     out
 }
 
 /// The Markdown report: metrics per target and initialisation, the gap to surface samples,
-/// the evaluation curve and the hull's facts.
+/// the accuracy ladder, the paired differences against surface samples, the evaluation curve
+/// and the hull's facts.
 pub fn to_markdown(runs: &[InitRun]) -> String {
     let mut out = String::from(
-        "Configuration (d), evaluation views, full frame (masked = target pixels only).\n\n\
-         | Target | Init. | PSNR↑ | SSIM↑ | masked PSNR | seen PSNR | Δ PSNR vs surface | \\|G\\| start → end | train s | run CPU s |\n\
+        "Configuration (d), evaluation views (L2); masked = the target's own pixels, an \
+         all-black render's score in brackets; full frame beside.\n\n\
+         | Target | Init. | masked PSNR↑ (black) | full PSNR↑ (black) | SSIM↑ | seen PSNR | Δ PSNR vs surface | \\|G\\| start → end | train s | run CPU s |\n\
          |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in runs {
@@ -79,12 +91,13 @@ pub fn to_markdown(runs: &[InitRun]) -> String {
         };
         let _ = writeln!(
             out,
-            "| {} | {} | {:.2} | {:.4} | {:.2} | {:.2} | {} | {} → {} | {:.1} | {:.1} |",
+            "| {} | {} | {} | {:.2} ({:.2}) | {:.4} | {:.2} | {} | {} → {} | {:.1} | {:.1} |",
             target_label(&o.target),
             r.init,
+            ladder::markdown_cell(Ladder::of(o).eval.as_ref()),
             o.eval.psnr_db,
+            o.black_eval.psnr_db,
             o.eval.ssim,
-            o.eval.masked_psnr_db,
             o.seen.psnr_db,
             delta,
             r.initial_gaussians,
@@ -93,6 +106,18 @@ pub fn to_markdown(runs: &[InitRun]) -> String {
             r.cpu_s
         );
     }
+    let ladders: Vec<(String, Ladder)> = runs
+        .iter()
+        .map(|r| {
+            (
+                format!("{} {}", target_label(&r.run.target), r.init),
+                Ladder::of(&r.run),
+            )
+        })
+        .collect();
+    out.push('\n');
+    out.push_str(&ladder::to_markdown(&ladders));
+    out.push_str(&paired_markdown(runs));
     let with_curve: Vec<&InitRun> = runs
         .iter()
         .filter(|r| !r.run.eval_curve.is_empty())
@@ -155,6 +180,56 @@ pub fn to_markdown(runs: &[InitRun]) -> String {
             );
         }
     }
+    out
+}
+
+/// The rungs a paired difference is reported on, with the run's scores on each.
+const PAIRED_RUNGS: [(&str, fn(&RunOutcome) -> &EvalSummary); 5] = [
+    ("L0 window", |o| &o.window_fit),
+    ("L0 seen", |o| &o.seen),
+    ("L1 held-out", |o| &o.held_out),
+    ("L2 eval", |o| &o.eval),
+    ("L2 covered", |o| &o.eval_covered),
+];
+
+/// Every start minus surface samples of the same target, masked PSNR paired view by view
+/// on each rung; empty when no target has both.
+fn paired_markdown(runs: &[InitRun]) -> String {
+    let mut rows = String::new();
+    for r in runs.iter().filter(|r| r.init != "surface") {
+        let Some(surface) = runs
+            .iter()
+            .find(|s| s.init == "surface" && s.run.target == r.run.target)
+        else {
+            continue;
+        };
+        let _ = write!(
+            rows,
+            "| {} | {} − surface |",
+            target_label(&r.run.target),
+            r.init
+        );
+        for (_, rung) in PAIRED_RUNGS {
+            let p = ladder::paired_masked_difference(rung(&surface.run), rung(&r.run));
+            let _ = write!(rows, " {} |", ladder::paired_cell(p.as_ref()));
+        }
+        rows.push('\n');
+    }
+    if rows.is_empty() {
+        return rows;
+    }
+    let mut out = String::from(
+        "\nPaired differences against surface samples: masked PSNR dB, mean ± standard error \
+         over the same views, in brackets the views where the other start scores higher:\n\n\
+         | Target | Difference |",
+    );
+    for (name, _) in PAIRED_RUNGS {
+        let _ = write!(out, " {name} |");
+    }
+    out.push_str("\n|---|---|");
+    out.push_str(&"---:|".repeat(PAIRED_RUNGS.len()));
+    out.push('\n');
+    out.push_str(&rows);
     out
 }
 
