@@ -183,8 +183,11 @@ pub fn to_markdown(runs: &[InitRun]) -> String {
     out
 }
 
+/// A run's scores on one rung.
+type RungOf = fn(&RunOutcome) -> &EvalSummary;
+
 /// The rungs a paired difference is reported on, with the run's scores on each.
-const PAIRED_RUNGS: [(&str, fn(&RunOutcome) -> &EvalSummary); 5] = [
+const PAIRED_RUNGS: [(&str, RungOf); 5] = [
     ("L0 window", |o| &o.window_fit),
     ("L0 seen", |o| &o.seen),
     ("L1 held-out", |o| &o.held_out),
