@@ -38,11 +38,15 @@ pub mod error;
 mod gather;
 pub mod matmul;
 pub mod mlp;
-pub mod shadow;
+pub mod shadow_net;
+
+/// The old name of [`shadow_net`], kept until the modules being moved out of gs-core
+/// (`sunaware::model`, `gpu`) follow the glossary in docs/ARCHITECTURE.md.
+pub use shadow_net as shadow;
 
 pub use appearance::AppearanceNet;
 pub use encoding::PositionalEncoding;
 pub use error::NnError;
 pub use matmul::{F32Kernel, MatmulPrecision, Products};
 pub use mlp::{HiddenActivation, Init, Mlp, MlpForward, TapeMode};
-pub use shadow::{SceneBox, ShadowNet};
+pub use shadow_net::{SceneBox, ShadowNet};
