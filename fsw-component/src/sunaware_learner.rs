@@ -49,9 +49,9 @@ use interfaces::messages::{EventKind, InitSource, PixelFormat};
 
 pub const CHECKPOINT_MAGIC: &[u8; 8] = b"FSWSAL02";
 /// Version 1: the model and round count only.
-pub const CHECKPOINT_MAGIC_V1: &[u8; 8] = b"FSWSAL01";
+pub(crate) const CHECKPOINT_MAGIC_V1: &[u8; 8] = b"FSWSAL01";
 /// Largest frame a checkpoint's window may hold, in pixels (16 Mpx: 4096 x 4096).
-pub const MAX_CHECKPOINT_FRAME_PIXELS: usize = 1 << 24;
+pub(crate) const MAX_CHECKPOINT_FRAME_PIXELS: usize = 1 << 24;
 
 /// What to do when a checkpoint's model configuration differs from the configured one.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

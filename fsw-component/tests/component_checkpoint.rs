@@ -45,7 +45,7 @@ async fn periodic_checkpoints_and_resume_on_start() {
         ))
         .await,
         "not resumed: {:?}",
-        peer.snapshot(|r| r.last_health())
+        peer.snapshot(Received::last_health)
     );
     assert!(peer.snapshot(|r| r
         .events

@@ -48,7 +48,7 @@ async fn live_scenario_predictions_health_and_commands() {
                 peer.wait_for(WAIT, |r| prediction_for(r, k).is_some())
                     .await,
                 "no prediction for frame {k}: {:?} {:?} {:?}",
-                peer.snapshot(|r| r.last_health()),
+                peer.snapshot(Received::last_health),
                 peer.snapshot(|r| r.events.clone()),
                 handle.counters()
             );

@@ -170,7 +170,7 @@ fn main() {
         row(
             "  light_splats",
             time(repeats, || {
-                splats = light_splats(&gaussians, &light, near).expect("splats")
+                splats = light_splats(&gaussians, &light, near).expect("splats");
             }),
         );
         let mut margin = Vec::new();
@@ -180,7 +180,7 @@ fn main() {
                 margin = light_axis_sigmas_m(&gaussians, &light)
                     .iter()
                     .map(|s| s * RECEIVER_EXTENT_SIGMAS)
-                    .collect()
+                    .collect();
             }),
         );
         let mut v2 = Vec::new();
@@ -193,7 +193,7 @@ fn main() {
                     lc.footprint_radius_px,
                     light.depth_bias_m,
                     &margin,
-                )
+                );
             }),
         );
         assert!(vis.iter().zip(&v2).all(|(a, b)| a.to_bits() == b.to_bits()));

@@ -33,7 +33,9 @@ pub(super) const SERVICE_SESSIONS: usize = 4;
 pub(super) const SERVICE_SLOT_BYTES: usize = 1024;
 
 pub(super) fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
-    mutex.lock().unwrap_or_else(|p| p.into_inner())
+    mutex
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Everything needed to run the core, shared by live and replay.

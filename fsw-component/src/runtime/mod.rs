@@ -180,7 +180,7 @@ impl ComponentHandle {
 }
 
 /// Opens the CAN transport when the configuration enables it.
-pub fn open_can(config: &ComponentConfig) -> Result<Option<CanTransport>, RuntimeError> {
+pub(crate) fn open_can(config: &ComponentConfig) -> Result<Option<CanTransport>, RuntimeError> {
     if !config.can.enabled {
         return Ok(None);
     }

@@ -67,10 +67,10 @@ pub async fn run_replay(
             core.tick(record.time_us);
             match &record.input {
                 ReplayInput::Datagram(bytes) => {
-                    core.handle_datagram(bytes, UdpIngress::Replayed, record.time_us)
+                    core.handle_datagram(bytes, UdpIngress::Replayed, record.time_us);
                 }
                 ReplayInput::CanFrame { extended, id, data } => {
-                    core.handle_can_frame(*extended, *id, data, record.time_us)
+                    core.handle_can_frame(*extended, *id, data, record.time_us);
                 }
             }
         }

@@ -111,7 +111,7 @@ async fn listen(socket: UdpSocket, received: Arc<Mutex<Received>>) {
                         psnr_db: p.psnr_db,
                         ssim: p.ssim,
                         pixels: p.pixels.to_vec(),
-                    })
+                    });
                 })
                 .is_ok(),
             _ => false,

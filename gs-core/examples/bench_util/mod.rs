@@ -217,7 +217,7 @@ pub fn time_calls<T>(runs: usize, mut f: impl FnMut() -> T) -> (f64, f64, T) {
 
 /// The median (the upper one of an even count); NaN for no values.
 pub fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
+    v.sort_by(f64::total_cmp);
     if v.is_empty() {
         f64::NAN
     } else {

@@ -187,13 +187,14 @@ pub fn initialisation(scene: &SceneData, preset: &Preset) -> Initialisation {
         },
         // A hull that cannot be carved gives no points, which `OnlineTrainer::new` refuses;
         // `try_initialisation` says why.
-        InitKind::Hull => super::ablation_init::hull_initialisation(scene, preset)
-            .map(|(init, _)| init)
-            .unwrap_or(Initialisation::SurfaceSamples {
+        InitKind::Hull => super::ablation_init::hull_initialisation(scene, preset).map_or(
+            Initialisation::SurfaceSamples {
                 points: Vec::new(),
                 normals: None,
                 colours: None,
-            }),
+            },
+            |(init, _)| init,
+        ),
     }
 }
 

@@ -201,7 +201,7 @@ impl Scenario {
             ));
         };
         match self.epoch.offset {
-            Some(toml::value::Offset::Z) | Some(toml::value::Offset::Custom { minutes: 0 }) => {}
+            Some(toml::value::Offset::Z | toml::value::Offset::Custom { minutes: 0 }) => {}
             _ => {
                 return Err(invalid(
                     "epoch",

@@ -93,8 +93,8 @@ fn automatic_relative_orbit_frames_the_target_and_is_safe() {
     let ranges: Vec<f64> = (0..1200)
         .map(|i| geometry.servicer_rtn_m(i as f64 * 5.0).length())
         .collect();
-    let closest = ranges.iter().cloned().fold(f64::INFINITY, f64::min);
-    let farthest = ranges.iter().cloned().fold(0.0, f64::max);
+    let closest = ranges.iter().copied().fold(f64::INFINITY, f64::min);
+    let farthest = ranges.iter().copied().fold(0.0, f64::max);
     assert!(
         (closest - min_rn).abs() < 0.05 && farthest < 2.25 * min_rn,
         "{closest} {farthest}"

@@ -127,7 +127,6 @@ pub(super) fn forward_block_layers(
 
 /// `Mlp`'s block backward for a LeakyReLU network: adds the weight gradients into
 /// `d_params` and writes the input gradient into `d_x` (`rows x in`).
-#[allow(clippy::too_many_arguments)]
 pub(super) fn backward_block(
     mlp: &Mlp,
     x: &[f32],

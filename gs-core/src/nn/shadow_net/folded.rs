@@ -264,7 +264,7 @@ impl ShadowNet {
                     None => BLOCK_SCRATCH.with(|scratch| {
                         let hidden = &mut scratch.borrow_mut().hidden;
                         hidden.resize(list.len() * hidden_per_row, 0.0);
-                        forward_block(&folded, x, list.len(), hidden, y)
+                        forward_block(&folded, x, list.len(), hidden, y);
                     }),
                 }
                 (

@@ -168,7 +168,6 @@ impl ShadowNet {
     /// Fills `input` (resized to `gaussians.len() x input_width()`) with one row per listed
     /// Gaussian. `visibility` holds `V` for every Gaussian of the model (length `count`),
     /// `latents` the `count x latent_dim` group, `means` the `count x 3` group.
-    #[allow(clippy::too_many_arguments)]
     pub fn assemble_input(
         &self,
         gaussians: &[u32],
