@@ -19,6 +19,7 @@
 
 pub mod checkpoint;
 pub mod config;
+pub mod engine;
 pub mod error;
 pub mod export;
 pub mod light;

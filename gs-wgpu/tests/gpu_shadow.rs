@@ -16,18 +16,17 @@
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1`, where a
 //! missing adapter fails.
-#![cfg(feature = "wgpu")]
 
 use std::sync::Arc;
 
 use glam::Vec3;
-use gs_core::gpu::shadow::PackedVisibility;
-use gs_core::gpu::{context_or_skip, GpuOptions, GpuRasterizer, GpuShadow};
 use gs_core::nn::SceneBox;
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::config::{LightConfig, LightProjection};
 use gs_core::sunaware::light::sun_visibility;
 use gs_core::{GaussianModel, ModelLayout, Param};
+use gs_wgpu::shadow::PackedVisibility;
+use gs_wgpu::{context_or_skip, GpuOptions, GpuRasterizer, GpuShadow};
 
 const NEAR_M: f32 = 0.01;
 

@@ -1,4 +1,4 @@
-//! Shadow-pass times (feature `wgpu`): the host path the GPU shadow pass had before it
+//! Shadow-pass times: the host path the GPU shadow pass had before it
 //! moved to the device (light splats and receiver margins on the CPU, then
 //! `GpuShadow::visibility_from_splats`: upload, count readback, sort and walk) against the
 //! device path (`GpuShadow::sun_visibility`: the geometry uploaded, splats and margins by
@@ -6,7 +6,7 @@
 //! mid-pass readback), and the CPU's `sunaware::light::sun_visibility`, per light
 //! projection.
 //!
-//! `cargo run --release -p gs-core --features wgpu --example shadow_bench -- [--runs N]
+//! `cargo run --release -p gs-wgpu --example shadow_bench -- [--runs N]
 //! [--gaussians N] [--side PX]`
 //!
 //! Wall-clock medians after one warm-up, and this process's CPU time per call (all
@@ -15,29 +15,29 @@
 //! measure a CPU emulation of a GPU.
 
 #[macro_use]
+#[path = "../../gs-core/examples/bench_util/mod.rs"]
 mod bench_util;
 
 const USAGE: &str = "\
-usage: cargo run --release -p gs-core --features wgpu --example shadow_bench -- [FLAGS]
+usage: cargo run --release -p gs-wgpu --example shadow_bench -- [FLAGS]
 
   --runs N        timed calls per path after one warm-up (default 10)
   --gaussians N   Gaussians of the test model (default 10000)
   --side PX       light image side in pixels (default 256)
   -h, --help      this text";
 
-wgpu_main!("shadow_bench", USAGE);
+bench_main!("shadow_bench", USAGE);
 
-#[cfg(feature = "wgpu")]
 mod bench {
     use std::sync::Arc;
 
     use glam::Vec3;
-    use gs_core::gpu::{GpuContext, GpuRasterizer, GpuShadow};
     use gs_core::nn::SceneBox;
     use gs_core::rng::SplitMix64;
     use gs_core::sunaware::config::{LightConfig, LightProjection};
     use gs_core::sunaware::light;
     use gs_core::{GaussianModel, ModelLayout, Param};
+    use gs_wgpu::{GpuContext, GpuRasterizer, GpuShadow};
 
     use super::bench_util::{arg, time_calls};
 

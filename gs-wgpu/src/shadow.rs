@@ -33,14 +33,14 @@ use std::sync::{Arc, Mutex};
 
 use super::raster::{frame_bytes, prelude, GpuRasterizer, SortKeys, SSTRIDE};
 use super::{bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuError, Scratch};
-use crate::model::{Param, ParamSet};
-use crate::nn::SceneBox;
-use crate::raster::bin::TileGrid;
-use crate::raster::blend::{Splat, ALPHA_MIN};
-use crate::raster::project::CameraFrame;
-use crate::sunaware::config::{LightConfig, LightProjection};
-use crate::sunaware::error::SunAwareError;
-use crate::sunaware::light;
+use gs_core::model::{Param, ParamSet};
+use gs_core::nn::SceneBox;
+use gs_core::raster::bin::TileGrid;
+use gs_core::raster::blend::{Splat, ALPHA_MIN};
+use gs_core::raster::project::CameraFrame;
+use gs_core::sunaware::config::{LightConfig, LightProjection};
+use gs_core::sunaware::error::SunAwareError;
+use gs_core::sunaware::light;
 
 const SHADOW_PROJECT: &str = include_str!("shaders/shadow_project.wgsl");
 const SHADOW_COUNT: &str = include_str!("shaders/shadow_count.wgsl");
@@ -145,7 +145,7 @@ fn check_light_image(
     footprint_radius_px: f32,
     depth_bias_m: f32,
 ) -> Result<(), GpuError> {
-    if side_px == 0 || side_px > crate::raster::MAX_IMAGE_SIDE_PX {
+    if side_px == 0 || side_px > gs_core::raster::MAX_IMAGE_SIDE_PX {
         return Err(GpuError::Invalid(format!("light image side {side_px} px")));
     }
     if !(footprint_radius_px.is_finite() && depth_bias_m.is_finite()) {
@@ -184,7 +184,7 @@ impl GpuShadow {
     /// [`Self::encode_sun_visibility`] with the entry count read back, reads `V` back).
     pub fn sun_visibility(
         &self,
-        model: &crate::model::GaussianModel,
+        model: &gs_core::model::GaussianModel,
         sun_dir: glam::Vec3,
         camera_centre: glam::Vec3,
         scene_box: &SceneBox,
@@ -217,7 +217,7 @@ impl GpuShadow {
     }
 
     /// [`Self::encode_sun_visibility`] on `params` packed in the resident layout
-    /// (`gpu::resident::pack`), run from the host: uploads, records with `capacity`,
+    /// (`crate::resident::pack`), run from the host: uploads, records with `capacity`,
     /// submits and reads back `V`, the flags word and the entry count.
     #[allow(clippy::too_many_arguments)]
     pub fn sun_visibility_packed(
@@ -359,7 +359,7 @@ impl GpuShadow {
         check_light_image(side, config.footprint_radius_px, lc.depth_bias_m)?;
         let (frame, orthographic) = match lc.projection {
             LightProjection::Perspective => (
-                crate::raster::camera_frame(&lc.camera, near_m)
+                gs_core::raster::camera_frame(&lc.camera, near_m)
                     .map_err(|e| sunaware_error(e.into()))?,
                 false,
             ),

@@ -60,17 +60,16 @@ use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, groups_1d, u32_bytes, GpuError, Scratch,
     StageClock,
 };
-use crate::camera::Camera;
-use crate::densify::DensifyStats;
-use crate::loss::{ImageShape, SSIM_WINDOW};
-use crate::model::{Param, ParamSet};
-use crate::optim::{Adam, GroupRates};
-use crate::raster::bin::TileSelection;
-use crate::regularizer::IsoReduction;
-use crate::sunaware::config::ShadowRefinement;
-use crate::sunaware::trainer::FlatAdam;
-use crate::sunaware::StepTimings;
-use crate::sunaware::SunAwareModel;
+use gs_core::densify::DensifyStats;
+use gs_core::loss::{ImageShape, SSIM_WINDOW};
+use gs_core::model::{Param, ParamSet};
+use gs_core::optim::Adam;
+use gs_core::raster::bin::TileSelection;
+use gs_core::regularizer::IsoReduction;
+use gs_core::sunaware::config::ShadowRefinement;
+use gs_core::sunaware::trainer::FlatAdam;
+use gs_core::sunaware::StepTimings;
+use gs_core::sunaware::SunAwareModel;
 
 const SA_COMMON: &str = include_str!("shaders/sa_common.wgsl");
 const SA_SURVIVE: &str = include_str!("shaders/sa_survive.wgsl");
@@ -108,57 +107,8 @@ struct Pools {
     own: Scratch,
 }
 
-/// One step's inputs: an observation, the Gaussians' per-group rates and the networks'.
-#[derive(Clone, Copy, Debug)]
-pub struct SunAwareStepInput<'a> {
-    pub camera: &'a Camera,
-    /// Unit vector towards the Sun, target body frame (normalised by the caller).
-    pub sun_dir: glam::Vec3,
-    /// `H * W * 3` RGB.
-    pub target: &'a [f32],
-    /// Optional `H * W` foreground weights in [0, 1].
-    pub mask: Option<&'a [f32]>,
-    pub rates: &'a GroupRates,
-    /// Active SH degree (configuration (a); unused with the appearance network).
-    pub sh_degree: u32,
-    pub appearance_lr: f32,
-    pub shadow_lr: f32,
-}
-
-/// What one resident step did.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct SunAwareStepReport {
-    /// A non-finite or degenerate value somewhere in the step: nothing was changed.
-    pub refused: bool,
-    /// Steps redone because a sort outgrew its capacity (0 or 1).
-    pub sort_retries: usize,
-    /// Gaussians whose rasterizer gradient came out non-finite and was zeroed.
-    pub dropped_nonfinite: usize,
-    /// Photometric loss, its parts (masked means), and `lambda_iso L_iso`.
-    pub loss: f32,
-    pub l1: f32,
-    pub ssim: f32,
-    pub iso: f32,
-    /// Gaussians that survived the projection.
-    pub visible: usize,
-    /// The networks' rows: the Gaussians the blend reads with
-    /// `skip_noncontributing_in_mlp`, else `visible`.
-    pub network_rows: usize,
-    /// (tile, Gaussian) pairs blended in the camera pass and in the light pass.
-    pub tile_entries: usize,
-    pub light_entries: usize,
-    /// Wall time of the step, recording and waiting included, ms.
-    pub total_ms: f64,
-    /// Device time per stage from timestamp queries, where the adapter has them (else
-    /// zeros; `total_ms` is always set): `project_ms` the rasterizer rows, the camera
-    /// pass's projection, sort and binning and the networks' list (contribution pass
-    /// included), `shadow_pass_ms` the light pass, `phi_forward_ms`/`psi_forward_ms` the
-    /// networks' input assembly, forward and scatter, `blend_forward_ms` the blend,
-    /// `loss_ms` `RGB * S`, the loss and its backward, `blend_backward_ms` the whole
-    /// rasterizer backward, `phi_backward_ms` the geometry gradients and Phi's backward,
-    /// `psi_backward_ms` Psi's, `optimizer_ms` the checks, statistics and every Adam step.
-    pub stages: StepTimings,
-}
+// The step's inputs and report are gs-core's (the engine trait's types).
+pub use gs_core::engine::{SunAwareStepInput, SunAwareStepReport};
 
 /// The Sun-aware model's training state on the device (see the module header).
 pub struct SunAwareResident {
@@ -268,7 +218,7 @@ impl SunAwareResident {
             adam_step: 0,
             beta1: 0.9,
             beta2: 0.999,
-            eps: crate::optim::ADAM_EPS,
+            eps: gs_core::optim::ADAM_EPS,
         })
     }
 
@@ -339,7 +289,7 @@ impl SunAwareResident {
     fn network(
         ctx: &super::GpuContext,
         old: Option<DeviceNetwork>,
-        mlp: Option<&crate::nn::Mlp>,
+        mlp: Option<&gs_core::nn::Mlp>,
         adam: &FlatAdam,
     ) -> Result<Option<DeviceNetwork>, GpuError> {
         let Some(mlp) = mlp else {
