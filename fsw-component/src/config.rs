@@ -622,7 +622,7 @@ impl ComponentConfig {
             .backend
             .parse()
             .map_err(|e: SunAwareError| invalid("training.backend", e.to_string()))?;
-        kind.check_compiled_in()
+        kind.check_compiled_in(&crate::engines::device_engines())
             .map_err(|e| invalid("training.backend", e.to_string()))?;
         Ok(kind)
     }

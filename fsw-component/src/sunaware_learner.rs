@@ -72,7 +72,7 @@ pub struct SunAwareSettings {
     pub model: ModelSettings,
     /// Where the rasterizer and the shadow pass run (`[training] backend`, opened by the
     /// runtime); the networks and Adam stay on the CPU. Not saved in checkpoints.
-    pub backend: gs_core::train::Backend,
+    pub backend: gs_core::engine::Backend,
     /// `[checkpoint] on_config_mismatch`.
     pub on_config_mismatch: OnConfigMismatch,
 }
@@ -88,7 +88,7 @@ impl SunAwareSettings {
                 ..OnlineConfig::default()
             },
             model: ModelSettings::default(),
-            backend: gs_core::train::Backend::Cpu,
+            backend: gs_core::engine::Backend::Cpu,
             on_config_mismatch: OnConfigMismatch::Refuse,
         }
     }

@@ -106,7 +106,10 @@ pub fn build_learner(
                 .backend()
                 .map_err(|e| RuntimeError::Config(e.to_string()))?;
             settings.backend = kind
-                .open_with(config.training.gpu_deterministic)
+                .open(
+                    &crate::engines::device_engines(),
+                    config.training.gpu_deterministic,
+                )
                 .map_err(|e| RuntimeError::Config(format!("training.backend: {e}")))?;
             settings.online.model = config
                 .model_config()

@@ -40,10 +40,6 @@ pub mod matmul;
 pub mod mlp;
 pub mod shadow_net;
 
-/// The old name of [`shadow_net`], kept until the modules being moved out of gs-core
-/// (`sunaware::model`, `gpu`) follow the glossary in docs/ARCHITECTURE.md.
-pub use shadow_net as shadow;
-
 pub use appearance::AppearanceNet;
 pub use encoding::PositionalEncoding;
 pub use error::NnError;

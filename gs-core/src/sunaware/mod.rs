@@ -19,6 +19,7 @@
 
 pub mod checkpoint;
 pub mod config;
+pub mod engine;
 pub mod error;
 pub mod export;
 pub mod model;
@@ -26,10 +27,6 @@ pub mod shading;
 pub mod sun_visibility;
 pub mod synthetic;
 pub mod trainer;
-
-/// The old name of [`sun_visibility`], kept until the modules being moved out of gs-core
-/// (`model`, `trainer`, `export`, `gpu`) follow the glossary in docs/ARCHITECTURE.md.
-pub use sun_visibility as light;
 
 pub use config::{
     BackendKind, LightConfig, LightProjection, Shading, ShadowRefinement, SunAwareConfig,

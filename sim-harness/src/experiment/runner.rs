@@ -248,7 +248,7 @@ pub fn run_config(
     let backend = preset
         .backend
         .parse::<BackendKind>()
-        .and_then(BackendKind::open)?;
+        .and_then(|kind| kind.open(&fsw_component::engines::device_engines(), true))?;
     trainer.trainer_mut().set_backend(&backend)?;
     progress(&format!(
         "{label}: {} initial Gaussians, {} frames, W = {}",

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use crate::nn::error::{check_finite, check_len, NnError};
 use crate::nn::gather::{check_indices, check_rows_finite, rows_of, unit_vector};
-use crate::nn::mlp::{Mlp, MlpForward, TapeMode, BLOCK_ROWS};
+use crate::nn::mlp::{Mlp, TapeMode, BLOCK_ROWS};
 
 use super::blocks::{
     backward_block, copy_short, forward_block, forward_block_layers, fresh_len, BlockScratch,
@@ -199,9 +199,8 @@ impl ShadowNet {
     /// block of [`BLOCK_ROWS`] rows is assembled (folded rows,
     /// [`ShadowNet::assemble_folded_input`]) and run through [`ShadowNet::folded_mlp`]
     /// while it is in cache: the same arithmetic, block for block, as `Mlp::forward_train`
-    /// of the folded network on the assembled input (the same bits). On a device
-    /// ([`Mlp::set_device`]) the full rows go through `mlp`. `pass.output` holds one value
-    /// per listed Gaussian, in list order. On error the pass is left empty (zero rows).
+    /// of the folded network on the assembled input (the same bits). `pass.output` holds one
+    /// value per listed Gaussian, in list order. On error the pass is left empty (zero rows).
     pub fn forward_train_into(
         &self,
         batch: &ShadowBatch,
@@ -212,25 +211,6 @@ impl ShadowNet {
         pass.output.clear();
         pass.sun_dir = batch.sun_dir;
         let rows = batch.gaussians.len();
-        if !self.mlp.device().is_cpu() {
-            let (mut input, mut forward) = pass.device.take().unwrap_or_default();
-            self.assemble_input(
-                batch.gaussians,
-                batch.visibility,
-                batch.latents,
-                batch.means,
-                batch.sun_dir,
-                batch.scene_box,
-                &mut input,
-            )?;
-            self.mlp
-                .forward_train_into(&input, rows, mode, &mut forward)?;
-            pass.output.extend_from_slice(&forward.output);
-            pass.device = Some((input, forward));
-            pass.rows = rows;
-            return Ok(());
-        }
-        pass.device = None;
         self.check_batch(batch)?;
         let folded = self.folded_mlp(batch.sun_dir)?;
         let width = self.folded_input_width();
@@ -325,24 +305,6 @@ impl ShadowNet {
             return Err(NnError::Config(
                 "Psi backward: the batch's Sun direction is not the forward's".into(),
             ));
-        }
-        if let Some((input, forward)) = &pass.device {
-            let mut d_new = vec![0.0f32; d_params.len()];
-            let mut d_input = vec![0.0f32; input.len()];
-            self.mlp
-                .backward(input, forward, d_output, &mut d_new, Some(&mut d_input))?;
-            self.scatter_input_grad_from_input(
-                batch.gaussians,
-                input,
-                batch.scene_box,
-                &d_input,
-                d_latents,
-                d_means,
-            )?;
-            for (acc, g) in d_params.iter_mut().zip(&d_new) {
-                *acc += g;
-            }
-            return Ok(());
         }
         let width = self.folded_input_width();
         let hidden_per_row: usize = SHADOW_HIDDEN.iter().sum();
@@ -469,8 +431,6 @@ pub struct ShadowPass {
     hidden: Vec<f32>,
     /// Psi's output per listed Gaussian, in list order.
     pub output: Vec<f32>,
-    /// On a device: the full input rows and the network's own forward.
-    device: Option<(Vec<f32>, MlpForward)>,
 }
 
 impl ShadowPass {
@@ -481,6 +441,6 @@ impl ShadowPass {
 
     /// Floats kept for backward besides the input and output (0 in recompute mode).
     pub fn tape_len(&self) -> usize {
-        self.hidden.len() + self.device.as_ref().map_or(0, |(_, f)| f.tape_len())
+        self.hidden.len()
     }
 }

@@ -20,8 +20,7 @@
 //! those rows), and the backward hands the input gradient straight to the encoding's
 //! backward. The function is the full network's up to f32 summation order (tested against
 //! f64); gradients reach the Sun's weight rows through the fold's chain rule. The
-//! parameter layout is the full network's (checkpoints unchanged). On a wgpu device the
-//! full rows go through `mlp` as before.
+//! parameter layout is the full network's (checkpoints unchanged).
 //!
 //! Files: this one (the scene box, the network, its full input rows and their gradient
 //! scatter), [`folded`] (the training path on folded rows), `blocks` (the per-block

@@ -1,4 +1,4 @@
-//! The device MLP (`gpu::GpuMlp`, through `nn::Mlp::set_device`) against the CPU MLP:
+//! The device MLP (`gs_wgpu::GpuMlp::forward` and `backward`) against the CPU MLP:
 //! forward output and every gradient (each layer's weights and bias, the input) on random
 //! inputs and odd shapes (rows not a multiple of the 16-row workgroup tile, over the CPU's
 //! 2048-row block boundary and over several of the device's 256-row weight-gradient
@@ -14,15 +14,14 @@
 //! unit's gradient for that row.
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1` (CI).
-#![cfg(feature = "wgpu")]
 
 use std::sync::Arc;
 
-use gs_core::gpu::mlp::{DeviceBatch, DeviceNetwork};
-use gs_core::gpu::{context_or_skip, GpuError, GpuMlp, GpuOptions};
 use gs_core::nn::{HiddenActivation, Init, Mlp, TapeMode};
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::trainer::FlatAdam;
+use gs_wgpu::mlp::{DeviceBatch, DeviceNetwork};
+use gs_wgpu::{context_or_skip, GpuError, GpuMlp, GpuOptions};
 
 fn device() -> Option<Arc<GpuMlp>> {
     let ctx = context_or_skip(GpuOptions::default())?;
@@ -86,12 +85,18 @@ fn run(mlp: &Mlp, input: &[f32], rows: usize, mode: TapeMode, d_out: &[f32], dx:
     (forward.output, d_params, d_input)
 }
 
+/// [`run`] on the device: `GpuMlp`'s forward and backward of `mlp`'s weights (the tape
+/// mode is the CPU's choice; the device keeps its activations either way).
+fn run_device(gpu: &GpuMlp, mlp: &Mlp, input: &[f32], rows: usize, d_out: &[f32], dx: bool) -> Run {
+    let (output, tape) = gpu.forward(mlp, input, rows).unwrap();
+    assert_eq!(tape.rows(), rows);
+    let grads = gpu.backward(&tape, d_out, dx).unwrap();
+    assert_eq!(grads.params.len(), mlp.num_params());
+    (output, grads.params, grads.input)
+}
+
 fn check_case(gpu: &Arc<GpuMlp>, case: &Case, seed: u64) {
     let cpu_net = Mlp::new(case.widths, case.hidden, Init::KaimingUniform, seed).unwrap();
-    let mut gpu_net = cpu_net.clone();
-    gpu_net.set_device(Some(gpu.clone()));
-    assert!(cpu_net.device().is_cpu() && !gpu_net.device().is_cpu());
-    assert!(gpu_net == cpu_net, "the device is no part of the value");
     let mut rng = SplitMix64::new(seed ^ 0x5eed);
     let input: Vec<f32> = (0..case.rows * cpu_net.input_width())
         .map(|_| rng.normal())
@@ -102,7 +107,7 @@ fn check_case(gpu: &Arc<GpuMlp>, case: &Case, seed: u64) {
     let (rows, mode, dx) = (case.rows, case.mode, case.input_gradient);
     let (y_c, p_c, x_c) = run(&cpu_net, &input, rows, mode, &d_out, dx);
     let t = std::time::Instant::now();
-    let (y_g, p_g, x_g) = run(&gpu_net, &input, rows, mode, &d_out, dx);
+    let (y_g, p_g, x_g) = run_device(gpu, &cpu_net, &input, rows, &d_out, dx);
     let device_s = t.elapsed().as_secs_f64();
     let label = format!("{:?} {:?} x{}", case.widths, case.hidden, rows);
     let mut worst = assert_close(&format!("{label} output"), &y_c, &y_g);
@@ -130,7 +135,7 @@ fn check_case(gpu: &Arc<GpuMlp>, case: &Case, seed: u64) {
         device_s * 1e3
     );
     // Deterministic: a second device run gives the same bits.
-    let (y_2, p_2, x_2) = run(&gpu_net, &input, rows, mode, &d_out, dx);
+    let (y_2, p_2, x_2) = run_device(gpu, &cpu_net, &input, rows, &d_out, dx);
     assert!(
         y_2 == y_g && p_2 == p_g && x_2 == x_g,
         "{label}: not repeatable"
@@ -197,45 +202,33 @@ fn device_mlp_matches_the_cpu_mlp() {
     }
 }
 
-/// Zero rows give an empty output and a zero parameter gradient, as on the CPU; bad input
-/// is the same error on both (checked before any device work).
+/// Zero rows give an empty output and a zero parameter gradient, as on the CPU; an input
+/// or output gradient of the wrong length is an error before any device work.
 #[test]
 fn device_mlp_edge_cases_match_the_cpu() {
     let Some(gpu) = device() else {
         return;
     };
     let cpu_net = Mlp::new(&[5, 32, 2], HiddenActivation::Relu, Init::KaimingUniform, 3).unwrap();
-    let mut gpu_net = cpu_net.clone();
-    gpu_net.set_device(Some(gpu));
     let empty_c = run(&cpu_net, &[], 0, TapeMode::Cache, &[], true);
-    let empty_g = run(&gpu_net, &[], 0, TapeMode::Cache, &[], true);
+    let empty_g = run_device(&gpu, &cpu_net, &[], 0, &[], true);
     assert_eq!(empty_c, empty_g);
     assert!(empty_g.0.is_empty() && empty_g.1.iter().all(|&v| v == 0.0));
-    let mut bad = vec![0.5f32; 3 * 5];
-    bad[7] = f32::NAN;
-    let e_c = cpu_net.forward_train(&bad, 3, TapeMode::Cache).unwrap_err();
-    let e_g = gpu_net.forward_train(&bad, 3, TapeMode::Cache).unwrap_err();
-    assert_eq!(e_c, e_g);
-    let e_g = gpu_net
-        .forward_train(&bad[..14], 3, TapeMode::Cache)
-        .unwrap_err();
-    let e_c = cpu_net
-        .forward_train(&bad[..14], 3, TapeMode::Cache)
-        .unwrap_err();
-    assert_eq!(e_c, e_g);
-    // A non-finite output gradient is refused on the device path too, nothing added.
+    let bad = vec![0.5f32; 14];
+    assert!(cpu_net.forward_train(&bad, 3, TapeMode::Cache).is_err());
+    assert!(matches!(
+        gpu.forward(&cpu_net, &bad, 3),
+        Err(GpuError::Invalid(_))
+    ));
     let input = vec![0.25f32; 3 * 5];
-    let forward = gpu_net.forward_train(&input, 3, TapeMode::Cache).unwrap();
-    let mut d_params = vec![0.0f32; gpu_net.num_params()];
-    let mut d_out = vec![1.0f32; 6];
-    d_out[2] = f32::INFINITY;
-    assert!(gpu_net
-        .backward(&input, &forward, &d_out, &mut d_params, None)
-        .is_err());
-    assert!(d_params.iter().all(|&v| v == 0.0));
+    let (_, tape) = gpu.forward(&cpu_net, &input, 3).unwrap();
+    assert!(matches!(
+        gpu.backward(&tape, &[1.0; 5], false),
+        Err(GpuError::Invalid(_))
+    ));
 }
 
-// ---- The resident path (`gpu::mlp::DeviceNetwork`, `GpuMlp::encode_*`, driven from the
+// ---- The resident path (`gs_wgpu::mlp::DeviceNetwork`, `GpuMlp::encode_*`, driven from the
 // host through `DeviceBatch`, `GpuMlp::run_forward_backward` and `GpuMlp::run_adam`, which
 // record exactly what the resident Sun-aware step records).
 

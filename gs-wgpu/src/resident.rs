@@ -38,12 +38,12 @@ use super::raster::{DeviceInputs, GpuRasterizer};
 use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError, Scratch,
 };
-use crate::camera::Camera;
-use crate::densify::DensifyStats;
-use crate::loss::ImageShape;
-use crate::model::{Param, ParamSet};
-use crate::optim::{Adam, GroupRates};
-use crate::raster::RasterSettings;
+use gs_core::camera::Camera;
+use gs_core::densify::DensifyStats;
+use gs_core::loss::ImageShape;
+use gs_core::model::{Param, ParamSet};
+use gs_core::optim::{Adam, GroupRates};
+use gs_core::raster::RasterSettings;
 
 pub(super) const RESIDENT_COMMON: &str = include_str!("shaders/resident_common.wgsl");
 pub(super) const RESIDENT_COLOUR: &str = include_str!("shaders/resident_colour.wgsl");

@@ -1,14 +1,14 @@
-//! wgpu compute backend (feature `wgpu`): the rasterizer's forward and backward passes
-//! ([`GpuRasterizer`]), the shadow pass ([`GpuShadow`]), the MLPs' forward and backward
-//! ([`GpuMlp`]), the networks' input assembly and scatters ([`network_io`]) and a tiled
-//! GEMM ([`GpuGemm`], unused by the MLPs) as WGSL compute kernels (`shaders/`), checked
-//! against the CPU path (`tests/gpu_*.rs`). Both trainers train device-resident on it:
-//! `crate::train::Backend::Wgpu` the plain 3DGS model ([`ResidentModel`]), and
-//! `crate::sunaware::SunAwareTrainer` the Sun-aware model in every configuration
+//! gs-wgpu: gs-core's GPU backend, as wgpu compute kernels (WGSL, `shaders/`): the
+//! rasterizer's forward and backward passes ([`GpuRasterizer`]), the shadow pass
+//! ([`GpuSunVisibility`]), the MLPs' forward and backward ([`GpuMlp`]) and the networks' input
+//! assembly and scatters ([`network_io`]), checked against the CPU path (`tests/gpu_*.rs`).
+//! The Sun-aware trainer trains device-resident on it in every configuration
 //! ([`resident_sunaware::SunAwareResident`]: Gaussians, network weights, every Adam state
-//! and the statistics on the device, one submission per step); the hybrid Sun-aware path
-//! (rasterizer, shadow pass and network products here, the rest on the host) remains
-//! behind `SunAwareTrainer::set_device_resident(false)`.
+//! and the statistics on the device, one submission per step). [`WgpuEngine`] is the
+//! whole backend behind gs-core's engine trait ([`gs_core::engine::Engine`]); the
+//! binaries open it with [`open_engine`] (`DeviceEngines::wgpu`). [`ResidentModel`] is the
+//! plain 3DGS model's resident state, kept for its kernel tests (the Adam and loss kernels
+//! and the sort-overflow redo the Sun-aware step shares).
 //!
 //! [`GpuContext::new`] opens a Vulkan adapter (the only backend compiled in, so wgpu can
 //! never fall back to OpenGL) and reports its name, backend and whether it has
@@ -16,7 +16,7 @@
 //! silent fallback to the CPU.
 //!
 //! Invariants:
-//! - the CPU rasterizer (`crate::raster`) is the reference: same conventions, same
+//! - the CPU rasterizer (`gs_core::raster`) is the reference: same conventions, same
 //!   outputs within the tolerances stated in the parity tests;
 //! - bad input is a [`GpuError`] before any GPU work; validation errors raised by wgpu
 //!   while building pipelines are caught and returned, not panicked on;
@@ -24,23 +24,23 @@
 //!   where the caller needs them (images, gradients, a 4-byte entry count; on the
 //!   resident path a 16-byte step report).
 
-pub mod gemm;
+pub mod engine;
 pub mod loss;
 pub mod mlp;
 pub mod network_io;
 pub mod raster;
 pub mod resident;
 pub mod resident_sunaware;
-pub mod shadow;
+pub mod sun_visibility;
 
 use std::sync::Arc;
 
-pub use gemm::{GemmOp, GpuGemm};
+pub use engine::{open_engine, WgpuEngine};
 pub use loss::GpuLoss;
-pub use mlp::{GpuMlp, MlpGradients, MlpTape};
+pub use mlp::{GemmOp, GpuMlp, MlpGradients, MlpTape};
 pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
 pub use resident::{ResidentModel, ResidentStepInput, ResidentStepReport};
-pub use shadow::GpuShadow;
+pub use sun_visibility::GpuSunVisibility;
 
 /// GPU backend error.
 #[derive(Clone, Debug, PartialEq)]
@@ -54,7 +54,7 @@ pub enum GpuError {
     /// Reading results back from the device failed.
     Readback(String),
     /// Inputs the CPU rasterizer would also reject.
-    Raster(crate::raster::RasterError),
+    Raster(gs_core::raster::RasterError),
     /// Sizes beyond the device's buffer limits or the kernels' fixed capacities.
     TooLarge(String),
     /// Bad arguments (lengths, shapes).
@@ -81,8 +81,8 @@ impl std::fmt::Display for GpuError {
 
 impl std::error::Error for GpuError {}
 
-impl From<crate::raster::RasterError> for GpuError {
-    fn from(e: crate::raster::RasterError) -> Self {
+impl From<gs_core::raster::RasterError> for GpuError {
+    fn from(e: gs_core::raster::RasterError) -> Self {
         GpuError::Raster(e)
     }
 }
@@ -131,7 +131,10 @@ pub fn context_or_skip(options: GpuOptions) -> Option<GpuContext> {
             Some(ctx)
         }
         Err(e) => {
-            crate::machine::skip_unless_required("GS_REQUIRE_GPU", &format!("no usable GPU: {e}"));
+            gs_core::machine::skip_unless_required(
+                "GS_REQUIRE_GPU",
+                &format!("no usable GPU: {e}"),
+            );
             None
         }
     }

@@ -14,7 +14,7 @@
 //!    alpha-only walk, `encode_contributing`: exactly the CPU's `contributing` list),
 //!    else the visible ones. With `skip_masked_background_tiles` and a mask, the camera
 //!    pass blends only the tiles the masked loss reads (the CPU step's selection);
-//! 3. (c-d) the shadow pass `V` from the packed parameters ([`GpuShadow`]);
+//! 3. (c-d) the shadow pass `V` from the packed parameters ([`GpuSunVisibility`]);
 //! 4. (a) SH colour in step 1 instead (`resident_pack`, the plain trainer's kernel, whose
 //!    `resident_grads` then gives the SH and geometry gradients in step 6);
 //!    (b-d) Phi's input, forward, and scatter into channels 0..3; (c-d) Psi's, into channel 3
@@ -55,22 +55,21 @@ use super::resident::{
     REFUSED_NONFINITE, REFUSED_OVERFLOW, RESIDENT_COLOUR, RESIDENT_COMMON, RESIDENT_GRADS,
     RESIDENT_OVERFLOW, RESIDENT_PACK, RESIDENT_STATS,
 };
-use super::shadow::GpuShadow;
+use super::sun_visibility::GpuSunVisibility;
 use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, groups_1d, u32_bytes, GpuError, Scratch,
     StageClock,
 };
-use crate::camera::Camera;
-use crate::densify::DensifyStats;
-use crate::loss::{ImageShape, SSIM_WINDOW};
-use crate::model::{Param, ParamSet};
-use crate::optim::{Adam, GroupRates};
-use crate::raster::bin::TileSelection;
-use crate::regularizer::IsoReduction;
-use crate::sunaware::config::ShadowRefinement;
-use crate::sunaware::trainer::FlatAdam;
-use crate::sunaware::StepTimings;
-use crate::sunaware::SunAwareModel;
+use gs_core::densify::DensifyStats;
+use gs_core::loss::{ImageShape, SSIM_WINDOW};
+use gs_core::model::{Param, ParamSet};
+use gs_core::optim::Adam;
+use gs_core::raster::bin::TileSelection;
+use gs_core::regularizer::IsoReduction;
+use gs_core::sunaware::config::ShadowRefinement;
+use gs_core::sunaware::trainer::FlatAdam;
+use gs_core::sunaware::StepTimings;
+use gs_core::sunaware::SunAwareModel;
 
 const SA_COMMON: &str = include_str!("shaders/sa_common.wgsl");
 const SA_SURVIVE: &str = include_str!("shaders/sa_survive.wgsl");
@@ -108,62 +107,13 @@ struct Pools {
     own: Scratch,
 }
 
-/// One step's inputs: an observation, the Gaussians' per-group rates and the networks'.
-#[derive(Clone, Copy, Debug)]
-pub struct SunAwareStepInput<'a> {
-    pub camera: &'a Camera,
-    /// Unit vector towards the Sun, target body frame (normalised by the caller).
-    pub sun_dir: glam::Vec3,
-    /// `H * W * 3` RGB.
-    pub target: &'a [f32],
-    /// Optional `H * W` foreground weights in [0, 1].
-    pub mask: Option<&'a [f32]>,
-    pub rates: &'a GroupRates,
-    /// Active SH degree (configuration (a); unused with the appearance network).
-    pub sh_degree: u32,
-    pub appearance_lr: f32,
-    pub shadow_lr: f32,
-}
-
-/// What one resident step did.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct SunAwareStepReport {
-    /// A non-finite or degenerate value somewhere in the step: nothing was changed.
-    pub refused: bool,
-    /// Steps redone because a sort outgrew its capacity (0 or 1).
-    pub sort_retries: usize,
-    /// Gaussians whose rasterizer gradient came out non-finite and was zeroed.
-    pub dropped_nonfinite: usize,
-    /// Photometric loss, its parts (masked means), and `lambda_iso L_iso`.
-    pub loss: f32,
-    pub l1: f32,
-    pub ssim: f32,
-    pub iso: f32,
-    /// Gaussians that survived the projection.
-    pub visible: usize,
-    /// The networks' rows: the Gaussians the blend reads with
-    /// `skip_noncontributing_in_mlp`, else `visible`.
-    pub network_rows: usize,
-    /// (tile, Gaussian) pairs blended in the camera pass and in the light pass.
-    pub tile_entries: usize,
-    pub light_entries: usize,
-    /// Wall time of the step, recording and waiting included, ms.
-    pub total_ms: f64,
-    /// Device time per stage from timestamp queries, where the adapter has them (else
-    /// zeros; `total_ms` is always set): `project_ms` the rasterizer rows, the camera
-    /// pass's projection, sort and binning and the networks' list (contribution pass
-    /// included), `shadow_pass_ms` the light pass, `phi_forward_ms`/`psi_forward_ms` the
-    /// networks' input assembly, forward and scatter, `blend_forward_ms` the blend,
-    /// `loss_ms` `RGB * S`, the loss and its backward, `blend_backward_ms` the whole
-    /// rasterizer backward, `phi_backward_ms` the geometry gradients and Phi's backward,
-    /// `psi_backward_ms` Psi's, `optimizer_ms` the checks, statistics and every Adam step.
-    pub stages: StepTimings,
-}
+// The step's inputs and report are gs-core's (the engine trait's types).
+pub use gs_core::engine::{SunAwareStepInput, SunAwareStepReport};
 
 /// The Sun-aware model's training state on the device (see the module header).
 pub struct SunAwareResident {
     raster: Arc<GpuRasterizer>,
-    shadow: Arc<GpuShadow>,
+    shadow: Arc<GpuSunVisibility>,
     mlp: Arc<GpuMlp>,
     io: NetworkIo,
     pipelines: Pipelines,
@@ -218,7 +168,7 @@ impl SunAwareResident {
     /// puts a trainer's state on it.
     pub fn new(
         raster: Arc<GpuRasterizer>,
-        shadow: Arc<GpuShadow>,
+        shadow: Arc<GpuSunVisibility>,
         mlp: Arc<GpuMlp>,
     ) -> Result<Self, GpuError> {
         let ctx = raster.context();
@@ -268,7 +218,7 @@ impl SunAwareResident {
             adam_step: 0,
             beta1: 0.9,
             beta2: 0.999,
-            eps: crate::optim::ADAM_EPS,
+            eps: gs_core::optim::ADAM_EPS,
         })
     }
 
@@ -339,7 +289,7 @@ impl SunAwareResident {
     fn network(
         ctx: &super::GpuContext,
         old: Option<DeviceNetwork>,
-        mlp: Option<&crate::nn::Mlp>,
+        mlp: Option<&gs_core::nn::Mlp>,
         adam: &FlatAdam,
     ) -> Result<Option<DeviceNetwork>, GpuError> {
         let Some(mlp) = mlp else {
@@ -376,7 +326,7 @@ impl SunAwareResident {
             target.as_ptr() as usize,
             target.len(),
             mask.map_or(0, |m| m.as_ptr() as usize),
-            mask.map_or(0, |m| m.len()),
+            mask.map_or(0, <[f32]>::len),
         );
         if let Some(c) = self.targets.iter().find(|c| c.key == key) {
             return Ok((c.target.clone(), c.weights.clone(), c.tiles.clone()));

@@ -1,12 +1,11 @@
-//! CPU vs wgpu rasterizer times (feature `wgpu`): forward and backward medians on a
+//! CPU vs wgpu rasterizer times: forward and backward medians on a
 //! random cloud of Gaussians in front of the camera, for 10K, 50K and 100K Gaussians.
 //!
-//! `cargo run --release -p gs-core --features wgpu --example gpu_bench -- [--runs N]
-//! [--width W --height H] [--gaussians N] [--cas] [--reduce] [--deterministic] [--train]`
+//! `cargo run --release -p gs-wgpu --example gpu_bench -- [--runs N]
+//! [--width W --height H] [--gaussians N] [--cas] [--reduce] [--deterministic]`
 //! (`--cas`: force the compare-and-swap gradient accumulation; `--reduce`: per-tile
-//! workgroup reductions; `--deterministic`: the fixed-order backward; `--train`: also
-//! time `train::Trainer` steps (SH colour, render, loss, backward, Adam) per backend, as
-//! steps per second; on wgpu the device-resident path, `gpu::ResidentModel`)
+//! workgroup reductions; `--deterministic`: the fixed-order backward). Whole training
+//! steps per backend: `step_bench --backend cpu,wgpu`.
 //!
 //! On Mesa's software Vulkan driver (lavapipe) the "wgpu" column measures a CPU
 //! emulation of a GPU, not a GPU: compare columns only on a machine with a real one.
@@ -17,87 +16,15 @@
 
 use std::time::Instant;
 
+#[path = "../../gs-core/examples/bench_util/mod.rs"]
 mod bench_util;
-use bench_util::{arg, exit_if_help, init_threads, random_cloud, Cloud};
+use bench_util::{arg, exit_if_help, init_threads, random_cloud};
 
 use glam::Vec3;
-use gs_core::gpu::{GpuContext, GpuOptions, GpuRasterizer};
 use gs_core::raster::{render, render_backward, PixelGrads, RasterSettings};
 use gs_core::rng::SplitMix64;
-use gs_core::sh::rgb_to_sh_dc;
-use gs_core::train::{Backend, TrainConfig, TrainView, Trainer};
-use gs_core::{Camera, GaussianModel, Intrinsics, ModelLayout, Param};
-
-/// The cloud as a degree-0 SH model (colours as the DC terms).
-fn cloud_model(c: &Cloud) -> GaussianModel {
-    let n = c.opacity_logits.len();
-    let mut m = GaussianModel::new(ModelLayout::sh(0)).expect("degree 0");
-    m.params.push_zeros(n);
-    m.params.get_mut(Param::Mean).copy_from_slice(&c.means);
-    m.params
-        .get_mut(Param::LogScale)
-        .copy_from_slice(&c.log_scales);
-    m.params
-        .get_mut(Param::Rotation)
-        .copy_from_slice(&c.rotations);
-    m.params
-        .get_mut(Param::OpacityLogit)
-        .copy_from_slice(&c.opacity_logits);
-    for (dc, rgb) in m.params.get_mut(Param::ShDc).iter_mut().zip(&c.channels) {
-        *dc = rgb_to_sh_dc(*rgb);
-    }
-    m
-}
-
-/// Medians of `runs` training steps after one warm-up, on a grey target.
-struct StepTimes {
-    wall_ms: f64,
-    forward_ms: f64,
-    loss_ms: f64,
-    backward_ms: f64,
-    /// This process's CPU time per step (all threads), ms.
-    cpu_ms: f64,
-}
-
-fn step_times(model: &GaussianModel, camera: &Camera, backend: Backend, runs: usize) -> StepTimes {
-    let config = TrainConfig {
-        densify_until_iter: 0,
-        opacity_reset_interval: 0,
-        ..TrainConfig::default()
-    };
-    let mut trainer = Trainer::new(model.clone(), &config, 3.0)
-        .expect("trainer")
-        .with_backend(backend)
-        .expect("backend");
-    let view = TrainView {
-        camera: *camera,
-        image: vec![0.5; camera.intrinsics.pixel_count() * 3],
-        mask: None,
-    };
-    let (mut wall, mut fwd, mut loss, mut bwd) = (vec![], vec![], vec![], vec![]);
-    let mut cpu0 = 0.0;
-    for r in 0..=runs {
-        if r == 1 {
-            cpu0 = gs_core::machine::process_cpu_s().unwrap_or(f64::NAN);
-        }
-        let t = Instant::now();
-        let st = trainer.step(&view, 0).expect("step");
-        if r > 0 {
-            wall.push(t.elapsed().as_secs_f64() * 1e3);
-            fwd.push(st.forward_ms);
-            loss.push(st.loss_ms);
-            bwd.push(st.backward_ms);
-        }
-    }
-    let cpu_ms = (gs_core::machine::process_cpu_s().unwrap_or(f64::NAN) - cpu0) * 1e3 / runs as f64;
-    StepTimes {
-        wall_ms: median(wall),
-        forward_ms: median(fwd),
-        loss_ms: median(loss),
-        backward_ms: median(bwd),
-        cpu_ms,
-    }
-}
+use gs_core::{Camera, Intrinsics};
+use gs_wgpu::{GpuContext, GpuOptions, GpuRasterizer};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -105,7 +32,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 const USAGE: &str = "\
-usage: cargo run --release -p gs-core --features wgpu --example gpu_bench -- [FLAGS]
+usage: cargo run --release -p gs-wgpu --example gpu_bench -- [FLAGS]
 
   --runs N         timed runs per size after one warm-up (default 5)
   --width W        image width in pixels (default 960)
@@ -114,7 +41,6 @@ usage: cargo run --release -p gs-core --features wgpu --example gpu_bench -- [FL
   --cas            force the compare-and-swap gradient accumulation
   --reduce         per-tile workgroup reductions in the backward
   --deterministic  the fixed-order backward
-  --train          also time training steps per backend (steps per second)
   -h, --help       this text";
 
 fn main() {
@@ -146,7 +72,6 @@ fn main() {
         "image {width}x{height}, {runs} runs (median ms), rayon threads {}",
         rayon::current_num_threads()
     );
-    let train = args.iter().any(|a| a == "--train");
     let gpu = std::sync::Arc::new(GpuRasterizer::new(ctx).expect("pipelines"));
     let camera = Camera::look_at(
         Intrinsics::from_fov_x(0.9, width, height),
@@ -216,24 +141,5 @@ fn main() {
             gfm + gbm,
             gs_core::machine::process_cpu_s().unwrap_or(f64::NAN) - cpu0
         );
-        if train {
-            let model = cloud_model(&c);
-            for (name, backend) in [
-                ("cpu", Backend::Cpu),
-                ("wgpu resident", Backend::Wgpu(gpu.clone())),
-            ] {
-                let t = step_times(&model, &camera, backend, runs);
-                println!(
-                    "{n:>8} training step, {name}: {:.1} ms = {:.2} steps/s (forward {:.1}, \
-                     loss {:.1}, backward + Adam {:.1}); process CPU {:.1} ms/step",
-                    t.wall_ms,
-                    1e3 / t.wall_ms,
-                    t.forward_ms,
-                    t.loss_ms,
-                    t.backward_ms,
-                    t.cpu_ms
-                );
-            }
-        }
     }
 }

@@ -4,7 +4,7 @@
 //! encoder on the caller's device buffers; nothing is submitted or read back.
 //!
 //! Ported operation for operation from the CPU: `nn::appearance::AppearanceNet::
-//! {assemble_input, scatter_input_grad}`, `nn::shadow::ShadowNet::{assemble_input,
+//! {assemble_input, scatter_input_grad}`, `nn::shadow_net::ShadowNet::{assemble_input,
 //! scatter_input_grad}` (full rows, not the folded training path), `nn::encoding`
 //! (`sin_cos_pi`'s quarter-turn reduction and polynomials, not the GPU's own sin/cos) and
 //! the channel routing of `sunaware::model::{forward_with, backward_timed}`.
@@ -35,8 +35,8 @@
 use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError, Scratch,
 };
-use crate::model::Param;
-use crate::nn::{AppearanceNet, SceneBox, ShadowNet};
+use gs_core::model::Param;
+use gs_core::nn::{AppearanceNet, SceneBox, ShadowNet};
 
 const NETIO_COMMON: &str = include_str!("shaders/netio_common.wgsl");
 const NETIO_ENCODING_BACKWARD: &str = include_str!("shaders/netio_encoding_backward.wgsl");
@@ -156,7 +156,7 @@ fn unit_vector(what: &str, v: [f32; 3]) -> Result<[f32; 3], GpuError> {
 
 /// gamma_L of the unit Sun direction, by the CPU encoding (the same bits as its rows).
 fn sun_code(
-    encoding: crate::nn::PositionalEncoding,
+    encoding: gs_core::nn::PositionalEncoding,
     sun_dir: [f32; 3],
 ) -> Result<Vec<f32>, GpuError> {
     let sun = unit_vector("Sun direction", sun_dir)?;

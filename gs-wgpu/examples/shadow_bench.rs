@@ -1,12 +1,12 @@
-//! Shadow-pass times (feature `wgpu`): the host path the GPU shadow pass had before it
+//! Shadow-pass times: the host path the GPU shadow pass had before it
 //! moved to the device (light splats and receiver margins on the CPU, then
-//! `GpuShadow::visibility_from_splats`: upload, count readback, sort and walk) against the
-//! device path (`GpuShadow::sun_visibility`: the geometry uploaded, splats and margins by
+//! `GpuSunVisibility::visibility_from_splats`: upload, count readback, sort and walk) against the
+//! device path (`GpuSunVisibility::sun_visibility`: the geometry uploaded, splats and margins by
 //! a kernel, count readback; and `sun_visibility_packed` with a sort capacity: no
-//! mid-pass readback), and the CPU's `sunaware::light::sun_visibility`, per light
+//! mid-pass readback), and the CPU's `sunaware::sun_visibility::sun_visibility`, per light
 //! projection.
 //!
-//! `cargo run --release -p gs-core --features wgpu --example shadow_bench -- [--runs N]
+//! `cargo run --release -p gs-wgpu --example shadow_bench -- [--runs N]
 //! [--gaussians N] [--side PX]`
 //!
 //! Wall-clock medians after one warm-up, and this process's CPU time per call (all
@@ -15,29 +15,29 @@
 //! measure a CPU emulation of a GPU.
 
 #[macro_use]
+#[path = "../../gs-core/examples/bench_util/mod.rs"]
 mod bench_util;
 
 const USAGE: &str = "\
-usage: cargo run --release -p gs-core --features wgpu --example shadow_bench -- [FLAGS]
+usage: cargo run --release -p gs-wgpu --example shadow_bench -- [FLAGS]
 
   --runs N        timed calls per path after one warm-up (default 10)
   --gaussians N   Gaussians of the test model (default 10000)
   --side PX       light image side in pixels (default 256)
   -h, --help      this text";
 
-wgpu_main!("shadow_bench", USAGE);
+bench_main!("shadow_bench", USAGE);
 
-#[cfg(feature = "wgpu")]
 mod bench {
     use std::sync::Arc;
 
     use glam::Vec3;
-    use gs_core::gpu::{GpuContext, GpuRasterizer, GpuShadow};
     use gs_core::nn::SceneBox;
     use gs_core::rng::SplitMix64;
     use gs_core::sunaware::config::{LightConfig, LightProjection};
-    use gs_core::sunaware::light;
+    use gs_core::sunaware::sun_visibility;
     use gs_core::{GaussianModel, ModelLayout, Param};
+    use gs_wgpu::{GpuContext, GpuRasterizer, GpuSunVisibility};
 
     use super::bench_util::{arg, time_calls};
 
@@ -94,7 +94,7 @@ mod bench {
         let ctx = GpuContext::new().expect("a Vulkan adapter");
         println!("{}", gs_core::machine::header_line());
         println!("GPU: {}", ctx.describe());
-        let shadow = GpuShadow::new(Arc::new(GpuRasterizer::new(ctx).expect("rasterizer")))
+        let shadow = GpuSunVisibility::new(Arc::new(GpuRasterizer::new(ctx).expect("rasterizer")))
             .expect("shadow pipelines");
         let model = model(n);
         let scene_box = SceneBox::new([-1.0; 3], [1.0; 3]).expect("box");
@@ -112,15 +112,16 @@ mod bench {
                 ..LightConfig::default()
             };
             let cpu = time_calls(runs, || {
-                light::sun_visibility(&model, sun, centre, &scene_box, &config, NEAR_M)
+                sun_visibility::sun_visibility(&model, sun, centre, &scene_box, &config, NEAR_M)
                     .expect("cpu")
             });
             let old = time_calls(runs, || {
-                let lc = light::light_camera(sun, centre, &scene_box, &config).expect("light");
-                let splats = light::light_splats(&model, &lc, NEAR_M).expect("splats");
-                let margin: Vec<f32> = light::light_axis_sigmas_m(&model, &lc)
+                let lc =
+                    sun_visibility::light_camera(sun, centre, &scene_box, &config).expect("light");
+                let splats = sun_visibility::light_splats(&model, &lc, NEAR_M).expect("splats");
+                let margin: Vec<f32> = sun_visibility::light_axis_sigmas_m(&model, &lc)
                     .iter()
-                    .map(|s| s * light::RECEIVER_EXTENT_SIGMAS)
+                    .map(|s| s * sun_visibility::RECEIVER_EXTENT_SIGMAS)
                     .collect();
                 shadow
                     .visibility_from_splats(

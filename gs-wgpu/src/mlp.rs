@@ -1,5 +1,5 @@
 //! The MLP's forward and backward on the device ([`GpuMlp`]): the same network, parameter
-//! layout and arithmetic as `crate::nn::mlp` (`Y = X W + b`, hidden ReLU or LeakyReLU,
+//! layout and arithmetic as `gs_core::nn::mlp` (`Y = X W + b`, hidden ReLU or LeakyReLU,
 //! sigmoid output), with every matrix product `shaders/mlp_gemm.wgsl` (one invocation per
 //! 8 x 8 block of outputs, each output its own in-order sum; the weight gradient's
 //! reduction over rows split into [`WEIGHT_GRADIENT_CHUNK_ROWS`]-row chunks, added in order
@@ -57,7 +57,7 @@ use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, storage_in, u32_bytes, uniform_in, GpuContext,
     GpuError, Scratch,
 };
-use crate::nn::{HiddenActivation, Mlp};
+use gs_core::nn::{HiddenActivation, Mlp};
 
 const GEMM: &str = include_str!("shaders/mlp_gemm.wgsl");
 const SUM_CHUNKS: &str = include_str!("shaders/mlp_sum_chunks.wgsl");
@@ -98,10 +98,21 @@ enum Live {
     ReductionRows = 2,
 }
 
+/// Which operands of a product are transposed, as in `gs_core::nn::matmul`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GemmOp {
+    /// `C (m x n) = A (m x k) B (k x n)`.
+    AB,
+    /// `C (m x n) = A^T B`, `A` stored `k x m` (the weight-gradient product).
+    AtB,
+    /// `C (m x n) = A B^T`, `B` stored `n x k` (the input-gradient product).
+    ABt,
+}
+
 /// One `mlp_gemm.wgsl` dispatch: `C (m x n) = op(A) op(B)` over `k`, split into
 /// `k_chunk`-long partial sums, with word offsets into A, B and C.
 struct GemmShape {
-    op: super::GemmOp,
+    op: GemmOp,
     m: usize,
     k: usize,
     n: usize,
@@ -544,7 +555,7 @@ impl GpuMlp {
         Ok(buffer)
     }
 
-    /// Records `C = op(A) op(B)` (see [`GemmShape`] and `gpu::gemm` for the strides) into
+    /// Records `C = op(A) op(B)` (see [`GemmShape`] and `GemmOp` for the strides) into
     /// `pass`, as `k.div_ceil(k_chunk)` partial products one after another in `c` (one
     /// when `k_chunk >= k`), the batch's live rows from `count`.
     #[allow(clippy::too_many_arguments)]
@@ -560,9 +571,9 @@ impl GpuMlp {
         count: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (a_rs, a_cs, b_rs, b_cs) = match s.op {
-            super::GemmOp::AB => (s.k, 1, s.n, 1),
-            super::GemmOp::AtB => (1, s.m, s.n, 1),
-            super::GemmOp::ABt => (s.k, 1, 1, s.k),
+            GemmOp::AB => (s.k, 1, s.n, 1),
+            GemmOp::AtB => (1, s.m, s.n, 1),
+            GemmOp::ABt => (s.k, 1, 1, s.k),
         };
         let words = [
             s.m, s.n, s.k, s.k_chunk, a_rs, a_cs, b_rs, b_cs, s.a_off, s.b_off, s.c_off,
@@ -597,7 +608,7 @@ impl GpuMlp {
         (values, n): (usize, usize),
     ) -> Result<(), GpuError> {
         let mut data = u32_bytes(&[values as u32, n as u32, op as u32]);
-        data.extend_from_slice(&crate::nn::mlp::LEAKY_SLOPE.to_le_bytes());
+        data.extend_from_slice(&gs_core::nn::mlp::LEAKY_SLOPE.to_le_bytes());
         data.extend_from_slice(&u32_bytes(&[aux_off as u32, 0, 0, 0]));
         let params = uniform_in(&self.ctx, scratch, label, &data)?;
         let bind = self
@@ -640,7 +651,7 @@ impl GpuMlp {
                 let (n_in, n_out) = (widths[l], widths[l + 1]);
                 let layer_input = if l == 0 { input } else { &activations[l - 1] };
                 let shape = GemmShape {
-                    op: super::GemmOp::AB,
+                    op: GemmOp::AB,
                     m: max_rows,
                     k: n_in,
                     n: n_out,
@@ -766,7 +777,7 @@ impl GpuMlp {
                 &tape.activations[l - 1]
             };
             let weight_gradient = GemmShape {
-                op: super::GemmOp::AtB,
+                op: GemmOp::AtB,
                 m: n_in,
                 k: rows,
                 n: n_out,
@@ -817,7 +828,7 @@ impl GpuMlp {
                 _ => &d_hidden[l - 1],
             };
             let input_gradient = GemmShape {
-                op: super::GemmOp::ABt,
+                op: GemmOp::ABt,
                 m: rows,
                 k: n_out,
                 n: n_in,
@@ -972,7 +983,7 @@ impl GpuMlp {
         words[20] = 1;
         words[21] = ADAM_BETA1.to_bits();
         words[22] = ADAM_BETA2.to_bits();
-        words[23] = crate::optim::ADAM_EPS.to_bits();
+        words[23] = gs_core::optim::ADAM_EPS.to_bits();
         words[24] = ((1.0 / bias2.sqrt()) as f32).to_bits();
         let uniform =
             scratch.uniform(&self.ctx, &format!("mlp {label} adam"), &u32_bytes(&words))?;

@@ -21,7 +21,7 @@ use super::{
     bytes_f32, dispatch_1d, f32_bytes, storage_in, u32_bytes, uniform_in, GpuContext, GpuError,
     Scratch,
 };
-use crate::loss::{ssim_window, ImageShape, LossOutput, SSIM_C1, SSIM_C2};
+use gs_core::loss::{ssim_window, ImageShape, LossOutput, SSIM_C1, SSIM_C2};
 
 const LOSS_COMMON: &str = include_str!("shaders/loss_common.wgsl");
 const LOSS_MOMENTS: &str = include_str!("shaders/loss_moments.wgsl");

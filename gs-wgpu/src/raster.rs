@@ -11,7 +11,7 @@
 //! projection backward per Gaussian; the gradients come back in [`GaussianGrads`].
 //!
 //! Invariants:
-//! - the same conventions and formulas as `crate::raster` (see the shaders' headers), so
+//! - the same conventions and formulas as `gs_core::raster` (see the shaders' headers), so
 //!   outputs agree with it to float rounding, except where a rounding difference moves a
 //!   pixel across the 1/255 cutoff or the 1e-4 stop (see `tests/gpu_parity.rs`);
 //! - keys (tile, depth bits, Gaussian index) are written in Gaussian order and sorted
@@ -29,10 +29,10 @@ use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, groups_1d, storage_in, u32_bytes, uniform_in,
     GpuContext, GpuError, Scratch,
 };
-use crate::camera::Camera;
-use crate::raster::bin::{TileGrid, TILE_PX};
-use crate::raster::blend::{AlphaMode, REC_CHANNELS};
-use crate::raster::{
+use gs_core::camera::Camera;
+use gs_core::raster::bin::{TileGrid, TILE_PX};
+use gs_core::raster::blend::{AlphaMode, REC_CHANNELS};
+use gs_core::raster::{
     camera_frame, BackwardTimings, GaussianGrads, GaussianView, PixelGrads, RasterError,
     RasterSettings,
 };
@@ -244,7 +244,7 @@ pub(super) struct DevicePrepared {
     pub sort_uniforms: Vec<wgpu::Buffer>,
 }
 
-/// A GPU render: the same images and per-Gaussian data as [`crate::raster::RenderOutput`].
+/// A GPU render: the same images and per-Gaussian data as [`gs_core::raster::RenderOutput`].
 pub struct GpuRenderOutput {
     pub width: u32,
     pub height: u32,
@@ -321,7 +321,7 @@ const FRAME_STOP_WORD: usize = 36;
 /// others).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn frame_bytes(
-    frame: &crate::raster::project::CameraFrame,
+    frame: &gs_core::raster::project::CameraFrame,
     cutoff: f32,
     grid: &TileGrid,
     n: u32,
@@ -829,7 +829,7 @@ impl GpuRasterizer {
     /// stop and tile mask, without channels): `out_flags[g]` (u32) becomes 1 for each
     /// Gaussian `g` blended into at least one pixel, 0 for every other `g < n` (the
     /// buffer is cleared first). These are the Gaussians whose channels the blend and its
-    /// backward read, as `crate::raster::PreparedView::contributing` on the CPU.
+    /// backward read, as `gs_core::raster::PreparedView::contributing` on the CPU.
     pub(super) fn encode_contributing(
         &self,
         prepared: &DevicePrepared,
@@ -912,7 +912,7 @@ impl GpuRasterizer {
         }
     }
 
-    /// Checks `gaussians` and `settings` as [`crate::raster::render`] does and uploads
+    /// Checks `gaussians` and `settings` as [`gs_core::raster::render`] does and uploads
     /// them: the forward's inputs (with the resolved background).
     fn upload_view<'a>(
         &self,
@@ -982,7 +982,7 @@ impl GpuRasterizer {
 
     /// Per Gaussian: blended into at least one pixel of a blended tile (the device's
     /// contribution pass, [`Self::encode_contributing`]); the same list as
-    /// [`crate::raster::PreparedView::contributing`] of `prepare_view(camera, geometry,
+    /// [`gs_core::raster::PreparedView::contributing`] of `prepare_view(camera, geometry,
     /// settings)` where no tile is left out. The view's channels are ignored.
     pub fn contributing(
         &self,
@@ -1012,7 +1012,7 @@ impl GpuRasterizer {
     }
 
     /// Renders `gaussians` from `camera` (same inputs, checks and outputs as
-    /// [`crate::raster::render`]).
+    /// [`gs_core::raster::render`]).
     pub fn render(
         &self,
         camera: &Camera,
@@ -1071,7 +1071,7 @@ impl GpuRasterizer {
 
     /// Gradients of a loss with respect to the Gaussians of `forward` (rendered by this
     /// rasterizer), given its pixel gradients. Same layouts as
-    /// [`crate::raster::render_backward`]; `camera` and `settings` must be the forward's.
+    /// [`gs_core::raster::render_backward`]; `camera` and `settings` must be the forward's.
     pub fn render_backward(
         &self,
         camera: &Camera,

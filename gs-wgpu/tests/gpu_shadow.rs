@@ -1,6 +1,6 @@
-//! The shadow pass recorded on the device (`GpuShadow::encode_sun_visibility`, run from
+//! The shadow pass recorded on the device (`GpuSunVisibility::encode_sun_visibility`, run from
 //! the host through `sun_visibility_packed` on the resident parameter layout) against
-//! the CPU's `sunaware::light::sun_visibility`: random anisotropic Gaussians around a box,
+//! the CPU's `sunaware::sun_visibility::sun_visibility`: random anisotropic Gaussians around a box,
 //! three Suns, both light projections; the sort capacity (overflow flag, exact and larger
 //! capacities against the readback path); non-finite Gaussians culled (V = 1) as on the
 //! CPU; bad inputs refused.
@@ -16,25 +16,24 @@
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1`, where a
 //! missing adapter fails.
-#![cfg(feature = "wgpu")]
 
 use std::sync::Arc;
 
 use glam::Vec3;
-use gs_core::gpu::shadow::PackedVisibility;
-use gs_core::gpu::{context_or_skip, GpuOptions, GpuRasterizer, GpuShadow};
 use gs_core::nn::SceneBox;
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::config::{LightConfig, LightProjection};
-use gs_core::sunaware::light::sun_visibility;
+use gs_core::sunaware::sun_visibility::sun_visibility;
 use gs_core::{GaussianModel, ModelLayout, Param};
+use gs_wgpu::sun_visibility::PackedVisibility;
+use gs_wgpu::{context_or_skip, GpuOptions, GpuRasterizer, GpuSunVisibility};
 
 const NEAR_M: f32 = 0.01;
 
-fn shadow_pass() -> Option<GpuShadow> {
+fn shadow_pass() -> Option<GpuSunVisibility> {
     let ctx = context_or_skip(GpuOptions::default())?;
     let raster = Arc::new(GpuRasterizer::new(ctx).unwrap());
-    Some(GpuShadow::new(raster).unwrap())
+    Some(GpuSunVisibility::new(raster).unwrap())
 }
 
 fn scene_box() -> SceneBox {
@@ -126,7 +125,7 @@ const SUNS: [[f32; 3]; 3] = [
 const CAMERA_CENTRE: Vec3 = Vec3::new(0.0, -4.0, 1.0);
 
 fn device_run(
-    shadow: &GpuShadow,
+    shadow: &GpuSunVisibility,
     model: &GaussianModel,
     sun: Vec3,
     config: &LightConfig,

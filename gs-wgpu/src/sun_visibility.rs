@@ -1,10 +1,10 @@
 //! The shadow pass on the GPU: per-Gaussian Sun visibility `V_i`
-//! (`sunaware::light::sun_visibility`) from the packed device parameters, recordable into
-//! a caller's command encoder (`GpuShadow::encode_sun_visibility`, for the
-//! device-resident Sun-aware step), and its host wrappers ([`GpuShadow::sun_visibility`]
-//! from a `GaussianModel`, [`GpuShadow::visibility_from_splats`] from CPU splats).
+//! (`sunaware::sun_visibility::sun_visibility`) from the packed device parameters, recordable into
+//! a caller's command encoder (`GpuSunVisibility::encode_sun_visibility`, for the
+//! device-resident Sun-aware step), and its host wrappers ([`GpuSunVisibility::sun_visibility`]
+//! from a `GaussianModel`, [`GpuSunVisibility::visibility_from_splats`] from CPU splats).
 //!
-//! The light camera comes from the host (`light::light_camera`: it depends only on the Sun,
+//! The light camera comes from the host (`sun_visibility::light_camera`: it depends only on the Sun,
 //! the camera centre, the scene box and the config). One thread per Gaussian projects it
 //! into the light image (shaders/shadow_project.wgsl: `light_splats`, perspective through
 //! the rasterizer's projection or `ortho_splat`, and its receiver limit from
@@ -22,7 +22,7 @@
 //! inputs give the same bits in any order of the atomic adds. A recorded pass reads back
 //! nothing when given a sort capacity; it then flags (`flags[0] |= 2`) a capacity below the
 //! entry count (the flags word is only ever or-ed into, never cleared).
-//! One recorded pass per `GpuShadow` per submission: the uniforms of a recording (from the
+//! One recorded pass per `GpuSunVisibility` per submission: the uniforms of a recording (from the
 //! caller's scratch and from this pipeline set's own pool for the rasterizer's scan and
 //! sort, whose labels the caller's camera pass also uses) are written through the queue,
 //! so a second recording before the first is submitted would overwrite them. The host
@@ -33,14 +33,14 @@ use std::sync::{Arc, Mutex};
 
 use super::raster::{frame_bytes, prelude, GpuRasterizer, SortKeys, SSTRIDE};
 use super::{bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuError, Scratch};
-use crate::model::{Param, ParamSet};
-use crate::nn::SceneBox;
-use crate::raster::bin::TileGrid;
-use crate::raster::blend::{Splat, ALPHA_MIN};
-use crate::raster::project::CameraFrame;
-use crate::sunaware::config::{LightConfig, LightProjection};
-use crate::sunaware::error::SunAwareError;
-use crate::sunaware::light;
+use gs_core::model::{Param, ParamSet};
+use gs_core::nn::SceneBox;
+use gs_core::raster::bin::TileGrid;
+use gs_core::raster::blend::{Splat, ALPHA_MIN};
+use gs_core::raster::project::CameraFrame;
+use gs_core::sunaware::config::{LightConfig, LightProjection};
+use gs_core::sunaware::error::SunAwareError;
+use gs_core::sunaware::sun_visibility;
 
 const SHADOW_PROJECT: &str = include_str!("shaders/shadow_project.wgsl");
 const SHADOW_COUNT: &str = include_str!("shaders/shadow_count.wgsl");
@@ -56,7 +56,7 @@ const ENTRIES_ON_DEVICE: u32 = u32::MAX;
 const GEOMETRY_DIMS: [usize; 4] = [3, 3, 4, 1];
 
 /// Compiled shadow-pass pipelines on a rasterizer's device.
-pub struct GpuShadow {
+pub struct GpuSunVisibility {
     raster: Arc<GpuRasterizer>,
     project: wgpu::ComputePipeline,
     count: wgpu::ComputePipeline,
@@ -72,9 +72,9 @@ pub struct GpuShadow {
     host_scratch: Mutex<Scratch>,
 }
 
-impl std::fmt::Debug for GpuShadow {
+impl std::fmt::Debug for GpuSunVisibility {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "GpuShadow({:?})", self.raster)
+        write!(f, "GpuSunVisibility({:?})", self.raster)
     }
 }
 
@@ -100,7 +100,7 @@ impl std::fmt::Debug for ShadowRecord {
     }
 }
 
-/// Device splats ready for the sort and the walk (see [`GpuShadow::encode_walk`]).
+/// Device splats ready for the sort and the walk (see [`GpuSunVisibility::encode_walk`]).
 struct WalkInputs<'a> {
     /// `n * SSTRIDE` floats (common.wgsl's splat rows).
     splats: &'a wgpu::Buffer,
@@ -114,7 +114,7 @@ struct WalkInputs<'a> {
 }
 
 /// `V`, `flags[0]` and the sort's sizes of a recorded pass run from the host
-/// ([`GpuShadow::sun_visibility_packed`]).
+/// ([`GpuSunVisibility::sun_visibility_packed`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PackedVisibility {
     /// `V_i` per Gaussian (not valid where `flags` has the overflow bit).
@@ -127,7 +127,7 @@ pub struct PackedVisibility {
     pub n_sort: u64,
 }
 
-/// The host wrappers' light inputs (see `GpuShadow::encode_sun_visibility`).
+/// The host wrappers' light inputs (see `GpuSunVisibility::encode_sun_visibility`).
 struct HostLight<'a> {
     sun_dir: glam::Vec3,
     camera_centre: glam::Vec3,
@@ -145,7 +145,7 @@ fn check_light_image(
     footprint_radius_px: f32,
     depth_bias_m: f32,
 ) -> Result<(), GpuError> {
-    if side_px == 0 || side_px > crate::raster::MAX_IMAGE_SIDE_PX {
+    if side_px == 0 || side_px > gs_core::raster::MAX_IMAGE_SIDE_PX {
         return Err(GpuError::Invalid(format!("light image side {side_px} px")));
     }
     if !(footprint_radius_px.is_finite() && depth_bias_m.is_finite()) {
@@ -156,7 +156,7 @@ fn check_light_image(
     Ok(())
 }
 
-impl GpuShadow {
+impl GpuSunVisibility {
     pub fn new(raster: Arc<GpuRasterizer>) -> Result<Self, GpuError> {
         let ctx = &raster.ctx;
         let pre = prelude(0);
@@ -180,11 +180,11 @@ impl GpuShadow {
     }
 
     /// `V_i` of every Gaussian of `model` for one image: the GPU counterpart of
-    /// `sunaware::light::sun_visibility` (uploads the geometry, records
+    /// `sunaware::sun_visibility::sun_visibility` (uploads the geometry, records
     /// [`Self::encode_sun_visibility`] with the entry count read back, reads `V` back).
     pub fn sun_visibility(
         &self,
-        model: &crate::model::GaussianModel,
+        model: &gs_core::model::GaussianModel,
         sun_dir: glam::Vec3,
         camera_centre: glam::Vec3,
         scene_box: &SceneBox,
@@ -217,7 +217,7 @@ impl GpuShadow {
     }
 
     /// [`Self::encode_sun_visibility`] on `params` packed in the resident layout
-    /// (`gpu::resident::pack`), run from the host: uploads, records with `capacity`,
+    /// (`crate::resident::pack`), run from the host: uploads, records with `capacity`,
     /// submits and reads back `V`, the flags word and the entry count.
     #[allow(clippy::too_many_arguments)]
     pub fn sun_visibility_packed(
@@ -298,7 +298,7 @@ impl GpuShadow {
     /// Records `V` for every Gaussian of the packed device `params` (the resident layout:
     /// group g of `n` Gaussians at word `offsets[g]`; only the mean, log-scale, rotation
     /// and opacity-logit groups are read) into `visibility` (`n` f32). Same checks and
-    /// values as `sunaware::light::sun_visibility` (a Gaussian with a non-finite parameter
+    /// values as `sunaware::sun_visibility::sun_visibility` (a Gaussian with a non-finite parameter
     /// is culled: `V = 1`).
     ///
     /// `capacity`: `Some(c)` sizes the sorts for `c` entries with no readback; if the
@@ -353,13 +353,13 @@ impl GpuShadow {
                 flags.size()
             )));
         }
-        let lc = light::light_camera(sun_dir, camera_centre, scene_box, config)
+        let lc = sun_visibility::light_camera(sun_dir, camera_centre, scene_box, config)
             .map_err(sunaware_error)?;
         let side = config.resolution_px;
         check_light_image(side, config.footprint_radius_px, lc.depth_bias_m)?;
         let (frame, orthographic) = match lc.projection {
             LightProjection::Perspective => (
-                crate::raster::camera_frame(&lc.camera, near_m)
+                gs_core::raster::camera_frame(&lc.camera, near_m)
                     .map_err(|e| sunaware_error(e.into()))?,
                 false,
             ),
@@ -396,7 +396,7 @@ impl GpuShadow {
         words[5] = lc.ortho_px_per_m.to_bits();
         words[6] = (0.5 * side as f32).to_bits();
         words[7] = lc.depth_bias_m.to_bits();
-        words[8] = light::RECEIVER_EXTENT_SIGMAS.to_bits();
+        words[8] = sun_visibility::RECEIVER_EXTENT_SIGMAS.to_bits();
         let project_buf = scratch.uniform(ctx, "shadow projection", &u32_bytes(&words))?;
         let splats = scratch.storage(ctx, "shadow splats", (n * SSTRIDE * 4) as u64)?;
         let limits = scratch.storage(ctx, "shadow receiver limits", n as u64 * 4)?;
@@ -457,7 +457,14 @@ impl GpuShadow {
         let len = n as u64 + 1;
         match sort_scratch {
             Some(pool) => {
-                raster.encode_scan_in(&mut encoder, inputs.counts, len, &mut keep, Some(pool), 0)?
+                raster.encode_scan_in(
+                    &mut encoder,
+                    inputs.counts,
+                    len,
+                    &mut keep,
+                    Some(pool),
+                    0,
+                )?;
             }
             None => raster.encode_scan(&mut encoder, inputs.counts, len, &mut keep)?,
         }
@@ -594,7 +601,7 @@ impl GpuShadow {
     }
 
     /// `V_i` for every Gaussian from its splats in the `side_px` x `side_px` light image:
-    /// the GPU counterpart of `sunaware::light::visibility_from_splats` (same arguments;
+    /// the GPU counterpart of `sunaware::sun_visibility::visibility_from_splats` (same arguments;
     /// the splats and limits are uploaded, the sort and walk are
     /// [`Self::encode_sun_visibility`]'s).
     pub fn visibility_from_splats(

@@ -1,4 +1,4 @@
-//! The networks' input assembly and output scatter on the device (`gpu::network_io`,
+//! The networks' input assembly and output scatter on the device (`gs_wgpu::network_io`,
 //! `NetworkIo::encode_*` recorded from here) against the CPU: `AppearanceNet::{assemble_input,
 //! scatter_input_grad}`, `ShadowNet::{assemble_input, scatter_input_grad}` and the channel
 //! routing of `SunAwareModel::{forward, backward}` (written out here as the model does
@@ -15,14 +15,13 @@
 //! [`MEAN_GRAD_TOL`]; the worst error of each comparison is printed.
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1` (CI).
-#![cfg(feature = "wgpu")]
 
-use gs_core::gpu::network_io::{packed_offsets, NetworkIo, NetworkIoProbe};
-use gs_core::gpu::{context_or_skip, GpuError, GpuOptions, Scratch};
 use gs_core::model::Param;
 use gs_core::nn::{AppearanceNet, PositionalEncoding, SceneBox, ShadowNet};
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::config::ShadowRefinement;
+use gs_wgpu::network_io::{packed_offsets, NetworkIo, NetworkIoProbe};
+use gs_wgpu::{context_or_skip, GpuError, GpuOptions, Scratch};
 
 /// Largest |gpu - cpu| of an encoded value (a sine or cosine of `2^k pi x`, in [-1, 1]).
 /// Both sides evaluate the same quarter-turn reduction and polynomials on the same

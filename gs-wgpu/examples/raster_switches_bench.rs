@@ -1,11 +1,11 @@
-//! What the rasterizer's switches cost or save on the wgpu backend (feature `wgpu`):
+//! What the rasterizer's switches cost or save on the wgpu backend:
 //! forward (`GpuRasterizer::render`), backward (`render_backward`) and the contribution
 //! pass (`GpuRasterizer::contributing`) with every tile blended, with a checkerboard
 //! `blend_tiles` selection (half the tiles), with no tile blended (what is left is the
 //! projection, sort, uploads and readbacks: subtracted from the others it gives the
 //! blend's and the contribution walk's own cost), and with early termination off.
 //!
-//! `cargo run --release -p gs-core --features wgpu --example raster_switches_bench --
+//! `cargo run --release -p gs-wgpu --example raster_switches_bench --
 //! [--runs N] [--gaussians N] [--width W --height H]`
 //!
 //! Wall-clock medians after one warm-up, and this process's CPU time per call (all
@@ -14,10 +14,11 @@
 //! the CPU, so the CPU time is the device's work too.
 
 #[macro_use]
+#[path = "../../gs-core/examples/bench_util/mod.rs"]
 mod bench_util;
 
 const USAGE: &str = "\
-usage: cargo run --release -p gs-core --features wgpu --example raster_switches_bench -- [FLAGS]
+usage: cargo run --release -p gs-wgpu --example raster_switches_bench -- [FLAGS]
 
   --runs N        timed calls per pass after one warm-up (default 5)
   --gaussians N   Gaussians in the random cloud (default 20000)
@@ -25,17 +26,16 @@ usage: cargo run --release -p gs-core --features wgpu --example raster_switches_
   --height H      image height in pixels (default 300)
   -h, --help      this text";
 
-wgpu_main!("raster_switches_bench", USAGE);
+bench_main!("raster_switches_bench", USAGE);
 
-#[cfg(feature = "wgpu")]
 mod bench {
 
     use glam::Vec3;
-    use gs_core::gpu::{GpuContext, GpuRasterizer};
     use gs_core::raster::bin::{TileGrid, TileSelection};
     use gs_core::raster::{PixelGrads, RasterSettings};
     use gs_core::rng::SplitMix64;
     use gs_core::{Camera, Intrinsics};
+    use gs_wgpu::{GpuContext, GpuRasterizer};
 
     use super::bench_util::{arg, random_cloud, time_calls};
 

@@ -1,4 +1,4 @@
-//! The component's online trainer on the wgpu backend (feature `wgpu`): its rounds run as
+//! The online trainer (gs-online) on the wgpu backend: its rounds run as
 //! device-resident batches (`SunAwareTrainer::step_many`: one upload and one download per
 //! round, densification between rounds on the host copy). The same short synthetic
 //! sequence as `online_sequence.rs`, trained on the CPU and on the device, must reach the
@@ -7,23 +7,22 @@
 //!
 //! Without an adapter the test prints a skip notice, unless `GS_REQUIRE_GPU=1` (CI), where
 //! a missing adapter fails.
-#![cfg(feature = "wgpu")]
 
-use gs_core::gpu::{context_or_skip, GpuOptions, GpuRasterizer};
 use gs_core::sunaware::synthetic::SyntheticScene;
 use gs_core::sunaware::{LightConfig, SunAwareConfig, Variant};
-use gs_core::train::Backend;
 use gs_online::keyframe::WindowConfig;
 use gs_online::online::{Initialisation, OnlineConfig, OnlineTrainer};
+use gs_wgpu::{context_or_skip, GpuOptions, GpuRasterizer, WgpuEngine};
 use std::sync::Arc;
 
+#[path = "../../gs-online/tests/online_support/mod.rs"]
 mod online_support;
 use online_support::{frame, held_out_psnr};
 
 #[test]
 fn online_rounds_on_the_device_match_the_cpu() {
-    // The same adapter policy as gs-core's GPU tests; the backend is what
-    // `BackendKind::Wgpu.open()` builds (deterministic options).
+    // The same adapter policy as the other GPU tests; the backend is what
+    // `gs_wgpu::open_engine(true)` builds (deterministic options).
     let options = GpuOptions {
         deterministic: true,
         ..GpuOptions::default()
@@ -31,7 +30,9 @@ fn online_rounds_on_the_device_match_the_cpu() {
     let Some(ctx) = context_or_skip(options) else {
         return;
     };
-    let backend = Backend::Wgpu(Arc::new(GpuRasterizer::new(ctx).unwrap()));
+    let backend = WgpuEngine::new(Arc::new(GpuRasterizer::new(ctx).unwrap()))
+        .unwrap()
+        .into_backend();
     let scene = SyntheticScene::plate_and_ball(12, 60).unwrap();
     let (points, normals, colours) = scene.surface_samples(0.02, 11);
     let init = Initialisation::SurfaceSamples {

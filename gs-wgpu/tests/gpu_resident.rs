@@ -1,25 +1,22 @@
-//! Parity of the device-resident training path (feature `wgpu`, `gpu::ResidentModel`,
-//! `train::Backend::Wgpu`) with the CPU: the Adam kernel alone against `optim.rs` on
-//! random inputs, one training step (SH colour, render, backward, Adam on the device)
-//! against the CPU step, and a short run with densification reaching the same PSNR.
+//! The kernels of the device-resident step against the CPU (`gs_wgpu::ResidentModel`,
+//! the plain 3DGS model's resident state): the Adam kernel alone against `optim.rs` on
+//! random inputs, the loss kernels against `gs_core::loss`, and a sort overflow redone
+//! without applying anything. The Sun-aware trainer's resident step, configuration (a)
+//! included, is compared step for step and run for run in `gpu_sunaware.rs`.
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1` (CI), where
 //! a missing adapter fails. Scenes are small (a few hundred Gaussians, 64x64 images) so the
 //! file runs in seconds on Mesa's software driver.
-#![cfg(feature = "wgpu")]
-
-mod common;
 
 use std::sync::Arc;
 
 use glam::Vec3;
 use gs_core::densify::DensifyStats;
-use gs_core::gpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer, ResidentModel};
 use gs_core::init::random_in_sphere;
 use gs_core::optim::Adam;
 use gs_core::rng::SplitMix64;
-use gs_core::train::{evaluate, train_with_backend, Backend, TrainConfig, TrainView, Trainer};
-use gs_core::{Camera, GaussianModel, Intrinsics, ModelLayout, Param, ParamSet};
+use gs_core::{Camera, Intrinsics, ModelLayout, Param, ParamSet};
+use gs_wgpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer, ResidentModel};
 
 /// A rasterizer, or None (with a notice) when there is no adapter and GS_REQUIRE_GPU is
 /// not 1.
@@ -167,8 +164,8 @@ fn adam_kernel_matches_optim_rs() {
 /// derivative's terms cancel, so the relative error of small values is larger).
 #[test]
 fn loss_kernels_match_the_cpu_loss() {
-    use gs_core::gpu::GpuLoss;
     use gs_core::loss::ImageShape;
+    use gs_wgpu::GpuLoss;
     let Some(gpu) = gpu() else {
         return;
     };
@@ -192,7 +189,7 @@ fn loss_kernels_match_the_cpu_loss() {
 
 /// One shape of [`loss_kernels_match_the_cpu_loss`]: three mask/lambda cases.
 fn check_loss_kernels(
-    kernels: &gs_core::gpu::GpuLoss,
+    kernels: &gs_wgpu::GpuLoss,
     ctx: &GpuContext,
     shape: gs_core::loss::ImageShape,
 ) {
@@ -240,244 +237,6 @@ fn check_loss_kernels(
     }
 }
 
-/// A small scene: a ground-truth model, `n_views` views around it at `size` pixels.
-fn scene(n_views: usize, size: u32) -> (GaussianModel, Vec<TrainView>) {
-    let gt = common::ground_truth(150, 8);
-    let views = common::ring_views(&gt, n_views, size);
-    (gt, views)
-}
-
-/// One step (SH degree 1, so the SH backward's view-direction term reaches the means) on
-/// each backend from the same start.
-///
-/// Tolerance: the first Adam step from zero moments moves each value by `lr g / (|g| +
-/// eps')`, i.e. by `lr sign(g)` wherever `|g|` is far above Adam's 1e-15, so the two
-/// backends agree to rounding (`8 eps (|x| + lr)`) wherever their gradients have the same
-/// sign. The rasterizer's gradients agree within `1e-4 max|g| + 1e-3 |g|` (gpu_parity), so
-/// a sign can differ only where `|g_cpu|` is below that; those values may differ by up to
-/// `2 lr`. The first moments are `0.1 g`: within `0.1 (1e-4 max|g| + 1e-3 |g|)` for all
-/// but 0.1% of the values (gpu_parity's allowance for pixels whose alpha crosses 1/255).
-#[test]
-fn one_resident_step_matches_the_cpu_step() {
-    let Some(gpu) = gpu() else {
-        return;
-    };
-    let (_, views) = scene(1, 64);
-    let mut start = random_in_sphere(300, Vec3::ZERO, 1.0, ModelLayout::sh(1), 5)
-        .unwrap()
-        .model;
-    // Anisotropic, randomly rotated Gaussians (an isotropic one has a zero rotation
-    // gradient, which would leave the rotation group untested) with view-dependent colour.
-    let mut rng = SplitMix64::new(4);
-    for v in start.params.get_mut(Param::ShRest) {
-        *v = rng.uniform(-0.3, 0.3);
-    }
-    for v in start.params.get_mut(Param::LogScale) {
-        *v = rng.uniform(0.03, 0.15).ln();
-    }
-    for v in start.params.get_mut(Param::Rotation) {
-        *v = rng.normal();
-    }
-    let config = TrainConfig {
-        sh_degree_interval: 1,
-        densify_until_iter: 0,
-        opacity_reset_interval: 0,
-        ..TrainConfig::default()
-    };
-    let mut cpu = Trainer::new(start.clone(), &config, 3.0).unwrap();
-    let mut wgpu = Trainer::new(start.clone(), &config, 3.0)
-        .unwrap()
-        .with_backend(Backend::Wgpu(gpu))
-        .unwrap();
-    let a = cpu.step(&views[0], 0).unwrap();
-    let b = wgpu.step(&views[0], 0).unwrap();
-    assert_eq!(a.active_sh_degree, 1);
-    assert!(!a.skipped && !b.skipped);
-    assert!(
-        (a.loss - b.loss).abs() <= 1e-5 * a.loss,
-        "{} vs {}",
-        a.loss,
-        b.loss
-    );
-    // The device holds the step; the host copy is the start until synced.
-    assert!(!wgpu.host_is_current());
-    assert_eq!(wgpu.model().params, start.params);
-    let got = wgpu.sync_model().unwrap().clone();
-    assert!(wgpu.host_is_current());
-    let (m_cpu, m_gpu) = (&cpu.optimiser().m, &wgpu.optimiser().m);
-    assert_eq!(wgpu.optimiser().step, 1);
-    let lr_of = |p: Param| match p {
-        Param::Mean => a.position_lr,
-        Param::LogScale => config.lr.scale,
-        Param::Rotation => config.lr.rotation,
-        Param::OpacityLogit => config.lr.opacity,
-        Param::ShDc => config.lr.sh_dc,
-        Param::ShRest => config.lr.sh_rest,
-        _ => 0.0,
-    };
-    let eps = 8.0 * f32::EPSILON;
-    let (mut values, mut m_beyond, mut flipped) = (0usize, 0usize, 0usize);
-    for p in Param::ALL {
-        let lr = lr_of(p);
-        let mc = m_cpu.get(p);
-        let max_m = mc.iter().fold(0.0f32, |acc, v| acc.max(v.abs()));
-        if lr > 0.0 {
-            // The step must reach most of every trained group, or the comparison is idle.
-            let moved = (0..mc.len())
-                .filter(|&i| cpu.model().params.get(p)[i] != start.params.get(p)[i])
-                .count();
-            assert!(
-                2 * moved > mc.len(),
-                "{}: {moved} of {} moved",
-                p.name(),
-                mc.len()
-            );
-        }
-        for (i, &m_i) in mc.iter().enumerate() {
-            values += 1;
-            let (x_cpu, x_gpu) = (cpu.model().params.get(p)[i], got.params.get(p)[i]);
-            let gradient_tol = 1e-4 * max_m + 1e-3 * m_i.abs();
-            if (m_gpu.get(p)[i] - m_i).abs() > gradient_tol {
-                m_beyond += 1;
-            }
-            if (x_gpu - x_cpu).abs() <= eps * (x_cpu.abs() + lr) {
-                continue;
-            }
-            flipped += 1;
-            assert!(
-                m_i.abs() <= gradient_tol && (x_gpu - x_cpu).abs() <= 2.0 * lr * (1.0 + eps),
-                "{}[{i}]: cpu {x_cpu} gpu {x_gpu} (m cpu {m_i} gpu {})",
-                p.name(),
-                m_gpu.get(p)[i]
-            );
-        }
-    }
-    eprintln!(
-        "{values} values: {flipped} moved the other way (tiny gradients), {m_beyond} \
-         first moments beyond the gradient tolerance"
-    );
-    assert!(m_beyond * 1000 <= values, "{m_beyond} of {values}");
-}
-
-/// A short run with densification and an opacity reset inside it, masked views, on each
-/// backend from the same start, scored on the CPU: both learn and end within 0.1 dB.
-/// Densification and the reset run on the host from the device's state and statistics
-/// (read back at those steps) and re-upload the edited model.
-#[test]
-fn resident_training_with_densification_reaches_the_same_psnr() {
-    // Deterministic backward sums: with the atomic ones, the last bits of the gradients vary
-    // from run to run, and about one run in ten a Gaussian at the split threshold went the
-    // other way at iteration 100 (396 splits instead of 397) and the runs diverged (18.52
-    // against 18.88 dB). The comparison is of one training, not of a chaotic amplifier of
-    // summation order; `one_resident_step_matches_the_cpu_step` covers the atomic paths.
-    let Some(gpu) = gpu_with(GpuOptions {
-        deterministic: true,
-        ..GpuOptions::default()
-    }) else {
-        return;
-    };
-    let (_, mut views) = scene(6, 64);
-    // A soft mask (full weight in the middle, 0.3 at the rim) so the loss kernels' pixel
-    // weights are exercised through the trainer.
-    for v in &mut views {
-        let (w, h) = (64, 64);
-        v.mask = Some(
-            (0..w * h)
-                .map(|p| {
-                    let (x, y) = (p % w, p / w);
-                    if x < 8 || y < 8 || x >= w - 8 || y >= h - 8 {
-                        0.3
-                    } else {
-                        1.0
-                    }
-                })
-                .collect(),
-        );
-    }
-    let start = random_in_sphere(200, Vec3::ZERO, 1.0, ModelLayout::sh(0), 5)
-        .unwrap()
-        .model;
-    let config = TrainConfig {
-        iterations: 160,
-        densify_from_iter: 30,
-        densify_until_iter: 130,
-        densify_interval: 50,
-        // An opacity reset at 70 edits the host copy too (synced, reset, re-uploaded).
-        opacity_reset_interval: 70,
-        seed: 3,
-        ..TrainConfig::default()
-    };
-    let psnr = |model: &GaussianModel| {
-        let scores = evaluate(model, &views, [0.0; 3]).unwrap();
-        scores.iter().map(|s| s.psnr_db).sum::<f32>() / scores.len() as f32
-    };
-    let t = std::time::Instant::now();
-    let cpu = train_with_backend(start.clone(), &views, &config, Backend::Cpu, |_| {}).unwrap();
-    let cpu_s = t.elapsed().as_secs_f64();
-    let t = std::time::Instant::now();
-    let mut resets = 0;
-    let wgpu = train_with_backend(start.clone(), &views, &config, Backend::Wgpu(gpu), |s| {
-        resets += s.opacity_reset as usize;
-    })
-    .unwrap();
-    let gpu_s = t.elapsed().as_secs_f64();
-    let (p0, pc, pg) = (psnr(&start), psnr(&cpu.model), psnr(&wgpu.model));
-    let sizes = |r: &gs_core::train::TrainResult| {
-        r.densify_reports
-            .iter()
-            .map(|(it, d)| format!("{it}: {d:?}"))
-            .collect::<Vec<_>>()
-    };
-    eprintln!(
-        "PSNR start {p0:.3} dB, cpu {pc:.3} dB ({cpu_s:.1} s, {} Gaussians), wgpu {pg:.3} dB \
-         ({gpu_s:.1} s, {} Gaussians)\ncpu densify {:?}\nwgpu densify {:?}",
-        cpu.model.len(),
-        wgpu.model.len(),
-        sizes(&cpu),
-        sizes(&wgpu)
-    );
-    assert_eq!(wgpu.skipped_non_finite_steps, 0);
-    assert_eq!(wgpu.densify_reports.len(), 2);
-    assert_eq!(resets, 1, "the opacity reset did not happen on wgpu");
-    assert_eq!(cpu.densify_reports.len(), 2);
-    assert!(
-        wgpu.model.len() != start.len(),
-        "densification changed nothing: the test would not cover re-upload"
-    );
-    assert!(pc > p0 + 3.0, "the run did not learn: {p0} -> {pc}");
-    assert!((pc - pg).abs() <= 0.1, "cpu {pc} dB vs wgpu {pg} dB");
-}
-
-/// An empty model (everything pruned) steps on the device as on the CPU: the loss is the
-/// background's, nothing is refused, and the host copy syncs to zero rows.
-#[test]
-fn an_empty_model_steps_like_the_cpu() {
-    let Some(gpu) = gpu() else {
-        return;
-    };
-    let (_, views) = scene(1, 32);
-    let empty = GaussianModel::new(ModelLayout::sh(1)).unwrap();
-    let config = TrainConfig::default();
-    let mut cpu = Trainer::new(empty.clone(), &config, 3.0).unwrap();
-    let mut wgpu = Trainer::new(empty, &config, 3.0)
-        .unwrap()
-        .with_backend(Backend::Wgpu(gpu))
-        .unwrap();
-    for _ in 0..2 {
-        let a = cpu.step(&views[0], 0).unwrap();
-        let b = wgpu.step(&views[0], 0).unwrap();
-        assert!(!a.skipped && !b.skipped);
-        assert!(
-            (a.loss - b.loss).abs() <= 1e-5 * a.loss,
-            "{} vs {}",
-            a.loss,
-            b.loss
-        );
-    }
-    assert_eq!(wgpu.sync_model().unwrap().len(), 0);
-    assert_eq!(wgpu.optimiser().step, cpu.optimiser().step);
-}
-
 /// The resident step sizes its sort from the previous step's entry count (no mid-step
 /// readback). A view with many more (tile, Gaussian) pairs than the last overflows that
 /// capacity: the attempt must change nothing and be redone. Model A steps on a far view
@@ -487,8 +246,8 @@ fn an_empty_model_steps_like_the_cpu() {
 /// count, visibility counts and radii, and A must have counted two Adam steps, not three.
 #[test]
 fn a_sort_overflow_is_redone_without_applying_anything() {
-    use gs_core::gpu::{ResidentStepInput, ResidentStepReport};
     use gs_core::raster::RasterSettings;
+    use gs_wgpu::{ResidentStepInput, ResidentStepReport};
     let Some(gpu) = gpu() else {
         return;
     };

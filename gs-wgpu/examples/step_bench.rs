@@ -28,17 +28,15 @@
 //! speed drifts between a stage and its floor would otherwise show up as distance from the
 //! floor). The printed stage and floor ms are the medians of those paired repeats.
 //!
-//! `cargo run --release -p gs-core --example step_bench -- [--json] [--sizes 10000,50000,100000]
+//! `cargo run --release -p gs-wgpu --example step_bench -- [--json] [--sizes 10000,50000,100000]
 //! [--images 480x300,960x600] [--threads N] [--repeats N] [--scene volume|surface]
-//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu] [--hybrid] [--gpu-atomic] [--default-malloc]`
+//! [--set NAME=VALUE,...] [--ab SWITCH] [--backend cpu,wgpu] [--gpu-atomic] [--default-malloc]`
 //!
 //! `--backend cpu,wgpu` measures each configuration on each listed backend (default `cpu`;
-//! `wgpu` needs `--features wgpu` and a Vulkan adapter). On `wgpu` the trainer is
+//! `wgpu` needs a Vulkan adapter). On `wgpu` the trainer is
 //! device-resident: the repeats run as one `step_many` batch and only the whole step is
 //! timed, its stages from the device's timestamp queries where the adapter has them (no
-//! CPU floors); `--hybrid` runs the older split instead (the
-//! camera pass, the shadow pass and the network products on the GPU, input assembly and
-//! Adam on the host, per-stage timings). On a software Vulkan driver (Mesa's lavapipe) the
+//! CPU floors). On a software Vulkan driver (Mesa's lavapipe) the
 //! wgpu rows are CPU timings of the GPU kernels, not GPU timings; the adapter is printed
 //! with the results. The wgpu backend opens deterministic (`BackendKind::open`, as the
 //! component does); `--gpu-atomic` uses the float-atomic backward instead.
@@ -60,9 +58,15 @@
 
 use std::time::Instant;
 
+#[path = "../../gs-core/examples/bench_util/mod.rs"]
 mod bench_util;
 use bench_util::{
     arg_str, exit_if_help, json_machine_fields, median, peak_rss_mb, process_cpu_ms, reset_peak_rss,
+};
+
+/// The device engines of this bench: wgpu (gs-wgpu is this example's crate).
+const ENGINES: gs_core::engine::DeviceEngines = gs_core::engine::DeviceEngines {
+    wgpu: Some(gs_wgpu::open_engine),
 };
 
 use glam::{Quat, Vec3};
@@ -415,17 +419,14 @@ fn measure(
     // component's default is the deterministic one.
     let deterministic = !std::env::args().any(|a| a == "--gpu-atomic");
     let opened = backend
-        .open_with(deterministic)
+        .open(&ENGINES, deterministic)
         .map_err(|e| e.to_string())?;
-    if let Some(adapter) = adapter_of(&opened) {
+    if let Some(adapter) = opened.describe() {
         eprintln!("step_bench: backend wgpu on {adapter}");
     }
     trainer
         .set_backend(&opened)
         .map_err(|e| format!("backend {backend}: {e}"))?;
-    if std::env::args().any(|a| a == "--hybrid") {
-        trainer.set_device_resident(false);
-    }
     let resident = trainer.is_device_resident();
     let cam = camera(width, height);
     let mut rng = SplitMix64::new(11);
@@ -511,15 +512,6 @@ fn measure(
         nets,
         precision: config.mlp_precision,
     })
-}
-
-/// The adapter a wgpu backend runs on (None for the CPU).
-fn adapter_of(backend: &gs_core::train::Backend) -> Option<String> {
-    match backend {
-        gs_core::train::Backend::Cpu => None,
-        #[cfg(feature = "wgpu")]
-        gs_core::train::Backend::Wgpu(raster) => Some(raster.context().describe()),
-    }
 }
 
 /// The speed switches of [`SunAwareConfig`] this bench can set by name. `mlp_precision`
@@ -775,7 +767,7 @@ fn pass_miss(ok: bool) -> &'static str {
 }
 
 const USAGE: &str = "\
-usage: cargo run --release -p gs-core --example step_bench -- [FLAGS]
+usage: cargo run --release -p gs-wgpu --example step_bench -- [FLAGS]
 
   --json                 one JSON object per line instead of the tables
   --sizes N,...          Gaussian counts (default 10000,50000,100000)
@@ -786,8 +778,7 @@ usage: cargo run --release -p gs-core --example step_bench -- [FLAGS]
   --set NAME=VALUE,...   SunAwareConfig settings: speed switches (on|off),
                          mlp_precision=f32|bf16, appearance_hidden_width=N
   --ab SWITCH            every size and image twice, the switch off then on
-  --backend B,...        cpu (default) and/or wgpu (needs --features wgpu)
-  --hybrid               on wgpu: the older host/device split, per-stage timings
+  --backend B,...        cpu (default) and/or wgpu
   --gpu-atomic           on wgpu: the float-atomic backward instead of the deterministic one
   --default-malloc       keep glibc's allocator defaults
   --child-variant I      internal: measure one configuration in this process
@@ -869,7 +860,7 @@ fn run(args: &[String]) -> Result<(), String> {
         None => vec![BackendKind::Cpu],
     };
     for b in &backends {
-        b.check_compiled_in().map_err(|e| e.to_string())?;
+        b.check_compiled_in(&ENGINES).map_err(|e| e.to_string())?;
     }
     // Every setting on every backend; the backend joins the label when there is a choice.
     let mut variants = Vec::new();

@@ -1,4 +1,4 @@
-//! Device MLP timings (feature `wgpu`): a Phi-like [37, 256, 256, 256, 3] network, forward +
+//! Device MLP timings: a Phi-like [37, 256, 256, 256, 3] network, forward +
 //! backward with the input gradient, over `--rows` rows (default 10,000):
 //! - the CPU `nn::Mlp` (f32, for scale);
 //! - the host path (`GpuMlp::forward`/`backward`: uploads of the input, the parameters and
@@ -7,20 +7,21 @@
 //!   wait);
 //! - the resident path with the batch's upload and readback.
 //!
-//! `cargo run --release -p gs-core --features wgpu --example gpu_network_bench -- [--rows N]
+//! `cargo run --release -p gs-wgpu --example gpu_network_bench -- [--rows N]
 //! [--runs N]`
 //!
 //! Wall and process CPU time per path, medians of `--runs` (default 5) alternated repeats
 //! after a warm-up. On Mesa's software Vulkan driver (lavapipe) the device columns measure a
 //! CPU emulation of a GPU: compare them only on a machine with a real one.
 
+#[path = "../../gs-core/examples/bench_util/mod.rs"]
 mod bench_util;
 use bench_util::{arg, exit_if_help, init_threads, median, process_cpu_ms};
 
-use gs_core::gpu::mlp::{DeviceBatch, DeviceNetwork};
-use gs_core::gpu::{GpuContext, GpuMlp, GpuOptions};
 use gs_core::nn::{HiddenActivation, Init, Mlp, TapeMode};
 use gs_core::rng::SplitMix64;
+use gs_wgpu::mlp::{DeviceBatch, DeviceNetwork};
+use gs_wgpu::{GpuContext, GpuMlp, GpuOptions};
 
 const USAGE: &str = "gpu_network_bench: device MLP timings, host path against resident path
 usage: gpu_network_bench [--rows N] [--runs N]

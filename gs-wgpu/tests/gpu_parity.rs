@@ -1,5 +1,5 @@
-//! Parity of the wgpu backend with the CPU path (feature `wgpu`): forward images, every
-//! gradient, the GEMM, and a short training run, on random scenes.
+//! Parity of the wgpu backend with the CPU path: forward images and every gradient of the
+//! rasterizer, and the shadow pass, on random scenes.
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1` (set by
 //! CI), where a missing adapter fails every test with the reason.
@@ -8,12 +8,8 @@
 //! two cores): a cloud in front of the camera with random sizes from sub-pixel to a
 //! tenth of the view, random rotations, opacities from 0.05 up past the 0.99 clamp,
 //! some Gaussians behind the near plane, off-screen, or with the Jacobian clamp active.
-#![cfg(feature = "wgpu")]
-
-mod common;
 
 use glam::Vec3;
-use gs_core::gpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer, GpuRenderOutput};
 use gs_core::raster::bin::{bin_tiles, PixelRect, TileGrid, TileSelection};
 use gs_core::raster::blend::{tile_contributions, AlphaMode, Splat, ENTRY_BLENDS};
 use gs_core::raster::{
@@ -22,6 +18,7 @@ use gs_core::raster::{
 };
 use gs_core::rng::SplitMix64;
 use gs_core::{Camera, Intrinsics};
+use gs_wgpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer, GpuRenderOutput};
 
 /// A context, or None (with a notice) when there is no adapter and GS_REQUIRE_GPU is
 /// not 1.
@@ -273,7 +270,7 @@ fn compare_grads(
         let again = gpu
             .render_backward(&scene.camera, &scene.settings, &gpu_f, &pg)
             .unwrap();
-        let bits = |g: &gs_core::raster::GaussianGrads| -> Vec<u32> {
+        let bits = |g: &GaussianGrads| -> Vec<u32> {
             [
                 &g.d_means,
                 &g.d_log_scales,
@@ -429,115 +426,7 @@ fn bad_inputs_are_errors() {
         .is_err());
 }
 
-/// The GPU GEMM against `nn::matmul` on the MLP's shapes (and ragged ones).
-///
-/// Tolerance: |gpu - cpu| <= 2 k eps sum_p |a_ip b_pj| + 1e-30, the classical bound on
-/// the rounding error of an f32 dot product of length k (eps = 2^-24) applied to both
-/// results; a wrong index or transpose gives errors of the size of the values themselves.
-#[test]
-fn gemm_matches_cpu() {
-    use gs_core::gpu::{GemmOp, GpuGemm};
-    use gs_core::nn::matmul::{matmul, matmul_a_bt, matmul_at_b};
-    let Some(ctx) = context(GpuOptions::default()) else {
-        return;
-    };
-    let gemm = GpuGemm::new(ctx).unwrap();
-    let mut rng = SplitMix64::new(77);
-    for (m, k, n) in [(300, 88, 256), (256, 256, 256), (37, 55, 32), (1, 3, 1)] {
-        for op in [GemmOp::AB, GemmOp::AtB, GemmOp::ABt] {
-            let a: Vec<f32> = (0..m * k).map(|_| rng.uniform(-1.0, 1.0)).collect();
-            let b: Vec<f32> = (0..k * n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-            let c0: Vec<f32> = (0..m * n).map(|_| rng.uniform(-1.0, 1.0)).collect();
-            let mut cpu = c0.clone();
-            match op {
-                GemmOp::AB => matmul(&a, &b, &mut cpu, m, k, n, true),
-                GemmOp::AtB => matmul_at_b(&a, &b, &mut cpu, k, m, n, true),
-                GemmOp::ABt => matmul_a_bt(&a, &b, &mut cpu, m, k, n, true),
-            }
-            let gpu = gemm.matmul(op, &a, &b, Some(&c0), m, k, n).unwrap();
-            let plain = gemm.matmul(op, &a, &b, None, m, k, n).unwrap();
-            let a_at = |i: usize, p: usize| match op {
-                GemmOp::AtB => a[p * m + i],
-                _ => a[i * k + p],
-            };
-            let b_at = |p: usize, j: usize| match op {
-                GemmOp::ABt => b[j * k + p],
-                _ => b[p * n + j],
-            };
-            let eps = f32::EPSILON as f64 / 2.0;
-            for i in 0..m {
-                for j in 0..n {
-                    let abs_sum: f64 = (0..k)
-                        .map(|p| (a_at(i, p) as f64 * b_at(p, j) as f64).abs())
-                        .sum::<f64>()
-                        + c0[i * n + j].abs() as f64;
-                    let tol = 2.0 * (k + 1) as f64 * eps * abs_sum + 1e-30;
-                    let idx = i * n + j;
-                    let err = (gpu[idx] as f64 - cpu[idx] as f64).abs();
-                    assert!(err <= tol, "{op:?} {m}x{k}x{n} at ({i},{j}): {err} > {tol}");
-                    let err = (plain[idx] as f64 + c0[idx] as f64 - cpu[idx] as f64).abs();
-                    assert!(err <= 2.0 * tol, "{op:?} without C at ({i},{j})");
-                }
-            }
-        }
-    }
-    assert!(gemm
-        .matmul(GemmOp::AB, &[1.0; 5], &[1.0; 6], None, 2, 3, 2)
-        .is_err());
-}
-
-/// A short training run on both backends reaches the same PSNR within 0.1 dB.
-///
-/// Same model, views, config and seed; only the rasterizer differs. The runs stay
-/// before densification (whose thresholds could flip on last-bit differences and send
-/// the runs apart); both are scored by the same CPU evaluator.
-#[test]
-fn training_reaches_the_same_psnr_on_both_backends() {
-    use gs_core::init::random_in_sphere;
-    use gs_core::train::{evaluate, train_with_backend, Backend, TrainConfig, TrainResult};
-    use gs_core::{GaussianModel, ModelLayout};
-    use std::sync::Arc;
-
-    let Some(ctx) = context(GpuOptions::default()) else {
-        return;
-    };
-    let gpu = Arc::new(GpuRasterizer::new(ctx).unwrap());
-    let gt = common::ground_truth(200, 8);
-    let views = common::ring_views(&gt, 8, 96);
-    let start = random_in_sphere(400, Vec3::ZERO, 1.0, ModelLayout::sh(0), 5)
-        .unwrap()
-        .model;
-    let config = TrainConfig {
-        iterations: 300,
-        densify_from_iter: 100_000,
-        densify_until_iter: 0,
-        opacity_reset_interval: 0,
-        seed: 3,
-        ..TrainConfig::default()
-    };
-    let psnr = |model: &GaussianModel| {
-        let scores = evaluate(model, &views, [0.0; 3]).unwrap();
-        scores.iter().map(|s| s.psnr_db).sum::<f32>() / scores.len() as f32
-    };
-    let run = |backend: Backend| -> TrainResult {
-        train_with_backend(start.clone(), &views, &config, backend, |_| {}).unwrap()
-    };
-    let t = std::time::Instant::now();
-    let cpu = run(Backend::Cpu);
-    let cpu_s = t.elapsed().as_secs_f64();
-    let t = std::time::Instant::now();
-    let wgpu = run(Backend::Wgpu(gpu));
-    let gpu_s = t.elapsed().as_secs_f64();
-    let (p0, pc, pg) = (psnr(&start), psnr(&cpu.model), psnr(&wgpu.model));
-    eprintln!(
-        "PSNR start {p0:.3} dB, cpu {pc:.3} dB ({cpu_s:.1} s), wgpu {pg:.3} dB ({gpu_s:.1} s)"
-    );
-    assert_eq!(wgpu.skipped_non_finite_steps, 0);
-    assert!(pc > p0 + 3.0, "the run did not learn: {p0} -> {pc}");
-    assert!((pc - pg).abs() <= 0.1, "cpu {pc} dB vs wgpu {pg} dB");
-}
-
-/// The GPU shadow pass against `sunaware::light::visibility_from_splats`, on splats of a
+/// The GPU shadow pass against `sunaware::sun_visibility::visibility_from_splats`, on splats of a
 /// random scene in a 128x128 light image with random receiver margins.
 ///
 /// Tolerance: |V_gpu - V_cpu| <= 1e-4 for all but 0.5% of the Gaussians, and <= 2e-2 for
@@ -547,16 +436,16 @@ fn training_reaches_the_same_psnr_on_both_backends() {
 /// receiver's V by at most that.
 #[test]
 fn shadow_visibility_matches_cpu() {
-    use gs_core::gpu::GpuShadow;
     use gs_core::raster::blend::AlphaMode;
     use gs_core::raster::{camera_frame, project_splats};
-    use gs_core::sunaware::light::visibility_from_splats;
+    use gs_core::sunaware::sun_visibility::visibility_from_splats;
+    use gs_wgpu::GpuSunVisibility;
     use std::sync::Arc;
 
     let Some(ctx) = context(GpuOptions::default()) else {
         return;
     };
-    let shadow = GpuShadow::new(Arc::new(GpuRasterizer::new(ctx).unwrap())).unwrap();
+    let shadow = GpuSunVisibility::new(Arc::new(GpuRasterizer::new(ctx).unwrap())).unwrap();
     let mut scene = random_scene(31, 2000, 3, false);
     scene.camera.intrinsics = Intrinsics::from_fov_x(1.0, 128, 128);
     let frame = camera_frame(&scene.camera, 0.2).unwrap();
@@ -585,22 +474,22 @@ fn shadow_visibility_matches_cpu() {
     }
 }
 
-/// `GpuShadow::sun_visibility` against `sunaware::light::sun_visibility` for a model, a
+/// `GpuSunVisibility::sun_visibility` against `sunaware::sun_visibility::sun_visibility` for a model, a
 /// Sun direction and both light projections (same tolerance as the splat-level test).
 #[test]
 fn sun_visibility_matches_cpu() {
-    use gs_core::gpu::GpuShadow;
     use gs_core::init::random_in_sphere;
     use gs_core::nn::SceneBox;
     use gs_core::sunaware::config::{LightConfig, LightProjection};
-    use gs_core::sunaware::light::sun_visibility;
+    use gs_core::sunaware::sun_visibility::sun_visibility;
     use gs_core::ModelLayout;
+    use gs_wgpu::GpuSunVisibility;
     use std::sync::Arc;
 
     let Some(ctx) = context(GpuOptions::default()) else {
         return;
     };
-    let shadow = GpuShadow::new(Arc::new(GpuRasterizer::new(ctx).unwrap())).unwrap();
+    let shadow = GpuSunVisibility::new(Arc::new(GpuRasterizer::new(ctx).unwrap())).unwrap();
     let model = random_in_sphere(1500, Vec3::ZERO, 1.0, ModelLayout::sh(0), 9)
         .unwrap()
         .model;
