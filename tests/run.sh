@@ -19,21 +19,18 @@ step "cargo test (unit, integration, gradient checks, fits, live UDP component)"
 if grep -qw avx512f /proc/cpuinfo; then export GS_REQUIRE_AVX512=1; fi
 if grep -qw avx512_bf16 /proc/cpuinfo; then export GS_REQUIRE_BF16=1; fi
 echo "GS_REQUIRE_AVX512=${GS_REQUIRE_AVX512:-0} GS_REQUIRE_BF16=${GS_REQUIRE_BF16:-0}"
-cargo test --workspace
+# The GPU backend's tests run in the next step, where a missing adapter is a failure.
+cargo test --workspace --exclude gs-wgpu
 
 step "GPU backend: wgpu on Mesa's software Vulkan driver (lint and CPU parity tests)"
-# Opt-in feature `wgpu`: only this step builds it. WGPU_BACKEND=vulkan keeps wgpu off the
+# The backend is crate gs-wgpu (linted above with the workspace); the component and the
+# simulator take it with their feature `wgpu`. WGPU_BACKEND=vulkan keeps wgpu off the
 # OpenGL path; GS_REQUIRE_GPU=1 makes a missing adapter fail the tests, never skip them.
 bash tests/gpu/setup.sh
-cargo clippy -p gs-core -p gs-online -p fsw-component --features wgpu --all-targets -- -D warnings
-GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_parity
-GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_sunaware
-GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_resident
-GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_networks
-GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_network_io
-GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-core --features wgpu --test gpu_shadow
-# The online trainer's rounds on the device (device-resident Sun-aware batches).
-GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-online --features wgpu --test online_wgpu
+cargo clippy -p fsw-component -p sim-harness --features wgpu --all-targets -- -D warnings
+# Parity with the CPU (rasterizer, shadow pass, networks, the resident Sun-aware step) and
+# the online trainer's rounds on the device.
+GS_REQUIRE_GPU=1 WGPU_BACKEND=vulkan cargo test -p gs-wgpu
 
 step "python test environment"
 python=$(bash tests/setup_venv.sh)

@@ -15,7 +15,7 @@ use gs_core::Intrinsics;
 use interfaces::messages::{CameraModel, FrameHeader};
 
 /// Largest width of predictions rendered on RENDER before any camera frame arrived.
-pub const RENDER_MAX_WIDTH_PX: u32 = 64;
+pub(crate) const RENDER_MAX_WIDTH_PX: u32 = 64;
 
 /// A frame without a camera model whose size is not the configured camera's.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -50,7 +50,7 @@ pub fn from_model(model: &CameraModel, width: u16, height: u16) -> Intrinsics {
 }
 
 /// The intrinsics a frame is used with (see the module header for the rule).
-pub fn for_frame(
+pub(crate) fn for_frame(
     configured: &Intrinsics,
     header: &FrameHeader,
     model: Option<&CameraModel>,
@@ -72,7 +72,7 @@ pub fn for_frame(
 
 /// The configured camera reduced by the smallest integer factor that makes it at most
 /// [`RENDER_MAX_WIDTH_PX`] wide: what RENDER uses before any frame told it the size.
-pub fn render_default(configured: &Intrinsics) -> Intrinsics {
+pub(crate) fn render_default(configured: &Intrinsics) -> Intrinsics {
     let factor = configured.width.div_ceil(RENDER_MAX_WIDTH_PX).max(1);
     if factor == 1 || configured.height / factor == 0 {
         return *configured;

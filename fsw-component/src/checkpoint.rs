@@ -53,7 +53,7 @@ pub fn temporary_path(path: &Path) -> PathBuf {
 }
 
 /// `<path>.prev`: the slot of the checkpoint before the newest.
-pub fn previous_path(path: &Path) -> PathBuf {
+pub(crate) fn previous_path(path: &Path) -> PathBuf {
     sibling(path, ".prev")
 }
 

@@ -23,11 +23,11 @@ use std::fmt;
 /// Largest Cyphal/CAN node-ID.
 const MAX_NODE_ID: u8 = 127;
 /// Upper bound of `arm_timeout_ms`: an arm must not outlive an operator's attention.
-pub const MAX_ARM_TIMEOUT_MS: u64 = 600_000;
+pub(crate) const MAX_ARM_TIMEOUT_MS: u64 = 600_000;
 /// Upper bound of `render_burst` (the command queue holds 16 by default).
-pub const MAX_RENDER_BURST: u32 = 64;
+pub(crate) const MAX_RENDER_BURST: u32 = 64;
 /// Upper bound of `render_max_pixels` (the largest UDP camera frame is ~1 MiB).
-pub const MAX_RENDER_PIXELS: u32 = 1 << 20;
+pub(crate) const MAX_RENDER_PIXELS: u32 = 1 << 20;
 
 /// The receiving UDP socket a datagram came in on.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -40,7 +40,7 @@ pub enum UdpIngress {
 
 /// Where a command came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum CommandSource {
+pub(crate) enum CommandSource {
     /// `node_id` is `None` for anonymous transfers.
     Can { node_id: Option<u8> },
     Udp {
@@ -158,7 +158,7 @@ impl Default for CommandPolicy {
 
 /// Why a command from an authorised source was refused.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Refusal {
+pub(crate) enum Refusal {
     /// A destructive command without a valid ARM from the same source.
     NotArmed,
     /// RENDER above the rate limit.
@@ -202,7 +202,7 @@ impl CommandGate {
     }
 
     /// Whether `source` may command at all (checked before the bytes are decoded).
-    pub fn authorises(&self, source: CommandSource) -> bool {
+    pub(crate) fn authorises(&self, source: CommandSource) -> bool {
         match source {
             CommandSource::Can { node_id: None } => false,
             CommandSource::Can {
@@ -224,7 +224,7 @@ impl CommandGate {
     }
 
     /// Arming, arm checks and rate limits for a decoded command from an authorised source.
-    pub fn admit(
+    pub(crate) fn admit(
         &mut self,
         kind: &CommandKind,
         source: CommandSource,
@@ -285,7 +285,7 @@ impl CommandGate {
 
     /// The smallest integer factor that brings a RENDER image of the camera frame's size
     /// within `render_max_pixels` (each side at least 1 pixel).
-    pub fn render_downsample(&self, width: u16, height: u16) -> u16 {
+    pub(crate) fn render_downsample(&self, width: u16, height: u16) -> u16 {
         let max = u64::from(self.policy.render_max_pixels);
         let pixels = |k: u16| u64::from((width / k).max(1)) * u64::from((height / k).max(1));
         let mut k = 1u16;

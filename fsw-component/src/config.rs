@@ -23,17 +23,17 @@ use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::{Path, PathBuf};
 
 /// Largest Cyphal/CAN node-ID.
-pub const MAX_NODE_ID: u8 = 127;
+pub(crate) const MAX_NODE_ID: u8 = 127;
 /// Linux interface names are at most IFNAMSIZ - 1 = 15 bytes.
-pub const MAX_INTERFACE_NAME_BYTES: usize = 15;
+pub(crate) const MAX_INTERFACE_NAME_BYTES: usize = 15;
 /// Largest `[can] prediction_max_bytes`: 64 KiB, about 1,040 CAN FD frames.
-pub const MAX_PREDICTION_CAN_BYTES: usize = 1 << 16;
+pub(crate) const MAX_PREDICTION_CAN_BYTES: usize = 1 << 16;
 /// Default `[can] prediction_max_bytes`: 4 KiB, 66 CAN FD frames (a 32x32 RGB image).
-pub const DEFAULT_PREDICTION_CAN_BYTES: usize = 4096;
+pub(crate) const DEFAULT_PREDICTION_CAN_BYTES: usize = 4096;
 /// Upper bound of `training.passes_per_round`: a round must still end within minutes.
-pub const MAX_PASSES_PER_ROUND: u32 = 100;
+pub(crate) const MAX_PASSES_PER_ROUND: u32 = 100;
 /// Range of `training.round_deadline_ms`: 100 ms to one hour.
-pub const ROUND_DEADLINE_MS_RANGE: std::ops::RangeInclusive<u64> = 100..=3_600_000;
+pub(crate) const ROUND_DEADLINE_MS_RANGE: std::ops::RangeInclusive<u64> = 100..=3_600_000;
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -622,7 +622,7 @@ impl ComponentConfig {
             .backend
             .parse()
             .map_err(|e: SunAwareError| invalid("training.backend", e.to_string()))?;
-        kind.check_compiled_in()
+        kind.check_compiled_in(&crate::engines::device_engines())
             .map_err(|e| invalid("training.backend", e.to_string()))?;
         Ok(kind)
     }

@@ -17,9 +17,9 @@ use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
 /// A telemetry source node-ID meaning "any node" (the Cyphal value for an unset node-ID).
-pub const ANY_NODE: u16 = 0xFFFF;
+pub(crate) const ANY_NODE: u16 = 0xFFFF;
 /// Largest subject-ID outside the ranges reserved for fixed port-IDs.
-pub const MAX_DYNAMIC_SUBJECT_ID: u16 = 6143;
+pub(crate) const MAX_DYNAMIC_SUBJECT_ID: u16 = 6143;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -85,7 +85,7 @@ pub enum Direction {
 /// One catalogue message on CAN: its register name (`uavcan.pub|sub.<name>.id`), the ICD
 /// port number (the subject-ID default and the UDP APID) and its type name.
 #[derive(Clone, Copy, Debug)]
-pub struct PortSpec {
+pub(crate) struct PortSpec {
     pub name: &'static str,
     pub icd_port: u16,
     pub direction: Direction,
@@ -107,7 +107,7 @@ fn type_name<M: Message>() -> String {
 }
 
 /// Every port, subscriptions first; the order of the subject-ID fields.
-pub const PORTS: [PortSpec; 8] = [
+pub(crate) const PORTS: [PortSpec; 8] = [
     PortSpec {
         name: "sun_vector",
         icd_port: port::SUN_VECTOR,
@@ -201,13 +201,13 @@ impl SubjectIds {
     }
 
     /// The configured subject-ID of the message with ICD port `icd_port`.
-    pub fn subject_of(&self, icd_port: u16) -> Option<u16> {
+    pub(crate) fn subject_of(&self, icd_port: u16) -> Option<u16> {
         let index = PORTS.iter().position(|p| p.icd_port == icd_port)?;
         self.get(index)
     }
 
     /// The ICD port of the message configured on subject `subject_id`.
-    pub fn icd_port_of(&self, subject_id: u16) -> Option<u16> {
+    pub(crate) fn icd_port_of(&self, subject_id: u16) -> Option<u16> {
         let index = self.as_array().iter().position(|&s| s == subject_id)?;
         Some(PORTS[index].icd_port)
     }
@@ -280,7 +280,7 @@ impl CyphalConfig {
 
     /// Whether a telemetry transfer on ICD port `icd_port` from `source` is taken: Sun
     /// vectors from the AOCS node, poses from the navigation node (when configured).
-    pub fn accepts_source(&self, icd_port: u16, source: Option<u8>) -> bool {
+    pub(crate) fn accepts_source(&self, icd_port: u16, source: Option<u8>) -> bool {
         let wanted = match icd_port {
             port::SUN_VECTOR => self.aocs_node_id,
             port::TARGET_POSE => self.navigation_node_id,

@@ -13,7 +13,7 @@ pub fn memory_bytes() -> Option<u64> {
 }
 
 /// `VmRSS:   123456 kB` -> bytes.
-pub fn parse_vm_rss_bytes(status: &str) -> Option<u64> {
+pub(crate) fn parse_vm_rss_bytes(status: &str) -> Option<u64> {
     let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
     let mut fields = line["VmRSS:".len()..].split_whitespace();
     let value: u64 = fields.next()?.parse().ok()?;

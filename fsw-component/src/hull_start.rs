@@ -27,11 +27,11 @@ use gs_online::online::Frame;
 use serde::{Deserialize, Serialize};
 
 /// Masked keyframes needed to carve (one view only bounds a cone).
-pub const MIN_HULL_VIEWS: usize = 2;
+pub(crate) const MIN_HULL_VIEWS: usize = 2;
 /// Colour of hull points no keyframe sees on the target.
 pub const GREY: [f32; 3] = [0.5; 3];
 /// Largest `model.hull_resolution` (the hull module's voxel limit is 320^3).
-pub const MAX_HULL_RESOLUTION: u32 = 320;
+pub(crate) const MAX_HULL_RESOLUTION: u32 = 320;
 
 /// `[model]`: how the model starts.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

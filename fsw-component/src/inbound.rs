@@ -43,10 +43,10 @@ use std::sync::Arc;
 
 /// Bytes per CCSDS reassembly slot: the largest camera frame message accepted over UDP.
 pub const UDP_SLOT_BYTES: usize = 1 << 20;
-pub const UDP_SLOTS: usize = 4;
+pub(crate) const UDP_SLOTS: usize = 4;
 /// Bytes per Cyphal reassembly slot (telemetry, commands, small frames on CAN FD).
-pub const CAN_SLOT_BYTES: usize = 16 * 1024;
-pub const CAN_SLOTS: usize = 16;
+pub(crate) const CAN_SLOT_BYTES: usize = 16 * 1024;
+pub(crate) const CAN_SLOTS: usize = 16;
 const ERROR_EVENT_INTERVAL_US: u64 = 1_000_000;
 
 fn is_inbound_port(port_id: u16) -> bool {
@@ -232,7 +232,7 @@ impl BusCore {
 
     /// Takes CAN messages on the configured subject-IDs (and telemetry only from the
     /// configured source nodes) instead of the ICD defaults; `can_ports` is validated.
-    pub fn with_can_ports(mut self, can_ports: &CyphalConfig) -> Self {
+    pub(crate) fn with_can_ports(mut self, can_ports: &CyphalConfig) -> Self {
         let mut subjects = SubjectSet::default();
         for (spec, id) in PORTS.iter().zip(can_ports.subjects.as_array()) {
             if spec.direction == Direction::Subscribe && spec.always {
@@ -247,7 +247,7 @@ impl BusCore {
 
     /// A service request to this node that failed reassembly or decoding: counted, and an
     /// error event (rate-limited like the others).
-    pub fn count_service_request_rejected(&mut self, crc: bool) {
+    pub(crate) fn count_service_request_rejected(&mut self, crc: bool) {
         self.counters.service_requests_rejected += 1;
         self.error_event(if crc {
             ErrorCode::CrcError
@@ -275,7 +275,7 @@ impl BusCore {
 
     /// A prediction too large for CAN FD went on UDP only; `first` sends the run's one
     /// `PredictionNotOnCan` event (detail: its encoded size, bytes).
-    pub fn prediction_not_on_can(&mut self, encoded_bytes: usize, first: bool) {
+    pub(crate) fn prediction_not_on_can(&mut self, encoded_bytes: usize, first: bool) {
         self.counters.predictions_not_on_can += 1;
         if first {
             self.push_event(EventKind::Error {
@@ -286,14 +286,14 @@ impl BusCore {
     }
 
     /// A socket receive error; true for the first one (worth a log line).
-    pub fn count_receive_error(&mut self) -> bool {
+    pub(crate) fn count_receive_error(&mut self) -> bool {
         self.counters.receive_errors += 1;
         self.error_event(ErrorCode::Internal);
         self.counters.receive_errors == 1
     }
 
     /// Datagrams the transport dropped as oversized (reported as decode errors).
-    pub fn count_oversized_datagrams(&mut self, count: u64) {
+    pub(crate) fn count_oversized_datagrams(&mut self, count: u64) {
         if count > 0 {
             self.counters.oversized_datagrams += count;
             self.error_event(ErrorCode::DecodeError);
@@ -580,7 +580,7 @@ impl BusCore {
     }
 
     /// Acknowledgements produced later by the trainer thread.
-    pub fn worker_ack(&mut self, ack: CommandAck) {
+    pub(crate) fn worker_ack(&mut self, ack: CommandAck) {
         if ack.status != AckStatus::Ok {
             // Counted as accepted when queued; the model then failed to execute it.
             self.counters.commands_rejected += 1;
@@ -614,7 +614,7 @@ impl BusCore {
     }
 
     /// The learner was restarted: back to the mode the fault interrupted.
-    pub fn trainer_restored(&mut self) {
+    pub(crate) fn trainer_restored(&mut self) {
         if let Some(mode) = self.mode_after_restart.take() {
             self.set_mode(mode);
         }

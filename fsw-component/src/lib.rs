@@ -6,6 +6,7 @@ pub mod checkpoint;
 pub mod cmdauth;
 pub mod config;
 pub mod cyphal_config;
+pub mod engines;
 pub mod health;
 pub mod hull_start;
 pub mod inbound;

@@ -31,7 +31,7 @@ pub enum SaveOutcome {
 
 /// What a load did.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum LoadOutcome {
+pub(crate) enum LoadOutcome {
     /// Loaded; `fell_back` when the newest slot was refused and the previous one used.
     Loaded { rounds: u64, fell_back: bool },
     /// No checkpoint file exists.
@@ -42,7 +42,7 @@ pub enum LoadOutcome {
 
 impl LoadOutcome {
     /// The `CheckpointLoadFailed` event detail this outcome calls for, if any.
-    pub fn failure_detail(&self) -> Option<u32> {
+    pub(crate) fn failure_detail(&self) -> Option<u32> {
         match self {
             Self::Loaded {
                 fell_back: true, ..
@@ -91,7 +91,7 @@ impl ModelStore {
 
     /// RESET_MODEL: the operator discarded the model, so the next save may replace the
     /// trained one on disk (which then stays as the previous slot until the save after).
-    pub fn allow_replacing(&mut self) {
+    pub(crate) fn allow_replacing(&mut self) {
         self.floor_rounds = 0;
     }
 
@@ -127,7 +127,7 @@ impl ModelStore {
     }
 
     /// Loads the newest slot `learner` accepts.
-    pub fn load_newest(&self, learner: &mut dyn Learner) -> LoadOutcome {
+    pub(crate) fn load_newest(&self, learner: &mut dyn Learner) -> LoadOutcome {
         let mut found_any = false;
         for (index, slot) in checkpoint::slots(&self.path).iter().enumerate() {
             let Ok(Some(bytes)) = checkpoint::read(slot) else {

@@ -33,10 +33,10 @@ use interfaces::cyphal::{
 use interfaces::messages::{HealthStatus, Mode};
 
 /// Heartbeats between two port lists (uavcan.node.port.List: at most every 10 s).
-pub const PORT_LIST_EVERY_HEARTBEATS: u64 = 10;
+pub(crate) const PORT_LIST_EVERY_HEARTBEATS: u64 = 10;
 /// Services the component serves without registers, and with them.
-pub const SERVED_SERVICES: [u16; 1] = [GET_INFO_SERVICE_ID];
-pub const SERVED_SERVICES_WITH_REGISTERS: [u16; 3] =
+pub(crate) const SERVED_SERVICES: [u16; 1] = [GET_INFO_SERVICE_ID];
+pub(crate) const SERVED_SERVICES_WITH_REGISTERS: [u16; 3] =
     [ACCESS_SERVICE_ID, LIST_SERVICE_ID, GET_INFO_SERVICE_ID];
 
 /// What GetInfo reports about this node.
@@ -63,7 +63,7 @@ pub struct NodeStatus {
 
 impl NodeStatus {
     /// From the 1 Hz health status and the core's send-error counter.
-    pub fn from_health(status: &HealthStatus, send_errors: u64) -> Self {
+    pub(crate) fn from_health(status: &HealthStatus, send_errors: u64) -> Self {
         Self {
             mode: status.mode,
             uptime_s: status.uptime_s,
@@ -154,7 +154,7 @@ impl CyphalNode {
 
     /// Lists `subject_id` as published too (predictions on CAN FD), before the first
     /// heartbeat: the ports are fixed at start.
-    pub fn publish_also(&mut self, subject_id: u16) {
+    pub(crate) fn publish_also(&mut self, subject_id: u16) {
         if !self.published.contains(&subject_id) {
             self.published.push(subject_id);
         }
@@ -346,7 +346,7 @@ pub fn parse_unique_id(text: &str) -> Option<[u8; 16]> {
 /// The unique-ID when none is configured: /etc/machine-id (128 bits, per machine) with the
 /// node-ID XORed into the last byte so that two components on one machine differ; without
 /// that file, FNV-1a of the name and node-ID (stable, but unique only per name and node-ID).
-pub fn derived_unique_id(name: &str, node_id: u8) -> [u8; 16] {
+pub(crate) fn derived_unique_id(name: &str, node_id: u8) -> [u8; 16] {
     let machine = std::fs::read_to_string("/etc/machine-id")
         .ok()
         .and_then(|text| parse_unique_id(text.trim()));

@@ -270,7 +270,7 @@ impl Registers {
     }
 
     /// The name at `index` for `List`, `None` past the last.
-    pub fn name_at(&self, index: u16) -> Option<&str> {
+    pub(crate) fn name_at(&self, index: u16) -> Option<&str> {
         self.table.get(usize::from(index)).map(|(n, _)| n.as_str())
     }
 
@@ -359,7 +359,7 @@ fn write_register_file(
 }
 
 /// Applies `[cyphal] register_file` over `config` (nothing when unset or not yet written).
-pub fn apply_register_file(config: &mut ComponentConfig) -> Result<(), ConfigError> {
+pub(crate) fn apply_register_file(config: &mut ComponentConfig) -> Result<(), ConfigError> {
     let path = config.cyphal.register_file.clone();
     if path.as_os_str().is_empty() || !path.exists() {
         return Ok(());

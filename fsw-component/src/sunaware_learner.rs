@@ -49,9 +49,9 @@ use interfaces::messages::{EventKind, InitSource, PixelFormat};
 
 pub const CHECKPOINT_MAGIC: &[u8; 8] = b"FSWSAL02";
 /// Version 1: the model and round count only.
-pub const CHECKPOINT_MAGIC_V1: &[u8; 8] = b"FSWSAL01";
+pub(crate) const CHECKPOINT_MAGIC_V1: &[u8; 8] = b"FSWSAL01";
 /// Largest frame a checkpoint's window may hold, in pixels (16 Mpx: 4096 x 4096).
-pub const MAX_CHECKPOINT_FRAME_PIXELS: usize = 1 << 24;
+pub(crate) const MAX_CHECKPOINT_FRAME_PIXELS: usize = 1 << 24;
 
 /// What to do when a checkpoint's model configuration differs from the configured one.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -72,7 +72,7 @@ pub struct SunAwareSettings {
     pub model: ModelSettings,
     /// Where the rasterizer and the shadow pass run (`[training] backend`, opened by the
     /// runtime); the networks and Adam stay on the CPU. Not saved in checkpoints.
-    pub backend: gs_core::train::Backend,
+    pub backend: gs_core::engine::Backend,
     /// `[checkpoint] on_config_mismatch`.
     pub on_config_mismatch: OnConfigMismatch,
 }
@@ -88,7 +88,7 @@ impl SunAwareSettings {
                 ..OnlineConfig::default()
             },
             model: ModelSettings::default(),
-            backend: gs_core::train::Backend::Cpu,
+            backend: gs_core::engine::Backend::Cpu,
             on_config_mismatch: OnConfigMismatch::Refuse,
         }
     }

@@ -398,7 +398,7 @@ impl Synchronizer {
     }
 
     /// Drops one stream's buffered telemetry (after a clock jump; counters are kept).
-    pub fn clear_stream(&mut self, stream: Stream) {
+    pub(crate) fn clear_stream(&mut self, stream: Stream) {
         match stream {
             Stream::Pose => self.poses.clear(),
             Stream::Sun => self.suns.clear(),

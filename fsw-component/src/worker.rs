@@ -65,7 +65,7 @@ pub struct FrameJob {
 
 /// Commands that need the model.
 #[derive(Clone, Debug)]
-pub enum ModelCommand {
+pub(crate) enum ModelCommand {
     ResetModel,
     SaveCheckpoint,
     LoadCheckpoint,
@@ -73,7 +73,7 @@ pub enum ModelCommand {
 }
 
 #[derive(Clone, Debug)]
-pub struct CommandJob {
+pub(crate) struct CommandJob {
     pub sequence: u32,
     pub opcode: u32,
     pub command: ModelCommand,
@@ -93,7 +93,7 @@ pub struct Prediction {
 }
 
 /// Panics in a row (no job completing in between) after which the trainer gives up.
-pub const MAX_CONSECUTIVE_PANICS: u32 = 3;
+pub(crate) const MAX_CONSECUTIVE_PANICS: u32 = 3;
 
 /// Acknowledgements, events and supervision notices from the worker.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -168,7 +168,7 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     // A panic elsewhere must not take the bus side down with it: keep using the data.
     mutex
         .lock()
-        .unwrap_or_else(|poisoned| poisoned.into_inner())
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Queue depths and drop counts, for health.
@@ -219,7 +219,7 @@ impl WorkerShared {
     }
 
     /// Queues a model command; `Err(job)` when the queue is full (acknowledge BUSY).
-    pub fn push_command(&self, job: CommandJob) -> Result<(), CommandJob> {
+    pub(crate) fn push_command(&self, job: CommandJob) -> Result<(), CommandJob> {
         let mut q = lock(&self.queues);
         if q.commands >= self.limits.commands {
             return Err(job);
@@ -237,7 +237,7 @@ impl WorkerShared {
     }
 
     /// True when nothing is queued and the worker is not running a job.
-    pub fn is_idle(&self) -> bool {
+    pub(crate) fn is_idle(&self) -> bool {
         let q = lock(&self.queues);
         q.jobs.is_empty() && !lock(&self.snapshot).busy
     }
@@ -267,7 +267,7 @@ impl WorkerShared {
 
     /// The watchdog: true once for a job that has run past the round deadline (the bus
     /// side polls it at least every housekeeping tick and sends the event).
-    pub fn overdue_job(&self) -> bool {
+    pub(crate) fn overdue_job(&self) -> bool {
         let mut started = lock(&self.job_started);
         match started.as_mut() {
             Some((at, reported)) if !*reported && at.elapsed() > self.round_deadline => {
@@ -281,7 +281,7 @@ impl WorkerShared {
     }
 
     /// RESET_COUNTERS: zero the worker-side counters (model figures stay).
-    pub fn reset_counters(&self) {
+    pub(crate) fn reset_counters(&self) {
         let mut q = lock(&self.queues);
         q.frames_dropped = 0;
         q.predictions_dropped = 0;
@@ -354,7 +354,7 @@ impl Worker {
             .name("trainer".into())
             .spawn(move || {
                 fpmode::set_for_current_thread(denormals);
-                pool.install(|| run(learner, &thread_shared, &checkpoints))
+                pool.install(|| run(learner, &thread_shared, &checkpoints));
             })?;
         Ok(Self {
             shared,
@@ -392,8 +392,7 @@ fn next_job(shared: &WorkerShared, wait: Duration) -> Option<Option<Job>> {
         q = shared
             .work_ready
             .wait_timeout(q, wait)
-            .map(|(guard, _)| guard)
-            .unwrap_or_else(|poisoned| poisoned.into_inner().0);
+            .map_or_else(|poisoned| poisoned.into_inner().0, |(guard, _)| guard);
     }
     let job = q.jobs.pop_front();
     match &job {
@@ -507,7 +506,7 @@ fn restart(
 
 /// Events for a load: `CheckpointLoaded`, a `CheckpointLoadFailed` when the newest slot was
 /// refused or none was usable, `ModelReset` when the model starts afresh.
-pub fn load_events(outcome: LoadOutcome) -> Vec<EventKind> {
+pub(crate) fn load_events(outcome: LoadOutcome) -> Vec<EventKind> {
     let mut events = Vec::new();
     if let Some(detail) = outcome.failure_detail() {
         events.push(EventKind::Error {

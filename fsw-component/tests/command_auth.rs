@@ -8,7 +8,7 @@ mod component_support;
 use component_support::*;
 use fsw_component::config::ComponentConfig;
 use fsw_component::inbound::{BusCore, CoreSettings, Outgoing};
-use fsw_component::runtime::{build_learner, start, LearnerKind};
+use fsw_component::runtime::{build_learner, LearnerKind};
 use fsw_component::worker::{CheckpointSettings, QueueLimits, Worker};
 use interfaces::cyphal::{transfer_frames, MessageCanId, Mtu, Priority, TransferHeader};
 use interfaces::messages::{
@@ -296,13 +296,7 @@ async fn udp_commands_only_as_telecommands_on_the_command_socket() {
     let dir = temp_dir("cmdauth-udp");
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     // To the camera-frame socket, and as a telemetry packet to the command socket.
     peer.command(1, CommandKind::Noop, handle.frames_addr).await;
     let as_telemetry = peer.raw_packets(port::COMMAND, &command_bytes(2, CommandKind::Noop));
@@ -341,13 +335,7 @@ async fn render_size_is_bounded_for_large_camera_frames() {
     let dir = temp_dir("cmdauth-render");
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     for k in 0..2 {
         send_step(&mut peer, k, &handle).await;
     }

@@ -4,7 +4,7 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::runtime::{build_learner, start, ComponentHandle, LearnerKind};
+use fsw_component::runtime::{ComponentHandle, LearnerKind};
 use interfaces::messages::{port, AckStatus, CameraFrame, CommandKind, PredictionSource};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
@@ -98,13 +98,7 @@ async fn bad_input_is_counted_and_neither_the_model_nor_valid_messages_are_lost(
     let checkpoint = dir.join("checkpoint.bin");
     let mut peer = Peer::new().await;
     let config = peer.config(checkpoint.clone());
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     let (frames, telemetry) = (handle.frames_addr, handle.telemetry_addr);
     for k in 0..6 {
         send_step(&mut peer, k, &handle).await;
@@ -312,9 +306,7 @@ async fn flood_loses_no_valid_message(learner: LearnerKind, name: &str) {
     let dir = temp_dir(name);
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let handle = start(&config, build_learner(&config, learner).unwrap(), None)
-        .await
-        .unwrap();
+    let handle = start_component(&config, learner, None).await;
     for k in 0..5 {
         send_step(&mut peer, k, &handle).await;
     }

@@ -16,9 +16,9 @@
 
 mod component_support;
 
-use component_support::{set_camera, temp_dir, Peer};
+use component_support::{set_camera, start_component, temp_dir, Peer};
 use fsw_component::config::ComponentConfig;
-use fsw_component::runtime::{build_learner, start, ComponentHandle, LearnerKind};
+use fsw_component::runtime::{ComponentHandle, LearnerKind};
 use glam::DQuat;
 use interfaces::messages::{
     AckStatus, CameraFrame, CameraModel, CommandKind, Distortion, ErrorCode, EventKind,
@@ -161,8 +161,7 @@ fn lit(t: u64) -> SunVector {
 async fn mismatched_frames_are_rejected_with_an_event_and_own_cameras_are_used() {
     let mut peer = Peer::new().await;
     let config = config(&peer, "camera-mismatch", "random");
-    let learner = build_learner(&config, LearnerKind::SunAware).unwrap();
-    let handle = start(&config, learner, None).await.unwrap();
+    let handle = start_component(&config, LearnerKind::SunAware, None).await;
     let (rgb, _) = sphere_image(20, 50.0, 10.0, 10.0, 200);
     // 20x20 without a camera model: not the configured 64x64.
     let wrong = CameraFrame {
@@ -243,8 +242,7 @@ async fn predictions_use_the_configured_principal_point() {
         config.camera.cx_px = cx;
         // A start the size of the target, so its image is a compact blob.
         config.model.target_radius_m = RADIUS_M as f32;
-        let learner = build_learner(&config, LearnerKind::SunAware).unwrap();
-        let handle = start(&config, learner, None).await.unwrap();
+        let handle = start_component(&config, LearnerKind::SunAware, None).await;
         let (rgb, _) = sphere_image(SIZE, FOCAL_PX, cx, 32.0, 200);
         let frame = CameraFrame {
             header: header(0, SIZE),
@@ -285,8 +283,7 @@ async fn run_sphere(
     frames: u32,
     with_masks: bool,
 ) -> ComponentHandle {
-    let learner = build_learner(config, LearnerKind::SunAware).unwrap();
-    let handle = start(config, learner, None).await.unwrap();
+    let handle = start_component(config, LearnerKind::SunAware, None).await;
     let (rgb, mask) = sphere_image(SIZE, FOCAL_PX, 32.0, 32.0, 180);
     for k in 0..frames {
         let frame = CameraFrame {
@@ -366,8 +363,7 @@ async fn without_masks_the_random_start_stays_with_an_event() {
 async fn eclipse_flags_and_masked_unlit_frames_are_skipped() {
     let mut peer = Peer::new().await;
     let config = config(&peer, "camera-eclipse", "random");
-    let learner = build_learner(&config, LearnerKind::SunAware).unwrap();
-    let handle = start(&config, learner, None).await.unwrap();
+    let handle = start_component(&config, LearnerKind::SunAware, None).await;
     let (rgb, mask) = sphere_image(SIZE, FOCAL_PX, 32.0, 32.0, 180);
     let (dark, _) = sphere_image(SIZE, FOCAL_PX, 32.0, 32.0, 1);
     let frame = |k: u32, pixels: &'static [u8], mask: Option<&'static [u8]>| CameraFrame {

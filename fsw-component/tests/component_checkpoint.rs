@@ -3,7 +3,7 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::runtime::{build_learner, start, LearnerKind};
+use fsw_component::runtime::LearnerKind;
 use interfaces::messages::{event_detail, AckStatus, CommandKind, ErrorCode, EventKind};
 use std::time::Duration;
 
@@ -14,13 +14,7 @@ async fn periodic_checkpoints_and_resume_on_start() {
     let mut peer = Peer::new().await;
     let mut config = peer.config(checkpoint.clone());
     config.checkpoint.period_s = 1;
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     for k in 0..6 {
         send_step(&mut peer, k, &handle).await;
     }
@@ -44,20 +38,14 @@ async fn periodic_checkpoints_and_resume_on_start() {
     let peer = Peer::new().await;
     let mut config = peer.config(checkpoint.clone());
     config.checkpoint.resume = true;
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     assert!(
         peer.wait_for(Duration::from_secs(3), |r| r.last_health().is_some_and(
             |h| h.rounds == 3 && h.window_fill == 4 && h.frames_received == 0
         ))
         .await,
         "not resumed: {:?}",
-        peer.snapshot(|r| r.last_health())
+        peer.snapshot(Received::last_health)
     );
     assert!(peer.snapshot(|r| r
         .events
@@ -74,13 +62,7 @@ async fn periodic_checkpoints_and_resume_on_start() {
     let peer = Peer::new().await;
     let mut config = peer.config(checkpoint.clone());
     config.checkpoint.resume = true;
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     assert!(
         peer.wait_for(Duration::from_secs(3), |r| r.events.iter().any(|e| e.kind
             == EventKind::Error {
@@ -109,8 +91,7 @@ async fn start_on(
     let mut config = peer.config(checkpoint.to_path_buf());
     config.checkpoint.resume = resume;
     config.checkpoint.period_s = period_s;
-    let learner = build_learner(&config, LearnerKind::NearestKeyframe).unwrap();
-    let handle = start(&config, learner, None).await.unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     (peer, handle)
 }
 

@@ -35,13 +35,7 @@ async fn live_scenario_predictions_health_and_commands() {
     let dir = temp_dir("live");
     let mut peer = Peer::new().await;
     let config = peer.config(dir.join("checkpoint.bin"));
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     let telemetry = handle.telemetry_addr;
 
     for k in 0..8 {
@@ -54,7 +48,7 @@ async fn live_scenario_predictions_health_and_commands() {
                 peer.wait_for(WAIT, |r| prediction_for(r, k).is_some())
                     .await,
                 "no prediction for frame {k}: {:?} {:?} {:?}",
-                peer.snapshot(|r| r.last_health()),
+                peer.snapshot(Received::last_health),
                 peer.snapshot(|r| r.events.clone()),
                 handle.counters()
             );

@@ -8,7 +8,7 @@ use component_support::*;
 use fsw_component::logfmt::candump::{CanId, CanLogFrame, CanLogRecord, CanLogWriter, FrameData};
 use fsw_component::logfmt::udprec::{UdpRecord, UdpRecordingWriter};
 use fsw_component::outbound::{CanFramer, UdpFramer};
-use fsw_component::runtime::{build_learner, run_replay, start, LearnerKind, ReplaySpeed};
+use fsw_component::runtime::{build_learner, run_replay, LearnerKind, ReplaySpeed};
 use interfaces::messages::{AckStatus, Command, CommandKind};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -102,13 +102,7 @@ async fn live_and_replayed_scenarios_give_the_same_model() {
     let live_checkpoint = dir.join("live.bin");
     let config = peer.config(live_checkpoint.clone());
     let record = dir.join("record");
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        Some(record.clone()),
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, Some(record.clone())).await;
     let started = Instant::now();
     for k in 0..STEPS {
         send_step(&mut peer, k, &handle).await;

@@ -6,7 +6,7 @@
 mod component_support;
 
 use component_support::*;
-use fsw_component::runtime::{build_learner, run_replay, start, LearnerKind, ReplaySpeed};
+use fsw_component::runtime::{build_learner, run_replay, LearnerKind, ReplaySpeed};
 use interfaces::messages::{AckStatus, CommandKind, PredictionSource};
 use std::time::{Duration, Instant};
 
@@ -19,8 +19,7 @@ async fn sun_aware_trainer_live_checkpoint_and_replay() {
     let checkpoint = dir.join("live.bin");
     let config = peer.config(checkpoint.clone());
     let record = dir.join("record");
-    let learner = build_learner(&config, LearnerKind::SunAware).unwrap();
-    let handle = start(&config, learner, Some(record.clone())).await.unwrap();
+    let handle = start_component(&config, LearnerKind::SunAware, Some(record.clone())).await;
     for k in 0..STEPS {
         send_step(&mut peer, k, &handle).await;
         let deadline = Instant::now() + Duration::from_secs(60);

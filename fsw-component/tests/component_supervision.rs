@@ -52,7 +52,7 @@ async fn wait_rounds(peer: &Peer, at_least: u32) {
             .is_some_and(|h| h.rounds >= at_least))
             .await,
         "rounds stayed below {at_least}: {:?}",
-        peer.snapshot(|r| r.last_health())
+        peer.snapshot(Received::last_health)
     );
 }
 

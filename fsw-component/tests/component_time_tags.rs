@@ -5,8 +5,8 @@
 mod component_support;
 
 use component_support::*;
+use fsw_component::runtime::ComponentHandle;
 use fsw_component::runtime::LearnerKind;
-use fsw_component::runtime::{build_learner, start, ComponentHandle};
 use interfaces::messages::{CameraFrame, ErrorCode, EventKind, PredictionSource};
 use std::time::Duration;
 
@@ -86,13 +86,7 @@ fn has_error_event(peer: &Peer, code: ErrorCode) -> bool {
 async fn started(peer: &Peer, name: &str) -> (ComponentHandle, std::path::PathBuf) {
     let dir = temp_dir(name);
     let config = peer.config(dir.join("checkpoint.bin"));
-    let handle = start(
-        &config,
-        build_learner(&config, LearnerKind::NearestKeyframe).unwrap(),
-        None,
-    )
-    .await
-    .unwrap();
+    let handle = start_component(&config, LearnerKind::NearestKeyframe, None).await;
     (handle, dir)
 }
 

@@ -60,7 +60,7 @@ fn small_predictions_round_trip_as_can_fd_transfers() {
         let encoded = encoded_len(&sent).unwrap();
         let frames = frames(publisher.route(&sent).unwrap());
         // Multi-frame FD: full 64-byte frames but the last, each with its tail byte.
-        assert!(frames.len() > 1 && frames.iter().all(|f| f.is_fd()));
+        assert!(frames.len() > 1 && frames.iter().all(RawCanFrame::is_fd));
         assert_eq!(frames.len(), (encoded + 2).div_ceil(FD_DATA_BYTES - 1));
         let mut delivered = 0;
         for (i, f) in frames.iter().enumerate() {

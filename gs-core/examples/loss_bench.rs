@@ -1,6 +1,6 @@
 //! Micro-benchmark of two training-step stages (issue 5): the photometric loss
 //! (`gs_core::loss::photometric_loss`, L1 + SSIM value and image gradient) and the shadow
-//! pass (`gs_core::sunaware::light::sun_visibility`, split into its light splats, the
+//! pass (`gs_core::sunaware::sun_visibility::sun_visibility`, split into its light splats, the
 //! receivers' axis sigmas and `visibility_from_splats`).
 //!
 //! Inputs match `step_bench`'s configuration (d) at the given size: a seeded random target
@@ -26,7 +26,7 @@ use gs_core::loss::{photometric_loss, ssim, ImageShape};
 use gs_core::model::{GaussianModel, Param};
 use gs_core::nn::SceneBox;
 use gs_core::rng::SplitMix64;
-use gs_core::sunaware::light::{
+use gs_core::sunaware::sun_visibility::{
     light_axis_sigmas_m, light_camera, light_splats, sun_visibility, visibility_from_splats,
     RECEIVER_EXTENT_SIGMAS,
 };
@@ -170,7 +170,7 @@ fn main() {
         row(
             "  light_splats",
             time(repeats, || {
-                splats = light_splats(&gaussians, &light, near).expect("splats")
+                splats = light_splats(&gaussians, &light, near).expect("splats");
             }),
         );
         let mut margin = Vec::new();
@@ -180,7 +180,7 @@ fn main() {
                 margin = light_axis_sigmas_m(&gaussians, &light)
                     .iter()
                     .map(|s| s * RECEIVER_EXTENT_SIGMAS)
-                    .collect()
+                    .collect();
             }),
         );
         let mut v2 = Vec::new();
@@ -193,7 +193,7 @@ fn main() {
                     lc.footprint_radius_px,
                     light.depth_bias_m,
                     &margin,
-                )
+                );
             }),
         );
         assert!(vis.iter().zip(&v2).all(|(a, b)| a.to_bits() == b.to_bits()));

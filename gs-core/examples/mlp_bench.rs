@@ -122,7 +122,7 @@ impl LayerOperands {
                         let r = out.len() / n;
                         let s = b * BLOCK_ROWS;
                         products.matmul(&x[s * k..(s + r) * k], w, out, r, k, n, false);
-                    })
+                    });
             }
             Product::InputGrad => {
                 self.dx
@@ -132,7 +132,7 @@ impl LayerOperands {
                         let r = out.len() / k;
                         let s = b * BLOCK_ROWS;
                         products.matmul_a_bt(&dz[s * n..(s + r) * n], w, out, r, n, k, false);
-                    })
+                    });
             }
             Product::WeightGrad => {
                 let partials: Vec<Vec<f32>> = (0..rows.div_ceil(BLOCK_ROWS))

@@ -215,7 +215,7 @@ pub fn from_points(
     let mut kept_points = Vec::with_capacity(points.len());
     let mut kept_colours = Vec::with_capacity(points.len());
     for (i, p) in points.iter().enumerate() {
-        let c = colours.map(|c| c[i]).unwrap_or(grey);
+        let c = colours.map_or(grey, |c| c[i]);
         if p.is_finite() && c.iter().all(|v| v.is_finite()) {
             kept_points.push(*p);
             kept_colours.push(c);

@@ -14,7 +14,7 @@ use crate::fpmode;
 pub fn cpu_description() -> String {
     let model = cpu_model().unwrap_or_else(|| std::env::consts::ARCH.to_string());
     // What this process may use (affinity, cgroup quota), not the machine's total.
-    let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
+    let cpus = std::thread::available_parallelism().map_or(0, std::num::NonZero::get);
     let features = isa_features();
     if features.is_empty() {
         format!("{model}, {cpus} CPUs available")
@@ -131,7 +131,7 @@ mod tests {
         skip_unless_required("GS_TEST_SKIP_NEVER_SET", "nothing");
         std::env::set_var("GS_TEST_SKIP_REQUIRED", "1");
         let required = std::panic::catch_unwind(|| {
-            skip_unless_required("GS_TEST_SKIP_REQUIRED", "the feature is absent")
+            skip_unless_required("GS_TEST_SKIP_REQUIRED", "the feature is absent");
         });
         let message = required.expect_err("a required skip must panic");
         let text = message.downcast_ref::<String>().expect("formatted message");

@@ -92,7 +92,7 @@ pub fn property_names(degree: u32) -> Vec<String> {
     let rest = (sh_coeff_count(degree) - 1) * 3;
     let mut names: Vec<String> = ["x", "y", "z", "nx", "ny", "nz"]
         .iter()
-        .map(|s| s.to_string())
+        .map(ToString::to_string)
         .collect();
     names.extend((0..3).map(|i| format!("f_dc_{i}")));
     names.extend((0..rest).map(|i| format!("f_rest_{i}")));
@@ -247,7 +247,7 @@ fn parse_header<R: BufRead>(r: &mut R) -> Result<Vec<Element>, PlyError> {
         let words: Vec<&str> = line.split_whitespace().collect();
         match words.as_slice() {
             [] => {}
-            ["comment", ..] | ["obj_info", ..] => {}
+            ["comment" | "obj_info", ..] => {}
             ["format", fmt, version] => {
                 if *fmt != "binary_little_endian" || *version != "1.0" {
                     return Err(PlyError::Format(format!("{fmt} {version}")));
@@ -267,7 +267,7 @@ fn parse_header<R: BufRead>(r: &mut R) -> Result<Vec<Element>, PlyError> {
                 });
             }
             ["property", "list", ..] => {
-                let element = elements.last().map(|e| e.name.as_str()).unwrap_or("none");
+                let element = elements.last().map_or("none", |e| e.name.as_str());
                 return Err(PlyError::Header(format!(
                     "list property in element '{element}' is not supported"
                 )));
@@ -393,8 +393,7 @@ pub fn read_ply<R: Read>(input: R) -> Result<LoadedPly, PlyError> {
             sources
                 .iter()
                 .position(|(q, _)| *q == p)
-                .map(|k| values[k].as_slice())
-                .unwrap_or(&empty)
+                .map_or(&empty, |k| values[k].as_slice())
         })?;
     }
     Ok(LoadedPly {

@@ -195,9 +195,7 @@ pub fn sh_to_rgb(
             for (local, rgb_out) in chunk.chunks_exact_mut(3).enumerate() {
                 let i = task * ROWS_PER_TASK + local;
                 let mean = Vec3::from_slice(&means[i * 3..i * 3 + 3]);
-                let dir = view_direction(mean, camera_center)
-                    .map(|(d, _)| d)
-                    .unwrap_or(Vec3::Z);
+                let dir = view_direction(mean, camera_center).map_or(Vec3::Z, |(d, _)| d);
                 let basis = sh_basis(active_degree, dir);
                 let rgb = raw_colour(
                     &dc[i * 3..i * 3 + 3],
@@ -251,7 +249,7 @@ pub fn sh_to_rgb_backward(
         .map(|i| {
             let mean = Vec3::from_slice(&means[i * 3..i * 3 + 3]);
             let view = view_direction(mean, camera_center);
-            let dir = view.map(|(d, _)| d).unwrap_or(Vec3::Z);
+            let dir = view.map_or(Vec3::Z, |(d, _)| d);
             let basis = sh_basis(active_degree, dir);
             let row_dc = &dc[i * 3..i * 3 + 3];
             let row_rest = &rest[i * rest_dim..(i + 1) * rest_dim];

@@ -10,26 +10,16 @@
 //! densification statistics, densifies and prunes every `densify_interval` iterations
 //! after `densify_from_iter`, and resets opacities every `opacity_reset_interval`.
 //!
-//! [`Backend`] picks where a step's arithmetic runs, and nothing else: the loop, the
-//! schedules (learning rates, SH degree, densification and reset intervals), the loss
-//! and densification are one code path. `Trainer::step_with_position_lr` has a single
-//! `match` on the backend, choosing between `cpu_arithmetic` (SH colour, render, backward,
-//! Adam and statistics on the host) and `resident_arithmetic` (the same stages, the loss
-//! included, as kernels on [`crate::gpu::ResidentModel`]'s device buffers, wgpu feature).
-//! On wgpu the parameters, moments and statistics stay on the device: the host copy is refreshed only where the host needs it (densification and
-//! opacity resets, which run on the CPU and re-upload; [`Trainer::sync_model`];
-//! [`Trainer::try_finish`]).
+//! It runs on the CPU: the Sun-aware trainer (`crate::sunaware`, configuration (a) is this
+//! model) is the one that also trains on a device.
 //!
 //! [`Trainer`] is the same loop one step at a time (for an online scheduler that picks
 //! views itself and runs its own learning-rate sawtooth); [`train`] drives it over a
 //! fixed view set.
 //!
 //! Invariants:
-//! - deterministic on the CPU backend: same model, views, config and thread count give
-//!   bit-identical results (the only randomness is a [`SplitMix64`] seeded from
-//!   `config.seed`); the wgpu backend's gradients sum with atomics, so its last bits vary;
-//! - on wgpu, `model()`/`optimiser()` are the host copy as of the last sync
-//!   (`host_is_current()` says whether it is current);
+//! - deterministic: same model, views, config and thread count give bit-identical results
+//!   (the only randomness is a [`SplitMix64`] seeded from `config.seed`);
 //! - a step whose gradients contain NaN/Inf is never applied: it is counted in
 //!   `TrainResult::skipped_non_finite_steps` and its densification stats are dropped;
 //! - bad views or configuration are reported before any work, as [`TrainError`].
@@ -50,22 +40,6 @@ use crate::raster::{
     render, render_backward, GaussianView, PixelGrads, RasterError, RasterSettings,
 };
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward, ShError};
-
-/// Where a training step's arithmetic runs. The loop, its schedules, the loss and
-/// densification are the same code either way (see [`Trainer`]).
-#[derive(Clone, Debug, Default)]
-pub enum Backend {
-    /// Everything on the CPU (`crate::raster`, `crate::sh`, `crate::optim`), the reference.
-    #[default]
-    Cpu,
-    /// The plain trainer keeps its parameters, gradients, Adam moments and densification
-    /// statistics on the device ([`crate::gpu::ResidentModel`]): SH colour, rasterizer
-    /// forward and backward, gradient assembly and Adam run as kernels there. A missing
-    /// adapter is an error when the rasterizer is built ([`crate::gpu::GpuContext::new`]),
-    /// never a silent fallback. (The Sun-aware trainer uses only the rasterizer.)
-    #[cfg(feature = "wgpu")]
-    Wgpu(std::sync::Arc<crate::gpu::GpuRasterizer>),
-}
 
 /// Per-group learning rates (3DGS defaults).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -219,9 +193,6 @@ pub enum TrainError {
     Sh(ShError),
     Optim(OptimError),
     Densify(crate::densify::DensifyError),
-    /// The wgpu backend failed (device, readback, sizes).
-    #[cfg(feature = "wgpu")]
-    Gpu(crate::gpu::GpuError),
 }
 
 impl std::fmt::Display for TrainError {
@@ -240,8 +211,6 @@ impl std::fmt::Display for TrainError {
             TrainError::Sh(e) => write!(f, "SH colour: {e}"),
             TrainError::Optim(e) => write!(f, "optimiser: {e}"),
             TrainError::Densify(e) => write!(f, "densification: {e}"),
-            #[cfg(feature = "wgpu")]
-            TrainError::Gpu(e) => write!(f, "GPU backend: {e}"),
         }
     }
 }
@@ -251,12 +220,6 @@ impl std::error::Error for TrainError {}
 impl From<RasterError> for TrainError {
     fn from(e: RasterError) -> Self {
         TrainError::Raster(e)
-    }
-}
-#[cfg(feature = "wgpu")]
-impl From<crate::gpu::GpuError> for TrainError {
-    fn from(e: crate::gpu::GpuError) -> Self {
-        TrainError::Gpu(e)
     }
 }
 impl From<LossError> for TrainError {
@@ -489,18 +452,11 @@ pub struct Trainer {
     config: TrainConfig,
     schedule: ExponentialSchedule,
     settings: RasterSettings,
-    backend: Backend,
     scene_extent: f32,
     iteration: usize,
     skipped_steps: usize,
     raster_dropped: usize,
     densify_reports: Vec<(usize, DensifyReport)>,
-    /// The device copy of `model`, `adam` and `stats` on the wgpu backend (made at the
-    /// first step).
-    #[cfg(feature = "wgpu")]
-    resident: Option<crate::gpu::ResidentModel>,
-    /// False while the device holds a newer state than `model`, `adam` and `stats`.
-    host_current: bool,
 }
 
 /// What the backend-specific part of a step did.
@@ -557,76 +513,22 @@ impl Trainer {
                 ..RasterSettings::default()
             },
             config: config.clone(),
-            backend: Backend::Cpu,
             scene_extent,
             iteration: 0,
             skipped_steps: 0,
             raster_dropped: 0,
             densify_reports: Vec::new(),
-            #[cfg(feature = "wgpu")]
-            resident: None,
-            host_current: true,
             model,
         })
     }
 
-    /// The same trainer with its step's arithmetic on `backend`. A device state from an
-    /// earlier wgpu backend is brought to the host first (a readback that can fail).
-    pub fn with_backend(mut self, backend: Backend) -> Result<Self, TrainError> {
-        self.sync_to_host()?;
-        #[cfg(feature = "wgpu")]
-        {
-            self.resident = None;
-        }
-        self.backend = backend;
-        Ok(self)
-    }
-
-    pub fn backend(&self) -> &Backend {
-        &self.backend
-    }
-
-    /// The host copy of the model: current on the CPU backend; on wgpu as of the last
-    /// [`Trainer::sync_to_host`] (every densification step, [`Trainer::sync_model`],
-    /// [`Trainer::try_finish`]).
     pub fn model(&self) -> &GaussianModel {
         &self.model
     }
 
-    /// The host copy of the optimiser (see [`Trainer::model`] for when it is current).
+    /// The optimiser's state.
     pub fn optimiser(&self) -> &Adam {
         &self.adam
-    }
-
-    /// Whether [`Trainer::model`] and [`Trainer::optimiser`] hold the current state.
-    pub fn host_is_current(&self) -> bool {
-        self.host_current
-    }
-
-    /// Brings the model, the optimiser and the densification statistics from the device
-    /// to the host (nothing to do on the CPU backend or when already current).
-    pub fn sync_to_host(&mut self) -> Result<(), TrainError> {
-        #[cfg(feature = "wgpu")]
-        if let (Some(r), false) = (&self.resident, self.host_current) {
-            r.download(&mut self.model.params, &mut self.adam, &mut self.stats)?;
-        }
-        self.host_current = true;
-        Ok(())
-    }
-
-    /// The current model, brought to the host first where needed.
-    pub fn sync_model(&mut self) -> Result<&GaussianModel, TrainError> {
-        self.sync_to_host()?;
-        Ok(&self.model)
-    }
-
-    /// Puts the host's state back on the device after the host edited it.
-    fn sync_to_device(&mut self) -> Result<(), TrainError> {
-        #[cfg(feature = "wgpu")]
-        if let Some(r) = &mut self.resident {
-            r.upload(&self.model.params, &self.adam, &self.stats)?;
-        }
-        Ok(())
     }
 
     /// Iterations taken so far.
@@ -670,15 +572,7 @@ impl Trainer {
         );
         let rates = group_rates(&self.config.lr, position_lr);
         let accumulate_stats = iteration < self.config.densify_until_iter;
-        // The one place the backend matters: where this step's colour, render, backward,
-        // Adam update and statistics are computed. Both arms score with `score`.
-        let arithmetic = match self.backend.clone() {
-            Backend::Cpu => self.cpu_arithmetic(view, degree, &rates, accumulate_stats)?,
-            #[cfg(feature = "wgpu")]
-            Backend::Wgpu(gpu) => {
-                self.resident_arithmetic(&gpu, view, degree, &rates, accumulate_stats)?
-            }
-        };
+        let arithmetic = self.cpu_arithmetic(view, degree, &rates, accumulate_stats)?;
         let t2 = Instant::now();
         self.raster_dropped += arithmetic.dropped_nonfinite;
 
@@ -696,8 +590,6 @@ impl Trainer {
                 && iteration.is_multiple_of(config.opacity_reset_interval);
             let reset_now = periodic_reset || white_reset;
             if densify_now || reset_now {
-                // Densification and resets edit the host's copy (a no-op sync on the CPU).
-                self.sync_to_host()?;
                 let config = &self.config;
                 if densify_now {
                     let screen_limit = iteration > config.opacity_reset_interval
@@ -718,7 +610,6 @@ impl Trainer {
                     reset_opacity(&mut self.model, &mut self.adam, config.opacity_reset_value);
                     opacity_reset = true;
                 }
-                self.sync_to_device()?;
             }
         }
         if skipped {
@@ -803,70 +694,7 @@ impl Trainer {
         })
     }
 
-    /// The step's arithmetic on the device: the same stages as [`Self::cpu_arithmetic`],
-    /// the loss included, as kernels on the resident buffers; the target image goes down
-    /// and the loss's totals and a few counters come back. Timings: `forward_ms` is the
-    /// host's recording (and, on a first step, the entry-count readback); the device work
-    /// of the whole step, one submission, is counted in `backward_ms`.
-    #[cfg(feature = "wgpu")]
-    fn resident_arithmetic(
-        &mut self,
-        gpu: &std::sync::Arc<crate::gpu::GpuRasterizer>,
-        view: &TrainView,
-        degree: u32,
-        rates: &GroupRates,
-        accumulate_stats: bool,
-    ) -> Result<StepArithmetic, TrainError> {
-        if self.resident.is_none() {
-            self.resident = Some(crate::gpu::ResidentModel::new(
-                gpu.clone(),
-                &self.model.params,
-                &self.adam,
-                &self.stats,
-            )?);
-        }
-        let resident = self.resident.as_mut().expect("created above");
-        let report = resident.step(&crate::gpu::ResidentStepInput {
-            camera: &view.camera,
-            settings: &self.settings,
-            degree,
-            accumulate_stats,
-            target: &view.image,
-            mask: view.mask.as_deref(),
-            lambda_dssim: self.config.lambda_dssim,
-            rates,
-        })?;
-        if !report.refused {
-            self.host_current = false;
-        }
-        let loss = if report.refused {
-            nan_loss()
-        } else {
-            LossOutput {
-                loss: report.loss,
-                l1: report.l1,
-                ssim: report.ssim,
-                d_rendered: Vec::new(),
-            }
-        };
-        Ok(StepArithmetic {
-            loss,
-            skipped: report.refused,
-            dropped_nonfinite: report.dropped_nonfinite,
-            forward_ms: report.project_ms,
-            loss_ms: 0.0,
-            backward_ms: report.rest_ms,
-        })
-    }
-
-    /// [`Trainer::finish`] after bringing the device state to the host.
-    pub fn try_finish(mut self, losses: Vec<f32>) -> Result<TrainResult, TrainError> {
-        self.sync_to_host()?;
-        Ok(self.finish(losses))
-    }
-
     /// The trained model and the run's counters; `losses` is the caller's loss history.
-    /// The host copy (see [`Trainer::model`]): on wgpu use [`Trainer::try_finish`].
     pub fn finish(self, losses: Vec<f32>) -> TrainResult {
         TrainResult {
             model: self.model,
@@ -884,17 +712,6 @@ pub fn train(
     model: GaussianModel,
     views: &[TrainView],
     config: &TrainConfig,
-    progress: impl FnMut(&IterationStats),
-) -> Result<TrainResult, TrainError> {
-    train_with_backend(model, views, config, Backend::Cpu, progress)
-}
-
-/// [`train`] with the rasterizer on `backend`.
-pub fn train_with_backend(
-    model: GaussianModel,
-    views: &[TrainView],
-    config: &TrainConfig,
-    backend: Backend,
     mut progress: impl FnMut(&IterationStats),
 ) -> Result<TrainResult, TrainError> {
     if views.is_empty() {
@@ -907,7 +724,7 @@ pub fn train_with_backend(
         Some(e) => e,
         None => camera_extent(&views.iter().map(|v| v.camera).collect::<Vec<_>>()),
     };
-    let mut trainer = Trainer::new(model, config, scene_extent)?.with_backend(backend)?;
+    let mut trainer = Trainer::new(model, config, scene_extent)?;
     let mut shuffle = SplitMix64::new(config.seed);
     let mut order: Vec<usize> = Vec::new();
     let mut losses = Vec::with_capacity(config.iterations);
@@ -921,5 +738,5 @@ pub fn train_with_backend(
         losses.push(stats.loss);
         progress(&stats);
     }
-    trainer.try_finish(losses)
+    Ok(trainer.finish(losses))
 }

@@ -395,7 +395,7 @@ fn colours_come_from_the_most_frontal_view() {
         .map(|i| {
             [i as f32 / 10.0, 0.5, 0.25]
                 .repeat(intrinsics().pixel_count())
-                .to_vec()
+                .clone()
         })
         .collect();
     let views: Vec<ColourView> = (0..6)

@@ -5,7 +5,7 @@
 //! differences), against the folded network run by `Mlp` (the same bits), between tape
 //! modes and thread counts (the same bits), and its errors.
 
-use gs_core::nn::shadow::{ShadowBatch, ShadowPass};
+use gs_core::nn::shadow_net::{ShadowBatch, ShadowPass};
 use gs_core::nn::{
     MatmulPrecision, MlpForward, NnError, PositionalEncoding, SceneBox, ShadowNet, TapeMode,
 };

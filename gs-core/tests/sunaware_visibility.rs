@@ -6,7 +6,7 @@ use glam::Vec3;
 use gs_core::init::inverse_sigmoid;
 use gs_core::model::{GaussianModel, ModelLayout, Param};
 use gs_core::nn::SceneBox;
-use gs_core::sunaware::light::{
+use gs_core::sunaware::sun_visibility::{
     light_camera, light_splats, sun_visibility, sun_visibility_with_margin, RECEIVER_EXTENT_SIGMAS,
 };
 use gs_core::sunaware::{LightConfig, LightProjection};

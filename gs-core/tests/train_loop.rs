@@ -71,7 +71,7 @@ fn training_is_bit_identical_across_runs_and_thread_counts() {
     let mut seen = Vec::new();
     let config_seed = TrainConfig { seed: 4, ..config };
     let e = train(start_model(), &views, &config_seed, |s| {
-        seen.push(s.view_index)
+        seen.push(s.view_index);
     })
     .unwrap();
     assert!(!same_bits(&a, &e), "the seed changes the view order");
@@ -135,7 +135,7 @@ fn non_finite_steps_are_counted_and_never_applied() {
     };
     let mut skipped = 0;
     let r = train(model.clone(), &views, &config, |s| {
-        skipped += s.skipped as usize
+        skipped += s.skipped as usize;
     })
     .unwrap();
     assert_eq!(r.skipped_non_finite_steps, 10);

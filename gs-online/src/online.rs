@@ -399,7 +399,7 @@ impl OnlineTrainer {
         &mut self,
         init: &Initialisation,
         scene_box: SceneBox,
-        backend: &gs_core::train::Backend,
+        backend: &gs_core::engine::Backend,
     ) -> Result<(), OnlineError> {
         let gaussians = initial_gaussians(init, &self.config)?;
         let model = SunAwareModel::new(gaussians, scene_box, self.config.model.clone())?;

@@ -275,7 +275,7 @@ fn error_codes_table_matches_the_wire_values() {
     use interfaces::messages::ErrorCode;
     for (i, code) in ErrorCode::ALL.iter().enumerate() {
         assert_eq!(code.index(), i);
-        let event = interfaces::messages::Event {
+        let event = Event {
             time_us: 1,
             kind: interfaces::messages::EventKind::Error {
                 code: *code,
@@ -289,7 +289,7 @@ fn error_codes_table_matches_the_wire_values() {
     }
     // The wire value after the last code is not a code.
     let unknown = [1u8, 1, ErrorCode::COUNT as u8, 0];
-    assert!(decode::<interfaces::messages::Event>(&unknown).is_err());
+    assert!(decode::<Event>(&unknown).is_err());
 }
 
 #[test]

@@ -83,7 +83,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         preset.max_gaussians = m.parse()?;
     }
     let scene = render_scene(&scenario, preset.init_points as usize, &mut |m| {
-        eprintln!("{m}")
+        eprintln!("{m}");
     })?;
     if let Some(ref_spp) = arg("--noise-ref") {
         let mut reference = scenario.clone();
@@ -124,7 +124,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let (o, _) =
             sim_harness::experiment::runner::run_config(&scene, &preset, variant, 0, &mut |m| {
-                eprintln!("{m}")
+                eprintln!("{m}");
             })?;
         eprintln!(
             "{} | {} steps {:.0} s",

@@ -710,9 +710,6 @@ mod tests {
         }
         let e = run_line("--backend cpu buslogs --dataset OUT", out).unwrap_err();
         assert!(e.contains("table, demo and pareto"), "{e}");
-        assert!(
-            !std::path::Path::new(out).exists(),
-            "an erroring run wrote {out}"
-        );
+        assert!(!Path::new(out).exists(), "an erroring run wrote {out}");
     }
 }

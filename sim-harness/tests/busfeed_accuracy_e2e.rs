@@ -268,7 +268,7 @@ fn run_reference(dataset: &Path, scene: &SceneData, config: &ComponentConfig) ->
         unlit_full_frame: false,
         ..OnlineConfig::default()
     };
-    let backend = gs_core::train::Backend::Cpu;
+    let backend = gs_core::engine::Backend::Cpu;
     let init = Initialisation::RandomSphere {
         count: model.initial_gaussians,
         centre: Vec3::ZERO,

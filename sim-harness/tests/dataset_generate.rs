@@ -86,7 +86,7 @@ fn same_scenario_gives_byte_identical_output_with_the_documented_layout() {
         "eval/telemetry.jsonl",
     ]
     .iter()
-    .map(|s| s.to_string())
+    .map(ToString::to_string)
     .collect();
     for (prefix, count) in [("", 5), ("eval/", 3)] {
         for i in 0..count {

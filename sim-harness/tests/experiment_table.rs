@@ -120,7 +120,7 @@ fn tiny_preset(configs: &[&str]) -> Preset {
         max_gaussians: 600,
         light_resolution_px: 32,
         densify_every_rounds: 2,
-        configs: configs.iter().map(|c| c.to_string()).collect(),
+        configs: configs.iter().map(ToString::to_string).collect(),
         ..Preset::default()
     }
 }

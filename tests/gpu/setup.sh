@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Installs Mesa's software Vulkan driver (lavapipe) and the Vulkan loader, which the
-# wgpu parity tests (gs-core/tests/gpu_parity.rs) run on where the machine has no GPU.
+# wgpu parity tests (gs-wgpu/tests/gpu_*.rs) run on where the machine has no GPU.
 # Idempotent: installs only what dpkg does not report as installed. Debian/Ubuntu only.
 set -euo pipefail
 

@@ -39,7 +39,7 @@ fn unknown_keys_and_wrong_types_are_parse_errors() {
     ] {
         match parse(text) {
             Err(ConfigError::Parse { message, .. }) => {
-                assert!(!message.is_empty(), "{text:?}")
+                assert!(!message.is_empty(), "{text:?}");
             }
             other => panic!("expected a parse error for {text:?}, got {other:?}"),
         }
@@ -85,7 +85,7 @@ fn validation_names_the_key() {
             "[cyphal.subjects]\nrendered_prediction = {subject}\n"
         )) {
             Err(ConfigError::Cyphal(e)) => {
-                assert_eq!(e.key, "cyphal.subjects.rendered_prediction", "{subject}")
+                assert_eq!(e.key, "cyphal.subjects.rendered_prediction", "{subject}");
             }
             other => panic!("subject {subject}: expected a refusal, got {other:?}"),
         }

@@ -21,15 +21,15 @@ use std::fmt::{self, Write as _};
 use std::io::{self, BufRead, Write};
 
 pub const CAN_ERR_FLAG: u32 = 0x2000_0000;
-pub const CAN_SFF_MASK: u32 = 0x7FF;
-pub const CAN_EFF_MASK: u32 = 0x1FFF_FFFF;
+pub(crate) const CAN_SFF_MASK: u32 = 0x7FF;
+pub(crate) const CAN_EFF_MASK: u32 = 0x1FFF_FFFF;
 pub const CANFD_BRS: u8 = 0x01;
 pub const CANFD_ESI: u8 = 0x02;
 pub const CANFD_FDF: u8 = 0x04;
 /// Longer lines are malformed (the longest valid CAN FD line is under 200 bytes).
-pub const MAX_LINE_BYTES: usize = 1024;
+pub(crate) const MAX_LINE_BYTES: usize = 1024;
 /// Interface names longer than this are refused.
-pub const MAX_INTERFACE_BYTES: usize = 64;
+pub(crate) const MAX_INTERFACE_BYTES: usize = 64;
 
 /// An arbitration ID.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -266,8 +266,8 @@ pub fn parse_line(text: &str, line: usize) -> Result<Option<CanLogRecord>, LineE
     }
     let direction = match fields.get(3) {
         None => None,
-        Some(&"R") | Some(&"r") => Some(Direction::Rx),
-        Some(&"T") | Some(&"t") => Some(Direction::Tx),
+        Some(&"R" | &"r") => Some(Direction::Rx),
+        Some(&"T" | &"t") => Some(Direction::Tx),
         Some(other) => return Err(err(LineErrorKind::BadDirection { field: clip(other) })),
     };
     let frame = parse_frame(fields[2]).map_err(err)?;
@@ -380,7 +380,7 @@ fn parse_frame(field: &str) -> Result<CanLogFrame, LineErrorKind> {
             let data = parse_data(&rest[2..], id_offset + 2, 64)?;
             Ok(CanLogFrame::Fd { id, flags, data })
         }
-        Some(b'R') | Some(b'r') => {
+        Some(b'R' | b'r') => {
             let dlc = match &rest[1..] {
                 [] => 0,
                 [digit] if (b'0'..=b'8').contains(digit) => digit - b'0',

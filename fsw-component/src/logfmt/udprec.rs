@@ -20,7 +20,7 @@ use std::io::{self, Read, Write};
 pub const MAGIC: &[u8; 8] = b"FSWUDPR1";
 /// 65535 - 8 (UDP header) - 20 (IPv4 header).
 pub const MAX_DATAGRAM_BYTES: usize = 65_507;
-pub const RECORD_HEADER_BYTES: usize = 16;
+pub(crate) const RECORD_HEADER_BYTES: usize = 16;
 
 /// One recorded datagram.
 #[derive(Clone, Debug, PartialEq, Eq)]

@@ -9,9 +9,9 @@ use super::TransportError;
 /// Largest 29-bit extended CAN identifier.
 pub const CAN_EXTENDED_ID_MAX: u32 = 0x1FFF_FFFF;
 /// Data bytes in a classic CAN frame, at most.
-pub const CLASSIC_CAN_MAX_DATA_BYTES: usize = 8;
+pub(crate) const CLASSIC_CAN_MAX_DATA_BYTES: usize = 8;
 /// Data bytes in a CAN FD frame, at most.
-pub const CAN_FD_MAX_DATA_BYTES: usize = 64;
+pub(crate) const CAN_FD_MAX_DATA_BYTES: usize = 64;
 
 /// Whether a CAN FD frame can carry exactly `len` data bytes (one of the 16 DLC lengths).
 pub fn is_valid_fd_data_len(len: usize) -> bool {

@@ -84,7 +84,7 @@ pub(super) fn enable_drop_count(fd: RawFd) -> io::Result<()> {
             libc::SOL_SOCKET,
             libc::SO_RXQ_OVFL,
             (&enable as *const libc::c_int).cast(),
-            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+            size_of::<libc::c_int>() as libc::socklen_t,
         )
     };
     if result == 0 {
@@ -112,7 +112,7 @@ pub(super) fn recv_frame(
     header.msg_iov = &mut iov;
     header.msg_iovlen = 1;
     header.msg_control = control.as_mut_ptr().cast();
-    header.msg_controllen = std::mem::size_of_val(&control) as _;
+    header.msg_controllen = size_of_val(&control) as _;
     // SAFETY: `header` describes valid, writable buffers (see above); MSG_DONTWAIT makes the
     // call non-blocking whatever the socket's mode.
     let received = unsafe { libc::recvmsg(fd, &mut header, libc::MSG_DONTWAIT) };

@@ -25,7 +25,7 @@ pub(super) fn set_receive_buffer(fd: RawFd, bytes: usize) -> io::Result<usize> {
 /// The socket's kernel receive buffer size in bytes (as the kernel reports it).
 pub(super) fn receive_buffer(fd: RawFd) -> io::Result<usize> {
     let mut value: libc::c_int = 0;
-    let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+    let mut len = size_of::<libc::c_int>() as libc::socklen_t;
     // SAFETY: `fd` is an open socket owned by the caller; `value` and `len` are valid,
     // writable and sized for the c_int SO_RCVBUF returns.
     let result = unsafe {
@@ -52,7 +52,7 @@ fn set_int_option(fd: RawFd, option: libc::c_int, value: libc::c_int) -> io::Res
             libc::SOL_SOCKET,
             option,
             (&value as *const libc::c_int).cast(),
-            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+            size_of::<libc::c_int>() as libc::socklen_t,
         )
     };
     if result == 0 {

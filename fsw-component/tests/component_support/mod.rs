@@ -13,7 +13,7 @@ use fsw_component::learner::{
     ViewRequest,
 };
 use fsw_component::outbound::UdpFramer;
-use fsw_component::runtime::ComponentHandle;
+use fsw_component::runtime::{build_learner, start, ComponentHandle, LearnerKind};
 use glam::{DQuat, DVec3};
 use interfaces::ccsds::{message_packets, CcsdsReassembler, PacketType};
 use interfaces::messages::{
@@ -111,7 +111,7 @@ async fn listen(socket: UdpSocket, received: Arc<Mutex<Received>>) {
                         psnr_db: p.psnr_db,
                         ssim: p.ssim,
                         pixels: p.pixels.to_vec(),
-                    })
+                    });
                 })
                 .is_ok(),
             _ => false,
@@ -358,6 +358,19 @@ pub async fn send_step(peer: &mut Peer, k: u32, handle: &ComponentHandle) {
 pub fn view_at(time_us: u64) -> DVec3 {
     let q = camera_from_target_at(time_us);
     -(q.inverse() * DVec3::new(0.0, 0.0, 10.0)).normalize()
+}
+
+/// Starts the component live on `config` with a learner of `kind`, recording the bus traffic
+/// to `record` when given: the start-up every loopback test shares.
+pub async fn start_component(
+    config: &ComponentConfig,
+    kind: LearnerKind,
+    record: Option<PathBuf>,
+) -> ComponentHandle {
+    let learner = build_learner(config, kind).expect("learner from the test configuration");
+    start(config, learner, record)
+        .await
+        .expect("component starts")
 }
 
 pub fn temp_dir(name: &str) -> PathBuf {

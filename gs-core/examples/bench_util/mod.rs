@@ -4,11 +4,11 @@
 //! `--help`, `--name VALUE` arguments, the denormal mode of their threads (`GS_DENORMALS`,
 //! as the binaries do: [`init_threads`]), the machine fields of their JSON lines, the
 //! random Gaussian cloud of the rasterizer benchmarks, the `main` of an example that
-//! needs the `wgpu` feature ([`wgpu_main!`]), and the machine's tuned GEMM rate measured
+//! runs a `bench` module ([`bench_main!`]), and the machine's tuned GEMM rate measured
 //! beside a benchmark (`reference.rs`).
 //!
 //! Included with `#[macro_use] mod bench_util;` (a folder without `main.rs`, so cargo
-//! does not take it for an example of its own). Not every example uses every item.
+//! does not take it for an example of its own; gs-wgpu's examples include it by path). Not every example uses every item.
 #![allow(dead_code, unused_macros)]
 
 pub mod reference;
@@ -16,27 +16,15 @@ pub mod reference;
 use gs_core::raster::GaussianView;
 use gs_core::rng::SplitMix64;
 
-/// The `main` of an example whose benchmark (`bench::run`) needs the `wgpu` feature:
-/// `--help` prints `$usage` either way; with the feature it sets the threads' denormal
-/// mode ([`init_threads`]) and runs the benchmark, without it says what is missing.
-macro_rules! wgpu_main {
+/// The `main` of an example whose benchmark is `bench::run`: `--help` prints `$usage`,
+/// then it sets the threads' denormal mode ([`init_threads`]) and runs the benchmark.
+macro_rules! bench_main {
     ($name:literal, $usage:expr) => {
-        #[cfg(feature = "wgpu")]
         fn main() {
             let args: Vec<String> = std::env::args().skip(1).collect();
             crate::bench_util::exit_if_help(&args, $usage);
             crate::bench_util::init_threads($name, None);
             bench::run();
-        }
-
-        #[cfg(not(feature = "wgpu"))]
-        fn main() {
-            let args: Vec<String> = std::env::args().skip(1).collect();
-            crate::bench_util::exit_if_help(&args, $usage);
-            eprintln!(concat!(
-                $name,
-                " needs the `wgpu` feature (--features wgpu)"
-            ));
         }
     };
 }
@@ -217,7 +205,7 @@ pub fn time_calls<T>(runs: usize, mut f: impl FnMut() -> T) -> (f64, f64, T) {
 
 /// The median (the upper one of an even count); NaN for no values.
 pub fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
+    v.sort_by(f64::total_cmp);
     if v.is_empty() {
         f64::NAN
     } else {

@@ -233,7 +233,6 @@ impl AppearanceNet {
     /// `gaussians`, means and camera, instead of recomputing its sines and cosines: the
     /// same bits, cheaper. An input that was not assembled so gives a wrong gradient, not
     /// an error.
-    #[allow(clippy::too_many_arguments)]
     pub fn scatter_input_grad_from_input(
         &self,
         gaussians: &[u32],
@@ -261,7 +260,6 @@ impl AppearanceNet {
     }
 
     /// The scatter; `input` (when given) supplies the view encoding's sines and cosines.
-    #[allow(clippy::too_many_arguments)]
     fn scatter(
         &self,
         gaussians: &[u32],

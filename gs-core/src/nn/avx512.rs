@@ -148,7 +148,6 @@ mod x86 {
     /// `t < kc`; `b` one panel's `kc * PANEL_COLS` floats; `c` `R` rows of `ldc` floats
     /// with `cols <= V * LANES` valid columns from its start.
     #[target_feature(enable = "avx512f")]
-    #[allow(clippy::too_many_arguments)]
     unsafe fn tile<const R: usize, const V: usize>(
         a: *const f32,
         a_rs: usize,
@@ -199,7 +198,6 @@ mod x86 {
     /// # Safety
     /// As [`tile`], with `1 <= rows <= TILE_ROWS`.
     #[target_feature(enable = "avx512f")]
-    #[allow(clippy::too_many_arguments)]
     unsafe fn tile_dispatch(
         rows: usize,
         wide: bool,
@@ -246,7 +244,6 @@ mod x86 {
     /// t < k`, `b` holds `B(t, j) = b.0[t * b.1 + j * b.2]` for `t < k, j < n`, and `c` is
     /// `m x n` row-major; `m, n, k >= 1`.
     #[target_feature(enable = "avx512f")]
-    #[allow(clippy::too_many_arguments)]
     pub(super) unsafe fn product(
         m: usize,
         k: usize,

@@ -227,7 +227,6 @@ mod x86 {
     /// the strides, `b` one panel of `pairs * PANEL_COLS` words, `c` `R` rows of `ldc`
     /// floats with `cols <= V * LANES` valid columns from its start.
     #[target_feature(enable = "avx512bf16,avx512f")]
-    #[allow(clippy::too_many_arguments)]
     unsafe fn tile<const R: usize, const V: usize>(
         a: *const u32,
         a_row_stride: usize,
@@ -277,7 +276,6 @@ mod x86 {
     /// # Safety
     /// As [`tile`], with `1 <= rows <= TILE_ROWS`.
     #[target_feature(enable = "avx512bf16,avx512f")]
-    #[allow(clippy::too_many_arguments)]
     unsafe fn tile_dispatch(
         rows: usize,
         wide: bool,
@@ -317,7 +315,6 @@ mod x86 {
     /// `i < m, t < k`, `b` holds `B(t, j) = b.0[t * b.1 + j * b.2]` for `t < k, j < n`, and
     /// `c` is `m x n` row-major; `m, n, k >= 1`.
     #[target_feature(enable = "avx512bf16,avx512f,avx512bw")]
-    #[allow(clippy::too_many_arguments)]
     pub(super) unsafe fn product(
         m: usize,
         k: usize,

@@ -117,7 +117,6 @@ impl Products {
     }
 
     /// [`matmul`] in this precision.
-    #[allow(clippy::too_many_arguments)]
     pub fn matmul(
         self,
         a: &[f32],
@@ -132,7 +131,6 @@ impl Products {
     }
 
     /// [`matmul_at_b`] in this precision.
-    #[allow(clippy::too_many_arguments)]
     pub fn matmul_at_b(
         self,
         a: &[f32],
@@ -147,7 +145,6 @@ impl Products {
     }
 
     /// [`matmul_a_bt`] in this precision.
-    #[allow(clippy::too_many_arguments)]
     pub fn matmul_a_bt(
         self,
         a: &[f32],

@@ -24,11 +24,6 @@
 //! forward and backward to bfloat16 inputs with f32 accumulation (`bf16.rs`), checked
 //! against the CPU when set. Bias, activations and the block-order sums stay f32.
 //!
-//! Device: [`Mlp::set_device`] (feature `wgpu`) runs forward and backward on a GPU
-//! (`crate::gpu::GpuMlp`, f32 products whatever the precision, activations kept on the
-//! device between the two whatever the [`TapeMode`]); the checks, the result types and the
-//! callers' code are the same for both places.
-//!
 //! Errors instead of panics: every size is checked, inputs, parameters and upstream
 //! gradients must be finite, and a non-finite result is reported, never returned.
 
@@ -137,40 +132,6 @@ pub struct MlpForward {
     pub output: Vec<f32>,
     /// Per block: that block's hidden activations, layer after layer (`Cache` mode only).
     hidden_by_block: Option<Vec<Vec<f32>>>,
-    /// The device's activations when the forward ran there ([`Mlp::set_device`]).
-    #[cfg(feature = "wgpu")]
-    device_tape: Option<std::sync::Arc<crate::gpu::MlpTape>>,
-}
-
-/// Where an [`Mlp`]'s forward and backward run: the CPU ([`Products`]) unless a device is
-/// set. Not part of the network's value (`PartialEq` ignores it), so a model compares
-/// and checkpoints the same wherever it trains.
-#[derive(Clone, Default)]
-pub struct MlpDevice {
-    #[cfg(feature = "wgpu")]
-    gpu: Option<std::sync::Arc<crate::gpu::GpuMlp>>,
-}
-
-impl MlpDevice {
-    pub fn is_cpu(&self) -> bool {
-        #[cfg(feature = "wgpu")]
-        if self.gpu.is_some() {
-            return false;
-        }
-        true
-    }
-}
-
-impl PartialEq for MlpDevice {
-    fn eq(&self, _: &Self) -> bool {
-        true
-    }
-}
-
-impl std::fmt::Debug for MlpDevice {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(if self.is_cpu() { "cpu" } else { "wgpu" })
-    }
 }
 
 impl MlpForward {
@@ -196,8 +157,6 @@ pub struct Mlp {
     layer_starts: Vec<usize>,
     /// Arithmetic of every matrix product (f32 unless [`Mlp::set_precision`] says else).
     products: Products,
-    /// Where forward and backward run ([`Mlp::set_device`]).
-    device: MlpDevice,
 }
 
 fn layer_starts_for(widths: &[usize]) -> Vec<usize> {
@@ -294,7 +253,6 @@ impl Mlp {
             params,
             layer_starts,
             products: Products::default(),
-            device: MlpDevice::default(),
         })
     }
 
@@ -319,7 +277,6 @@ impl Mlp {
             params,
             layer_starts,
             products: Products::default(),
-            device: MlpDevice::default(),
         })
     }
 
@@ -334,18 +291,6 @@ impl Mlp {
     /// `Products` value exists only for what this CPU runs).
     pub fn set_products(&mut self, products: Products) {
         self.products = products;
-    }
-
-    /// Runs every later forward and backward on `gpu` (f32 products), or on the CPU for
-    /// `None`. A forward's result must be passed to a backward on the same device.
-    #[cfg(feature = "wgpu")]
-    pub fn set_device(&mut self, gpu: Option<std::sync::Arc<crate::gpu::GpuMlp>>) {
-        self.device = MlpDevice { gpu };
-    }
-
-    /// Where forward and backward run.
-    pub fn device(&self) -> &MlpDevice {
-        &self.device
     }
 
     pub fn precision(&self) -> MatmulPrecision {
@@ -479,20 +424,7 @@ impl Mlp {
         dest.rows = 0;
         dest.output.clear();
         let mut blocks = dest.hidden_by_block.take().unwrap_or_default();
-        #[cfg(feature = "wgpu")]
-        {
-            dest.device_tape = None;
-        }
         self.check_input(input, rows)?;
-        #[cfg(feature = "wgpu")]
-        if let Some(gpu) = &self.device.gpu {
-            let (output, tape) = gpu.forward(self, input, rows).map_err(device_error)?;
-            check_finite("MLP output", &output)?;
-            dest.output = output;
-            dest.rows = rows;
-            dest.device_tape = Some(std::sync::Arc::new(tape));
-            return Ok(());
-        }
         let (n_in, n_out) = (self.input_width(), self.output_width());
         let hidden_per_row = self.hidden_floats_per_row();
         dest.output.resize(rows * n_out, 0.0);
@@ -675,39 +607,8 @@ impl Mlp {
 
         let mut d_input = d_input;
         let mut total = vec![0.0f32; self.num_params()];
-        // A forward that ran on the device has its backward there; the block loop below
-        // then has no blocks, and the checks after it are shared.
-        #[cfg(feature = "wgpu")]
-        let on_device = forward.device_tape.is_some();
-        #[cfg(not(feature = "wgpu"))]
-        let on_device = false;
-        #[cfg(feature = "wgpu")]
-        if let Some(tape) = &forward.device_tape {
-            let gpu = self.device.gpu.as_ref().ok_or_else(|| {
-                NnError::Config(
-                    "MLP backward: the forward ran on a device, this net has none".into(),
-                )
-            })?;
-            let grads = gpu
-                .backward(tape, d_output, d_input.is_some())
-                .map_err(device_error)?;
-            check_len(
-                "MLP device parameter gradient",
-                grads.params.len(),
-                total.len(),
-            )?;
-            total = grads.params;
-            if let (Some(d), Some(g)) = (d_input.as_deref_mut(), grads.input) {
-                check_len("MLP device input gradient", g.len(), d.len())?;
-                d.copy_from_slice(&g);
-            }
-        }
         let mut d_input_rest: Option<&mut [f32]> = d_input.as_deref_mut();
-        let ranges: Vec<Range<usize>> = if on_device {
-            Vec::new()
-        } else {
-            Self::block_ranges(rows).collect()
-        };
+        let ranges: Vec<Range<usize>> = Self::block_ranges(rows).collect();
         for (wave_index, wave) in ranges.chunks(BLOCKS_PER_WAVE).enumerate() {
             let wave_rows = wave.iter().map(Range::len).sum::<usize>();
             let d_input_wave: Option<&mut [f32]> = match d_input_rest.take() {
@@ -772,12 +673,6 @@ impl Mlp {
         }
         Ok(())
     }
-}
-
-/// A device failure as the networks' error (the device's message kept).
-#[cfg(feature = "wgpu")]
-fn device_error(e: crate::gpu::GpuError) -> NnError {
-    NnError::Config(format!("MLP on the wgpu device: {e}"))
 }
 
 #[inline]

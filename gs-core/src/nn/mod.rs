@@ -38,11 +38,11 @@ pub mod error;
 mod gather;
 pub mod matmul;
 pub mod mlp;
-pub mod shadow;
+pub mod shadow_net;
 
 pub use appearance::AppearanceNet;
 pub use encoding::PositionalEncoding;
 pub use error::NnError;
 pub use matmul::{F32Kernel, MatmulPrecision, Products};
 pub use mlp::{HiddenActivation, Init, Mlp, MlpForward, TapeMode};
-pub use shadow::{SceneBox, ShadowNet};
+pub use shadow_net::{SceneBox, ShadowNet};

@@ -78,7 +78,7 @@ pub struct ProjectedSet {
 }
 
 /// Pixel rectangle outside which `o exp(power) < cutoff` for certain (also the light
-/// pass's bound, `sunaware::light`).
+/// pass's bound, `sunaware::sun_visibility`).
 pub(crate) fn splat_rect(
     mean_px: [f32; 2],
     cov2: [f32; 3],

@@ -11,6 +11,7 @@ use crate::densify::DensifyConfig;
 use crate::model::ModelLayout;
 use crate::regularizer::IsoReduction;
 
+use super::engine::{Backend, DeviceEngines, OpenEngine};
 use super::error::SunAwareError;
 pub use super::shading::Shading;
 
@@ -90,13 +91,14 @@ impl std::fmt::Display for Variant {
 /// Where the rasterizer and the shadow pass run, by name (`--backend cpu|wgpu` and the
 /// component's `[training] backend`). Not part of [`SunAwareConfig`] or of a checkpoint:
 /// it moves arithmetic, never changes the model. [`BackendKind::open`] turns it into a
-/// [`crate::train::Backend`] for [`super::SunAwareTrainer::set_backend`].
+/// [`Backend`] for [`super::SunAwareTrainer::set_backend`], from the device engines the
+/// binary was built with ([`DeviceEngines`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum BackendKind {
     /// The CPU rasterizer and shadow pass (the reference).
     #[default]
     Cpu,
-    /// The wgpu compute backend (cargo feature `wgpu` of gs-core).
+    /// The wgpu compute backend (crate `gs-wgpu`, the binaries' cargo feature `wgpu`).
     Wgpu,
 }
 
@@ -108,61 +110,41 @@ impl BackendKind {
         }
     }
 
-    /// Whether this build can run it (`wgpu` needs the cargo feature).
-    pub fn compiled_in(self) -> bool {
+    /// Errors unless `engines` can open the backend: the message names the cargo feature.
+    pub fn check_compiled_in(self, engines: &DeviceEngines) -> Result<(), SunAwareError> {
+        self.opener(engines).map(|_| ())
+    }
+
+    fn opener(self, engines: &DeviceEngines) -> Result<Option<OpenEngine>, SunAwareError> {
         match self {
-            BackendKind::Cpu => true,
-            BackendKind::Wgpu => cfg!(feature = "wgpu"),
+            BackendKind::Cpu => Ok(None),
+            BackendKind::Wgpu => engines.wgpu.map(Some).ok_or_else(|| {
+                SunAwareError::Config(format!(
+                    "backend {:?} is not compiled into this build: rebuild with the cargo \
+                     feature `wgpu` (e.g. `cargo build --release --features wgpu`; \
+                     sim-harness and fsw-component build it with crate gs-wgpu)",
+                    self.name()
+                ))
+            }),
         }
     }
 
-    /// Errors unless this build can run the backend: the message names the cargo feature.
-    pub fn check_compiled_in(self) -> Result<(), SunAwareError> {
-        if self.compiled_in() {
-            Ok(())
-        } else {
-            Err(SunAwareError::Config(format!(
-                "backend {:?} is not compiled into this build: rebuild with the cargo feature \
-                 `wgpu` (e.g. `cargo build --release --features wgpu`; sim-harness and \
-                 fsw-component forward it to gs-core/wgpu)",
-                self.name()
-            )))
-        }
-    }
-
-    /// Opens the backend: `Cpu` always succeeds; `Wgpu` opens a Vulkan adapter and compiles
-    /// the rasterizer's pipelines, with bit-identical results from run to run (the
-    /// rasterizer's backward sums per-entry records in tile order instead of with float
-    /// atomics: `gpu::GpuOptions::deterministic`). No adapter, or no `wgpu` feature, is an
-    /// error, never a silent fallback to the CPU.
-    pub fn open(self) -> Result<crate::train::Backend, SunAwareError> {
-        self.open_with(true)
-    }
-
-    /// [`BackendKind::open`], choosing on `wgpu` between bit-identical runs
-    /// (`deterministic`) and the float-atomic backward, whose last bits vary from run to
-    /// run (no effect on the CPU, which is always deterministic).
-    pub fn open_with(self, deterministic: bool) -> Result<crate::train::Backend, SunAwareError> {
-        self.check_compiled_in()?;
-        match self {
-            BackendKind::Cpu => {
-                let _ = deterministic;
-                Ok(crate::train::Backend::Cpu)
-            }
-            #[cfg(feature = "wgpu")]
-            BackendKind::Wgpu => {
-                let open = || -> Result<crate::train::Backend, crate::gpu::GpuError> {
-                    let ctx = crate::gpu::GpuContext::with_options(crate::gpu::GpuOptions {
-                        deterministic,
-                        ..crate::gpu::GpuOptions::default()
-                    })?;
-                    let raster = crate::gpu::GpuRasterizer::new(ctx)?;
-                    Ok(crate::train::Backend::Wgpu(std::sync::Arc::new(raster)))
-                };
-                open().map_err(|e| SunAwareError::Config(format!("backend \"wgpu\": {e}")))
-            }
-            #[cfg(not(feature = "wgpu"))]
-            BackendKind::Wgpu => unreachable!("checked by check_compiled_in"),
+    /// Opens the backend: `Cpu` always succeeds; a device opens through `engines` (for
+    /// `Wgpu`: a Vulkan adapter and the kernels), with bit-identical results from run to
+    /// run when `deterministic` (on wgpu the rasterizer's backward then sums per-entry
+    /// records in tile order instead of with float atomics; no effect on the CPU, which is
+    /// always deterministic). No adapter, or an engine this build lacks, is an error, never
+    /// a silent fallback to the CPU.
+    pub fn open(
+        self,
+        engines: &DeviceEngines,
+        deterministic: bool,
+    ) -> Result<Backend, SunAwareError> {
+        match self.opener(engines)? {
+            None => Ok(Backend::Cpu),
+            Some(open) => open(deterministic)
+                .map(Backend::Device)
+                .map_err(|e| SunAwareError::Config(format!("backend {:?}: {e}", self.name()))),
         }
     }
 }
@@ -607,16 +589,27 @@ mod tests {
         assert_eq!(" WGPU ".parse::<BackendKind>().unwrap(), BackendKind::Wgpu);
         let e = "cuda".parse::<BackendKind>().unwrap_err().to_string();
         assert!(e.contains("cuda") && e.contains("wgpu"), "{e}");
-        assert!(BackendKind::Cpu.check_compiled_in().is_ok());
+        let none = DeviceEngines::default();
+        assert!(BackendKind::Cpu.check_compiled_in(&none).is_ok());
         assert!(matches!(
-            BackendKind::Cpu.open().unwrap(),
-            crate::train::Backend::Cpu
+            BackendKind::Cpu.open(&none, true).unwrap(),
+            Backend::Cpu
         ));
-        assert_eq!(BackendKind::Wgpu.compiled_in(), cfg!(feature = "wgpu"));
-        if !cfg!(feature = "wgpu") {
-            let e = BackendKind::Wgpu.open().unwrap_err().to_string();
-            assert!(e.contains("feature `wgpu`"), "{e}");
-        }
+        let e = BackendKind::Wgpu.open(&none, true).unwrap_err().to_string();
+        assert!(e.contains("feature `wgpu`"), "{e}");
+        // An engine that fails to open (no adapter) is an error naming the backend.
+        let failing = DeviceEngines {
+            wgpu: Some(|_| Err("no Vulkan adapter".into())),
+        };
+        assert!(BackendKind::Wgpu.check_compiled_in(&failing).is_ok());
+        let e = BackendKind::Wgpu
+            .open(&failing, true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("\"wgpu\"") && e.contains("no Vulkan adapter"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -32,7 +32,7 @@ pub enum SunAwareError {
     Sh(ShError),
     Init(InitError),
     Ply(PlyError),
-    /// The wgpu backend failed (device, pipeline, readback, sizes beyond the device's
+    /// A device backend failed (device, pipeline, readback, sizes beyond the device's
     /// limits); the message is the backend's. Never raised on the CPU backend.
     Gpu(String),
 }
@@ -54,7 +54,7 @@ impl std::fmt::Display for SunAwareError {
             SunAwareError::Sh(e) => write!(f, "spherical harmonics: {e}"),
             SunAwareError::Init(e) => write!(f, "initialisation: {e}"),
             SunAwareError::Ply(e) => write!(f, "PLY: {e}"),
-            SunAwareError::Gpu(m) => write!(f, "wgpu backend: {m}"),
+            SunAwareError::Gpu(m) => write!(f, "device backend: {m}"),
         }
     }
 }

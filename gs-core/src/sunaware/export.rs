@@ -64,7 +64,7 @@ pub fn baked_colours(
         );
     }
     if let Some(psi) = &model.shadow {
-        let vis = super::light::sun_visibility(
+        let vis = super::sun_visibility::sun_visibility(
             &model.gaussians,
             sun,
             camera_centre,

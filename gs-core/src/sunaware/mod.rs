@@ -4,11 +4,11 @@
 //! - (b) + the appearance MLP Phi: per-Gaussian 72-D feature, the Sun vector and the view
 //!   vector (target body frame) through `gamma_L`, RGB out;
 //! - (c) + shadow splatting: per-Gaussian Sun visibility `V_i` from a light camera
-//!   ([`light`]), refined by the shadow MLP Psi, splatted from the camera as one more channel
+//!   ([`sun_visibility`]), refined by the shadow network Psi, splatted from the camera as one more channel
 //!   `S`; the image is `RGB * S`;
 //! - (d) + the isotropic scale loss `lambda_iso L_iso`.
 //!
-//! Modules: [`config`] (variants and settings), [`light`] (the shadow pass),
+//! Modules: [`config`] (variants and settings), [`sun_visibility`] (the Sun visibility pass),
 //! [`model`] (model, forward and backward of one image), [`shading`] (an optional
 //! Lambertian factor from a normal and the Sun, beyond the paper), [`trainer`] (Adam, steps,
 //! densification, evaluation), [`checkpoint`] (bit-exact save/load), [`export`] (PLY baked
@@ -19,11 +19,12 @@
 
 pub mod checkpoint;
 pub mod config;
+pub mod engine;
 pub mod error;
 pub mod export;
-pub mod light;
 pub mod model;
 pub mod shading;
+pub mod sun_visibility;
 pub mod synthetic;
 pub mod trainer;
 

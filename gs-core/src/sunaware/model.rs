@@ -25,14 +25,15 @@
 //! Every stage is timed ([`ForwardTimings`], [`BackwardTimings`]); timing only reads clocks.
 //!
 //! Backend ([`SunAwareModel::set_backend`], not part of the model's value nor of its
-//! checkpoint): on [`crate::train::Backend::Wgpu`] the camera pass's blend and its backward
-//! run in [`crate::gpu::GpuRasterizer`] and the shadow pass's per-pixel walk in
-//! [`crate::gpu::GpuShadow::sun_visibility`]. The visible list then comes from the CPU
-//! projection alone ([`crate::raster::project_splats`], no sort or binning), the networks
-//! run on every visible Gaussian (`skip_noncontributing_in_mlp` needs the CPU's prepared
-//! view, so it has no effect there), Phi's and Psi's forward and backward run in
-//! [`crate::gpu::GpuMlp`] (`nn::Mlp::set_device`; their input assembly and output
-//! scatter stay here), and SH colour and Adam stay on the CPU.
+//! checkpoint): on a [`Backend::Device`] engine ([`super::engine::Engine`]) the camera
+//! pass's blend ([`super::engine::Engine::render`]) and the shadow pass
+//! ([`super::engine::Engine::sun_visibility`]) run on the device. The visible list then
+//! comes from the CPU projection alone ([`crate::raster::project_splats`], no sort or
+//! binning), the networks run on the CPU on every visible Gaussian
+//! (`skip_noncontributing_in_mlp` needs the CPU's prepared view, so it has no effect
+//! there). A device render is for images only: training on a device is device-resident
+//! (`SunAwareTrainer::step_many`), and [`SunAwareModel::backward`] of a device render is an
+//! error.
 //! The CPU backend is the reference and its results are unchanged by this switch.
 //!
 //! Invariants: the visible list, the channel layout and every network batch are fixed by
@@ -41,7 +42,6 @@
 //! `mlp_recompute_activations`, `reuse_step_buffers`) never change the image, and change
 //! gradients at most by float summation order (the skip's smaller network batch).
 
-#[cfg(feature = "wgpu")]
 use std::sync::Arc;
 use std::sync::Mutex;
 use std::time::Instant;
@@ -51,7 +51,7 @@ use glam::Vec3;
 use crate::camera::Camera;
 use crate::init::SplitMix64;
 use crate::model::{GaussianModel, Param, ParamSet};
-use crate::nn::shadow::{ShadowBatch, ShadowPass};
+use crate::nn::shadow_net::{ShadowBatch, ShadowPass};
 use crate::nn::{AppearanceNet, MlpForward, PositionalEncoding, SceneBox, ShadowNet, TapeMode};
 use crate::raster::blend::AlphaMode;
 use crate::raster::{
@@ -62,25 +62,15 @@ use crate::raster::{
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 
 use super::config::{ShadowRefinement, SunAwareConfig};
+use super::engine::{Backend, DeviceRender, Engine};
 use super::error::SunAwareError;
-use super::light::sun_visibility;
 use super::shading::{shade_backward, shade_forward, ShadePass, Shading};
+use super::sun_visibility::sun_visibility;
 
 /// Where the camera pass's rasterizer and the shadow pass run (see the module header).
 /// Not part of the model's value: equality ignores it, checkpoints never hold it.
 #[derive(Clone, Default)]
-struct BackendSlot {
-    #[cfg(feature = "wgpu")]
-    gpu: Option<GpuPair>,
-}
-
-#[cfg(feature = "wgpu")]
-#[derive(Clone)]
-struct GpuPair {
-    raster: Arc<crate::gpu::GpuRasterizer>,
-    shadow: Arc<crate::gpu::GpuShadow>,
-    networks: Arc<crate::gpu::GpuMlp>,
-}
+struct BackendSlot(Option<Arc<dyn Engine>>);
 
 impl PartialEq for BackendSlot {
     fn eq(&self, _: &Self) -> bool {
@@ -90,20 +80,10 @@ impl PartialEq for BackendSlot {
 
 impl std::fmt::Debug for BackendSlot {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        #[cfg(feature = "wgpu")]
-        if let Some(g) = &self.gpu {
-            return write!(f, "Wgpu({:?})", g.raster);
+        match &self.0 {
+            Some(engine) => write!(f, "Device({engine:?})"),
+            None => f.write_str("Cpu"),
         }
-        f.write_str("Cpu")
-    }
-}
-
-/// A GPU error as a Sun-aware error (rasterizer input errors keep their type).
-#[cfg(feature = "wgpu")]
-fn from_gpu(e: crate::gpu::GpuError) -> SunAwareError {
-    match e {
-        crate::gpu::GpuError::Raster(r) => SunAwareError::Raster(r),
-        other => SunAwareError::Gpu(other.to_string()),
     }
 }
 
@@ -113,43 +93,35 @@ fn from_gpu(e: crate::gpu::GpuError) -> SunAwareError {
 #[allow(clippy::large_enum_variant)]
 enum PassRender {
     Cpu(RenderOutput),
-    #[cfg(feature = "wgpu")]
-    Gpu {
-        out: Arc<crate::gpu::GpuRenderOutput>,
-        raster: Arc<crate::gpu::GpuRasterizer>,
-    },
+    Device(DeviceRender),
 }
 
 impl PassRender {
     fn color(&self) -> &[f32] {
         match self {
             PassRender::Cpu(r) => &r.color,
-            #[cfg(feature = "wgpu")]
-            PassRender::Gpu { out, .. } => &out.color,
+            PassRender::Device(out) => &out.color,
         }
     }
 
     fn alpha(&self) -> &[f32] {
         match self {
             PassRender::Cpu(r) => &r.alpha,
-            #[cfg(feature = "wgpu")]
-            PassRender::Gpu { out, .. } => &out.alpha,
+            PassRender::Device(out) => &out.alpha,
         }
     }
 
     fn visible(&self) -> &[bool] {
         match self {
             PassRender::Cpu(r) => &r.visible,
-            #[cfg(feature = "wgpu")]
-            PassRender::Gpu { out, .. } => &out.visible,
+            PassRender::Device(out) => &out.visible,
         }
     }
 
     fn radii_px(&self) -> &[f32] {
         match self {
             PassRender::Cpu(r) => &r.radii_px,
-            #[cfg(feature = "wgpu")]
-            PassRender::Gpu { out, .. } => &out.radii_px,
+            PassRender::Device(out) => &out.radii_px,
         }
     }
 }
@@ -278,7 +250,7 @@ pub struct ForwardTimings {
     /// The alpha-only pass that finds the Gaussians the blend reads (0 when
     /// `skip_noncontributing_in_mlp` is off).
     pub contribution_ms: f64,
-    /// Light camera, its splats and `V_i` ([`super::light::sun_visibility`]).
+    /// Light camera, its splats and `V_i` ([`super::sun_visibility::sun_visibility`]).
     pub shadow_pass_ms: f64,
     /// Phi's input assembly, forward and the scatter of its RGB into the channels (or the
     /// SH evaluation in configuration a).
@@ -452,83 +424,35 @@ impl SunAwareModel {
         })
     }
 
-    /// Moves the camera pass's rasterizer, the shadow pass and the networks' forward and
-    /// backward (Phi, Psi: `gpu::GpuMlp`) to `backend` (the networks' input assembly, SH
-    /// colour and every optimiser stay on the CPU). For `Wgpu` this compiles the shadow
-    /// pipelines on the rasterizer's device (an error if they fail, never a fallback).
-    pub fn set_backend(&mut self, backend: &crate::train::Backend) -> Result<(), SunAwareError> {
+    /// Moves the camera pass's rasterizer and the shadow pass to `backend` (the networks,
+    /// SH colour and every optimiser stay on the CPU; training on a device is
+    /// device-resident, see `SunAwareTrainer::step_many`). An engine that does not run
+    /// this model's configuration ([`Engine::supports`]) is an error naming the setting,
+    /// and the model stays where it was.
+    pub fn set_backend(&mut self, backend: &Backend) -> Result<(), SunAwareError> {
         match backend {
-            crate::train::Backend::Cpu => {
-                self.backend = BackendSlot::default();
-                #[cfg(feature = "wgpu")]
-                self.set_network_device(None);
-                Ok(())
-            }
-            #[cfg(feature = "wgpu")]
-            crate::train::Backend::Wgpu(raster) => {
-                let gain = self.config.shadow_gain;
-                if self.config.variant.uses_shadow() && gain != 1.0 {
-                    return Err(SunAwareError::Config(format!(
-                        "the wgpu backend supports shadow_gain = 1 only (this model has \
-                         {gain}): train configurations c-d with another gain on the CPU"
-                    )));
-                }
-                if self.config.shading != Shading::None {
-                    return Err(SunAwareError::Config(format!(
-                        "the wgpu backend supports shading = \"none\" only (this model has \
-                         {:?}): train with shading on the CPU",
-                        self.config.shading.name()
-                    )));
-                }
-                let shadow = crate::gpu::GpuShadow::new(raster.clone()).map_err(from_gpu)?;
-                let networks =
-                    Arc::new(crate::gpu::GpuMlp::new(raster.context().clone()).map_err(from_gpu)?);
-                self.set_network_device(Some(networks.clone()));
-                self.backend = BackendSlot {
-                    gpu: Some(GpuPair {
-                        raster: raster.clone(),
-                        shadow: Arc::new(shadow),
-                        networks,
-                    }),
-                };
-                Ok(())
+            Backend::Cpu => self.backend = BackendSlot(None),
+            Backend::Device(engine) => {
+                engine.supports(&self.config).map_err(|why| {
+                    SunAwareError::Config(format!("backend {}: {why}", engine.describe()))
+                })?;
+                self.backend = BackendSlot(Some(engine.clone()));
             }
         }
-    }
-
-    /// Runs Phi's and Psi's forward and backward on `gpu` (`None`: the CPU). One place
-    /// for the choice: the step's code is the same either way (`nn::Mlp::set_device`).
-    #[cfg(feature = "wgpu")]
-    fn set_network_device(&mut self, gpu: Option<Arc<crate::gpu::GpuMlp>>) {
-        for net in self.appearance.iter_mut().map(|n| &mut n.mlp) {
-            net.set_device(gpu.clone());
-        }
-        for net in self.shadow.iter_mut().map(|n| &mut n.mlp) {
-            net.set_device(gpu.clone());
-        }
+        Ok(())
     }
 
     /// The backend in use (`Cpu` unless [`SunAwareModel::set_backend`] moved it).
-    pub fn backend(&self) -> crate::train::Backend {
-        #[cfg(feature = "wgpu")]
-        if let Some(g) = &self.backend.gpu {
-            return crate::train::Backend::Wgpu(g.raster.clone());
+    pub fn backend(&self) -> Backend {
+        match &self.backend.0 {
+            Some(engine) => Backend::Device(engine.clone()),
+            None => Backend::Cpu,
         }
-        crate::train::Backend::Cpu
     }
 
-    /// The device resident training builds on: the rasterizer, the shadow pass and the
-    /// networks' kernels of the wgpu backend (`None` on the CPU).
-    #[cfg(feature = "wgpu")]
-    pub(crate) fn gpu_parts(
-        &self,
-    ) -> Option<(
-        Arc<crate::gpu::GpuRasterizer>,
-        Arc<crate::gpu::GpuShadow>,
-        Arc<crate::gpu::GpuMlp>,
-    )> {
-        let g = self.backend.gpu.as_ref()?;
-        Some((g.raster.clone(), g.shadow.clone(), g.networks.clone()))
+    /// The device engine, when the model is on one.
+    pub(crate) fn engine(&self) -> Option<&Arc<dyn Engine>> {
+        self.backend.0.as_ref()
     }
 
     /// Switches the networks' matrix products (and `config.mlp_precision`) to `precision`;
@@ -580,19 +504,8 @@ impl SunAwareModel {
         camera: &Camera,
         sun_dir: Vec3,
     ) -> Result<Vec<f32>, SunAwareError> {
-        #[cfg(feature = "wgpu")]
-        if let Some(g) = &self.backend.gpu {
-            return g
-                .shadow
-                .sun_visibility(
-                    &self.gaussians,
-                    sun_dir,
-                    camera.position(),
-                    &self.scene_box,
-                    &self.config.light,
-                    self.config.near_m,
-                )
-                .map_err(from_gpu);
+        if let Some(engine) = self.engine() {
+            return engine.sun_visibility(self, camera.position(), sun_dir);
         }
         sun_visibility(
             &self.gaussians,
@@ -659,7 +572,7 @@ impl SunAwareModel {
         let t0 = Instant::now();
         let k = &camera.intrinsics;
         let bare = GaussianView::from_model(&self.gaussians, &[], 0);
-        let (prepared, visible_list, network_list) = if self.gpu_active() {
+        let (prepared, visible_list, network_list) = if self.engine().is_some() {
             // The GPU projects, sorts and bins again in its render; here only the visible
             // list for the networks' batch.
             let frame = camera_frame(camera, settings.near_m)?;
@@ -820,7 +733,7 @@ impl SunAwareModel {
                 PassRender::Cpu(out)
             }
             None => {
-                let out = self.render_gpu(camera, &channels, nc, settings)?;
+                let out = self.render_on_device(camera, &channels, nc, settings)?;
                 timings.raster.blend_ms = ms_since(t3);
                 out
             }
@@ -868,45 +781,19 @@ impl SunAwareModel {
         })
     }
 
-    /// True when the camera pass runs on the GPU.
-    pub(crate) fn gpu_active(&self) -> bool {
-        #[cfg(feature = "wgpu")]
-        return self.backend.gpu.is_some();
-        #[cfg(not(feature = "wgpu"))]
-        false
-    }
-
-    /// The camera pass's blend on the GPU (projection, sort and binning included).
-    #[cfg(feature = "wgpu")]
-    fn render_gpu(
+    /// The camera pass's blend on the device (projection, sort and binning included).
+    fn render_on_device(
         &self,
         camera: &Camera,
         channels: &[f32],
         nc: usize,
         settings: &RasterSettings,
     ) -> Result<PassRender, SunAwareError> {
-        let Some(g) = &self.backend.gpu else {
-            return Err(SunAwareError::Config("no GPU backend set".into()));
+        let Some(engine) = self.engine() else {
+            return Err(SunAwareError::Config("no device backend set".into()));
         };
         let view = GaussianView::from_model(&self.gaussians, channels, nc);
-        let out = g.raster.render(camera, &view, settings).map_err(from_gpu)?;
-        Ok(PassRender::Gpu {
-            out: Arc::new(out),
-            raster: g.raster.clone(),
-        })
-    }
-
-    #[cfg(not(feature = "wgpu"))]
-    fn render_gpu(
-        &self,
-        _camera: &Camera,
-        _channels: &[f32],
-        _nc: usize,
-        _settings: &RasterSettings,
-    ) -> Result<PassRender, SunAwareError> {
-        Err(SunAwareError::Config(
-            "the wgpu backend is not compiled in (cargo feature `wgpu`)".into(),
-        ))
+        Ok(PassRender::Device(engine.render(camera, &view, settings)?))
     }
 
     /// Hands a finished pass's network buffers back, so the next forward reuses them
@@ -993,10 +880,15 @@ impl SunAwareModel {
                         g
                     })?
             }
-            #[cfg(feature = "wgpu")]
-            PassRender::Gpu { out, raster } => raster
-                .render_backward(&pass.camera, &pass.settings, out, &pixel_grads)
-                .map_err(from_gpu)?,
+            // Training on a device runs device-resident (`SunAwareTrainer::step_many`):
+            // a device render is for images only.
+            PassRender::Device(_) => {
+                return Err(SunAwareError::Config(
+                    "backward of a device render: the device trains device-resident \
+                     (SunAwareTrainer::step_many), render on the CPU to differentiate"
+                        .into(),
+                ))
+            }
         };
         let p = &self.gaussians.params;
         let mut params = gather_geometry(p, &g);

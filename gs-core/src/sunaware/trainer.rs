@@ -20,6 +20,7 @@ use std::time::Instant;
 
 use glam::Vec3;
 
+use super::engine::{Backend, ResidentTraining, SunAwareStepInput};
 use crate::camera::Camera;
 use crate::densify::{densify_and_prune, DensifyConfig, DensifyReport, DensifyStats};
 use crate::init::SplitMix64;
@@ -31,8 +32,8 @@ use crate::raster::RasterSettings;
 use crate::regularizer::IsotropicLoss;
 
 use super::error::SunAwareError;
-use super::light::box_sphere;
 use super::model::{BackwardTimings, ForwardTimings, FramePass, SunAwareGrads, SunAwareModel};
+use super::sun_visibility::box_sphere;
 
 /// One training or evaluation image.
 #[derive(Clone, Copy, Debug)]
@@ -475,21 +476,17 @@ pub struct SunAwareTrainer {
     pub raster_dropped: u64,
     /// Densification calls so far (seeds each call's random stream).
     pub densify_count: u64,
-    /// Device-resident training on the wgpu backend (not part of the trainer's value nor
+    /// Device-resident training on a device backend (not part of the trainer's value nor
     /// of its checkpoint).
     pub(crate) resident: ResidentSlot,
 }
 
-/// Whether, and on what, the trainer trains device-resident on wgpu
-/// ([`SunAwareTrainer::step_many`]): on by default; the engine (compiled kernels and device
+/// The device-resident training state ([`SunAwareTrainer::step_many`]): the engine (compiled kernels and device
 /// buffers) is built on first use. Clones share the engine (each batch uploads its own
 /// state, and a mutex serialises batches); equality ignores the slot.
 #[derive(Clone, Default)]
 pub(crate) struct ResidentSlot {
-    hybrid: bool,
-    #[cfg(feature = "wgpu")]
-    engine:
-        Option<std::sync::Arc<std::sync::Mutex<crate::gpu::resident_sunaware::SunAwareResident>>>,
+    engine: Option<std::sync::Arc<std::sync::Mutex<Box<dyn ResidentTraining>>>>,
 }
 
 impl PartialEq for ResidentSlot {
@@ -500,11 +497,7 @@ impl PartialEq for ResidentSlot {
 
 impl std::fmt::Debug for ResidentSlot {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(if self.hybrid {
-            "ResidentSlot(hybrid)"
-        } else {
-            "ResidentSlot(resident when on wgpu)"
-        })
+        f.write_str("ResidentSlot")
     }
 }
 
@@ -529,28 +522,19 @@ impl SunAwareTrainer {
         }
     }
 
-    /// Moves the camera pass's rasterizer and the shadow pass to `backend` (see
-    /// [`SunAwareModel::set_backend`]); Phi, Psi and the three Adam states stay on the CPU.
-    /// The backend is not part of the trainer's value or of its checkpoint.
-    pub fn set_backend(&mut self, backend: &crate::train::Backend) -> Result<(), SunAwareError> {
-        #[cfg(feature = "wgpu")]
-        {
-            self.resident.engine = None;
-        }
+    /// Moves the trainer to `backend` (see [`SunAwareModel::set_backend`]): on a device,
+    /// [`SunAwareTrainer::step_many`] trains device-resident. The backend is not part of
+    /// the trainer's value or of its checkpoint.
+    pub fn set_backend(&mut self, backend: &Backend) -> Result<(), SunAwareError> {
+        self.resident.engine = None;
         self.model.set_backend(backend)
     }
 
-    /// On `wgpu`, train device-resident (`true`, the default: [`SunAwareTrainer::step_many`]
-    /// keeps every parameter, moment and statistic on the device for a batch of steps) or
-    /// on the hybrid path (`false`: the rasterizer, shadow pass and network products on the
-    /// device, the rest on the host, every step). No effect on the CPU backend.
-    pub fn set_device_resident(&mut self, on: bool) {
-        self.resident.hybrid = !on;
-    }
-
-    /// True when steps run device-resident: the wgpu backend with residency on.
+    /// True when steps run device-resident: on a device backend,
+    /// [`SunAwareTrainer::step_many`] keeps every parameter, moment and statistic on the
+    /// device for a batch of steps.
     pub fn is_device_resident(&self) -> bool {
-        !self.resident.hybrid && self.model.gpu_active()
+        self.model.engine().is_some()
     }
 
     /// Target size used for the position rate and the clone/split boundary, metres.
@@ -609,19 +593,13 @@ impl SunAwareTrainer {
         if !self.is_device_resident() {
             return batch.iter().map(|(o, p)| self.step(o, *p)).collect();
         }
-        #[cfg(feature = "wgpu")]
-        return self.step_many_resident(batch);
-        #[cfg(not(feature = "wgpu"))]
-        unreachable!("is_device_resident is false without the wgpu feature")
+        self.step_many_resident(batch)
     }
 
-    #[cfg(feature = "wgpu")]
     fn step_many_resident(
         &mut self,
         batch: &[(Observation, f32)],
     ) -> Result<Vec<StepStats>, SunAwareError> {
-        use crate::gpu::resident_sunaware::{SunAwareResident, SunAwareStepInput};
-        let gpu = |e: crate::gpu::GpuError| SunAwareError::Gpu(e.to_string());
         let mut suns = Vec::with_capacity(batch.len());
         for (obs, progress) in batch {
             obs.validate()?;
@@ -638,15 +616,13 @@ impl SunAwareTrainer {
             }
             suns.push(obs.sun_dir.normalize());
         }
-        let Some((raster, shadow, networks)) = self.model.gpu_parts() else {
-            return Err(SunAwareError::Gpu("no wgpu backend set".into()));
+        let Some(device) = self.model.engine() else {
+            return Err(SunAwareError::Gpu("no device backend set".into()));
         };
         let engine = match &self.resident.engine {
             Some(e) => e.clone(),
             None => {
-                let e = std::sync::Arc::new(std::sync::Mutex::new(
-                    SunAwareResident::new(raster, shadow, networks).map_err(gpu)?,
-                ));
+                let e = std::sync::Arc::new(std::sync::Mutex::new(device.resident()?));
                 self.resident.engine = Some(e.clone());
                 e
             }
@@ -654,15 +630,13 @@ impl SunAwareTrainer {
         let mut engine = engine
             .lock()
             .map_err(|_| SunAwareError::Gpu("resident engine lock poisoned".into()))?;
-        engine
-            .upload(
-                &self.model,
-                &self.adam,
-                &self.appearance_adam,
-                &self.shadow_adam,
-                &self.densify_stats,
-            )
-            .map_err(gpu)?;
+        engine.upload(
+            &self.model,
+            &self.adam,
+            &self.appearance_adam,
+            &self.shadow_adam,
+            &self.densify_stats,
+        )?;
         let (mut steps, mut skipped, mut dropped) = (self.steps, 0u64, 0u64);
         let mut out = Vec::with_capacity(batch.len());
         let mut failure = None;
@@ -683,7 +657,7 @@ impl SunAwareTrainer {
             let report = match engine.step(&self.model, &input) {
                 Ok(r) => r,
                 Err(e) => {
-                    failure = Some(gpu(e));
+                    failure = Some(e);
                     break;
                 }
             };
@@ -715,15 +689,13 @@ impl SunAwareTrainer {
         if let Some(e) = failure {
             return Err(e);
         }
-        engine
-            .download(
-                &mut self.model,
-                &mut self.adam,
-                &mut self.appearance_adam,
-                &mut self.shadow_adam,
-                &mut self.densify_stats,
-            )
-            .map_err(gpu)?;
+        engine.download(
+            &mut self.model,
+            &mut self.adam,
+            &mut self.appearance_adam,
+            &mut self.shadow_adam,
+            &mut self.densify_stats,
+        )?;
         self.steps = steps;
         self.skipped_nonfinite += skipped;
         self.raster_dropped += dropped;

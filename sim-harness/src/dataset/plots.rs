@@ -346,11 +346,11 @@ fn timeline_panel(
 ) {
     let (x0, y0) = origin;
     let (w, h) = size;
-    let t_end = samples.last().map(|s| s.time_s).unwrap_or(1.0).max(1e-9);
+    let t_end = samples.last().map_or(1.0, |s| s.time_s).max(1e-9);
     let to_x = |t: f64| x0 as f64 + 1.0 + t / t_end * (w as f64 - 2.0);
     let to_y = |v: f64| y0 as f64 + h as f64 - 2.0 - (v - lo) / (hi - lo) * (h as f64 - 4.0);
     for (k, s) in samples.iter().enumerate() {
-        let next_t = samples.get(k + 1).map(|n| n.time_s).unwrap_or(t_end);
+        let next_t = samples.get(k + 1).map_or(t_end, |n| n.time_s);
         let xa = to_x(s.time_s) as i64;
         let xb = (to_x(next_t) as i64).max(xa + 1);
         let f = s.sun_visible_fraction.clamp(0.0, 1.0);
@@ -463,7 +463,7 @@ pub fn trajectory_plot(samples: &[TrajectorySample], outline_rtn_m: &[DVec3]) ->
         (0.0, max_range),
         &format!("RANGE 0-{max_range:.0} M"),
     );
-    let t_end = samples.last().map(|s| s.time_s).unwrap_or(0.0);
+    let t_end = samples.last().map_or(0.0, |s| s.time_s);
     canvas.text(
         width - pad - 150,
         height - pad + 4,

@@ -437,7 +437,7 @@ impl Preset {
             .backend
             .parse()
             .map_err(|e: SunAwareError| PresetError::Invalid(format!("backend: {e}")))?;
-        kind.check_compiled_in()
+        kind.check_compiled_in(&fsw_component::engines::device_engines())
             .map_err(|e| PresetError::Invalid(format!("backend: {e}")))?;
         Ok(kind)
     }

@@ -187,13 +187,14 @@ pub fn initialisation(scene: &SceneData, preset: &Preset) -> Initialisation {
         },
         // A hull that cannot be carved gives no points, which `OnlineTrainer::new` refuses;
         // `try_initialisation` says why.
-        InitKind::Hull => super::ablation_init::hull_initialisation(scene, preset)
-            .map(|(init, _)| init)
-            .unwrap_or(Initialisation::SurfaceSamples {
+        InitKind::Hull => super::ablation_init::hull_initialisation(scene, preset).map_or(
+            Initialisation::SurfaceSamples {
                 points: Vec::new(),
                 normals: None,
                 colours: None,
-            }),
+            },
+            |(init, _)| init,
+        ),
     }
 }
 
@@ -247,7 +248,7 @@ pub fn run_config(
     let backend = preset
         .backend
         .parse::<BackendKind>()
-        .and_then(BackendKind::open)?;
+        .and_then(|kind| kind.open(&fsw_component::engines::device_engines(), true))?;
     trainer.trainer_mut().set_backend(&backend)?;
     progress(&format!(
         "{label}: {} initial Gaussians, {} frames, W = {}",

@@ -129,7 +129,6 @@ impl MeshBuilder {
 
     /// A frustum (cylinder when radii are equal) from `base` to `top`, `segments` around and
     /// `rings` along, with optional flat caps.
-    #[allow(clippy::too_many_arguments)]
     pub fn frustum(
         &mut self,
         base: Vec3,
@@ -198,7 +197,6 @@ impl MeshBuilder {
     /// A paraboloid dish opening towards `axis` (unit), its vertex at `vertex_point`, rim radius
     /// `radius_m` at height `depth_m`; the front (concave) side uses `front`, the back surface,
     /// offset by `thickness_m` along -axis, uses `back`; a rim band closes the shell.
-    #[allow(clippy::too_many_arguments)]
     pub fn dish(
         &mut self,
         vertex_point: Vec3,

@@ -110,8 +110,7 @@ fn map_material(m: &tobj::Material) -> Material {
     let roughness = m
         .shininess
         .filter(|ns| ns.is_finite() && *ns >= 0.0)
-        .map(|ns| (2.0 / (ns + 2.0)).sqrt().sqrt())
-        .unwrap_or(0.5);
+        .map_or(0.5, |ns| (2.0 / (ns + 2.0)).sqrt().sqrt());
     Material {
         name: m.name.clone(),
         base_color_linear: base,

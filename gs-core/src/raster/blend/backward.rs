@@ -40,7 +40,6 @@ pub(super) struct BackwardPass<'a> {
 
 /// Backward of one tile: writes one gradient record (`REC_CHANNELS + n_channels` values)
 /// per list entry into `records` (which holds exactly this tile's entries).
-#[allow(clippy::too_many_arguments)]
 pub fn blend_tile_backward(
     tile: &PixelRect,
     list: &[u32],
@@ -81,8 +80,8 @@ pub(super) fn backward_entry(inp: &TileInputs, pass: BackwardPass) {
 /// The backward on the build `isa` (one the CPU supports).
 pub(super) fn backward_with(isa: Isa, inp: &TileInputs, pass: BackwardPass) {
     multiversion!(isa, ops, (inp: &TileInputs, pass: BackwardPass) => {
-        backward_dispatch(ops, inp, pass)
-    })
+        backward_dispatch(ops, inp, pass);
+    });
 }
 
 /// Picks a build with the channel count fixed at compile time for the common counts,

@@ -59,11 +59,11 @@ pub(super) fn contributions_with(
 ) {
     multiversion!(isa, ops, (inp: &TileInputs, early_termination: bool, flags: &mut [u8]) => {
         if inp.mode.smooth {
-            contributions_rows::<_, true>(ops, inp, early_termination, flags)
+            contributions_rows::<_, true>(ops, inp, early_termination, flags);
         } else {
-            contributions_rows::<_, false>(ops, inp, early_termination, flags)
+            contributions_rows::<_, false>(ops, inp, early_termination, flags);
         }
-    })
+    });
 }
 
 /// [`forward_rows`] without channels or depth: only the transmittance and the flags.

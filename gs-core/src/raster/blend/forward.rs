@@ -25,7 +25,6 @@ pub struct TileForwardOut<'a> {
 ///
 /// Runs the widest build of the tile loops the CPU supports (AVX-512, AVX2, portable):
 /// the same bits on each.
-#[allow(clippy::too_many_arguments)]
 pub fn blend_tile_forward(
     tile: &PixelRect,
     list: &[u32],
@@ -57,8 +56,8 @@ pub(super) fn forward_with(
     out: TileForwardOut,
 ) {
     multiversion!(isa, ops, (inp: &TileInputs, early_termination: bool, out: TileForwardOut) => {
-        forward_dispatch(ops, inp, early_termination, out)
-    })
+        forward_dispatch(ops, inp, early_termination, out);
+    });
 }
 
 /// Picks a build with the channel count fixed at compile time for the common counts,

@@ -236,7 +236,7 @@ mod avx512 {
                     r.as_mut_ptr().cast::<i32>(),
                     m,
                     _mm512_set1_epi32(v as i32),
-                )
+                );
             }
         }
         #[inline(always)]

@@ -200,7 +200,7 @@ fn check_backward_against_finite_differences(
         check("depth", rec[REC_DEPTH], &|s, _, h| s[i].depth += h);
         for k in 0..NC {
             check("channel", rec[REC_CHANNELS + k], &|_, c, h| {
-                c[i * NC + k] += h
+                c[i * NC + k] += h;
             });
         }
     }

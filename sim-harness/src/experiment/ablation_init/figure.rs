@@ -110,8 +110,8 @@ fn bar_panel(
         return;
     }
     // Bars start 2 dB below the lowest value so differences of tenths stay visible.
-    let lo = (values.iter().cloned().fold(f64::INFINITY, f64::min) - 2.0).floor();
-    let hi = values.iter().cloned().fold(f64::NEG_INFINITY, f64::max) + 0.5;
+    let lo = (values.iter().copied().fold(f64::INFINITY, f64::min) - 2.0).floor();
+    let hi = values.iter().copied().fold(f64::NEG_INFINITY, f64::max) + 0.5;
     let y_of = |v: f64| top + PANEL_H * (1.0 - (v - lo) / (hi - lo));
     draw_text(
         canvas,

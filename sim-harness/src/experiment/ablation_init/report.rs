@@ -162,7 +162,7 @@ pub fn to_markdown(runs: &[InitRun]) -> String {
         );
         for r in hulls {
             let Some(h) = &r.hull else { continue };
-            let frames: Vec<String> = h.frames.iter().map(|f| f.to_string()).collect();
+            let frames: Vec<String> = h.frames.iter().map(ToString::to_string).collect();
             let _ = writeln!(
                 out,
                 "| {} | {} | {} | {:.3} | {} | {} | {} | {} | {:.3} | {:.1} % | {:.2} |",

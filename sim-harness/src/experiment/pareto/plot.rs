@@ -72,7 +72,6 @@ fn tick_label(v: f64) -> String {
 
 /// Draws a framed x-y panel into `canvas` at (x0, y0) of `w` x `h` pixels: axes with tick
 /// labels, each series' points (squares) and lines, a legend, and text labels at data points.
-#[allow(clippy::too_many_arguments)]
 pub fn draw_xy_panel(
     canvas: &mut Canvas,
     (x0, y0, w, h): (i64, i64, i64, i64),

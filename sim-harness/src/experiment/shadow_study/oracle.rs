@@ -15,7 +15,7 @@ use crate::raytrace::Scene;
 use glam::Vec3;
 use gs_core::init::inverse_sigmoid;
 use gs_core::model::{GaussianModel, Param};
-use gs_core::sunaware::light::{sun_visibility_with_margin, RECEIVER_EXTENT_SIGMAS};
+use gs_core::sunaware::sun_visibility::{sun_visibility_with_margin, RECEIVER_EXTENT_SIGMAS};
 use gs_core::sunaware::{LightConfig, LightProjection, SunAwareModel};
 use rayon::prelude::*;
 

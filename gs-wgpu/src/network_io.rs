@@ -1,0 +1,763 @@
+//! Input assembly and output scatter of the Sun-aware networks (Phi, Psi) on the device,
+//! forward and backward, for the device-resident Sun-aware step: [`NetworkIo`]'s
+//! `encode_*` functions record kernels (shaders/netio_*.wgsl) into the caller's command
+//! encoder on the caller's device buffers; nothing is submitted or read back.
+//!
+//! Ported operation for operation from the CPU: `nn::appearance::AppearanceNet::
+//! {assemble_input, scatter_input_grad}`, `nn::shadow_net::ShadowNet::{assemble_input,
+//! scatter_input_grad}` (full rows, not the folded training path), `nn::encoding`
+//! (`sin_cos_pi`'s quarter-turn reduction and polynomials, not the GPU's own sin/cos) and
+//! the channel routing of `sunaware::model::{forward_with, backward_timed}`.
+//!
+//! Conventions (the session's contract): `params`/`grads` are the packed group-major
+//! parameter buffers with group starts `offsets` ([`packed_offsets`]); `list` holds at
+//! least `max(n, 1)` u32 Gaussian indices, ascending, no repeats; `count`'s word 0 is the
+//! live row count m (written on the device; values above n are read as n). Every kernel
+//! runs over `n` rows; rows `r >= m` only write zeros to per-row outputs (input rows,
+//! `d_out`).
+//!
+//! Invariants:
+//! - the same arithmetic as the CPU (the Sun's encoding is computed on the host by the
+//!   CPU encoding itself); see tests/gpu_network_io.rs for the measured agreement;
+//! - host arguments that cannot describe the buffers (sizes, widths, offsets, channel
+//!   counts, a non-finite or zero Sun vector, a non-finite camera centre) are a
+//!   [`GpuError::Invalid`] before anything is recorded;
+//! - where the CPU returns an error for device data (a non-finite feature, mean, latent
+//!   or V of a listed Gaussian, a Gaussian at the camera centre, a list entry >= n), the
+//!   input kernels set `flags[0]` bit 0 instead; the gradient kernels write what they
+//!   compute (non-finite values included: the step's gradient check refuses them);
+//! - each `encode_*` has its own uniform in the `Scratch` pool ("netio ..." labels),
+//!   written through the queue: recording the same `encode_*` twice before one
+//!   submission makes both read the second call's uniform;
+//! - no float atomics: each listed Gaussian's rows have one writer, so results are
+//!   deterministic.
+
+use super::{
+    bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError, Scratch,
+};
+use gs_core::model::Param;
+use gs_core::nn::{AppearanceNet, SceneBox, ShadowNet};
+
+const NETIO_COMMON: &str = include_str!("shaders/netio_common.wgsl");
+const NETIO_ENCODING_BACKWARD: &str = include_str!("shaders/netio_encoding_backward.wgsl");
+const NETIO_INPUT_ROWS: &str = include_str!("shaders/netio_input_rows.wgsl");
+const NETIO_PHI_INPUT: &str = include_str!("shaders/netio_phi_input.wgsl");
+const NETIO_PHI_SCATTER: &str = include_str!("shaders/netio_phi_scatter.wgsl");
+const NETIO_PHI_D_OUTPUT: &str = include_str!("shaders/netio_phi_d_output.wgsl");
+const NETIO_PHI_INPUT_GRAD: &str = include_str!("shaders/netio_phi_input_grad.wgsl");
+const NETIO_PSI_INPUT: &str = include_str!("shaders/netio_psi_input.wgsl");
+const NETIO_PSI_SCATTER: &str = include_str!("shaders/netio_psi_scatter.wgsl");
+const NETIO_PSI_D_OUTPUT: &str = include_str!("shaders/netio_psi_d_output.wgsl");
+const NETIO_PSI_INPUT_GRAD: &str = include_str!("shaders/netio_psi_input_grad.wgsl");
+
+/// Floats per rasterizer gradient row before the channels (project_backward.wgsl).
+const ROW_HEAD: usize = 13;
+/// Phi's outputs per row (RGB).
+const PHI_OUT: usize = 3;
+/// Channels with Psi's V' (RGB, V').
+const SHADOWED_CHANNELS: usize = 4;
+/// Sun-code floats the uniform holds: 6 L for L up to `nn::encoding::MAX_FREQUENCIES`.
+const SUN_CODE_CAPACITY: usize = 96;
+/// Bytes of the `NetIo` uniform (netio_common.wgsl).
+const UNIFORM_BYTES: usize = 128 + SUN_CODE_CAPACITY * 4;
+
+/// Start of each group in the packed layout for `n` rows, and the total: the public face
+/// of `resident::offsets` (tests and tools build packed buffers by hand with it).
+pub fn packed_offsets(
+    dims: &[usize; Param::COUNT],
+    n: usize,
+) -> Result<[u32; Param::COUNT + 1], GpuError> {
+    super::resident::offsets(dims, n)
+}
+
+/// Compiled kernels of the networks' input assembly and output scatter.
+pub struct NetworkIo {
+    ctx: GpuContext,
+    phi_input: wgpu::ComputePipeline,
+    phi_scatter: wgpu::ComputePipeline,
+    phi_d_output: wgpu::ComputePipeline,
+    phi_input_grad: wgpu::ComputePipeline,
+    psi_input: wgpu::ComputePipeline,
+    psi_scatter: wgpu::ComputePipeline,
+    psi_d_output: wgpu::ComputePipeline,
+    psi_input_grad: wgpu::ComputePipeline,
+}
+
+impl std::fmt::Debug for NetworkIo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "NetworkIo({})", self.ctx.adapter_name())
+    }
+}
+
+/// What one kernel's uniform says (the `NetIo` struct of netio_common.wgsl).
+#[derive(Default)]
+struct Uniform {
+    offsets: [u32; Param::COUNT + 1],
+    n: usize,
+    nc: usize,
+    width: usize,
+    dim: usize,
+    freqs: usize,
+    multiply: bool,
+    camera_centre: [f32; 3],
+    box_min: [f32; 3],
+    box_extent: [f32; 3],
+    box_inv_extent: [f32; 3],
+    sun_code: Vec<f32>,
+}
+
+impl Uniform {
+    fn bytes(&self) -> Vec<u8> {
+        let mut words = [0u32; UNIFORM_BYTES / 4];
+        words[..8].copy_from_slice(&self.offsets[..8]);
+        for (w, v) in words[8..14].iter_mut().zip([
+            self.n,
+            self.nc,
+            self.width,
+            self.dim,
+            self.freqs,
+            usize::from(self.multiply),
+        ]) {
+            // Validated to fit u32 before any uniform is built.
+            *w = v as u32;
+        }
+        let vec4 = |words: &mut [u32], at: usize, v: [f32; 3]| {
+            for (w, x) in words[at..at + 3].iter_mut().zip(v) {
+                *w = x.to_bits();
+            }
+        };
+        vec4(&mut words, 16, self.camera_centre);
+        vec4(&mut words, 20, self.box_min);
+        vec4(&mut words, 24, self.box_extent);
+        vec4(&mut words, 28, self.box_inv_extent);
+        for (w, x) in words[32..].iter_mut().zip(&self.sun_code) {
+            *w = x.to_bits();
+        }
+        u32_bytes(&words)
+    }
+}
+
+/// `v` scaled to unit length in f64, as `nn::gather::unit_vector` (the CPU's Sun
+/// normalisation); a non-finite or zero vector is an error.
+fn unit_vector(what: &str, v: [f32; 3]) -> Result<[f32; 3], GpuError> {
+    if v.iter().any(|x| !x.is_finite()) {
+        return Err(GpuError::Invalid(format!("{what} {v:?} is not finite")));
+    }
+    let norm = (v[0] as f64).hypot(v[1] as f64).hypot(v[2] as f64);
+    if norm < 1e-12 {
+        return Err(GpuError::Invalid(format!("{what} {v:?} has zero length")));
+    }
+    Ok([
+        (v[0] as f64 / norm) as f32,
+        (v[1] as f64 / norm) as f32,
+        (v[2] as f64 / norm) as f32,
+    ])
+}
+
+/// gamma_L of the unit Sun direction, by the CPU encoding (the same bits as its rows).
+fn sun_code(
+    encoding: gs_core::nn::PositionalEncoding,
+    sun_dir: [f32; 3],
+) -> Result<Vec<f32>, GpuError> {
+    let sun = unit_vector("Sun direction", sun_dir)?;
+    let mut code = vec![0.0f32; encoding.width(3)];
+    encoding
+        .encode(&sun, &mut code)
+        .map_err(|e| GpuError::Invalid(format!("Sun direction encoding: {e}")))?;
+    if code.len() > SUN_CODE_CAPACITY {
+        return Err(GpuError::Invalid(format!(
+            "{} Sun-code values exceed the uniform's {SUN_CODE_CAPACITY}",
+            code.len()
+        )));
+    }
+    Ok(code)
+}
+
+/// `buf` holds at least `floats` 4-byte values.
+fn check_buffer(what: &str, buf: &wgpu::Buffer, floats: usize) -> Result<(), GpuError> {
+    let need = floats as u64 * 4;
+    if buf.size() < need {
+        return Err(GpuError::Invalid(format!(
+            "{what} buffer has {} bytes, needs {need}",
+            buf.size()
+        )));
+    }
+    Ok(())
+}
+
+/// `n` and every row-index product the kernels form (`n * widest`) fit u32.
+fn check_rows(n: usize, widest: usize) -> Result<(), GpuError> {
+    if (n as u64).saturating_mul(widest.max(1) as u64) > u32::MAX as u64 {
+        return Err(GpuError::TooLarge(format!(
+            "{n} rows of {widest} values exceed 32-bit indexing"
+        )));
+    }
+    Ok(())
+}
+
+/// `list` (max(n, 1) u32) and `count` (1 u32).
+fn check_batch(n: usize, list: &wgpu::Buffer, count: &wgpu::Buffer) -> Result<(), GpuError> {
+    check_buffer("list", list, n.max(1))?;
+    check_buffer("count", count, 1)
+}
+
+/// The offsets are a packed layout of `n` rows whose Mean group is `3n` wide and whose
+/// `group` is `n * dim` wide, and `params` (and `grads`, when given) hold all of it.
+fn check_layout(
+    offsets: &[u32; Param::COUNT + 1],
+    n: usize,
+    group: Param,
+    dim: usize,
+    buffers: &[(&str, &wgpu::Buffer)],
+) -> Result<(), GpuError> {
+    if offsets[0] != 0 || offsets.windows(2).any(|w| w[1] < w[0]) {
+        return Err(GpuError::Invalid(format!(
+            "parameter offsets {offsets:?} do not start at 0 and increase"
+        )));
+    }
+    let size = |p: Param| (offsets[p.index() + 1] - offsets[p.index()]) as u64;
+    for (p, width) in [(Param::Mean, 3), (group, dim)] {
+        if size(p) != (n * width) as u64 {
+            return Err(GpuError::Invalid(format!(
+                "parameter offsets {offsets:?}: group {p:?} holds {} values, expected {n} x {width}",
+                size(p)
+            )));
+        }
+    }
+    for (what, buf) in buffers {
+        check_buffer(what, buf, offsets[Param::COUNT] as usize)?;
+    }
+    Ok(())
+}
+
+fn check_finite3(what: &str, v: [f32; 3]) -> Result<(), GpuError> {
+    if v.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(GpuError::Invalid(format!("{what} {v:?} is not finite")))
+    }
+}
+
+/// The scene box's corner, extent and inverse extent as shadow.rs forms them (f32).
+fn box_terms(scene_box: &SceneBox) -> ([f32; 3], [f32; 3], [f32; 3]) {
+    let (min, max) = (scene_box.min_m(), scene_box.max_m());
+    let extent: [f32; 3] = std::array::from_fn(|a| max[a] - min[a]);
+    let inv: [f32; 3] = std::array::from_fn(|a| 1.0 / (max[a] - min[a]));
+    (min, extent, inv)
+}
+
+impl NetworkIo {
+    /// Compiles the eight kernels on `ctx`'s device.
+    pub fn new(ctx: &GpuContext) -> Result<Self, GpuError> {
+        let common = format!("{NETIO_COMMON}\n");
+        let rows = format!("{common}{NETIO_INPUT_ROWS}\n");
+        let grad = format!("{common}{NETIO_ENCODING_BACKWARD}\n");
+        Ok(Self {
+            phi_input: ctx.pipeline("netio_phi_input", &format!("{rows}{NETIO_PHI_INPUT}"))?,
+            phi_scatter: ctx
+                .pipeline("netio_phi_scatter", &format!("{common}{NETIO_PHI_SCATTER}"))?,
+            phi_d_output: ctx.pipeline(
+                "netio_phi_d_output",
+                &format!("{common}{NETIO_PHI_D_OUTPUT}"),
+            )?,
+            phi_input_grad: ctx.pipeline(
+                "netio_phi_input_grad",
+                &format!("{grad}{NETIO_PHI_INPUT_GRAD}"),
+            )?,
+            psi_input: ctx.pipeline("netio_psi_input", &format!("{rows}{NETIO_PSI_INPUT}"))?,
+            psi_scatter: ctx
+                .pipeline("netio_psi_scatter", &format!("{common}{NETIO_PSI_SCATTER}"))?,
+            psi_d_output: ctx.pipeline(
+                "netio_psi_d_output",
+                &format!("{common}{NETIO_PSI_D_OUTPUT}"),
+            )?,
+            psi_input_grad: ctx.pipeline(
+                "netio_psi_input_grad",
+                &format!("{grad}{NETIO_PSI_INPUT_GRAD}"),
+            )?,
+            ctx: ctx.clone(),
+        })
+    }
+
+    /// Writes `uniform` to its scratch slot and records one pass of `pipeline` over `n`
+    /// rows with `uniform` at binding 0 and `buffers` at 1, 2, ... (`list` and `count`
+    /// first: the bindings netio_common.wgsl declares for every kernel).
+    #[allow(clippy::too_many_arguments)]
+    fn record(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        label: &str,
+        pipeline: &wgpu::ComputePipeline,
+        uniform: &Uniform,
+        buffers: &[&wgpu::Buffer],
+    ) -> Result<(), GpuError> {
+        let u = scratch.uniform(&self.ctx, label, &uniform.bytes())?;
+        let mut all = vec![&u];
+        all.extend_from_slice(buffers);
+        let bind = self.ctx.bind_group(pipeline, &all);
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: None,
+        });
+        dispatch_1d(&mut pass, pipeline, &bind, uniform.n as u64);
+        Ok(())
+    }
+
+    /// Phi's input rows (`n * input_width` f32 in `input`) for `list[0..count]`: row r is
+    /// `[f_g | gamma_L(sun) | gamma_L(view_g)]` of g = list[r], view_g the unit vector
+    /// from mean_g to the camera centre; rows `>= count` are written as 0. A non-finite
+    /// feature or mean, or a Gaussian at the camera centre (view distance not > 0 and
+    /// finite), sets `flags` bit 0.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_phi_input(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        net: &AppearanceNet,
+        params: &wgpu::Buffer,
+        offsets: &[u32; 9],
+        n: usize,
+        list: &wgpu::Buffer,
+        count: &wgpu::Buffer,
+        sun_dir: [f32; 3],
+        camera_centre: [f32; 3],
+        input: &wgpu::Buffer,
+        flags: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        let width = net.input_width();
+        check_rows(n, width)?;
+        check_layout(
+            offsets,
+            n,
+            Param::Feature,
+            net.feature_dim(),
+            &[("params", params)],
+        )?;
+        check_batch(n, list, count)?;
+        check_buffer("Phi input", input, n * width)?;
+        check_buffer("flags", flags, 1)?;
+        check_finite3("camera centre", camera_centre)?;
+        let uniform = Uniform {
+            offsets: *offsets,
+            n,
+            width,
+            dim: net.feature_dim(),
+            freqs: net.encoding().num_frequencies(),
+            camera_centre,
+            sun_code: sun_code(net.encoding(), sun_dir)?,
+            ..Uniform::default()
+        };
+        if n == 0 {
+            return Ok(());
+        }
+        let buffers = [list, count, params, input, flags];
+        self.record(
+            encoder,
+            scratch,
+            "netio phi input",
+            &self.phi_input,
+            &uniform,
+            &buffers,
+        )
+    }
+
+    /// Phi's output (`n * 3`, row r = list[r]'s RGB) into the channels: `chans[g * nc + k]
+    /// = output[r * 3 + k]`, k < 3, for r < count, g = list[r]; other Gaussians' channels
+    /// are not touched. `nc` is 3 or 4.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_phi_scatter(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        n: usize,
+        nc: usize,
+        list: &wgpu::Buffer,
+        count: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        chans: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        check_channels(nc, &[3, 4])?;
+        check_rows(n, ROW_HEAD + nc)?;
+        check_batch(n, list, count)?;
+        check_buffer("Phi output", output, n * PHI_OUT)?;
+        check_buffer("channels", chans, n * nc)?;
+        let uniform = Uniform {
+            n,
+            nc,
+            ..Uniform::default()
+        };
+        if n == 0 {
+            return Ok(());
+        }
+        let buffers = [list, count, output, chans];
+        self.record(
+            encoder,
+            scratch,
+            "netio phi scatter",
+            &self.phi_scatter,
+            &uniform,
+            &buffers,
+        )
+    }
+
+    /// Phi's output gradient (`n * 3`) from the rasterizer's gradient rows (`n * (13 +
+    /// nc)`): `d_out[r * 3 + k] = rows[g * (13 + nc) + 13 + k]` for r < count, g = list[r];
+    /// 0 for rows `>= count`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_phi_d_output(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        n: usize,
+        nc: usize,
+        list: &wgpu::Buffer,
+        count: &wgpu::Buffer,
+        rows: &wgpu::Buffer,
+        d_out: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        check_channels(nc, &[3, 4])?;
+        check_rows(n, ROW_HEAD + nc)?;
+        check_batch(n, list, count)?;
+        check_buffer("rasterizer gradient rows", rows, n * (ROW_HEAD + nc))?;
+        check_buffer("Phi output gradient", d_out, n * PHI_OUT)?;
+        let uniform = Uniform {
+            n,
+            nc,
+            ..Uniform::default()
+        };
+        if n == 0 {
+            return Ok(());
+        }
+        let buffers = [list, count, rows, d_out];
+        self.record(
+            encoder,
+            scratch,
+            "netio phi d_output",
+            &self.phi_d_output,
+            &uniform,
+            &buffers,
+        )
+    }
+
+    /// Phi's input gradient (`d_input`, `n * input_width`) into `grads` (packed like
+    /// `params`): for r < count, g = list[r], the Feature row g is set to the row's feature
+    /// columns, and the view-direction chain rule of its view columns,
+    /// `-(d_view - (d_view . v) v) / |c - mu_g|`, is ADDED to the Mean row g.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_phi_input_grad(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        net: &AppearanceNet,
+        params: &wgpu::Buffer,
+        offsets: &[u32; 9],
+        n: usize,
+        list: &wgpu::Buffer,
+        count: &wgpu::Buffer,
+        camera_centre: [f32; 3],
+        d_input: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        let width = net.input_width();
+        check_rows(n, width)?;
+        check_layout(
+            offsets,
+            n,
+            Param::Feature,
+            net.feature_dim(),
+            &[("params", params), ("grads", grads)],
+        )?;
+        check_batch(n, list, count)?;
+        check_buffer("Phi input gradient", d_input, n * width)?;
+        check_finite3("camera centre", camera_centre)?;
+        let uniform = Uniform {
+            offsets: *offsets,
+            n,
+            width,
+            dim: net.feature_dim(),
+            freqs: net.encoding().num_frequencies(),
+            camera_centre,
+            ..Uniform::default()
+        };
+        if n == 0 {
+            return Ok(());
+        }
+        let buffers = [list, count, params, d_input, grads];
+        self.record(
+            encoder,
+            scratch,
+            "netio phi input grad",
+            &self.phi_input_grad,
+            &uniform,
+            &buffers,
+        )
+    }
+
+    /// Psi's full input rows (`n * input_width` f32 in `input`) for `list[0..count]`: row r
+    /// is `[V_g | gamma_L(sun) | gamma_L(p_g) | l_g]` of g = list[r], V_g from `visibility`
+    /// (n f32), p_g the mean normalised over `scene_box`; rows `>= count` are written as 0.
+    /// A non-finite V, mean or latent sets `flags` bit 0.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_psi_input(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        net: &ShadowNet,
+        scene_box: &SceneBox,
+        params: &wgpu::Buffer,
+        offsets: &[u32; 9],
+        n: usize,
+        list: &wgpu::Buffer,
+        count: &wgpu::Buffer,
+        sun_dir: [f32; 3],
+        visibility: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        flags: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        let width = net.input_width();
+        check_rows(n, width)?;
+        check_layout(
+            offsets,
+            n,
+            Param::ShadowLatent,
+            net.latent_dim(),
+            &[("params", params)],
+        )?;
+        check_batch(n, list, count)?;
+        check_buffer("visibility", visibility, n)?;
+        check_buffer("Psi input", input, n * width)?;
+        check_buffer("flags", flags, 1)?;
+        let (box_min, box_extent, box_inv_extent) = box_terms(scene_box);
+        let uniform = Uniform {
+            offsets: *offsets,
+            n,
+            width,
+            dim: net.latent_dim(),
+            freqs: net.encoding().num_frequencies(),
+            box_min,
+            box_extent,
+            box_inv_extent,
+            sun_code: sun_code(net.encoding(), sun_dir)?,
+            ..Uniform::default()
+        };
+        if n == 0 {
+            return Ok(());
+        }
+        let buffers = [list, count, params, input, flags, visibility];
+        self.record(
+            encoder,
+            scratch,
+            "netio psi input",
+            &self.psi_input,
+            &uniform,
+            &buffers,
+        )
+    }
+
+    /// Psi's output P (`n`, row r = list[r]'s) into channel 3: `chans[g * nc + 3] = V_g *
+    /// P_r` when `multiply` (ShadowRefinement::Multiply), else `P_r`, for r < count, g =
+    /// list[r]; other Gaussians' channels are not touched. `nc` must be 4.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_psi_scatter(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        n: usize,
+        nc: usize,
+        list: &wgpu::Buffer,
+        count: &wgpu::Buffer,
+        visibility: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        multiply: bool,
+        chans: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        check_channels(nc, &[SHADOWED_CHANNELS])?;
+        check_rows(n, ROW_HEAD + nc)?;
+        check_batch(n, list, count)?;
+        check_buffer("visibility", visibility, n)?;
+        check_buffer("Psi output", output, n)?;
+        check_buffer("channels", chans, n * nc)?;
+        let uniform = Uniform {
+            n,
+            nc,
+            multiply,
+            ..Uniform::default()
+        };
+        if n == 0 {
+            return Ok(());
+        }
+        let buffers = [list, count, visibility, output, chans];
+        self.record(
+            encoder,
+            scratch,
+            "netio psi scatter",
+            &self.psi_scatter,
+            &uniform,
+            &buffers,
+        )
+    }
+
+    /// Psi's output gradient (`n`): `d_out[r] = rows[g * (13 + nc) + 16]` (channel 3's
+    /// gradient) times V_g when `multiply`, for r < count, g = list[r]; 0 for rows
+    /// `>= count`. `nc` must be 4.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_psi_d_output(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        n: usize,
+        nc: usize,
+        list: &wgpu::Buffer,
+        count: &wgpu::Buffer,
+        visibility: &wgpu::Buffer,
+        rows: &wgpu::Buffer,
+        multiply: bool,
+        d_out: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        check_channels(nc, &[SHADOWED_CHANNELS])?;
+        check_rows(n, ROW_HEAD + nc)?;
+        check_batch(n, list, count)?;
+        check_buffer("visibility", visibility, n)?;
+        check_buffer("rasterizer gradient rows", rows, n * (ROW_HEAD + nc))?;
+        check_buffer("Psi output gradient", d_out, n)?;
+        let uniform = Uniform {
+            n,
+            nc,
+            multiply,
+            ..Uniform::default()
+        };
+        if n == 0 {
+            return Ok(());
+        }
+        let buffers = [list, count, visibility, rows, d_out];
+        self.record(
+            encoder,
+            scratch,
+            "netio psi d_output",
+            &self.psi_d_output,
+            &uniform,
+            &buffers,
+        )
+    }
+
+    /// Psi's input gradient (`d_input`, `n * input_width`) into `grads` (packed like
+    /// `params`): for r < count, g = list[r], the ShadowLatent row g is set to the row's
+    /// latent columns, and the chain rule of its position columns through the encoding and
+    /// the box normalisation is ADDED to the Mean row g. The V column gets nothing.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_psi_input_grad(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        scratch: &Scratch,
+        net: &ShadowNet,
+        scene_box: &SceneBox,
+        params: &wgpu::Buffer,
+        offsets: &[u32; 9],
+        n: usize,
+        list: &wgpu::Buffer,
+        count: &wgpu::Buffer,
+        d_input: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        let width = net.input_width();
+        check_rows(n, width)?;
+        check_layout(
+            offsets,
+            n,
+            Param::ShadowLatent,
+            net.latent_dim(),
+            &[("params", params), ("grads", grads)],
+        )?;
+        check_batch(n, list, count)?;
+        check_buffer("Psi input gradient", d_input, n * width)?;
+        let (box_min, box_extent, box_inv_extent) = box_terms(scene_box);
+        let uniform = Uniform {
+            offsets: *offsets,
+            n,
+            width,
+            dim: net.latent_dim(),
+            freqs: net.encoding().num_frequencies(),
+            box_min,
+            box_extent,
+            box_inv_extent,
+            ..Uniform::default()
+        };
+        if n == 0 {
+            return Ok(());
+        }
+        let buffers = [list, count, params, d_input, grads];
+        self.record(
+            encoder,
+            scratch,
+            "netio psi input grad",
+            &self.psi_input_grad,
+            &uniform,
+            &buffers,
+        )
+    }
+}
+
+fn check_channels(nc: usize, allowed: &[usize]) -> Result<(), GpuError> {
+    if allowed.contains(&nc) {
+        Ok(())
+    } else {
+        Err(GpuError::Invalid(format!(
+            "{nc} channels per Gaussian, expected one of {allowed:?}"
+        )))
+    }
+}
+
+/// Host data into device buffers and back, for tests and diagnostics outside the crate
+/// that record [`NetworkIo`]'s `encode_*` functions (the context's buffer helpers are
+/// crate-private): buffers from host slices, an encoder, one submission and readback.
+#[derive(Debug)]
+pub struct NetworkIoProbe {
+    ctx: GpuContext,
+}
+
+impl NetworkIoProbe {
+    pub fn new(ctx: &GpuContext) -> Self {
+        Self { ctx: ctx.clone() }
+    }
+
+    /// A storage buffer holding `data` (at least 16 bytes).
+    pub fn buffer_f32(&self, label: &str, data: &[f32]) -> wgpu::Buffer {
+        self.ctx.storage_init(label, &f32_bytes(data))
+    }
+
+    /// A storage buffer holding `data` (at least 16 bytes).
+    pub fn buffer_u32(&self, label: &str, data: &[u32]) -> wgpu::Buffer {
+        self.ctx.storage_init(label, &u32_bytes(data))
+    }
+
+    pub fn encoder(&self) -> wgpu::CommandEncoder {
+        self.ctx.encoder("netio probe")
+    }
+
+    /// Submits `encoder` and reads back the first `len` f32 of each buffer.
+    pub fn finish_f32(
+        &self,
+        encoder: wgpu::CommandEncoder,
+        buffers: &[(&wgpu::Buffer, usize)],
+    ) -> Result<Vec<Vec<f32>>, GpuError> {
+        let ranges: Vec<(&wgpu::Buffer, u64)> = buffers
+            .iter()
+            .map(|(b, len)| (*b, *len as u64 * 4))
+            .collect();
+        Ok(self
+            .ctx
+            .read_back(encoder, &ranges)?
+            .iter()
+            .map(|b| bytes_f32(b))
+            .collect())
+    }
+
+    /// The first `len` u32 of `buffer` (after everything submitted so far).
+    pub fn read_u32(&self, buffer: &wgpu::Buffer, len: usize) -> Result<Vec<u32>, GpuError> {
+        let bytes = self
+            .ctx
+            .read_back(self.encoder(), &[(buffer, len as u64 * 4)])?;
+        Ok(bytes_u32(&bytes[0]))
+    }
+}
