@@ -6,9 +6,9 @@
 //! ([`resident_sunaware::SunAwareResident`]: Gaussians, network weights, every Adam state
 //! and the statistics on the device, one submission per step). [`WgpuEngine`] is the
 //! whole backend behind gs-core's engine trait ([`gs_core::engine::Engine`]); the
-//! binaries open it with [`open_engine`] (`DeviceEngines::wgpu`). [`ResidentModel`] is the
-//! plain 3DGS model's resident state, kept for its kernel tests (the Adam and loss kernels
-//! and the sort-overflow redo the Sun-aware step shares).
+//! binaries open it with [`open_engine`] (`DeviceEngines::wgpu`). [`GpuAdam`] runs the
+//! resident step's optimiser kernels on their own (the kernel tests against
+//! `gs_core::optim`).
 //!
 //! [`GpuContext::new`] opens a Vulkan adapter (the only backend compiled in, so wgpu can
 //! never fall back to OpenGL) and reports its name, backend and whether it has
@@ -28,8 +28,8 @@ pub mod engine;
 pub mod loss;
 pub mod mlp;
 pub mod network_io;
+mod packed;
 pub mod raster;
-pub mod resident;
 pub mod resident_sunaware;
 pub mod sun_visibility;
 
@@ -39,7 +39,7 @@ pub use engine::{open_engine, WgpuEngine};
 pub use loss::GpuLoss;
 pub use mlp::{GemmOp, GpuMlp, MlpGradients, MlpTape};
 pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
-pub use resident::{ResidentModel, ResidentStepInput, ResidentStepReport};
+pub use resident_sunaware::GpuAdam;
 pub use sun_visibility::GpuSunVisibility;
 
 /// GPU backend error.

@@ -62,12 +62,12 @@ const SUN_CODE_CAPACITY: usize = 96;
 const UNIFORM_BYTES: usize = 128 + SUN_CODE_CAPACITY * 4;
 
 /// Start of each group in the packed layout for `n` rows, and the total: the public face
-/// of `resident::offsets` (tests and tools build packed buffers by hand with it).
+/// of `packed::offsets` (tests and tools build packed buffers by hand with it).
 pub fn packed_offsets(
     dims: &[usize; Param::COUNT],
     n: usize,
 ) -> Result<[u32; Param::COUNT + 1], GpuError> {
-    super::resident::offsets(dims, n)
+    super::packed::offsets(dims, n)
 }
 
 /// Compiled kernels of the networks' input assembly and output scatter.

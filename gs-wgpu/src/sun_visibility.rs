@@ -194,7 +194,7 @@ impl GpuSunVisibility {
         let n = model.len();
         let mut dims = [0usize; Param::COUNT];
         dims[..4].copy_from_slice(&GEOMETRY_DIMS);
-        let offsets = super::resident::offsets(&dims, n)?;
+        let offsets = super::packed::offsets(&dims, n)?;
         let mut packed = Vec::with_capacity(11 * n);
         for p in [
             Param::Mean,
@@ -217,7 +217,7 @@ impl GpuSunVisibility {
     }
 
     /// [`Self::encode_sun_visibility`] on `params` packed in the resident layout
-    /// (`crate::resident::pack`), run from the host: uploads, records with `capacity`,
+    /// (`crate::packed::pack`), run from the host: uploads, records with `capacity`,
     /// submits and reads back `V`, the flags word and the entry count.
     #[allow(clippy::too_many_arguments)]
     pub fn sun_visibility_packed(
@@ -231,7 +231,7 @@ impl GpuSunVisibility {
         capacity: Option<u64>,
     ) -> Result<PackedVisibility, GpuError> {
         let n = params.len();
-        let offsets = super::resident::offsets(&params.dims(), n)?;
+        let offsets = super::packed::offsets(&params.dims(), n)?;
         let light = HostLight {
             sun_dir,
             camera_centre,
@@ -239,13 +239,7 @@ impl GpuSunVisibility {
             config,
             near_m,
         };
-        self.run_packed(
-            &super::resident::pack(params),
-            &offsets,
-            n,
-            &light,
-            capacity,
-        )
+        self.run_packed(&super::packed::pack(params), &offsets, n, &light, capacity)
     }
 
     fn run_packed(

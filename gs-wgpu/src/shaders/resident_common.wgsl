@@ -1,4 +1,4 @@
-// Shared by the resident-training kernels (gpu/resident.rs): the step uniform over the
+// Shared by the resident-training kernels (resident_sunaware/kernels.rs): the step uniform over the
 // packed, group-major parameter buffer, and the SH basis and its Jacobian ported
 // operation for operation from sh.rs (3DGS constants and signs).
 

@@ -2,7 +2,7 @@
 // d_mean 3, d_log_scale 3, d_rotation 4, d_opacity_logit, |d mean2d| NDC, dropped flag,
 // d_rgb 3) and the SH colour backward (sh.rs `sh_to_rgb_backward`): one thread per
 // Gaussian writes its rows of every group of the packed gradient buffer (zeros for the
-// groups the plain trainer does not train). Any non-finite value sets flags[0] (the step
+// groups configuration (a) does not train). Any non-finite value sets flags[0] (the step
 // is then refused whole, as optim.rs does); flags[1] counts rows the rasterizer dropped.
 
 @group(0) @binding(0) var<uniform> st: Step;
