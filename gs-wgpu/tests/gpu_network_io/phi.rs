@@ -1,0 +1,241 @@
+//! Phi's (the appearance network's) input rows, their refusals, the output scatter and
+//! output gradient, and the input gradient's scatter, against the CPU.
+
+use super::*;
+
+#[test]
+fn phi_input_matches_the_cpu_rows() {
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
+    let mut worst = 0.0f32;
+    for (seed, n, f_dim, freqs, keep) in [
+        (1, 700, 8, 4, 0.6),
+        (2, 300, 72, 4, 0.9),
+        (3, 40, 5, 10, 0.5),
+    ] {
+        let s = Scene::new(seed, n, f_dim, 6, keep);
+        let net = phi_net(&s, freqs);
+        let width = net.input_width();
+        let mut cpu = Vec::new();
+        net.assemble_input(
+            s.live(),
+            s.group(Param::Feature),
+            s.group(Param::Mean),
+            SUN,
+            CAMERA,
+            &mut cpu,
+        )
+        .unwrap();
+        for count in [s.count, 0] {
+            let b = upload(&probe, &s, count);
+            let input = probe.buffer_f32("input", &junk(seed, n * width));
+            let flags = probe.buffer_u32("flags", &[0]);
+            let mut enc = probe.encoder();
+            io.encode_phi_input(
+                &mut enc, &scratch, &net, &b.params, &s.offsets, n, &b.list, &b.count, SUN, CAMERA,
+                &input, &flags,
+            )
+            .unwrap();
+            let gpu = probe.finish_f32(enc, &[(&input, n * width)]).unwrap();
+            let view_start = f_dim + 6 * freqs;
+            worst = worst.max(compare_rows(
+                "Phi input",
+                &cpu,
+                &gpu[0],
+                width,
+                count,
+                &|c| c < view_start,
+            ));
+            assert_eq!(probe.read_u32(&flags, 1).unwrap(), [0], "flags");
+        }
+    }
+    eprintln!("Phi input: worst encoding error {worst:e} (tolerance {ENCODING_TOL:e})");
+}
+
+/// Runs Phi's input assembly on `s` and returns flags[0].
+fn phi_flags(rig: &Rig, s: &Scene, net: &AppearanceNet) -> u32 {
+    let Rig { io, scratch, probe } = rig;
+    let b = upload(probe, s, s.count);
+    let input = probe.buffer_f32("input", &vec![0.0; s.n * net.input_width()]);
+    let flags = probe.buffer_u32("flags", &[0]);
+    let mut enc = probe.encoder();
+    io.encode_phi_input(
+        &mut enc, scratch, net, &b.params, &s.offsets, s.n, &b.list, &b.count, SUN, CAMERA, &input,
+        &flags,
+    )
+    .unwrap();
+    probe.finish_f32(enc, &[]).unwrap();
+    probe.read_u32(&flags, 1).unwrap()[0]
+}
+
+#[test]
+fn phi_input_flags_what_the_cpu_refuses() {
+    let Some(rig) = rig() else { return };
+    let base = Scene::new(4, 300, 8, 6, 0.5);
+    let net = phi_net(&base, 4);
+    let listed = base.live()[7] as usize;
+    let unlisted = (0..base.n).find(|g| !base.is_listed()[*g]).unwrap();
+    let f0 = base.offsets[Param::Feature.index()] as usize;
+    let mean_at = |g: usize| 3 * g;
+    assert_eq!(phi_flags(&rig, &base, &net), 0);
+
+    // A NaN feature of a listed Gaussian: the CPU refuses, the device flags.
+    let mut s = Scene::new(4, 300, 8, 6, 0.5);
+    s.params[f0 + listed * 8 + 3] = f32::NAN;
+    let mut cpu = Vec::new();
+    let cpu_err = net.assemble_input(
+        s.live(),
+        s.group(Param::Feature),
+        s.group(Param::Mean),
+        SUN,
+        CAMERA,
+        &mut cpu,
+    );
+    assert!(cpu_err.is_err());
+    assert_eq!(phi_flags(&rig, &s, &net), 1, "NaN feature");
+    // An infinite mean.
+    let mut s = Scene::new(4, 300, 8, 6, 0.5);
+    s.params[mean_at(listed) + 1] = f32::INFINITY;
+    assert_eq!(phi_flags(&rig, &s, &net), 1, "infinite mean");
+    // A listed Gaussian at the camera centre.
+    let mut s = Scene::new(4, 300, 8, 6, 0.5);
+    s.params[mean_at(listed)..mean_at(listed) + 3].copy_from_slice(&CAMERA);
+    let cpu_err = net.assemble_input(
+        s.live(),
+        s.group(Param::Feature),
+        s.group(Param::Mean),
+        SUN,
+        CAMERA,
+        &mut cpu,
+    );
+    assert!(cpu_err.is_err());
+    assert_eq!(
+        phi_flags(&rig, &s, &net),
+        1,
+        "Gaussian at the camera centre"
+    );
+    // The same faults on an unlisted Gaussian are not read: no flag.
+    let mut s = Scene::new(4, 300, 8, 6, 0.5);
+    s.params[f0 + unlisted * 8] = f32::NAN;
+    s.params[mean_at(unlisted)..mean_at(unlisted) + 3].copy_from_slice(&CAMERA);
+    assert_eq!(phi_flags(&rig, &s, &net), 0, "unlisted faults");
+    // A list entry out of range inside count.
+    let mut s = Scene::new(4, 300, 8, 6, 0.5);
+    s.list[3] = s.n as u32;
+    assert_eq!(phi_flags(&rig, &s, &net), 1, "list entry out of range");
+}
+
+#[test]
+fn phi_scatter_and_output_gradient_route_rows() {
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
+    for nc in [3usize, 4] {
+        let s = Scene::new(10 + nc as u64, 600, 8, 6, 0.55);
+        let n = s.n;
+        let output = junk(20, n * 3);
+        let chans0 = junk(21, n * nc);
+        let rows = junk(22, n * (13 + nc));
+        for count in [s.count, 0] {
+            let b = upload(&probe, &s, count);
+            let out_buf = probe.buffer_f32("output", &output);
+            let chans = probe.buffer_f32("chans", &chans0);
+            let rows_buf = probe.buffer_f32("rows", &rows);
+            let d_out = probe.buffer_f32("d_out", &junk(23, n * 3));
+            let mut enc = probe.encoder();
+            io.encode_phi_scatter(
+                &mut enc, &scratch, n, nc, &b.list, &b.count, &out_buf, &chans,
+            )
+            .unwrap();
+            io.encode_phi_d_output(
+                &mut enc, &scratch, n, nc, &b.list, &b.count, &rows_buf, &d_out,
+            )
+            .unwrap();
+            let gpu = probe
+                .finish_f32(enc, &[(&chans, n * nc), (&d_out, n * 3)])
+                .unwrap();
+            // The model's loops (sunaware/model.rs forward_with, backward_timed).
+            let mut want_chans = chans0.clone();
+            let mut want_d_out = vec![0.0f32; n * 3];
+            for (r, &g) in s.list[..count].iter().enumerate() {
+                let g = g as usize;
+                want_chans[g * nc..g * nc + 3].copy_from_slice(&output[r * 3..r * 3 + 3]);
+                want_d_out[r * 3..r * 3 + 3]
+                    .copy_from_slice(&rows[g * (13 + nc) + 13..g * (13 + nc) + 16]);
+            }
+            assert_eq!(bits(&gpu[0]), bits(&want_chans), "channels, nc {nc}");
+            assert_eq!(bits(&gpu[1]), bits(&want_d_out), "d_out, nc {nc}");
+            if count > 0 {
+                assert_ne!(bits(&gpu[0]), bits(&chans0), "nothing scattered");
+            }
+        }
+    }
+}
+
+#[test]
+fn phi_input_gradient_matches_the_cpu_scatter() {
+    let Some(Rig { io, scratch, probe }) = rig() else {
+        return;
+    };
+    let mut worst = 0.0f32;
+    for (seed, n, f_dim, freqs, keep) in [(30, 700, 8, 4, 0.6), (31, 90, 72, 6, 0.8)] {
+        let s = Scene::new(seed, n, f_dim, 6, keep);
+        let net = phi_net(&s, freqs);
+        let width = net.input_width();
+        let d_input = junk(seed + 1, n * width);
+        let grads0 = junk(seed + 2, s.params.len());
+        for count in [s.count, 0] {
+            let b = upload(&probe, &s, count);
+            let d_in = probe.buffer_f32("d_input", &d_input);
+            let grads = probe.buffer_f32("grads", &grads0);
+            let mut enc = probe.encoder();
+            io.encode_phi_input_grad(
+                &mut enc, &scratch, &net, &b.params, &s.offsets, n, &b.list, &b.count, CAMERA,
+                &d_in, &grads,
+            )
+            .unwrap();
+            let gpu = probe.finish_f32(enc, &[(&grads, grads0.len())]).unwrap();
+            let gpu = &gpu[0];
+            // The model: features of listed rows are written (the rasterizer leaves the
+            // group zero, the scatter adds into it); means gain the chain rule.
+            let live = &s.list[..count];
+            let f0 = s.offsets[Param::Feature.index()] as usize;
+            let mut d_features = listed_rows_cleared(&grads0[f0..f0 + n * f_dim], f_dim, live);
+            let mut d_means = grads0[..3 * n].to_vec();
+            net.scatter_input_grad(
+                live,
+                s.group(Param::Mean),
+                CAMERA,
+                &d_input[..count * width],
+                &mut d_features,
+                &mut d_means,
+            )
+            .unwrap();
+            let mut want = grads0.clone();
+            want[f0..f0 + n * f_dim].copy_from_slice(&d_features);
+            assert_bits_but_listed_means("Phi grads", gpu, &want, &s, count);
+            let view_start = f_dim + 6 * freqs;
+            for (r, &g) in live.iter().enumerate() {
+                let g = g as usize;
+                let mean = &s.group(Param::Mean)[g * 3..g * 3 + 3];
+                let d: Vec<f32> = (0..3).map(|a| CAMERA[a] - mean[a]).collect();
+                let dist = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                let row = &d_input[r * width + view_start..(r + 1) * width];
+                for a in 0..3 {
+                    let i = g * 3 + a;
+                    let scale = code_scale(row, freqs, 2.0 / dist) + grads0[i].abs();
+                    let err = (gpu[i] - d_means[i]).abs() / scale;
+                    assert!(
+                        err <= MEAN_GRAD_TOL,
+                        "Phi mean grad of {g}.{a}: gpu {} cpu {} (scale {scale})",
+                        gpu[i],
+                        d_means[i]
+                    );
+                    worst = worst.max(err);
+                }
+            }
+        }
+    }
+    eprintln!("Phi mean gradient: worst error / scale {worst:e} (tolerance {MEAN_GRAD_TOL:e})");
+}
