@@ -37,7 +37,7 @@ mod bench {
     use gs_core::sunaware::config::{LightConfig, LightProjection};
     use gs_core::sunaware::sun_visibility;
     use gs_core::{GaussianModel, ModelLayout, Param};
-    use gs_wgpu::{GpuContext, GpuRasterizer, GpuSunVisibility};
+    use gs_wgpu::{GpuContext, GpuRasterizer, GpuSunVisibility, SunLight};
 
     use super::bench_util::{arg, time_calls};
 
@@ -133,22 +133,17 @@ mod bench {
                     )
                     .expect("old path")
             });
-            let device = time_calls(runs, || {
-                shadow
-                    .sun_visibility(&model, sun, centre, &scene_box, &config, NEAR_M)
-                    .expect("device")
-            });
-            let packed = |capacity| {
-                shadow.sun_visibility_packed(
-                    &model.params,
-                    sun,
-                    centre,
-                    &scene_box,
-                    &config,
-                    NEAR_M,
-                    capacity,
-                )
+            let light = SunLight {
+                sun_dir: sun,
+                camera_centre: centre,
+                scene_box: &scene_box,
+                config: &config,
+                near_m: NEAR_M,
             };
+            let device = time_calls(runs, || {
+                shadow.sun_visibility(&model, &light).expect("device")
+            });
+            let packed = |capacity| shadow.sun_visibility_packed(&model.params, &light, capacity);
             let entries = packed(None).expect("count").tile_entries;
             let capacity = time_calls(runs, || {
                 let r = packed(Some(entries)).expect("capacity");

@@ -22,7 +22,7 @@ use gs_core::sunaware::trainer::FlatAdam;
 use gs_core::sunaware::{Shading, SunAwareConfig, SunAwareError, SunAwareModel};
 
 use crate::resident_sunaware::SunAwareResident;
-use crate::{GpuContext, GpuError, GpuMlp, GpuOptions, GpuRasterizer, GpuSunVisibility};
+use crate::{GpuContext, GpuError, GpuMlp, GpuOptions, GpuRasterizer, GpuSunVisibility, SunLight};
 
 /// A GPU error as a Sun-aware error (rasterizer input errors keep their type).
 pub fn to_sunaware(e: GpuError) -> SunAwareError {
@@ -142,11 +142,13 @@ impl Engine for WgpuEngine {
         self.shadow
             .sun_visibility(
                 &model.gaussians,
-                sun_dir,
-                camera_position_m,
-                &model.scene_box,
-                &model.config.light,
-                model.config.near_m,
+                &SunLight {
+                    sun_dir,
+                    camera_centre: camera_position_m,
+                    scene_box: &model.scene_box,
+                    config: &model.config.light,
+                    near_m: model.config.near_m,
+                },
             )
             .map_err(to_sunaware)
     }

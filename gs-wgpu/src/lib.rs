@@ -40,7 +40,7 @@ pub use loss::GpuLoss;
 pub use mlp::{GemmOp, GpuMlp, MlpGradients, MlpTape};
 pub use raster::{GpuForward, GpuRasterizer, GpuRenderOutput};
 pub use resident_sunaware::GpuAdam;
-pub use sun_visibility::GpuSunVisibility;
+pub use sun_visibility::{GpuSunVisibility, SunLight};
 
 /// GPU backend error.
 #[derive(Clone, Debug, PartialEq)]

@@ -86,6 +86,19 @@ pub fn pixel_weights(mask: Option<&[f32]>, shape: ImageShape) -> Result<Vec<f32>
     }
 }
 
+/// The device images of one loss evaluation: `rendered` and `target` (`H * W * C`), the
+/// pixel weights (`H * W`, [`pixel_weights`]) and the pixel-gradient rows the loss's
+/// gradient goes into (`H * W * (C + 2)`: the colour slots of each row; the caller zeroes
+/// the rest).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct LossImages<'a> {
+    pub shape: ImageShape,
+    pub rendered: &'a wgpu::Buffer,
+    pub target: &'a wgpu::Buffer,
+    pub weights: &'a wgpu::Buffer,
+    pub px_grad: &'a wgpu::Buffer,
+}
+
 impl GpuLoss {
     /// Compiles the kernels for `channels` channels.
     pub fn new(ctx: &GpuContext, channels: usize) -> Result<Self, GpuError> {
@@ -111,20 +124,21 @@ impl GpuLoss {
         self.channels
     }
 
-    /// Records the loss of `rendered` against `target` (both `H * W * C` on the device)
-    /// with `weights` (`H * W`): the gradient goes into `px_grad` (`H * W * (C + 2)`, the
-    /// colour slots of each row; the caller zeroes the rest), refusals into `flags[0]`.
-    #[allow(clippy::too_many_arguments)]
+    /// Records the loss of `images.rendered` against `images.target` with
+    /// `images.weights` (see [`LossImages`]): the gradient goes into the colour slots of
+    /// `images.px_grad`, refusals into `flags[0]`.
     pub(super) fn encode(
         &self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
-        shape: ImageShape,
         lambda_dssim: f32,
-        rendered: &wgpu::Buffer,
-        target: &wgpu::Buffer,
-        weights: &wgpu::Buffer,
-        px_grad: &wgpu::Buffer,
+        LossImages {
+            shape,
+            rendered,
+            target,
+            weights,
+            px_grad,
+        }: LossImages,
         flags: &wgpu::Buffer,
         scratch: Option<&Scratch>,
     ) -> Result<LossBuffers, GpuError> {
@@ -239,18 +253,14 @@ impl GpuLoss {
         let px_grad = ctx.storage("pixel grads", (shape.pixels() * stride * 4) as u64)?;
         let flags = ctx.storage("loss flags", 8)?;
         let mut encoder = ctx.encoder("loss");
-        let bufs = self.encode(
-            ctx,
-            &mut encoder,
+        let images = LossImages {
             shape,
-            lambda_dssim,
-            &rendered_buf,
-            &target_buf,
-            &weights_buf,
-            &px_grad,
-            &flags,
-            None,
-        )?;
+            rendered: &rendered_buf,
+            target: &target_buf,
+            weights: &weights_buf,
+            px_grad: &px_grad,
+        };
+        let bufs = self.encode(ctx, &mut encoder, lambda_dssim, images, &flags, None)?;
         let back = ctx.read_back(
             encoder,
             &[

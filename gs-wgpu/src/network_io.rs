@@ -9,10 +9,10 @@
 //! (`sin_cos_pi`'s quarter-turn reduction and polynomials, not the GPU's own sin/cos) and
 //! the channel routing of `sunaware::model::{forward_with, backward_timed}`.
 //!
-//! Conventions (the session's contract): `params`/`grads` are the packed group-major
-//! parameter buffers with group starts `offsets` ([`packed_offsets`]); `list` holds at
-//! least `max(n, 1)` u32 Gaussian indices, ascending, no repeats; `count`'s word 0 is the
-//! live row count m (written on the device; values above n are read as n). Every kernel
+//! Conventions: `params`/`grads` are the packed group-major parameter buffers with group
+//! starts `offsets` ([`PackedParams`], [`packed_offsets`]); the batch ([`NetworkBatch`]):
+//! `list` holds at least `max(n, 1)` u32 Gaussian indices, ascending, no repeats;
+//! `count`'s word 0 is the live row count m (written on the device; values above n are read as n). Every kernel
 //! runs over `n` rows; rows `r >= m` only write zeros to per-row outputs (input rows,
 //! `d_out`).
 //!
@@ -32,6 +32,7 @@
 //! - no float atomics: each listed Gaussian's rows have one writer, so results are
 //!   deterministic.
 
+pub use super::packed::PackedParams;
 use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError, Scratch,
 };
@@ -68,6 +69,17 @@ pub fn packed_offsets(
     n: usize,
 ) -> Result<[u32; Param::COUNT + 1], GpuError> {
     super::packed::offsets(dims, n)
+}
+
+/// The rows a network runs over, recorded into one encoder: `n` Gaussians, the `list` of
+/// those it evaluates (at least `max(n, 1)` ascending u32 indices) with the live count in
+/// word 0 of `count` (on the device), and the pool the kernels' uniforms come from.
+#[derive(Clone, Copy, Debug)]
+pub struct NetworkBatch<'a> {
+    pub scratch: &'a Scratch,
+    pub n: usize,
+    pub list: &'a wgpu::Buffer,
+    pub count: &'a wgpu::Buffer,
 }
 
 /// Compiled kernels of the networks' input assembly and output scatter.
@@ -282,7 +294,6 @@ impl NetworkIo {
     /// Writes `uniform` to its scratch slot and records one pass of `pipeline` over `n`
     /// rows with `uniform` at binding 0 and `buffers` at 1, 2, ... (`list` and `count`
     /// first: the bindings netio_common.wgsl declares for every kernel).
-    #[allow(clippy::too_many_arguments)]
     fn record(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -309,22 +320,19 @@ impl NetworkIo {
     /// from mean_g to the camera centre; rows `>= count` are written as 0. A non-finite
     /// feature or mean, or a Gaussian at the camera centre (view distance not > 0 and
     /// finite), sets `flags` bit 0.
-    #[allow(clippy::too_many_arguments)]
     pub fn encode_phi_input(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
+        batch: NetworkBatch,
         net: &AppearanceNet,
-        params: &wgpu::Buffer,
-        offsets: &[u32; 9],
-        n: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
+        params: PackedParams,
         sun_dir: [f32; 3],
         camera_centre: [f32; 3],
         input: &wgpu::Buffer,
         flags: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (params, offsets) = (params.buffer, params.offsets);
+        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         let width = net.input_width();
         check_rows(n, width)?;
         check_layout(
@@ -365,18 +373,15 @@ impl NetworkIo {
     /// Phi's output (`n * 3`, row r = list[r]'s RGB) into the channels: `chans[g * nc + k]
     /// = output[r * 3 + k]`, k < 3, for r < count, g = list[r]; other Gaussians' channels
     /// are not touched. `nc` is 3 or 4.
-    #[allow(clippy::too_many_arguments)]
     pub fn encode_phi_scatter(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
-        n: usize,
+        batch: NetworkBatch,
         nc: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
         output: &wgpu::Buffer,
         chans: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         check_channels(nc, &[3, 4])?;
         check_rows(n, ROW_HEAD + nc)?;
         check_batch(n, list, count)?;
@@ -404,18 +409,15 @@ impl NetworkIo {
     /// Phi's output gradient (`n * 3`) from the rasterizer's gradient rows (`n * (13 +
     /// nc)`): `d_out[r * 3 + k] = rows[g * (13 + nc) + 13 + k]` for r < count, g = list[r];
     /// 0 for rows `>= count`.
-    #[allow(clippy::too_many_arguments)]
     pub fn encode_phi_d_output(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
-        n: usize,
+        batch: NetworkBatch,
         nc: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
         rows: &wgpu::Buffer,
         d_out: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         check_channels(nc, &[3, 4])?;
         check_rows(n, ROW_HEAD + nc)?;
         check_batch(n, list, count)?;
@@ -444,21 +446,18 @@ impl NetworkIo {
     /// `params`): for r < count, g = list[r], the Feature row g is set to the row's feature
     /// columns, and the view-direction chain rule of its view columns,
     /// `-(d_view - (d_view . v) v) / |c - mu_g|`, is ADDED to the Mean row g.
-    #[allow(clippy::too_many_arguments)]
     pub fn encode_phi_input_grad(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
+        batch: NetworkBatch,
         net: &AppearanceNet,
-        params: &wgpu::Buffer,
-        offsets: &[u32; 9],
-        n: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
+        params: PackedParams,
         camera_centre: [f32; 3],
         d_input: &wgpu::Buffer,
         grads: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (params, offsets) = (params.buffer, params.offsets);
+        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         let width = net.input_width();
         check_rows(n, width)?;
         check_layout(
@@ -498,23 +497,20 @@ impl NetworkIo {
     /// is `[V_g | gamma_L(sun) | gamma_L(p_g) | l_g]` of g = list[r], V_g from `visibility`
     /// (n f32), p_g the mean normalised over `scene_box`; rows `>= count` are written as 0.
     /// A non-finite V, mean or latent sets `flags` bit 0.
-    #[allow(clippy::too_many_arguments)]
     pub fn encode_psi_input(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
+        batch: NetworkBatch,
         net: &ShadowNet,
         scene_box: &SceneBox,
-        params: &wgpu::Buffer,
-        offsets: &[u32; 9],
-        n: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
+        params: PackedParams,
         sun_dir: [f32; 3],
         visibility: &wgpu::Buffer,
         input: &wgpu::Buffer,
         flags: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (params, offsets) = (params.buffer, params.offsets);
+        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         let width = net.input_width();
         check_rows(n, width)?;
         check_layout(
@@ -558,20 +554,17 @@ impl NetworkIo {
     /// Psi's output P (`n`, row r = list[r]'s) into channel 3: `chans[g * nc + 3] = V_g *
     /// P_r` when `multiply` (ShadowRefinement::Multiply), else `P_r`, for r < count, g =
     /// list[r]; other Gaussians' channels are not touched. `nc` must be 4.
-    #[allow(clippy::too_many_arguments)]
     pub fn encode_psi_scatter(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
-        n: usize,
+        batch: NetworkBatch,
         nc: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
         visibility: &wgpu::Buffer,
         output: &wgpu::Buffer,
         multiply: bool,
         chans: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         check_channels(nc, &[SHADOWED_CHANNELS])?;
         check_rows(n, ROW_HEAD + nc)?;
         check_batch(n, list, count)?;
@@ -601,20 +594,17 @@ impl NetworkIo {
     /// Psi's output gradient (`n`): `d_out[r] = rows[g * (13 + nc) + 16]` (channel 3's
     /// gradient) times V_g when `multiply`, for r < count, g = list[r]; 0 for rows
     /// `>= count`. `nc` must be 4.
-    #[allow(clippy::too_many_arguments)]
     pub fn encode_psi_d_output(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
-        n: usize,
+        batch: NetworkBatch,
         nc: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
         visibility: &wgpu::Buffer,
         rows: &wgpu::Buffer,
         multiply: bool,
         d_out: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         check_channels(nc, &[SHADOWED_CHANNELS])?;
         check_rows(n, ROW_HEAD + nc)?;
         check_batch(n, list, count)?;
@@ -645,21 +635,18 @@ impl NetworkIo {
     /// `params`): for r < count, g = list[r], the ShadowLatent row g is set to the row's
     /// latent columns, and the chain rule of its position columns through the encoding and
     /// the box normalisation is ADDED to the Mean row g. The V column gets nothing.
-    #[allow(clippy::too_many_arguments)]
     pub fn encode_psi_input_grad(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
+        batch: NetworkBatch,
         net: &ShadowNet,
         scene_box: &SceneBox,
-        params: &wgpu::Buffer,
-        offsets: &[u32; 9],
-        n: usize,
-        list: &wgpu::Buffer,
-        count: &wgpu::Buffer,
+        params: PackedParams,
         d_input: &wgpu::Buffer,
         grads: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (params, offsets) = (params.buffer, params.offsets);
+        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         let width = net.input_width();
         check_rows(n, width)?;
         check_layout(

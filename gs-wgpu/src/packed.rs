@@ -16,6 +16,14 @@ use gs_core::densify::DensifyStats;
 use gs_core::model::{Param, ParamSet};
 use gs_core::optim::Adam;
 
+/// A packed group-major parameter buffer (or its gradient) on the device and its group
+/// starts ([`offsets`]).
+#[derive(Clone, Copy, Debug)]
+pub struct PackedParams<'a> {
+    pub buffer: &'a wgpu::Buffer,
+    pub offsets: &'a [u32; Param::COUNT + 1],
+}
+
 /// The Gaussians' device state, sized for `capacity` Gaussians: the packed parameters,
 /// a gradient of the same layout, both Adam moments and the densification statistics
 /// (`grad_accum`, `visible_count`, `max_radius_px`, `n` each: resident_stats.wgsl).

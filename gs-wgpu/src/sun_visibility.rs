@@ -31,6 +31,7 @@
 
 use std::sync::{Arc, Mutex};
 
+use super::packed::PackedParams;
 use super::raster::{frame_bytes, prelude, GpuRasterizer, SortKeys, SSTRIDE};
 use super::{bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuError, Scratch};
 use gs_core::model::{Param, ParamSet};
@@ -127,13 +128,17 @@ pub struct PackedVisibility {
     pub n_sort: u64,
 }
 
-/// The host wrappers' light inputs (see `GpuSunVisibility::encode_sun_visibility`).
-struct HostLight<'a> {
-    sun_dir: glam::Vec3,
-    camera_centre: glam::Vec3,
-    scene_box: &'a SceneBox,
-    config: &'a LightConfig,
-    near_m: f32,
+/// What the light pass renders from: the unit vector towards the Sun, the camera centre
+/// (which places the light camera with the scene box, as
+/// `sunaware::sun_visibility::light_camera` does), the scene box, the light settings and
+/// the near plane, m.
+#[derive(Clone, Copy, Debug)]
+pub struct SunLight<'a> {
+    pub sun_dir: glam::Vec3,
+    pub camera_centre: glam::Vec3,
+    pub scene_box: &'a SceneBox,
+    pub config: &'a LightConfig,
+    pub near_m: f32,
 }
 
 fn sunaware_error(e: SunAwareError) -> GpuError {
@@ -185,11 +190,7 @@ impl GpuSunVisibility {
     pub fn sun_visibility(
         &self,
         model: &gs_core::model::GaussianModel,
-        sun_dir: glam::Vec3,
-        camera_centre: glam::Vec3,
-        scene_box: &SceneBox,
-        config: &LightConfig,
-        near_m: f32,
+        light: &SunLight,
     ) -> Result<Vec<f32>, GpuError> {
         let n = model.len();
         let mut dims = [0usize; Param::COUNT];
@@ -204,42 +205,23 @@ impl GpuSunVisibility {
         ] {
             packed.extend_from_slice(model.params.get(p));
         }
-        let light = HostLight {
-            sun_dir,
-            camera_centre,
-            scene_box,
-            config,
-            near_m,
-        };
         Ok(self
-            .run_packed(&packed, &offsets, n, &light, None)?
+            .run_packed(&packed, &offsets, n, light, None)?
             .visibility)
     }
 
     /// [`Self::encode_sun_visibility`] on `params` packed in the resident layout
     /// (`crate::packed::pack`), run from the host: uploads, records with `capacity`,
     /// submits and reads back `V`, the flags word and the entry count.
-    #[allow(clippy::too_many_arguments)]
     pub fn sun_visibility_packed(
         &self,
         params: &ParamSet,
-        sun_dir: glam::Vec3,
-        camera_centre: glam::Vec3,
-        scene_box: &SceneBox,
-        config: &LightConfig,
-        near_m: f32,
+        light: &SunLight,
         capacity: Option<u64>,
     ) -> Result<PackedVisibility, GpuError> {
         let n = params.len();
         let offsets = super::packed::offsets(&params.dims(), n)?;
-        let light = HostLight {
-            sun_dir,
-            camera_centre,
-            scene_box,
-            config,
-            near_m,
-        };
-        self.run_packed(&super::packed::pack(params), &offsets, n, &light, capacity)
+        self.run_packed(&super::packed::pack(params), &offsets, n, light, capacity)
     }
 
     fn run_packed(
@@ -247,7 +229,7 @@ impl GpuSunVisibility {
         packed: &[f32],
         offsets: &[u32; Param::COUNT + 1],
         n: usize,
-        light: &HostLight,
+        light: &SunLight,
         capacity: Option<u64>,
     ) -> Result<PackedVisibility, GpuError> {
         let ctx = &self.raster.ctx;
@@ -261,14 +243,12 @@ impl GpuSunVisibility {
         let (record, encoder) = self.encode_sun_visibility(
             encoder,
             &scratch,
-            &params,
-            offsets,
+            PackedParams {
+                buffer: &params,
+                offsets,
+            },
             n,
-            light.sun_dir,
-            light.camera_centre,
-            light.scene_box,
-            light.config,
-            light.near_m,
+            light,
             capacity,
             &visibility,
             &flags,
@@ -303,23 +283,27 @@ impl GpuSunVisibility {
     /// Returns the encoder to continue recording into. `flags` is only ever or-ed into.
     /// One recorded pass per submission: the pass's uniforms (from `scratch` and from this
     /// pipeline set's own pool) are written at the next submission.
-    #[allow(clippy::too_many_arguments)]
     pub(crate) fn encode_sun_visibility(
         &self,
         mut encoder: wgpu::CommandEncoder,
         scratch: &Scratch,
-        params: &wgpu::Buffer,
-        offsets: &[u32; Param::COUNT + 1],
+        PackedParams {
+            buffer: params,
+            offsets,
+        }: PackedParams,
         n: usize,
-        sun_dir: glam::Vec3,
-        camera_centre: glam::Vec3,
-        scene_box: &SceneBox,
-        config: &LightConfig,
-        near_m: f32,
+        light: &SunLight,
         capacity: Option<u64>,
         visibility: &wgpu::Buffer,
         flags: &wgpu::Buffer,
     ) -> Result<(ShadowRecord, wgpu::CommandEncoder), GpuError> {
+        let SunLight {
+            sun_dir,
+            camera_centre,
+            scene_box,
+            config,
+            near_m,
+        } = *light;
         let ctx = &self.raster.ctx;
         if n >= (u32::MAX as usize) / (SSTRIDE * 4) {
             return Err(GpuError::TooLarge(format!("{n} Gaussians")));
@@ -431,7 +415,6 @@ impl GpuSunVisibility {
     /// Scan of the tile counts, (readback,) keys, sort, tile ranges, receiver keys and
     /// sort, the walk and `V`, recorded into `encoder` (see [`Self::encode_sun_visibility`]
     /// for `capacity` and `flags`, which only a capacity uses).
-    #[allow(clippy::too_many_arguments)]
     fn encode_walk(
         &self,
         mut encoder: wgpu::CommandEncoder,

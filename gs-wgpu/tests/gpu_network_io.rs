@@ -23,7 +23,7 @@ use gs_core::model::Param;
 use gs_core::nn::{AppearanceNet, PositionalEncoding, SceneBox, ShadowNet};
 use gs_core::rng::SplitMix64;
 use gs_core::sunaware::config::ShadowRefinement;
-use gs_wgpu::network_io::{packed_offsets, NetworkIo, NetworkIoProbe};
+use gs_wgpu::network_io::{packed_offsets, NetworkBatch, NetworkIo, NetworkIoProbe, PackedParams};
 use gs_wgpu::{context_or_skip, GpuError, GpuOptions, Scratch};
 
 /// Largest |gpu - cpu| of an encoded value (a sine or cosine of `2^k pi x`, in [-1, 1]).
@@ -129,6 +129,26 @@ struct Batch {
     params: wgpu::Buffer,
     list: wgpu::Buffer,
     count: wgpu::Buffer,
+}
+
+impl Batch {
+    /// The kernels' batch: `n` Gaussians, this list and count, uniforms from `scratch`.
+    fn rows<'a>(&'a self, scratch: &'a Scratch, n: usize) -> NetworkBatch<'a> {
+        NetworkBatch {
+            scratch,
+            n,
+            list: &self.list,
+            count: &self.count,
+        }
+    }
+
+    /// These parameters with the group starts `offsets`.
+    fn packed<'a>(&'a self, offsets: &'a [u32; Param::COUNT + 1]) -> PackedParams<'a> {
+        PackedParams {
+            buffer: &self.params,
+            offsets,
+        }
+    }
 }
 
 fn upload(probe: &NetworkIoProbe, s: &Scene, count: usize) -> Batch {
@@ -249,7 +269,14 @@ fn bad_host_arguments_are_rejected_before_recording() {
                   cam: [f32; 3],
                   input: &wgpu::Buffer| {
         io.encode_phi_input(
-            enc, &scratch, &phi, &b.params, offsets, n, &b.list, &b.count, sun, cam, input, &flags,
+            enc,
+            b.rows(&scratch, n),
+            &phi,
+            b.packed(offsets),
+            sun,
+            cam,
+            input,
+            &flags,
         )
     };
     phi_in(&mut enc, &s.offsets, SUN, CAMERA, &phi_input).unwrap();
@@ -275,28 +302,32 @@ fn bad_host_arguments_are_rejected_before_recording() {
     let more = packed_offsets(&s.dims, n + 1).unwrap();
     invalid(phi_in(&mut enc, &more, SUN, CAMERA, &phi_input), "rows");
     invalid(
-        io.encode_phi_scatter(&mut enc, &scratch, n, 5, &b.list, &b.count, &short, &chans4),
+        io.encode_phi_scatter(&mut enc, b.rows(&scratch, n), 5, &short, &chans4),
         "5 channels",
     );
     invalid(
-        io.encode_phi_scatter(&mut enc, &scratch, n, 4, &b.list, &b.count, &short, &chans4),
+        io.encode_phi_scatter(&mut enc, b.rows(&scratch, n), 4, &short, &chans4),
         "short Phi output",
     );
     invalid(
-        io.encode_phi_d_output(&mut enc, &scratch, n, 4, &b.list, &b.count, &short, &chans4),
+        io.encode_phi_d_output(&mut enc, b.rows(&scratch, n), 4, &short, &chans4),
         "short rows",
     );
     invalid(
         io.encode_psi_scatter(
-            &mut enc, &scratch, n, 3, &b.list, &b.count, &vis, &short, true, &chans4,
+            &mut enc,
+            b.rows(&scratch, n),
+            3,
+            &vis,
+            &short,
+            true,
+            &chans4,
         ),
         "Psi with 3 channels",
     );
     let tiny = probe.buffer_f32("tiny", &vec![0.5; n / 2]);
     invalid(
-        io.encode_psi_d_output(
-            &mut enc, &scratch, n, 4, &b.list, &b.count, &tiny, &rows, true, &short,
-        ),
+        io.encode_psi_d_output(&mut enc, b.rows(&scratch, n), 4, &tiny, &rows, true, &short),
         "short visibility",
     );
     let psi_d_input = probe.buffer_f32("psi d_input", &vec![0.0; n * psi.input_width()]);
@@ -304,14 +335,10 @@ fn bad_host_arguments_are_rejected_before_recording() {
     let psi_grad = |enc: &mut wgpu::CommandEncoder, offsets: &[u32; 9], d_input: &wgpu::Buffer| {
         io.encode_psi_input_grad(
             enc,
-            &scratch,
+            b.rows(&scratch, n),
             &psi,
             &scene_box(),
-            &b.params,
-            offsets,
-            n,
-            &b.list,
-            &b.count,
+            b.packed(offsets),
             d_input,
             &grads,
         )

@@ -26,7 +26,7 @@ use gs_core::sunaware::config::{LightConfig, LightProjection};
 use gs_core::sunaware::sun_visibility::sun_visibility;
 use gs_core::{GaussianModel, ModelLayout, Param};
 use gs_wgpu::sun_visibility::PackedVisibility;
-use gs_wgpu::{context_or_skip, GpuOptions, GpuRasterizer, GpuSunVisibility};
+use gs_wgpu::{context_or_skip, GpuOptions, GpuRasterizer, GpuSunVisibility, SunLight};
 
 const NEAR_M: f32 = 0.01;
 
@@ -134,11 +134,13 @@ fn device_run(
     shadow
         .sun_visibility_packed(
             &model.params,
-            sun,
-            CAMERA_CENTRE,
-            &scene_box(),
-            config,
-            NEAR_M,
+            &SunLight {
+                sun_dir: sun,
+                camera_centre: CAMERA_CENTRE,
+                scene_box: &scene_box(),
+                config,
+                near_m: NEAR_M,
+            },
             capacity,
         )
         .unwrap()
@@ -205,7 +207,16 @@ fn device_visibility_matches_cpu() {
             worst = worst.max(assert_matches_cpu(&what, &cpu, &device.visibility));
             // The host wrapper (its own packing of the geometry groups alone).
             let host = shadow
-                .sun_visibility(&model, sun, CAMERA_CENTRE, &scene_box(), &config, NEAR_M)
+                .sun_visibility(
+                    &model,
+                    &SunLight {
+                        sun_dir: sun,
+                        camera_centre: CAMERA_CENTRE,
+                        scene_box: &scene_box(),
+                        config: &config,
+                        near_m: NEAR_M,
+                    },
+                )
                 .unwrap();
             assert_matches_cpu(&format!("{what}, host wrapper"), &cpu, &host);
         }
@@ -316,11 +327,13 @@ fn bad_inputs_are_refused() {
     let run = |sun: Vec3, centre: Vec3, config: &LightConfig, near_m: f32| {
         shadow.sun_visibility_packed(
             &model.params,
-            sun,
-            centre,
-            &scene_box(),
-            config,
-            near_m,
+            &SunLight {
+                sun_dir: sun,
+                camera_centre: centre,
+                scene_box: &scene_box(),
+                config,
+                near_m,
+            },
             None,
         )
     };
@@ -341,27 +354,18 @@ fn bad_inputs_are_refused() {
     };
     assert!(run(Vec3::Z, CAMERA_CENTRE, &zero_side, NEAR_M).is_err());
     let empty = GaussianModel::new(ModelLayout::sh(0)).unwrap();
-    let v = shadow
-        .sun_visibility(
-            &empty,
-            Vec3::Z,
-            CAMERA_CENTRE,
-            &scene_box(),
-            &config,
-            NEAR_M,
-        )
-        .unwrap();
+    let empty_box = scene_box();
+    let empty_light = SunLight {
+        sun_dir: Vec3::Z,
+        camera_centre: CAMERA_CENTRE,
+        scene_box: &empty_box,
+        config: &config,
+        near_m: NEAR_M,
+    };
+    let v = shadow.sun_visibility(&empty, &empty_light).unwrap();
     assert!(v.is_empty());
     let empty_run = shadow
-        .sun_visibility_packed(
-            &empty.params,
-            Vec3::Z,
-            CAMERA_CENTRE,
-            &scene_box(),
-            &config,
-            NEAR_M,
-            Some(0),
-        )
+        .sun_visibility_packed(&empty.params, &empty_light, Some(0))
         .unwrap();
     assert!(empty_run.visibility.is_empty());
     assert_eq!((empty_run.flags, empty_run.tile_entries), (0, 0));

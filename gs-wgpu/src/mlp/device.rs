@@ -266,6 +266,16 @@ fn check_buffer(name: &str, buffer: &wgpu::Buffer, values: usize) -> Result<(), 
     Ok(())
 }
 
+/// A device network as one recording sees it: the network, the pool its tape and
+/// uniforms come from, and the label they are keyed by there (one label per network and
+/// batch within a command buffer).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct MlpRecording<'a> {
+    pub scratch: &'a Scratch,
+    pub label: &'a str,
+    pub net: &'a DeviceNetwork,
+}
+
 impl GpuMlp {
     /// Records the forward of `net` over `max_rows` rows of `input` (row-major, input
     /// width), of which only the first `count[0]` (u32 read on the device) are live; output
@@ -273,18 +283,16 @@ impl GpuMlp {
     /// `output`. The tape's activations are `scratch` buffers under `mlp {label} ...`
     /// (one label per network and batch within a command buffer); `input` must still hold
     /// the batch when the backward runs.
-    #[allow(clippy::too_many_arguments)]
     pub(crate) fn encode_forward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
-        label: &str,
-        net: &DeviceNetwork,
+        rec: MlpRecording,
         input: &wgpu::Buffer,
         count: &wgpu::Buffer,
         max_rows: usize,
         output: &wgpu::Buffer,
     ) -> Result<DeviceTape, GpuError> {
+        let (scratch, label, net) = (rec.scratch, rec.label, rec.net);
         let widths = net.widths();
         let n_out = widths[widths.len() - 1];
         check_buffer("MLP input", input, max_rows * widths[0])?;
@@ -312,17 +320,15 @@ impl GpuMlp {
     /// (overwritten, not accumulated) and, when given, the input gradient into `d_input`
     /// (`max_rows * in_width`, rows beyond the count written 0). `net` must be the
     /// network of the tape's forward, its parameters unchanged since.
-    #[allow(clippy::too_many_arguments)]
     pub(crate) fn encode_backward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
-        label: &str,
-        net: &DeviceNetwork,
+        rec: MlpRecording,
         tape: &DeviceTape,
         d_output: &wgpu::Buffer,
         d_input: Option<&wgpu::Buffer>,
     ) -> Result<(), GpuError> {
+        let (scratch, label, net) = (rec.scratch, rec.label, rec.net);
         if tape.widths != net.widths || tape.hidden != net.hidden {
             return Err(GpuError::Invalid(format!(
                 "MLP backward: tape of widths {:?} ({:?}) for a network of {:?} ({:?})",
@@ -357,12 +363,11 @@ impl GpuMlp {
     pub(crate) fn encode_adam(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        scratch: &Scratch,
-        label: &str,
-        net: &DeviceNetwork,
+        rec: MlpRecording,
         lr: f32,
         flags: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
+        let (scratch, label, net) = (rec.scratch, rec.label, rec.net);
         if !(lr.is_finite() && lr >= 0.0) {
             return Err(GpuError::Invalid(format!("MLP Adam learning rate {lr}")));
         }
@@ -414,9 +419,11 @@ impl GpuMlp {
         let mut encoder = self.ctx.encoder("mlp run forward backward");
         let tape = self.encode_forward(
             &mut encoder,
-            &self.scratch,
-            "run",
-            net,
+            MlpRecording {
+                scratch: &self.scratch,
+                label: "run",
+                net,
+            },
             &batch.input,
             &batch.count,
             batch.max_rows,
@@ -424,9 +431,11 @@ impl GpuMlp {
         )?;
         self.encode_backward(
             &mut encoder,
-            &self.scratch,
-            "run",
-            net,
+            MlpRecording {
+                scratch: &self.scratch,
+                label: "run",
+                net,
+            },
             &tape,
             &batch.d_output,
             input_gradient.then_some(&batch.d_input),
@@ -453,7 +462,16 @@ impl GpuMlp {
             .queue
             .write_buffer(&flags, 0, &u32_bytes(&[refuse as u32]));
         let mut encoder = self.ctx.encoder("mlp run adam");
-        self.encode_adam(&mut encoder, &self.scratch, "run", net, lr, &flags)?;
+        self.encode_adam(
+            &mut encoder,
+            MlpRecording {
+                scratch: &self.scratch,
+                label: "run",
+                net,
+            },
+            lr,
+            &flags,
+        )?;
         let back = self.ctx.read_back(encoder, &[(&flags, 4)])?;
         let applied = bytes_u32(&back[0])[0] == 0;
         if applied {

@@ -60,6 +60,8 @@ mod device;
 mod host;
 mod record;
 
+pub(crate) use device::MlpRecording;
+
 use super::{
     bytes_f32, bytes_u32, dispatch_1d, f32_bytes, storage_in, u32_bytes, uniform_in, GpuContext,
     GpuError, Scratch,

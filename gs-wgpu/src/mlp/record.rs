@@ -12,7 +12,6 @@ impl GpuMlp {
     /// Records `C = op(A) op(B)` (see [`GemmShape`] and `GemmOp` for the strides) into
     /// `pass`, as `k.div_ceil(k_chunk)` partial products one after another in `c` (one
     /// when `k_chunk >= k`), the batch's live rows from `count`.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn gemm(
         &self,
         pass: &mut wgpu::ComputePass,
@@ -49,7 +48,6 @@ impl GpuMlp {
 
     /// Records `mlp_pointwise.wgsl`'s `op` on the `values / n` x `n` matrix `x`, with
     /// `aux` read from word `aux_off`.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn pointwise(
         &self,
         pass: &mut wgpu::ComputePass,
@@ -75,7 +73,6 @@ impl GpuMlp {
     /// Records the forward of the network `widths`/`hidden` whose flat parameters are
     /// `params` over `max_rows` rows of `input` (live count in `count`), every layer's
     /// output into a fresh (host path) or scratch buffer of the returned tape.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn record_forward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -160,7 +157,6 @@ impl GpuMlp {
     /// Records the backward of `tape` for `d_output` (copied, not modified): the flat
     /// parameter gradient into `grads` (overwritten) and, when given, the input gradient
     /// into `d_input`, reading the weights from `params`.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn record_backward(
         &self,
         encoder: &mut wgpu::CommandEncoder,

@@ -269,7 +269,6 @@ const FRAME_STOP_WORD: usize = 36;
 /// The frame uniform (layout of `Frame` in common.wgsl), with the blend's default
 /// switches: early termination on, every tile blended ([`with_blend_switches`] sets
 /// others).
-#[allow(clippy::too_many_arguments)]
 pub(super) fn frame_bytes(
     frame: &gs_core::raster::project::CameraFrame,
     cutoff: f32,

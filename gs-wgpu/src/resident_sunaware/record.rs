@@ -12,9 +12,12 @@ use super::kernels::{
     REFUSED_NONFINITE, REFUSED_OVERFLOW,
 };
 use super::{Attempt, SunAwareResident, SunAwareStepInput, SunAwareStepReport};
-use crate::loss::combine;
+use crate::loss::{combine, LossImages};
+use crate::mlp::MlpRecording;
+use crate::network_io::{NetworkBatch, PackedParams};
 use crate::packed::offsets;
 use crate::raster::DeviceInputs;
+use crate::sun_visibility::SunLight;
 use crate::{bytes_f32, bytes_u32, dispatch_1d, groups_1d, u32_bytes, GpuError};
 use gs_core::loss::ImageShape;
 use gs_core::regularizer::IsoReduction;
@@ -177,14 +180,18 @@ impl SunAwareResident {
             let (record, enc) = self.shadow.encode_sun_visibility(
                 encoder,
                 &pools.shadow,
-                &b.params,
-                &off,
+                PackedParams {
+                    buffer: &b.params,
+                    offsets: &off,
+                },
                 n,
-                input.sun_dir,
-                cam_pos,
-                &model.scene_box,
-                &model.config.light,
-                model.config.near_m,
+                &SunLight {
+                    sun_dir: input.sun_dir,
+                    camera_centre: cam_pos,
+                    scene_box: &model.scene_box,
+                    config: &model.config.light,
+                    near_m: model.config.near_m,
+                },
                 capacity.map(|c| c.1),
                 &visibility,
                 &flags,
@@ -197,6 +204,16 @@ impl SunAwareResident {
 
         // The networks' forward and their channels.
         let nets = &pools.networks;
+        let batch = NetworkBatch {
+            scratch: nets,
+            n,
+            list: &list,
+            count: &count,
+        };
+        let packed = PackedParams {
+            buffer: &b.params,
+            offsets: &off,
+        };
         let sun = input.sun_dir.to_array();
         let phi_tape = match phi_parts {
             None => None,
@@ -209,13 +226,9 @@ impl SunAwareResident {
                 let phi_out = nets.storage(ctx, "sa phi output", n.max(1) as u64 * 12)?;
                 self.io.encode_phi_input(
                     &mut encoder,
-                    nets,
+                    batch,
                     appearance,
-                    &b.params,
-                    &off,
-                    n,
-                    &list,
-                    &count,
+                    packed,
                     sun,
                     cam_pos.to_array(),
                     &phi_in,
@@ -223,24 +236,18 @@ impl SunAwareResident {
                 )?;
                 let phi_tape = self.mlp.encode_forward(
                     &mut encoder,
-                    nets,
-                    "phi",
-                    phi,
+                    MlpRecording {
+                        scratch: nets,
+                        label: "phi",
+                        net: phi,
+                    },
                     &phi_in,
                     &count,
                     n,
                     &phi_out,
                 )?;
-                self.io.encode_phi_scatter(
-                    &mut encoder,
-                    nets,
-                    n,
-                    nc,
-                    &list,
-                    &count,
-                    &phi_out,
-                    &chans,
-                )?;
+                self.io
+                    .encode_phi_scatter(&mut encoder, batch, nc, &phi_out, &chans)?;
                 Some(phi_tape)
             }
         };
@@ -256,14 +263,10 @@ impl SunAwareResident {
                 let psi_out = nets.storage(ctx, "sa psi output", n.max(1) as u64 * 4)?;
                 self.io.encode_psi_input(
                     &mut encoder,
-                    nets,
+                    batch,
                     net,
                     &model.scene_box,
-                    &b.params,
-                    &off,
-                    n,
-                    &list,
-                    &count,
+                    packed,
                     sun,
                     &visibility,
                     &psi_in,
@@ -271,9 +274,11 @@ impl SunAwareResident {
                 )?;
                 let tape = self.mlp.encode_forward(
                     &mut encoder,
-                    nets,
-                    "psi",
-                    psi,
+                    MlpRecording {
+                        scratch: nets,
+                        label: "psi",
+                        net: psi,
+                    },
                     &psi_in,
                     &count,
                     n,
@@ -281,11 +286,8 @@ impl SunAwareResident {
                 )?;
                 self.io.encode_psi_scatter(
                     &mut encoder,
-                    nets,
-                    n,
+                    batch,
                     nc,
-                    &list,
-                    &count,
                     &visibility,
                     &psi_out,
                     multiply,
@@ -331,12 +333,14 @@ impl SunAwareResident {
         let loss_buffers = self.pipelines.loss.encode(
             ctx,
             &mut encoder,
-            shape,
             model.config.lambda_dssim,
-            &image,
-            &target,
-            &pixel_weights_buf,
-            &d_image,
+            LossImages {
+                shape,
+                rendered: &image,
+                target: &target,
+                weights: &pixel_weights_buf,
+                px_grad: &d_image,
+            },
             &flags,
             Some(&pools.raster),
         )?;
@@ -410,34 +414,24 @@ impl SunAwareResident {
                 "sa phi input gradient",
                 (n.max(1) * appearance.input_width()) as u64 * 4,
             )?;
-            self.io.encode_phi_d_output(
-                &mut encoder,
-                nets,
-                n,
-                nc,
-                &list,
-                &count,
-                &rows,
-                &phi_d_out,
-            )?;
+            self.io
+                .encode_phi_d_output(&mut encoder, batch, nc, &rows, &phi_d_out)?;
             self.mlp.encode_backward(
                 &mut encoder,
-                nets,
-                "phi",
-                phi,
+                MlpRecording {
+                    scratch: nets,
+                    label: "phi",
+                    net: phi,
+                },
                 phi_tape,
                 &phi_d_out,
                 Some(&phi_d_in),
             )?;
             self.io.encode_phi_input_grad(
                 &mut encoder,
-                nets,
+                batch,
                 appearance,
-                &b.params,
-                &off,
-                n,
-                &list,
-                &count,
+                packed,
                 cam_pos.to_array(),
                 &phi_d_in,
                 &b.grads,
@@ -453,11 +447,8 @@ impl SunAwareResident {
             )?;
             self.io.encode_psi_d_output(
                 &mut encoder,
-                nets,
-                n,
+                batch,
                 nc,
-                &list,
-                &count,
                 &visibility,
                 &rows,
                 multiply,
@@ -465,23 +456,21 @@ impl SunAwareResident {
             )?;
             self.mlp.encode_backward(
                 &mut encoder,
-                nets,
-                "psi",
-                psi,
+                MlpRecording {
+                    scratch: nets,
+                    label: "psi",
+                    net: psi,
+                },
                 tape,
                 &psi_d_out,
                 Some(&psi_d_in),
             )?;
             self.io.encode_psi_input_grad(
                 &mut encoder,
-                nets,
+                batch,
                 net,
                 &model.scene_box,
-                &b.params,
-                &off,
-                n,
-                &list,
-                &count,
+                packed,
                 &psi_d_in,
                 &b.grads,
             )?;
@@ -533,12 +522,28 @@ impl SunAwareResident {
             .optim
             .encode_adam(sink, &mut encoder, b, &words)?;
         if let Some((_, phi)) = phi_parts {
-            self.mlp
-                .encode_adam(&mut encoder, nets, "phi", phi, input.appearance_lr, &flags)?;
+            self.mlp.encode_adam(
+                &mut encoder,
+                MlpRecording {
+                    scratch: nets,
+                    label: "phi",
+                    net: phi,
+                },
+                input.appearance_lr,
+                &flags,
+            )?;
         }
         if let Some((_, psi, _)) = &psi_parts {
-            self.mlp
-                .encode_adam(&mut encoder, nets, "psi", psi, input.shadow_lr, &flags)?;
+            self.mlp.encode_adam(
+                &mut encoder,
+                MlpRecording {
+                    scratch: nets,
+                    label: "psi",
+                    net: psi,
+                },
+                input.shadow_lr,
+                &flags,
+            )?;
         }
 
         mark(&mut encoder, "optim");

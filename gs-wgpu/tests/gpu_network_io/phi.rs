@@ -33,8 +33,14 @@ fn phi_input_matches_the_cpu_rows() {
             let flags = probe.buffer_u32("flags", &[0]);
             let mut enc = probe.encoder();
             io.encode_phi_input(
-                &mut enc, &scratch, &net, &b.params, &s.offsets, n, &b.list, &b.count, SUN, CAMERA,
-                &input, &flags,
+                &mut enc,
+                b.rows(&scratch, n),
+                &net,
+                b.packed(&s.offsets),
+                SUN,
+                CAMERA,
+                &input,
+                &flags,
             )
             .unwrap();
             let gpu = probe.finish_f32(enc, &[(&input, n * width)]).unwrap();
@@ -61,7 +67,13 @@ fn phi_flags(rig: &Rig, s: &Scene, net: &AppearanceNet) -> u32 {
     let flags = probe.buffer_u32("flags", &[0]);
     let mut enc = probe.encoder();
     io.encode_phi_input(
-        &mut enc, scratch, net, &b.params, &s.offsets, s.n, &b.list, &b.count, SUN, CAMERA, &input,
+        &mut enc,
+        b.rows(scratch, s.n),
+        net,
+        b.packed(&s.offsets),
+        SUN,
+        CAMERA,
+        &input,
         &flags,
     )
     .unwrap();
@@ -144,14 +156,10 @@ fn phi_scatter_and_output_gradient_route_rows() {
             let rows_buf = probe.buffer_f32("rows", &rows);
             let d_out = probe.buffer_f32("d_out", &junk(23, n * 3));
             let mut enc = probe.encoder();
-            io.encode_phi_scatter(
-                &mut enc, &scratch, n, nc, &b.list, &b.count, &out_buf, &chans,
-            )
-            .unwrap();
-            io.encode_phi_d_output(
-                &mut enc, &scratch, n, nc, &b.list, &b.count, &rows_buf, &d_out,
-            )
-            .unwrap();
+            io.encode_phi_scatter(&mut enc, b.rows(&scratch, n), nc, &out_buf, &chans)
+                .unwrap();
+            io.encode_phi_d_output(&mut enc, b.rows(&scratch, n), nc, &rows_buf, &d_out)
+                .unwrap();
             let gpu = probe
                 .finish_f32(enc, &[(&chans, n * nc), (&d_out, n * 3)])
                 .unwrap();
@@ -191,8 +199,13 @@ fn phi_input_gradient_matches_the_cpu_scatter() {
             let grads = probe.buffer_f32("grads", &grads0);
             let mut enc = probe.encoder();
             io.encode_phi_input_grad(
-                &mut enc, &scratch, &net, &b.params, &s.offsets, n, &b.list, &b.count, CAMERA,
-                &d_in, &grads,
+                &mut enc,
+                b.rows(&scratch, n),
+                &net,
+                b.packed(&s.offsets),
+                CAMERA,
+                &d_in,
+                &grads,
             )
             .unwrap();
             let gpu = probe.finish_f32(enc, &[(&grads, grads0.len())]).unwrap();

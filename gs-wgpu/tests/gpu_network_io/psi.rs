@@ -51,14 +51,10 @@ fn psi_input_matches_the_cpu_rows() {
             let mut enc = probe.encoder();
             io.encode_psi_input(
                 &mut enc,
-                &scratch,
+                b.rows(&scratch, n),
                 &net,
                 &scene_box(),
-                &b.params,
-                &s.offsets,
-                n,
-                &b.list,
-                &b.count,
+                b.packed(&s.offsets),
                 SUN,
                 &vis_buf,
                 &input,
@@ -91,14 +87,10 @@ fn psi_flags(rig: &Rig, s: &Scene, net: &ShadowNet, vis: &[f32]) -> u32 {
     let mut enc = probe.encoder();
     io.encode_psi_input(
         &mut enc,
-        scratch,
+        b.rows(scratch, s.n),
         net,
         &scene_box(),
-        &b.params,
-        &s.offsets,
-        s.n,
-        &b.list,
-        &b.count,
+        b.packed(&s.offsets),
         SUN,
         &vis_buf,
         &input,
@@ -177,11 +169,23 @@ fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
             let d_out = probe.buffer_f32("d_out", &junk(55, n));
             let mut enc = probe.encoder();
             io.encode_psi_scatter(
-                &mut enc, &scratch, n, nc, &b.list, &b.count, &vis_buf, &out_buf, multiply, &chans,
+                &mut enc,
+                b.rows(&scratch, n),
+                nc,
+                &vis_buf,
+                &out_buf,
+                multiply,
+                &chans,
             )
             .unwrap();
             io.encode_psi_d_output(
-                &mut enc, &scratch, n, nc, &b.list, &b.count, &vis_buf, &rows_buf, multiply, &d_out,
+                &mut enc,
+                b.rows(&scratch, n),
+                nc,
+                &vis_buf,
+                &rows_buf,
+                multiply,
+                &d_out,
             )
             .unwrap();
             let gpu = probe
@@ -230,14 +234,10 @@ fn psi_input_gradient_matches_the_cpu_scatter() {
             let mut enc = probe.encoder();
             io.encode_psi_input_grad(
                 &mut enc,
-                &scratch,
+                b.rows(&scratch, n),
                 &net,
                 &scene_box(),
-                &b.params,
-                &s.offsets,
-                n,
-                &b.list,
-                &b.count,
+                b.packed(&s.offsets),
                 &d_in,
                 &grads,
             )

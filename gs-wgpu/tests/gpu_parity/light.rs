@@ -60,7 +60,7 @@ fn sun_visibility_matches_cpu() {
     use gs_core::sunaware::config::{LightConfig, LightProjection};
     use gs_core::sunaware::sun_visibility::sun_visibility;
     use gs_core::ModelLayout;
-    use gs_wgpu::GpuSunVisibility;
+    use gs_wgpu::{GpuSunVisibility, SunLight};
     use std::sync::Arc;
 
     let Some(ctx) = context(GpuOptions::default()) else {
@@ -80,7 +80,16 @@ fn sun_visibility_matches_cpu() {
         };
         let cpu = sun_visibility(&model, sun, camera_centre, &scene_box, &config, 0.01).unwrap();
         let gpu = shadow
-            .sun_visibility(&model, sun, camera_centre, &scene_box, &config, 0.01)
+            .sun_visibility(
+                &model,
+                &SunLight {
+                    sun_dir: sun,
+                    camera_centre,
+                    scene_box: &scene_box,
+                    config: &config,
+                    near_m: 0.01,
+                },
+            )
             .unwrap();
         let worst = max_abs_diff(&gpu, &cpu);
         let n_off = count_above(&gpu, &cpu, 1e-4);
