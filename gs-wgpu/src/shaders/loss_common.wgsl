@@ -1,4 +1,4 @@
-// Shared by the loss kernels (gpu/loss.rs): `(1 - lambda) L1 + lambda (1 - SSIM)` with
+// Shared by the loss kernels (loss.rs): `(1 - lambda) L1 + lambda (1 - SSIM)` with
 // per-pixel weights, ported from loss.rs `weighted_l1` / `weighted_ssim`: an 11-tap
 // separable Gaussian window with zero padding, taps added in order (t = 0..10) as the
 // CPU's filter_row and filter_column do. The host prepends `const NC: u32`.

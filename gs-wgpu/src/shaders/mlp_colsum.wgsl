@@ -1,4 +1,4 @@
-// Bias gradient of the device MLP (gpu/mlp.rs): dst[dst_off + j] = sum over the live rows
+// Bias gradient of the device MLP (mlp/): dst[dst_off + j] = sum over the live rows
 // r < min(rows, live[0]) (the count read on the device) of src[r * n + j], one thread per
 // column summing in row order (deterministic).
 

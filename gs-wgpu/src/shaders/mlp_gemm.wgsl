@@ -1,4 +1,4 @@
-// Matrix products of the device MLP (gpu/mlp.rs): C = op(A) op(B) with C m x n row-major
+// Matrix products of the device MLP (mlp/): C = op(A) op(B) with C m x n row-major
 // and op() by strides, A(i, p) = a[a_off + i * a_rs + p * a_cs], B(p, j) = b[b_off +
 // p * b_rs + j * b_cs] (as gemm.wgsl, plus word offsets so a network's weights are read in
 // place from its one flat parameter buffer), the reduction split into chunks of `k_chunk`

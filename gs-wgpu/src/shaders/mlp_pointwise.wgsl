@@ -1,4 +1,4 @@
-// Pointwise parts of the device MLP (gpu/mlp.rs), one thread per value of a row-major
+// Pointwise parts of the device MLP (mlp/), one thread per value of a row-major
 // `count / n` x `n` matrix `x`, in place. op 0, 1, 2: add the bias aux[aux_off + j], then
 // ReLU, LeakyReLU (negative slope u.slope) or the sigmoid (forward). op 3: dY -> dZ =
 // y (1 - y) dY through the output sigmoid, y = aux[aux_off + i]. op 4, 5: multiply by the

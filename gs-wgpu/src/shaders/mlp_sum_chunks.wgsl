@@ -1,4 +1,4 @@
-// Split-K reduction of the device MLP (gpu/mlp.rs): dst[dst_off + i] = sum over chunks z of
+// Split-K reduction of the device MLP (mlp/): dst[dst_off + i] = sum over chunks z of
 // src[z * count + i], in chunk order (deterministic), one thread per output value. Chunks
 // past the batch's live rows hold 0 (mlp_gemm.wgsl's live_dim 2), so they add nothing.
 

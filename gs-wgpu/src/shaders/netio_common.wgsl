@@ -1,4 +1,4 @@
-// Shared by the network input/output kernels (gpu/network_io.rs), prepended to each: the
+// Shared by the network input/output kernels (network_io.rs), prepended to each: the
 // uniform, the bindings every kernel has (uniform, list, count: bindings 0-2; each kernel
 // declares its own buffers from binding 3 on), the row-to-Gaussian lookup, the packed
 // parameter layout's group offsets, and `sin(pi x)`, `cos(pi x)` and the positional

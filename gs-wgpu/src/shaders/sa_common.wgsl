@@ -1,4 +1,4 @@
-// Shared by the Sun-aware resident step's own kernels (gpu/resident_sunaware.rs): a
+// Shared by the Sun-aware resident step's own kernels (resident_sunaware/): a
 // uniform holding one count (Gaussians, pixels or values), padded to 16 bytes.
 
 struct Count {
