@@ -18,7 +18,8 @@ usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
   --spp N              ray-tracing samples per pixel (default: the preset's)
   --earth F            Earth-albedo fill (default: the preset's)
   --extra TOML         preset lines added to the demo preset's top-level keys, before
-                       its tables such as [rates] (\\n for new lines)
+                       its tables such as [rates] (\\n for new lines); a key the
+                       preset already sets is replaced
   --max-gaussians N    densification cap
   --steps N            offline steps (default 3000)
   --densify-every N    offline: densify every N steps in the first half (default 100)
@@ -60,6 +61,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Top-level keys must come before the preset's first table, or TOML files them in it.
     let tables_at = DEMO_PRESET.find("\n[").unwrap_or(DEMO_PRESET.len());
     let (top, tables) = DEMO_PRESET.split_at(tables_at);
+    // A key set in `--extra` replaces the demo preset's line for it (TOML forbids repeats).
+    let key_of = |line: &str| line.split('=').next().map(|k| k.trim().to_string());
+    let extra_keys: Vec<String> = extra
+        .lines()
+        .filter(|l| l.contains('='))
+        .filter_map(key_of)
+        .collect();
+    let top: String = top
+        .lines()
+        .filter(|l| !(l.contains('=') && key_of(l).is_some_and(|k| extra_keys.contains(&k))))
+        .map(|l| format!("{l}\n"))
+        .collect();
     let mut preset = Preset::from_toml_str(&format!("{top}\n{extra}\n{tables}\n"), "demo")?;
     let base = match arg("--scenario") {
         Some(path) => Scenario::load(std::path::Path::new(&path))?,
@@ -141,13 +154,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .iter()
             .zip(o.eval.per_view.iter().zip(&o.black_eval.per_view))
         {
+            // Sun and viewpoint of one frame together: the appearance depends on the pair, and
+            // the frame nearest in Sun is rarely the one nearest in viewpoint.
+            let joint_deg = suns
+                .iter()
+                .zip(&dirs)
+                .map(|(s, d)| {
+                    let sun_deg = s.angle_between(view.sun_dir_target).to_degrees();
+                    sun_deg.max(d.angle_between(view.view_dir_target()).to_degrees())
+                })
+                .fold(f64::INFINITY, f64::min);
             eprintln!(
-                "eval view {:3}: masked {:6.2} dB (black {:6.2}); nearest trained Sun {:5.1} deg, view {:5.1} deg",
+                "eval view {:3}: masked {:6.2} dB (black {:6.2}); nearest trained Sun {:5.1} deg, view {:5.1} deg, both in one frame {:5.1} deg",
                 view.index,
                 m.masked_psnr_db,
                 b.masked_psnr_db,
                 nearest_angle_deg(view.sun_dir_target, &suns),
                 nearest_angle_deg(view.view_dir_target(), &dirs),
+                joint_deg,
             );
         }
         return Ok(());

@@ -44,14 +44,14 @@ pub const AOCS_NODE_ID: u8 = 10;
 /// Node-ID of relative navigation (target pose source).
 pub const NAVIGATION_NODE_ID: u8 = 11;
 /// Receive-time spacing of consecutive CAN frames in a log, microseconds.
-pub const CAN_FRAME_SPACING_US: u64 = 100;
+pub(crate) const CAN_FRAME_SPACING_US: u64 = 100;
 /// Receive time of a frame's first datagram after its exposure time, microseconds.
-pub const FRAME_LATENCY_US: u64 = 10_000;
+pub(crate) const FRAME_LATENCY_US: u64 = 10_000;
 /// Receive-time spacing of consecutive camera datagrams, microseconds (1472 bytes per
 /// 100 us: about 118 Mbit/s, a fast camera link).
-pub const DATAGRAM_SPACING_US: u64 = 100;
+pub(crate) const DATAGRAM_SPACING_US: u64 = 100;
 /// UDP source port written for the camera's datagrams.
-pub const CAMERA_SOURCE_PORT: u16 = 15100;
+pub(crate) const CAMERA_SOURCE_PORT: u16 = 15100;
 /// Datagrams sent back to back before `play` at full speed pauses for a millisecond, so a
 /// frame does not overrun the receiver's socket buffer (about 94 Mbit/s).
 const DATAGRAMS_PER_MS: usize = 8;

@@ -53,6 +53,17 @@ thread_local! {
         const { RefCell::new((Vec::new(), Vec::new())) };
 }
 
+/// What the forward of one block of rows left for its backward: the block's input
+/// (`rows x in`), its hidden activations (every hidden layer's `rows x width`, in layer
+/// order) and its output (`rows x out`).
+#[derive(Clone, Copy)]
+pub(crate) struct BlockTape<'a> {
+    pub(crate) x: &'a [f32],
+    pub(crate) rows: usize,
+    pub(crate) hidden: &'a [f32],
+    pub(crate) y: &'a [f32],
+}
+
 /// Activation after every hidden layer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum HiddenActivation {
@@ -488,38 +499,31 @@ impl Mlp {
 
     /// Backward of one block: adds the weight gradients into `d_params` (zeroed by the
     /// caller) and writes the input gradient into `d_x` when given.
-    #[allow(clippy::too_many_arguments)]
     fn backward_block(
         &self,
-        x: &[f32],
-        rows: usize,
-        hidden: &[f32],
-        y: &[f32],
+        tape: &BlockTape,
         d_y: &[f32],
         d_params: &mut [f32],
         d_x: Option<&mut [f32]>,
     ) {
         GRADIENT_SCRATCH.with(|scratch| {
             let (d_z, d_prev) = &mut *scratch.borrow_mut();
-            self.backward_block_in(x, rows, hidden, y, d_y, d_params, d_x, d_z, d_prev);
+            self.backward_block_in(tape, d_y, d_params, d_x, d_z, d_prev);
         });
     }
 
     /// [`Mlp::backward_block`] with the layers' output gradients in `d_z` and `d_prev`
     /// (any contents; every value read is written first).
-    #[allow(clippy::too_many_arguments)]
     fn backward_block_in(
         &self,
-        x: &[f32],
-        rows: usize,
-        hidden: &[f32],
-        y: &[f32],
+        tape: &BlockTape,
         d_y: &[f32],
         d_params: &mut [f32],
         d_x: Option<&mut [f32]>,
         d_z: &mut Vec<f32>,
         d_prev: &mut Vec<f32>,
     ) {
+        let &BlockTape { x, rows, hidden, y } = tape;
         let layers = self.num_layers();
         // dZ of the output layer through the sigmoid: y (1 - y) dY.
         d_z.clear();
@@ -645,7 +649,13 @@ impl Mlp {
                         }
                     };
                     let mut partial = vec![0.0f32; self.num_params()];
-                    self.backward_block(x, block_rows, hidden, y, d_y, &mut partial, d_x.take());
+                    let tape = BlockTape {
+                        x,
+                        rows: block_rows,
+                        hidden,
+                        y,
+                    };
+                    self.backward_block(&tape, d_y, &mut partial, d_x.take());
                     partial
                 })
                 .collect();

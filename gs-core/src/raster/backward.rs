@@ -99,14 +99,17 @@ pub(super) fn write_records(
             }
             let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
             let px = t * TILE_PIXELS..(t + 1) * TILE_PIXELS;
-            blend::blend_tile_backward(
-                &grid.tile_rect(t),
+            let inputs = blend::TileInputs {
+                tile: &grid.tile_rect(t),
                 list,
-                &st.splats,
-                &st.splat_channels,
-                nc,
-                &st.background,
+                splats: &st.splats,
+                splat_channels: &st.splat_channels,
+                n_channels: nc,
+                background: &st.background,
                 mode,
+            };
+            blend::blend_tile_backward(
+                &inputs,
                 blend::TileForwardState {
                     transmittance: &st.tile_transmittance[px.clone()],
                     last: &st.tile_last[px],

@@ -421,17 +421,22 @@ fn alpha_row<S: RowOps, const SMOOTH: bool>(ops: S, raw: S::F) -> (S::F, S::F) {
     }
 }
 
-/// One tile's blending inputs, bundled so that the multiversioning layers below
-/// (`*_with` -> `*_dispatch` -> `*_rows`) each forward one reference.
+/// One tile's blending inputs, the same for its forward and its backward
+/// ([`blend_tile_forward`], [`blend_tile_backward`]), bundled so that the caller and the
+/// multiversioning layers below (`*_with` -> `*_dispatch` -> `*_rows`) each pass one
+/// reference.
 #[derive(Clone, Copy)]
-struct TileInputs<'a> {
-    tile: &'a PixelRect,
-    list: &'a [u32],
-    splats: &'a [Splat],
-    splat_channels: &'a [f32],
-    n_channels: usize,
-    background: &'a [f32],
-    mode: AlphaMode,
+pub struct TileInputs<'a> {
+    pub tile: &'a PixelRect,
+    /// Splat ranks in depth order.
+    pub list: &'a [u32],
+    pub splats: &'a [Splat],
+    /// `n_channels` values per splat.
+    pub splat_channels: &'a [f32],
+    pub n_channels: usize,
+    /// `n_channels` values behind the splats.
+    pub background: &'a [f32],
+    pub mode: AlphaMode,
 }
 /// Per tile row, the columns inside the tile (all rows of a partial tile's rectangle).
 #[inline(always)]

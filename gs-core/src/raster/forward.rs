@@ -253,14 +253,17 @@ pub fn render_prepared(
                 return;
             }
             let list = &bins.tile_ranks[bins.tile_offsets[t]..bins.tile_offsets[t + 1]];
-            blend::blend_tile_forward(
-                &grid.tile_rect(t),
+            let inputs = blend::TileInputs {
+                tile: &grid.tile_rect(t),
                 list,
-                &splats,
-                &splat_channels,
-                nc,
-                &background,
+                splats: &splats,
+                splat_channels: &splat_channels,
+                n_channels: nc,
+                background: &background,
                 mode,
+            };
+            blend::blend_tile_forward(
+                &inputs,
                 settings.early_termination,
                 blend::TileForwardOut {
                     color: &mut color[..TILE_PIXELS * nc],

@@ -1,7 +1,6 @@
 //! Scene builders and bit-exact comparisons shared by the rasterizer tests
-//! (`raster_compact`, `raster_skips`, `raster_invariants`), and the small plain-3DGS
-//! training scene (a ground-truth cloud and a ring of views) of `train_loop`,
-//! `gpu_parity` and `gpu_resident`.
+//! (`raster_compact`, `raster_skips`, `raster_invariants`); [`plain`] holds the plain
+//! 3DGS scenes and training driver of configuration (a) (`plain_fit`, `plain_loop`).
 //!
 //! Invariants: every builder draws from the caller's RNG in a fixed order, so a seed
 //! always gives the same scene; the comparisons check `f32` bits, not values (NaN equals
@@ -10,17 +9,15 @@
 // Each test binary compiles this module and uses only part of it.
 #![allow(dead_code)]
 
-use glam::{Quat, Vec3};
-use gs_core::camera::{Camera, Intrinsics};
-use gs_core::init::inverse_sigmoid;
+pub mod plain;
+
+use glam::Vec3;
+use gs_core::camera::Camera;
 use gs_core::raster::project::GaussianParams;
 use gs_core::raster::{
     render_backward, GaussianGrads, GaussianView, PixelGrads, RasterSettings, RenderOutput,
 };
 use gs_core::rng::SplitMix64;
-use gs_core::sh::rgb_to_sh_dc;
-use gs_core::train::{render_rgb, TrainView};
-use gs_core::{GaussianModel, ModelLayout, Param};
 
 /// A Gaussian model as flat arrays, in the layout `GaussianView` reads.
 #[derive(Clone, Default)]
@@ -217,51 +214,4 @@ pub fn assert_same_grads(a: &GaussianGrads, b: &GaussianGrads, what: &str) {
         &format!("{what}: mean2d_grad_ndc"),
     );
     assert_eq!(a.dropped_nonfinite, b.dropped_nonfinite, "{what}: dropped");
-}
-
-/// A ground-truth cloud of `n` SH-degree-0 Gaussians (flat, rotated, opacity 0.8, random
-/// colours) around the origin, drawn from `seed`.
-pub fn ground_truth(n: usize, seed: u64) -> GaussianModel {
-    let mut rng = SplitMix64::new(seed);
-    let mut m = GaussianModel::new(ModelLayout::sh(0)).unwrap();
-    m.params.push_zeros(n);
-    for i in 0..n {
-        let p = Vec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.4;
-        let q = Quat::from_rotation_z(rng.next_f32() * 6.0) * Quat::from_rotation_x(1.0);
-        let params = &mut m.params;
-        params
-            .row_mut(Param::Mean, i)
-            .copy_from_slice(&p.to_array());
-        params.row_mut(Param::LogScale, i).copy_from_slice(&[
-            0.12f32.ln(),
-            0.06f32.ln(),
-            0.03f32.ln(),
-        ]);
-        params
-            .row_mut(Param::Rotation, i)
-            .copy_from_slice(&[q.w, q.x, q.y, q.z]);
-        params.row_mut(Param::OpacityLogit, i)[0] = inverse_sigmoid(0.8);
-        for c in params.row_mut(Param::ShDc, i) {
-            *c = rgb_to_sh_dc(rng.next_f32());
-        }
-    }
-    m
-}
-
-/// `n` views on a ring of radius 3 around the origin, `size` x `size` pixels, rendered from
-/// `gt` with a black background.
-pub fn ring_views(gt: &GaussianModel, n: usize, size: u32) -> Vec<TrainView> {
-    let k = Intrinsics::from_fov_x(45f32.to_radians(), size, size);
-    (0..n)
-        .map(|i| {
-            let a = i as f32 / n as f32 * std::f32::consts::TAU;
-            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.8 * (3.0 * a).sin());
-            let camera = Camera::look_at(k, eye, Vec3::ZERO, Vec3::Z);
-            TrainView {
-                camera,
-                image: render_rgb(gt, &camera, 0, [0.0; 3]).unwrap(),
-                mask: None,
-            }
-        })
-        .collect()
 }

@@ -14,11 +14,11 @@ use gs_core::rng::{mix64, SplitMix64};
 use super::noise::random_unit_vector;
 
 /// Largest camera-target-Sun angle of an evaluation view, degrees.
-pub const EVAL_MAX_PHASE_DEG: f64 = 120.0;
+pub(crate) const EVAL_MAX_PHASE_DEG: f64 = 120.0;
 const EVAL_STREAM: u64 = 0x6576_616C_7669_6577;
 
 /// Smallest and largest camera-target range over the scenario's duration (at least one orbit).
-pub fn scenario_range_m(scenario: &Scenario, geometry: &RendezvousGeometry) -> (f64, f64) {
+pub(crate) fn scenario_range_m(scenario: &Scenario, geometry: &RendezvousGeometry) -> (f64, f64) {
     let duration_s = (scenario.frame_count() as f64 * scenario.sequence.cadence_s)
         .max(geometry.chief.period_s());
     let samples = 2000;
@@ -34,7 +34,7 @@ pub fn scenario_range_m(scenario: &Scenario, geometry: &RendezvousGeometry) -> (
 }
 
 /// Uniformly distributed rotation (Shoemake's method).
-pub fn random_rotation(rng: &mut SplitMix64) -> DQuat {
+pub(crate) fn random_rotation(rng: &mut SplitMix64) -> DQuat {
     let (u1, u2, u3) = (rng.next_f64(), rng.next_f64(), rng.next_f64());
     let tau = std::f64::consts::TAU;
     let (a, b) = ((1.0 - u1).sqrt(), u1.sqrt());
@@ -49,7 +49,7 @@ pub fn random_rotation(rng: &mut SplitMix64) -> DQuat {
 
 /// Geometry of evaluation view `k`. Orbit-only fields (time, chief position, RTN position) are
 /// zero: an evaluation view is not on the trajectory.
-pub fn eval_view(
+pub(crate) fn eval_view(
     scenario: &Scenario,
     geometry: &RendezvousGeometry,
     k: u32,

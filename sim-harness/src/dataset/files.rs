@@ -17,7 +17,7 @@ fn io_error(path: &Path, e: impl std::fmt::Display) -> DatasetError {
 }
 
 /// Writes `data` to `path`, replacing any existing file.
-pub fn write_bytes(path: &Path, data: &[u8]) -> Result<(), DatasetError> {
+pub(crate) fn write_bytes(path: &Path, data: &[u8]) -> Result<(), DatasetError> {
     std::fs::write(path, data).map_err(|e| io_error(path, e))
 }
 
@@ -33,7 +33,7 @@ pub fn write_png_rgb(
 }
 
 /// Writes an 8-bit greyscale PNG.
-pub fn write_png_grey(
+pub(crate) fn write_png_grey(
     path: &Path,
     width: u32,
     height: u32,
@@ -44,7 +44,7 @@ pub fn write_png_grey(
 }
 
 /// Encodes a (height, width) float32 array as NumPy `.npy` version 1.0 bytes.
-pub fn npy_f32_bytes(width: u32, height: u32, values: &[f32]) -> Vec<u8> {
+pub(crate) fn npy_f32_bytes(width: u32, height: u32, values: &[f32]) -> Vec<u8> {
     let mut header =
         format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({height}, {width}), }}");
     // Magic (6) + version (2) + length (2) + header + '\n' must be a multiple of 64.
@@ -63,14 +63,14 @@ pub fn npy_f32_bytes(width: u32, height: u32, values: &[f32]) -> Vec<u8> {
 
 /// One point of a PLY cloud.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PlyPoint {
+pub(crate) struct PlyPoint {
     pub position: [f32; 3],
     pub normal: [f32; 3],
     pub rgb8: [u8; 3],
 }
 
 /// Binary little-endian PLY with x y z nx ny nz (float) and red green blue (uchar) per vertex.
-pub fn ply_bytes(points: &[PlyPoint], comment: &str) -> Vec<u8> {
+pub(crate) fn ply_bytes(points: &[PlyPoint], comment: &str) -> Vec<u8> {
     let mut bytes = Vec::with_capacity(300 + points.len() * 27);
     let header = format!(
         "ply\nformat binary_little_endian 1.0\ncomment {}\nelement vertex {}\n\

@@ -96,7 +96,7 @@ pub struct GenerateSummary {
 
 /// Ground truth for a telemetry line.
 #[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct TruthRecord {
+pub(crate) struct TruthRecord {
     pub q_camera_from_target_wxyz: [f64; 4],
     pub t_camera_from_target_m: [f64; 3],
     pub sun_servicer_body: [f64; 3],
@@ -114,7 +114,7 @@ pub struct TruthRecord {
 /// (with the scenario's noise); `truth` holds the exact values the image was rendered with.
 /// Quaternions are [w, x, y, z] with w >= 0; x_camera = R(q) x_target + t (OpenCV axes).
 #[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct TelemetryLine {
+pub(crate) struct TelemetryLine {
     pub index: u32,
     /// Seconds since the scenario epoch (null for evaluation views).
     pub time_s: Option<f64>,
@@ -132,13 +132,13 @@ pub struct TelemetryLine {
 }
 
 /// [w, x, y, z] with a non-negative scalar part (q and -q are the same rotation).
-pub fn wxyz(q: DQuat) -> [f64; 4] {
+pub(crate) fn wxyz(q: DQuat) -> [f64; 4] {
     let q = if q.w < 0.0 { -q } else { q };
     [q.w, q.x, q.y, q.z]
 }
 
 /// Loads the scenario's target mesh.
-pub fn load_target(scenario: &Scenario) -> Result<TargetMesh, DatasetError> {
+pub(crate) fn load_target(scenario: &Scenario) -> Result<TargetMesh, DatasetError> {
     Ok(match scenario.target_source()? {
         TargetSource::Builtin(kind) => builtin_target(kind),
         TargetSource::Obj(path) => load_obj(&path)?,
@@ -164,7 +164,7 @@ fn unit_f32(v: DVec3) -> Vec3 {
 /// not flagged as eclipse) the Sun is dimmed by the visible fraction f: the renderer has one
 /// exposure for all lights, so exposure is scaled by f and the Earth fill by 1/f, which leaves
 /// the fill's contribution unchanged.
-pub fn frame_request(scenario: &Scenario, g: &FrameGeometry, seed: u64) -> FrameRequest {
+pub(crate) fn frame_request(scenario: &Scenario, g: &FrameGeometry, seed: u64) -> FrameRequest {
     let sun_scale = if g.eclipse {
         1.0
     } else {
@@ -467,7 +467,7 @@ pub fn generate(
 }
 
 /// 90th percentile of the samples' distances from the body origin (None without samples).
-pub fn framing_radius_m(samples: &[crate::target::SurfaceSample]) -> Option<f64> {
+pub(crate) fn framing_radius_m(samples: &[crate::target::SurfaceSample]) -> Option<f64> {
     let mut radii: Vec<f32> = samples.iter().map(|s| s.position_m.length()).collect();
     radii.sort_by(f32::total_cmp);
     let index = (radii.len() * 9 / 10).min(radii.len().checked_sub(1)?);

@@ -9,7 +9,7 @@ use glam::{DQuat, DVec3};
 use gs_core::rng::SplitMix64;
 
 /// Noise state for one sequence: biases fixed at construction, jitter drawn per frame.
-pub struct TelemetryNoise {
+pub(crate) struct TelemetryNoise {
     config: NoiseConfig,
     sun_bias: DQuat,
     attitude_bias: DQuat,
@@ -19,7 +19,7 @@ pub struct TelemetryNoise {
 
 /// Pose and Sun vectors as reported by the (noisy) sensors.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct NoisyTelemetry {
+pub(crate) struct NoisyTelemetry {
     pub q_camera_from_target: DQuat,
     pub t_camera_from_target_m: DVec3,
     pub sun_dir_servicer_body: DVec3,
@@ -34,7 +34,7 @@ fn gaussian(rng: &mut SplitMix64) -> f64 {
 }
 
 /// Uniformly distributed unit vector.
-pub fn random_unit_vector(rng: &mut SplitMix64) -> DVec3 {
+pub(crate) fn random_unit_vector(rng: &mut SplitMix64) -> DVec3 {
     let z = 2.0 * rng.next_f64() - 1.0;
     let phi = std::f64::consts::TAU * rng.next_f64();
     let r = (1.0 - z * z).max(0.0).sqrt();

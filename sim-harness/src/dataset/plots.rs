@@ -15,7 +15,7 @@ pub struct Canvas {
     pub rgb8: Vec<u8>,
 }
 
-pub type Rgb = [u8; 3];
+pub(crate) type Rgb = [u8; 3];
 const WHITE: Rgb = [255, 255, 255];
 const BLACK: Rgb = [0, 0, 0];
 const GREY: Rgb = [190, 190, 190];
@@ -43,7 +43,7 @@ impl Canvas {
         self.rgb8[i..i + 3].copy_from_slice(&color);
     }
 
-    pub fn fill_rect(&mut self, x0: i64, y0: i64, w: i64, h: i64, color: Rgb) {
+    pub(crate) fn fill_rect(&mut self, x0: i64, y0: i64, w: i64, h: i64, color: Rgb) {
         for y in y0.max(0)..(y0 + h).min(self.height as i64) {
             for x in x0.max(0)..(x0 + w).min(self.width as i64) {
                 self.set(x, y, color);
@@ -51,7 +51,15 @@ impl Canvas {
         }
     }
 
-    pub fn rect_outline(&mut self, x0: i64, y0: i64, w: i64, h: i64, thickness: i64, color: Rgb) {
+    pub(crate) fn rect_outline(
+        &mut self,
+        x0: i64,
+        y0: i64,
+        w: i64,
+        h: i64,
+        thickness: i64,
+        color: Rgb,
+    ) {
         self.fill_rect(x0, y0, w, thickness, color);
         self.fill_rect(x0, y0 + h - thickness, w, thickness, color);
         self.fill_rect(x0, y0, thickness, h, color);
@@ -107,7 +115,7 @@ impl Canvas {
     }
 
     /// Copies an RGB8 image with its top-left corner at (x0, y0).
-    pub fn blit(&mut self, x0: i64, y0: i64, width: u32, height: u32, rgb8: &[u8]) {
+    pub(crate) fn blit(&mut self, x0: i64, y0: i64, width: u32, height: u32, rgb8: &[u8]) {
         for y in 0..height as i64 {
             for x in 0..width as i64 {
                 let i = 3 * (y as usize * width as usize + x as usize);
@@ -158,7 +166,12 @@ fn glyph(ch: char) -> [u8; 5] {
 }
 
 /// Box-filter downscale of an RGB8 image by an integer factor (at least 1).
-pub fn downscale_rgb(width: u32, height: u32, rgb8: &[u8], factor: u32) -> (u32, u32, Vec<u8>) {
+pub(crate) fn downscale_rgb(
+    width: u32,
+    height: u32,
+    rgb8: &[u8],
+    factor: u32,
+) -> (u32, u32, Vec<u8>) {
     let factor = factor.max(1);
     let (w, h) = ((width / factor).max(1), (height / factor).max(1));
     let mut out = vec![0u8; 3 * w as usize * h as usize];
@@ -185,7 +198,7 @@ pub fn downscale_rgb(width: u32, height: u32, rgb8: &[u8], factor: u32) -> (u32,
 }
 
 /// One thumbnail for the contact sheet.
-pub struct Thumbnail {
+pub(crate) struct Thumbnail {
     pub index: u32,
     pub eclipse: bool,
     pub width: u32,
@@ -194,7 +207,7 @@ pub struct Thumbnail {
 }
 
 /// Frame indices shown on the contact sheet: up to `max` spread evenly from first to last.
-pub fn contact_sheet_indices(frame_count: u32, max: u32) -> Vec<u32> {
+pub(crate) fn contact_sheet_indices(frame_count: u32, max: u32) -> Vec<u32> {
     if frame_count <= max {
         return (0..frame_count).collect();
     }
@@ -206,7 +219,7 @@ pub fn contact_sheet_indices(frame_count: u32, max: u32) -> Vec<u32> {
 }
 
 /// Thumbnails in a grid, each labelled with its frame index; eclipse frames framed in red.
-pub fn contact_sheet(thumbnails: &[Thumbnail], columns: u32) -> Canvas {
+pub(crate) fn contact_sheet(thumbnails: &[Thumbnail], columns: u32) -> Canvas {
     let columns = columns.max(1).min(thumbnails.len().max(1) as u32);
     let rows = (thumbnails.len() as u32).div_ceil(columns).max(1);
     let tw = thumbnails.iter().map(|t| t.width).max().unwrap_or(1);
@@ -242,7 +255,7 @@ pub fn contact_sheet(thumbnails: &[Thumbnail], columns: u32) -> Canvas {
 }
 
 /// Per-frame values the trajectory plot needs.
-pub struct TrajectorySample {
+pub(crate) struct TrajectorySample {
     pub time_s: f64,
     pub servicer_rtn_m: DVec3,
     pub sun_rtn: DVec3,
@@ -391,7 +404,7 @@ fn timeline_panel(
 /// The trajectory figure: R-T, N-R and T-N projections on top (target red, start green, eclipse
 /// segments dark, one full orbit of the relative motion in grey), then the Sun direction's R (red), T (green), N (blue) components and the
 /// range over time, on a background that is pale yellow in sunlight and dark blue in eclipse.
-pub fn trajectory_plot(samples: &[TrajectorySample], outline_rtn_m: &[DVec3]) -> Canvas {
+pub(crate) fn trajectory_plot(samples: &[TrajectorySample], outline_rtn_m: &[DVec3]) -> Canvas {
     let panel = 400i64;
     let pad = 20i64;
     let strip = 160i64;

@@ -65,7 +65,7 @@ pub fn init_name(kind: InitKind, grey: bool) -> &'static str {
 
 /// A hull start's options beyond the kind (each a `hull` name suffix).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct HullVariant {
+pub(crate) struct HullVariant {
     /// `-grey`: grey initial colours.
     pub grey: bool,
     /// `-volume`: points fill the hull's voxels.
@@ -81,7 +81,7 @@ pub struct HullVariant {
 /// Parses `surface`, `random`, or `hull` followed by any of `-grey`, `-volume`, `-recarve`,
 /// `-photo`, `-silhouette` (each at most once, any order; `-photo` overrides `-silhouette`,
 /// both override `-volume`).
-pub fn parse_init_variant(name: &str) -> Result<(InitKind, HullVariant), ExperimentError> {
+pub(crate) fn parse_init_variant(name: &str) -> Result<(InitKind, HullVariant), ExperimentError> {
     let unknown = || {
         ExperimentError::Invalid(format!(
             "unknown initialisation {name:?} (surface, random, or hull with any of the \

@@ -21,7 +21,7 @@ use std::path::Path;
 const MAGIC: &[u8; 8] = b"SHXSCN01";
 
 /// FNV-1a, 64 bit.
-pub fn fnv1a64(bytes: &[u8]) -> u64 {
+pub(crate) fn fnv1a64(bytes: &[u8]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     for &b in bytes {
         h ^= b as u64;
@@ -31,7 +31,7 @@ pub fn fnv1a64(bytes: &[u8]) -> u64 {
 }
 
 /// Cache key of a scenario rendered with `surface_points` samples.
-pub fn scene_key(scenario: &Scenario, surface_points: usize) -> u64 {
+pub(crate) fn scene_key(scenario: &Scenario, surface_points: usize) -> u64 {
     let mut text = toml::to_string(scenario).unwrap_or_default();
     text.push_str(&format!(
         "\nsurface_points={surface_points}\nformat={MAGIC:?}\n"
@@ -45,7 +45,7 @@ pub fn scene_key(scenario: &Scenario, surface_points: usize) -> u64 {
 }
 
 /// A file-name-safe version of a scenario name.
-pub fn safe_name(name: &str) -> String {
+pub(crate) fn safe_name(name: &str) -> String {
     name.chars()
         .map(|c| {
             if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
@@ -88,7 +88,7 @@ fn put_views(out: &mut Vec<u8>, views: &[ViewData]) {
 }
 
 /// Encodes a scene (without surface samples and bounds, which are recomputed).
-pub fn encode(key: u64, scene: &SceneData) -> Vec<u8> {
+pub(crate) fn encode(key: u64, scene: &SceneData) -> Vec<u8> {
     let mut out = Vec::new();
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&key.to_le_bytes());
@@ -164,7 +164,7 @@ impl Reader<'_> {
 }
 
 /// Decodes a cache file; None when anything does not match (magic, key, sizes, checksum).
-pub fn decode(bytes: &[u8], key: u64) -> Option<SceneData> {
+pub(crate) fn decode(bytes: &[u8], key: u64) -> Option<SceneData> {
     let body_len = bytes.len().checked_sub(8)?;
     let stored = u64::from_le_bytes(bytes[body_len..].try_into().ok()?);
     if fnv1a64(&bytes[..body_len]) != stored {

@@ -206,7 +206,7 @@ fn mesh_facts(
 
 /// Renders the scene, or reads it from `cache_dir` when a cache file for exactly this
 /// scenario and sample count exists; writes the cache after rendering.
-pub fn load_or_render_scene(
+pub(crate) fn load_or_render_scene(
     scenario: &Scenario,
     surface_points: usize,
     cache_dir: &Path,

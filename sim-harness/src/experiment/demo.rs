@@ -44,7 +44,7 @@ pub struct DemoSummary {
 }
 
 /// Loss curve CSV: `round,frame_index,mean_loss,gaussians,train_s`.
-pub fn curve_csv(curve: &[RoundPoint]) -> String {
+pub(crate) fn curve_csv(curve: &[RoundPoint]) -> String {
     let mut out = String::from("round,frame_index,mean_loss,gaussians,train_s\n");
     for p in curve {
         let _ = writeln!(
@@ -57,7 +57,7 @@ pub fn curve_csv(curve: &[RoundPoint]) -> String {
 }
 
 /// Mean loss per round as a line plot (x: round, y: loss from 0 to the largest value).
-pub fn curve_plot(curve: &[RoundPoint]) -> Canvas {
+pub(crate) fn curve_plot(curve: &[RoundPoint]) -> Canvas {
     let (w, h) = (640u32, 360u32);
     let (left, right, top, bottom) = (60.0, 20.0, 30.0, 40.0);
     let mut canvas = Canvas::new(w, h, [255, 255, 255]);

@@ -77,7 +77,7 @@ pub fn to_rgb8(image: &[f32]) -> Vec<u8> {
 }
 
 /// Scores one render against its view.
-pub fn score_view(
+pub(crate) fn score_view(
     k: &SceneIntrinsics,
     view: &ViewData,
     render: &[f32],
@@ -157,7 +157,7 @@ pub fn evaluate_views(
 
 /// Scores of `model` on `views` (no renders kept) and of an all-black render on the same
 /// views: one rung of the accuracy ladder.
-pub fn score_with_black(
+pub(crate) fn score_with_black(
     model: &SunAwareModel,
     k: &SceneIntrinsics,
     views: &[&ViewData],
@@ -189,7 +189,7 @@ pub fn black_baseline<'a>(
 }
 
 /// Up to `max` lit frames of `frames` (time order), evenly spaced: views the model trained on.
-pub fn seen_views<'a>(frames: &[&'a ViewData], max: usize) -> Vec<&'a ViewData> {
+pub(crate) fn seen_views<'a>(frames: &[&'a ViewData], max: usize) -> Vec<&'a ViewData> {
     let lit: Vec<&ViewData> = frames.iter().copied().filter(|v| !v.eclipse).collect();
     if lit.len() <= max {
         return lit;
@@ -199,7 +199,7 @@ pub fn seen_views<'a>(frames: &[&'a ViewData], max: usize) -> Vec<&'a ViewData> 
 
 /// Means of per-view metrics (fixed order). Infinite PSNRs (exact renders) are capped at
 /// 100 dB so one perfect view cannot make the mean infinite.
-pub fn summarise(per_view: Vec<ViewMetrics>) -> EvalSummary {
+pub(crate) fn summarise(per_view: Vec<ViewMetrics>) -> EvalSummary {
     let n = per_view.len().max(1) as f64;
     let cap = |v: f64| v.min(100.0);
     let mean = |f: fn(&ViewMetrics) -> f64| per_view.iter().map(f).sum::<f64>() / n;

@@ -35,7 +35,7 @@ fn extra_glyph(ch: char) -> Option<[u8; 5]> {
 }
 
 /// Text with the plots font, filling in the glyphs it lacks.
-pub fn draw_text(canvas: &mut Canvas, x: i64, y: i64, text: &str, scale: i64, color: Rgb) {
+pub(crate) fn draw_text(canvas: &mut Canvas, x: i64, y: i64, text: &str, scale: i64, color: Rgb) {
     for (k, ch) in text.chars().enumerate() {
         let cx = x + k as i64 * 4 * scale;
         match extra_glyph(ch) {
@@ -60,7 +60,7 @@ pub fn draw_text(canvas: &mut Canvas, x: i64, y: i64, text: &str, scale: i64, co
 }
 
 /// Width in pixels of `text` drawn at `scale`.
-pub fn text_width(text: &str, scale: i64) -> i64 {
+pub(crate) fn text_width(text: &str, scale: i64) -> i64 {
     (text.chars().count() as i64 * 4 - 1).max(0) * scale
 }
 
@@ -81,7 +81,7 @@ pub fn upscale_rgb(width: u32, height: u32, rgb8: &[u8], factor: u32) -> Vec<u8>
 
 /// One cell of the grid.
 #[derive(Clone, Debug, Default)]
-pub struct Cell {
+pub(crate) struct Cell {
     /// width * height * 3 sRGB bytes, or None for a missing image.
     pub rgb8: Option<Vec<u8>>,
     /// Text under the image (may be empty).
@@ -90,7 +90,7 @@ pub struct Cell {
 
 /// A grid figure: `rows[r][c]` is the image of row r, column c; all images are
 /// `width x height`. Column labels go on top, an optional label at the left of each row.
-pub fn grid_figure(
+pub(crate) fn grid_figure(
     width: u32,
     height: u32,
     column_labels: &[String],

@@ -47,7 +47,7 @@ impl Rung {
     }
 
     /// Masked PSNR above black, dB.
-    pub fn margin_db(&self) -> f64 {
+    pub(crate) fn margin_db(&self) -> f64 {
         self.masked_psnr_db - self.black_masked_psnr_db
     }
 }
@@ -90,7 +90,7 @@ impl Ladder {
     }
 
     /// `(name, rung)` from fitting to generalisation.
-    pub fn rungs(&self) -> [(&'static str, Option<&Rung>); 5] {
+    pub(crate) fn rungs(&self) -> [(&'static str, Option<&Rung>); 5] {
         [
             ("L0 window", self.window.as_ref()),
             ("L0 seen", self.seen.as_ref()),
@@ -101,7 +101,7 @@ impl Ladder {
     }
 
     /// The values for [`CSV_COLUMNS`], comma-separated (NaN for a rung without frames).
-    pub fn csv_fields(&self) -> String {
+    pub(crate) fn csv_fields(&self) -> String {
         let mut out = String::new();
         for (_, rung) in self.rungs() {
             let (model, black) = rung.map_or((f64::NAN, f64::NAN), |r| {
@@ -117,7 +117,10 @@ impl Ladder {
     /// Reads the [`CSV_COLUMNS`] fields back (the rungs' view counts and full-frame
     /// numbers are not in the CSV: views reads as 1 and full-frame PSNR as NaN; a NaN masked
     /// PSNR is a rung without frames).
-    pub fn from_csv_fields(fields: &[&str], line_no: usize) -> Result<Ladder, ExperimentError> {
+    pub(crate) fn from_csv_fields(
+        fields: &[&str],
+        line_no: usize,
+    ) -> Result<Ladder, ExperimentError> {
         let names: Vec<&str> = CSV_COLUMNS.split(',').collect();
         if fields.len() != names.len() {
             return Err(ExperimentError::Invalid(format!(
@@ -162,7 +165,7 @@ impl Ladder {
 
 /// In words, how a rung compares with black: `below black`, `< 3 dB over black`, or
 /// empty when the model clears the margin (or a number is missing).
-pub fn verdict(rung: &Rung) -> &'static str {
+pub(crate) fn verdict(rung: &Rung) -> &'static str {
     let margin = rung.margin_db();
     if margin.is_nan() {
         ""
@@ -177,7 +180,7 @@ pub fn verdict(rung: &Rung) -> &'static str {
 
 /// One Markdown cell: `model (black)` masked PSNR, with the verdict when there is one; `-`
 /// for a rung without frames.
-pub fn markdown_cell(rung: Option<&Rung>) -> String {
+pub(crate) fn markdown_cell(rung: Option<&Rung>) -> String {
     let Some(rung) = rung else {
         return "-".into();
     };
@@ -233,7 +236,7 @@ pub fn ladder_line(label: &str, o: &RunOutcome) -> String {
 
 /// A paired difference between two runs' scores on the same views: `b - a` per view.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct Paired {
+pub(crate) struct Paired {
     pub views: usize,
     pub mean_db: f64,
     /// Standard error of the mean (sample standard deviation over sqrt(views)); NaN for
@@ -246,7 +249,7 @@ pub struct Paired {
 /// Masked PSNR of `b` minus `a`, paired view by view (each capped at 100 dB as in the
 /// means); `None` when the two were not scored on the same views in the same order (or on
 /// none), since an unpaired difference would carry the views' own scatter.
-pub fn paired_masked_difference(a: &EvalSummary, b: &EvalSummary) -> Option<Paired> {
+pub(crate) fn paired_masked_difference(a: &EvalSummary, b: &EvalSummary) -> Option<Paired> {
     let same_views = a.per_view.len() == b.per_view.len()
         && a.per_view
             .iter()
@@ -278,7 +281,7 @@ pub fn paired_masked_difference(a: &EvalSummary, b: &EvalSummary) -> Option<Pair
 }
 
 /// `+0.12 ± 0.05 (37/100)` for a paired difference, `-` for none.
-pub fn paired_cell(p: Option<&Paired>) -> String {
+pub(crate) fn paired_cell(p: Option<&Paired>) -> String {
     match p {
         Some(p) if p.standard_error_db.is_nan() => {
             format!("{:+.2} ({}/{})", p.mean_db, p.b_better, p.views)

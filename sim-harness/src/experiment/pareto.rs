@@ -53,13 +53,13 @@ pub fn builtin_scenario(name: &str) -> Result<Scenario, ExperimentError> {
 
 /// Resets the peak resident set size (Linux `clear_refs` 5). False where that is not
 /// possible; [`peak_rss_mb`] then reports the peak since the process started.
-pub fn reset_peak_rss() -> bool {
+pub(crate) fn reset_peak_rss() -> bool {
     std::fs::write("/proc/self/clear_refs", "5").is_ok()
 }
 
 /// Peak resident set size since the last reset (or the process start), MB (10^6 bytes);
 /// NaN where /proc is not available.
-pub fn peak_rss_mb() -> f64 {
+pub(crate) fn peak_rss_mb() -> f64 {
     let Ok(status) = std::fs::read_to_string("/proc/self/status") else {
         return f64::NAN;
     };
@@ -146,7 +146,7 @@ fn scene_for(
 }
 
 /// Trains and evaluates one setting on `scene`.
-pub fn run_one(
+pub(crate) fn run_one(
     scene: &SceneData,
     preset: &Preset,
     setting_name: &str,
@@ -191,7 +191,7 @@ pub fn run_one(
 
 /// Runs `settings` on `scenario` around `base`, one after another; `after_each` sees the
 /// rows so far (to rewrite output files, so an interrupted job keeps its finished rows).
-pub fn run_settings(
+pub(crate) fn run_settings(
     scenario: &Scenario,
     base: &Preset,
     settings: &[Setting],

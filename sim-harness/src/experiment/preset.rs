@@ -208,7 +208,7 @@ pub struct RateOverrides {
 
 impl RateOverrides {
     /// `base` with the named rates replaced.
-    pub fn applied_to(&self, base: SunAwareRates) -> SunAwareRates {
+    pub(crate) fn applied_to(&self, base: SunAwareRates) -> SunAwareRates {
         let pick = |o: Option<f32>, d: f32| o.unwrap_or(d);
         SunAwareRates {
             position_init: pick(self.position_init, base.position_init),
@@ -286,7 +286,7 @@ impl Default for Preset {
 }
 
 /// How many `base` links a preset may follow (a chain longer than this is taken for a cycle).
-pub const MAX_BASE_DEPTH: usize = 8;
+pub(crate) const MAX_BASE_DEPTH: usize = 8;
 
 /// Finds a preset file: `name_or_path` as a path, else `NAME.toml` beside the preset that
 /// names it as its base, in `config/presets/` under the current folder, or in the workspace
@@ -399,7 +399,7 @@ impl Preset {
 
     /// gs-core's model settings for `variant` under this preset (the training loop's
     /// settings are `experiment::runner::online_config`).
-    pub fn model_config(&self, variant: Variant) -> SunAwareConfig {
+    pub(crate) fn model_config(&self, variant: Variant) -> SunAwareConfig {
         let mut model = SunAwareConfig::for_variant(variant);
         model.max_gaussians = self.max_gaussians;
         model.light.resolution_px = self.light_resolution_px;
@@ -432,7 +432,7 @@ impl Preset {
 
     /// The backend named by `backend`, checked against this build (`wgpu` needs the cargo
     /// feature; whether an adapter exists is found when a run opens it).
-    pub fn backend_kind(&self) -> Result<BackendKind, PresetError> {
+    pub(crate) fn backend_kind(&self) -> Result<BackendKind, PresetError> {
         let kind: BackendKind = self
             .backend
             .parse()
@@ -443,7 +443,7 @@ impl Preset {
     }
 
     /// The precision named by `mlp_precision`.
-    pub fn mlp_precision_kind(&self) -> Result<MatmulPrecision, PresetError> {
+    pub(crate) fn mlp_precision_kind(&self) -> Result<MatmulPrecision, PresetError> {
         match self.mlp_precision.as_str() {
             "f32" => Ok(MatmulPrecision::F32),
             "bf16" => Ok(MatmulPrecision::Bf16),
@@ -454,7 +454,7 @@ impl Preset {
     }
 
     /// The shading named by `shading`.
-    pub fn shading_kind(&self) -> Result<Shading, PresetError> {
+    pub(crate) fn shading_kind(&self) -> Result<Shading, PresetError> {
         self.shading
             .parse()
             .map_err(|e: SunAwareError| PresetError::Invalid(format!("shading: {e}")))

@@ -102,10 +102,10 @@ pub struct RunOutcome {
 
 /// An evaluation view counts as covered when its viewpoint is within this angle of a
 /// viewpoint training received (`RunOutcome::eval_covered`), degrees.
-pub const COVERED_VIEW_DEG: f64 = 30.0;
+pub(crate) const COVERED_VIEW_DEG: f64 = 30.0;
 
 /// Whether sequence frame `i` is withheld from training for the held-out rung (L1).
-pub fn is_held_out(preset: &Preset, i: usize) -> bool {
+pub(crate) fn is_held_out(preset: &Preset, i: usize) -> bool {
     let every = preset.holdout_every as usize;
     every > 0 && i % every == every - 1
 }
@@ -216,7 +216,7 @@ pub fn training_frame(scene: &SceneData, i: usize) -> Frame {
 
 /// [`training_frame`], carrying the frame's foreground mask when `masked` (the trainer
 /// then weighs the loss by it: `Preset::masked_loss`).
-pub fn training_frame_with_mask(scene: &SceneData, i: usize, masked: bool) -> Frame {
+pub(crate) fn training_frame_with_mask(scene: &SceneData, i: usize, masked: bool) -> Frame {
     let view = &scene.frames[i];
     Frame {
         id: view.index as u64,

@@ -95,7 +95,7 @@ pub fn switchable_skips() -> Vec<SkipSpec> {
 }
 
 /// Skips that have no switch (always on), with why; listed under the table.
-pub const NOT_SWITCHABLE: [(&str, &str); 1] = [(
+pub(crate) const NOT_SWITCHABLE: [(&str, &str); 1] = [(
     "near-plane culling",
     "a Gaussian whose centre is nearer than the near plane has no perspective projection: \
      dropped whatever `cull_outside_frustum` says",
@@ -123,11 +123,11 @@ impl SkipRow {
     }
 
     /// Masked PSNR (the target's own pixels) the skip costs, dB: the headline cost.
-    pub fn masked_psnr_cost_db(&self) -> f64 {
+    pub(crate) fn masked_psnr_cost_db(&self) -> f64 {
         self.without.masked_psnr_db - self.with.masked_psnr_db
     }
 
-    pub fn ssim_cost(&self) -> f64 {
+    pub(crate) fn ssim_cost(&self) -> f64 {
         self.without.ssim - self.with.ssim
     }
 }

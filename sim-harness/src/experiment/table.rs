@@ -39,7 +39,7 @@ pub struct ResultRow {
 }
 
 /// The paper's row label of a configuration letter.
-pub fn config_label(config: &str) -> String {
+pub(crate) fn config_label(config: &str) -> String {
     match config {
         "a" => "(a) 3DGS".into(),
         "b" => "(b) + Illum.".into(),
@@ -50,7 +50,7 @@ pub fn config_label(config: &str) -> String {
 }
 
 /// Title-case display name of a target (`cassini` -> `Cassini`).
-pub fn target_label(target: &str) -> String {
+pub(crate) fn target_label(target: &str) -> String {
     let mut chars = target.chars();
     match chars.next() {
         Some(first) => first.to_uppercase().chain(chars).collect(),
@@ -98,7 +98,7 @@ fn first_appearance<'a>(items: impl Iterator<Item = &'a str>) -> Vec<&'a str> {
 }
 
 /// Gaussians as the paper prints them (42.7K).
-pub fn gaussians_label(n: usize) -> String {
+pub(crate) fn gaussians_label(n: usize) -> String {
     if n >= 1000 {
         format!("{:.1}K", n as f64 / 1000.0)
     } else {

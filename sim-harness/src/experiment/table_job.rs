@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The three built-in targets' scenario files, embedded.
-pub const BUILTIN_SCENARIOS: [(&str, &str); 3] = [
+pub(crate) const BUILTIN_SCENARIOS: [(&str, &str); 3] = [
     (
         "cassini",
         include_str!("../../../config/scenarios/cassini.toml"),
@@ -83,7 +83,7 @@ fn row_of(run: &RunOutcome) -> ResultRow {
 
 /// Details behind the table: target-pixel (masked) metrics, the same metrics on views the
 /// model trained on, an all-black render's score, and the training counters.
-pub fn diagnostics_markdown(runs: &[RunOutcome]) -> String {
+pub(crate) fn diagnostics_markdown(runs: &[RunOutcome]) -> String {
     use std::fmt::Write as _;
     let mut out = String::from(
         "Details (PSNR dB / SSIM; masked = target pixels only; seen = up to 20 lit training \
@@ -120,7 +120,7 @@ pub fn diagnostics_markdown(runs: &[RunOutcome]) -> String {
 
 /// Ground truth beside each configuration for the first `views` evaluation views of each
 /// scene; captions give each image's full-frame PSNR.
-pub fn comparison_figure(
+pub(crate) fn comparison_figure(
     scenes: &[SceneData],
     runs: &[RunOutcome],
     configs: &[String],

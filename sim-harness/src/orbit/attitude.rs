@@ -17,7 +17,7 @@ pub struct TumbleAttitude {
 
 impl TumbleAttitude {
     /// Orientation at `t_s` after the epoch. A rotation about a body axis composes on the right.
-    pub fn q_inertial_from_body(&self, t_s: f64) -> DQuat {
+    pub(crate) fn q_inertial_from_body(&self, t_s: f64) -> DQuat {
         let spin = DQuat::from_axis_angle(self.axis_body, self.rate_rad_s * t_s);
         (self.q_inertial_from_body_at_epoch * spin).normalize()
     }

@@ -35,7 +35,7 @@ pub struct RtnFrame {
 }
 
 /// Eccentric anomaly E solving M = E - e sin E (Newton, converges for e < 1).
-pub fn eccentric_anomaly_rad(mean_anomaly_rad: f64, eccentricity: f64) -> f64 {
+pub(crate) fn eccentric_anomaly_rad(mean_anomaly_rad: f64, eccentricity: f64) -> f64 {
     let m = mean_anomaly_rad.rem_euclid(TAU);
     let mut e_anom = if eccentricity < 0.8 {
         m
@@ -116,7 +116,7 @@ impl RtnFrame {
     }
 
     /// Rotation taking RTN components to ECI components (columns are the axes).
-    pub fn eci_from_rtn(&self) -> DMat3 {
+    pub(crate) fn eci_from_rtn(&self) -> DMat3 {
         DMat3::from_cols(self.radial, self.along_track, self.normal)
     }
 

@@ -36,7 +36,7 @@ impl Roe {
     }
 
     /// The values scaled by `semi_major_axis_m` (metres), in the order da, dl, dex, dey, dix, diy.
-    pub fn scaled_m(&self, semi_major_axis_m: f64) -> [f64; 6] {
+    pub(crate) fn scaled_m(&self, semi_major_axis_m: f64) -> [f64; 6] {
         [self.da, self.dl, self.dex, self.dey, self.dix, self.diy].map(|v| v * semi_major_axis_m)
     }
 

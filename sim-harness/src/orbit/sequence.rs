@@ -56,7 +56,7 @@ pub struct FrameGeometry {
 
 impl RendezvousGeometry {
     /// Servicer position relative to the target in chief RTN at `t_s` (ROE linear map).
-    pub fn servicer_rtn_m(&self, t_s: f64) -> DVec3 {
+    pub(crate) fn servicer_rtn_m(&self, t_s: f64) -> DVec3 {
         let chief = self.chief.propagated(t_s);
         self.roe.relative_position_rtn_m(
             self.chief.semi_major_axis_m,

@@ -7,9 +7,9 @@ use std::fmt;
 
 /// TT - UTC in seconds (32.184 s + 37 leap seconds, valid since 2017-01-01). Earlier dates are
 /// off by at most a few seconds, which moves the Sun by less than 0.001 deg.
-pub const TT_MINUS_UTC_S: f64 = 69.184;
+pub(crate) const TT_MINUS_UTC_S: f64 = 69.184;
 /// Julian date of the J2000.0 epoch (2000-01-01 12:00 TT).
-pub const JD_J2000: f64 = 2_451_545.0;
+pub(crate) const JD_J2000: f64 = 2_451_545.0;
 const SECONDS_PER_DAY: f64 = 86_400.0;
 
 /// A UTC calendar instant.
@@ -87,7 +87,7 @@ impl UtcEpoch {
     }
 
     /// Julian date (UTC scale) split as (whole days at 0h, fraction of day).
-    pub fn julian_date_split(&self) -> (f64, f64) {
+    pub(crate) fn julian_date_split(&self) -> (f64, f64) {
         // Meeus, Astronomical Algorithms ch. 7, Gregorian calendar.
         let (y, m) = if self.month <= 2 {
             (self.year - 1, self.month + 12)
@@ -113,14 +113,14 @@ impl UtcEpoch {
     }
 
     /// Julian centuries of TT since J2000 at `offset_s` seconds after this epoch.
-    pub fn centuries_tt_since_j2000(&self, offset_s: f64) -> f64 {
+    pub(crate) fn centuries_tt_since_j2000(&self, offset_s: f64) -> f64 {
         let (jd0, fraction) = self.julian_date_split();
         let days = (jd0 - JD_J2000) + fraction + (offset_s + TT_MINUS_UTC_S) / SECONDS_PER_DAY;
         days / 36_525.0
     }
 
     /// ISO 8601 text of the instant `offset_s` seconds after this epoch, millisecond resolution.
-    pub fn iso8601_after(&self, offset_s: f64) -> String {
+    pub(crate) fn iso8601_after(&self, offset_s: f64) -> String {
         let (jd0, fraction) = self.julian_date_split();
         let total_ms = (fraction * SECONDS_PER_DAY * 1000.0).round() as i64
             + (offset_s * 1000.0).round() as i64;

@@ -78,7 +78,7 @@ impl Ray {
 
 /// The closest intersection along a ray.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Hit {
+pub(crate) struct Hit {
     /// Ray parameter of the hit (distance in units of the direction's length).
     pub t: f32,
     /// Index of the triangle in the mesh's original order.
@@ -86,7 +86,7 @@ pub struct Hit {
 }
 
 /// A BVH over a triangle soup.
-pub struct Bvh {
+pub(crate) struct Bvh {
     nodes: Vec<Node>,
     triangles: Vec<PackedTriangle>,
     original_index: Vec<u32>,
@@ -138,7 +138,7 @@ impl Bvh {
     }
 
     /// The closest hit with `t_min < t < t_max`, if any.
-    pub fn closest_hit(&self, ray: &Ray, t_min: f32, t_max: f32) -> Option<Hit> {
+    pub(crate) fn closest_hit(&self, ray: &Ray, t_min: f32, t_max: f32) -> Option<Hit> {
         let mut best_t = t_max;
         let mut best_slot = u32::MAX;
         self.traverse(ray, t_min, &mut best_t, |slot, _| {
@@ -152,7 +152,7 @@ impl Bvh {
     }
 
     /// Whether anything is hit with `t_min < t < t_max` (shadow rays).
-    pub fn any_hit(&self, ray: &Ray, t_min: f32, t_max: f32) -> bool {
+    pub(crate) fn any_hit(&self, ray: &Ray, t_min: f32, t_max: f32) -> bool {
         let mut best_t = t_max;
         let mut found = false;
         self.traverse(ray, t_min, &mut best_t, |_, _| {

@@ -31,9 +31,9 @@ pub const SUN_IRRADIANCE: f32 = std::f32::consts::PI;
 /// Default exposure: sunlit white paint (albedo 0.8) facing the Sun maps to 0.8 linear (sRGB 231).
 pub const DEFAULT_EXPOSURE: f32 = 1.0;
 /// Largest image side accepted (guards against absurd allocations).
-pub const MAX_IMAGE_SIDE: u32 = 16_384;
+pub(crate) const MAX_IMAGE_SIDE: u32 = 16_384;
 /// Most samples per pixel accepted.
-pub const MAX_SAMPLES_PER_PIXEL: u32 = 1024;
+pub(crate) const MAX_SAMPLES_PER_PIXEL: u32 = 1024;
 
 /// A mesh with its acceleration structure, ready to render.
 pub struct Scene {
@@ -234,7 +234,7 @@ pub fn try_render_frame(scene: &Scene, req: &FrameRequest) -> Result<Frame, Rend
 }
 
 /// [`try_render_frame`], optionally without cast shadows (see [`render_radiance_with`]).
-pub fn try_render_frame_with(
+pub(crate) fn try_render_frame_with(
     scene: &Scene,
     req: &FrameRequest,
     cast_shadows: bool,
@@ -262,7 +262,7 @@ pub fn render_radiance(scene: &Scene, req: &FrameRequest) -> Result<RadianceFram
 /// [`render_radiance`], optionally without cast shadows (`cast_shadows = false`: no shadow
 /// rays, every surface facing a light receives it). Only for studies of how much the
 /// target's self-shadowing weighs in an image (`sunlight`); datasets always cast shadows.
-pub fn render_radiance_with(
+pub(crate) fn render_radiance_with(
     scene: &Scene,
     req: &FrameRequest,
     cast_shadows: bool,

@@ -16,11 +16,11 @@ use gs_core::rng::mix64;
 use std::f32::consts::PI;
 
 /// Reflectance at normal incidence of the dielectrics we model (index of refraction ~1.5).
-pub const DIELECTRIC_F0: f32 = 0.04;
+pub(crate) const DIELECTRIC_F0: f32 = 0.04;
 
 /// Material parameters at one surface point, after procedural detail.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SurfacePoint {
+pub(crate) struct SurfacePoint {
     pub base_color: Vec3,
     pub metallic: f32,
     pub roughness: f32,
@@ -29,27 +29,27 @@ pub struct SurfacePoint {
 }
 
 /// GGX normal distribution D(h).
-pub fn ggx_distribution(n_dot_h: f32, alpha: f32) -> f32 {
+pub(crate) fn ggx_distribution(n_dot_h: f32, alpha: f32) -> f32 {
     let a2 = alpha * alpha;
     let d = n_dot_h * n_dot_h * (a2 - 1.0) + 1.0;
     a2 / (PI * d * d)
 }
 
 /// Smith G1 for GGX.
-pub fn smith_g1(n_dot_x: f32, alpha: f32) -> f32 {
+pub(crate) fn smith_g1(n_dot_x: f32, alpha: f32) -> f32 {
     let a2 = alpha * alpha;
     2.0 * n_dot_x / (n_dot_x + (a2 + (1.0 - a2) * n_dot_x * n_dot_x).sqrt())
 }
 
 /// Schlick's Fresnel approximation.
-pub fn schlick_fresnel(f0: Vec3, v_dot_h: f32) -> Vec3 {
+pub(crate) fn schlick_fresnel(f0: Vec3, v_dot_h: f32) -> Vec3 {
     let m = (1.0 - v_dot_h).clamp(0.0, 1.0);
     let m5 = (m * m) * (m * m) * m;
     f0 + (Vec3::ONE - f0) * m5
 }
 
 /// The BRDF value f(l, v) (per steradian), zero when either direction is below the surface.
-pub fn brdf(point: &SurfacePoint, to_light: Vec3, to_viewer: Vec3) -> Vec3 {
+pub(crate) fn brdf(point: &SurfacePoint, to_light: Vec3, to_viewer: Vec3) -> Vec3 {
     let n = point.normal;
     let n_dot_l = n.dot(to_light);
     let n_dot_v = n.dot(to_viewer);
@@ -73,7 +73,7 @@ pub fn brdf(point: &SurfacePoint, to_light: Vec3, to_viewer: Vec3) -> Vec3 {
 
 /// The material at `position_m` with geometric normal `geometric_normal` (unit, facing the
 /// viewer): applies the crinkle perturbation and the solar-cell grid.
-pub fn surface_point(
+pub(crate) fn surface_point(
     material: &Material,
     position_m: Vec3,
     geometric_normal: Vec3,

@@ -27,7 +27,7 @@ use rayon::prelude::*;
 /// Direct-sunlight class of a pixel's centre hit.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(u8)]
-pub enum SunClass {
+pub(crate) enum SunClass {
     Background = 0,
     Lit = 1,
     CastShadow = 2,
@@ -36,7 +36,7 @@ pub enum SunClass {
 
 /// Per-pixel [`SunClass`], row-major from the top-left pixel.
 #[derive(Clone, Debug, PartialEq)]
-pub struct SunlightMap {
+pub(crate) struct SunlightMap {
     pub width: u32,
     pub height: u32,
     pub class: Vec<SunClass>,
@@ -44,7 +44,7 @@ pub struct SunlightMap {
 
 impl SunlightMap {
     /// Fractions of the target's pixels that are lit, in cast shadow, facing away.
-    pub fn fractions(&self) -> [f64; 3] {
+    pub(crate) fn fractions(&self) -> [f64; 3] {
         let mut counts = [0usize; 3];
         for c in &self.class {
             match c {
@@ -60,7 +60,10 @@ impl SunlightMap {
 }
 
 /// Classifies every pixel's centre hit (see the module header).
-pub fn render_sunlight(scene: &Scene, req: &FrameRequest) -> Result<SunlightMap, RenderError> {
+pub(crate) fn render_sunlight(
+    scene: &Scene,
+    req: &FrameRequest,
+) -> Result<SunlightMap, RenderError> {
     req.validate()?;
     let (width, height) = (req.camera.width as usize, req.camera.height as usize);
     let target_from_camera = req.camera_from_target_rotation.normalize().inverse();
@@ -115,7 +118,12 @@ pub fn render_sunlight(scene: &Scene, req: &FrameRequest) -> Result<SunlightMap,
 /// closed body's face turned away from the Sun is therefore not reached (the ray crosses the
 /// body), one on a thin single-layer plate is, from either side. `None` for a non-finite
 /// point, a zero Sun vector or a negative step.
-pub fn sun_reaches_point(scene: &Scene, point: Vec3, sun_dir: Vec3, step_m: f32) -> Option<bool> {
+pub(crate) fn sun_reaches_point(
+    scene: &Scene,
+    point: Vec3,
+    sun_dir: Vec3,
+    step_m: f32,
+) -> Option<bool> {
     let sun = sun_dir.try_normalize()?;
     if !point.is_finite() || !step_m.is_finite() || step_m < 0.0 {
         return None;

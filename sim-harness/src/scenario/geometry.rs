@@ -23,7 +23,7 @@ impl Scenario {
     /// The relative orbit: the configured one, or the automatic e/i-separated one (at e/i phase
     /// `auto_phase_rad`) whose closest approach lets a sphere of the target's framing radius
     /// fill `AUTO_FILL_OF_HALF_FOV` of the smaller half field of view.
-    pub fn roe(&self, target: TargetSize, auto_phase_rad: f64) -> Roe {
+    pub(crate) fn roe(&self, target: TargetSize, auto_phase_rad: f64) -> Roe {
         let a = self.chief_orbit.semi_major_axis_km * 1000.0;
         match &self.relative_orbit {
             Some(r) => Roe::from_scaled_m([r.da_m, r.dl_m, r.dex_m, r.dey_m, r.dix_m, r.diy_m], a),

@@ -119,7 +119,7 @@ impl Default for Scenario {
 
 /// Downsampled pinhole intrinsics in pixels (pixel centres at +0.5).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct CameraIntrinsics {
+pub(crate) struct CameraIntrinsics {
     pub fx: f64,
     pub fy: f64,
     pub cx: f64,
@@ -130,7 +130,7 @@ pub struct CameraIntrinsics {
 
 impl CameraIntrinsics {
     /// Half of the smaller field of view (the vertical one for a landscape sensor), radians.
-    pub fn min_half_fov_rad(&self) -> f64 {
+    pub(crate) fn min_half_fov_rad(&self) -> f64 {
         let half_h = (self.width as f64 / 2.0 / self.fx).atan();
         let half_v = (self.height as f64 / 2.0 / self.fy).atan();
         half_h.min(half_v)
@@ -190,7 +190,7 @@ impl Scenario {
     }
 
     /// The epoch as a calendar instant; must be a full UTC date-time.
-    pub fn utc_epoch(&self) -> Result<UtcEpoch, ScenarioError> {
+    pub(crate) fn utc_epoch(&self) -> Result<UtcEpoch, ScenarioError> {
         let (Some(date), Some(time)) = (self.epoch.date, self.epoch.time) else {
             return Err(invalid(
                 "epoch",
@@ -222,7 +222,7 @@ impl Scenario {
     }
 
     /// The mesh source; the default is the Cassini-like target.
-    pub fn target_source(&self) -> Result<TargetSource, ScenarioError> {
+    pub(crate) fn target_source(&self) -> Result<TargetSource, ScenarioError> {
         match (&self.target.builtin, &self.target.obj) {
             (Some(_), Some(_)) => Err(invalid("target", "set either `builtin` or `obj`, not both")),
             (Some(kind), None) => Ok(TargetSource::Builtin(*kind)),
@@ -231,7 +231,7 @@ impl Scenario {
         }
     }
 
-    pub fn chief_elements(&self) -> KeplerElements {
+    pub(crate) fn chief_elements(&self) -> KeplerElements {
         let o = &self.chief_orbit;
         KeplerElements {
             semi_major_axis_m: o.semi_major_axis_km * 1000.0,
@@ -256,12 +256,12 @@ impl Scenario {
     }
 
     /// Time of frame `index` after the epoch, seconds.
-    pub fn frame_time_s(&self, index: u32) -> f64 {
+    pub(crate) fn frame_time_s(&self, index: u32) -> f64 {
         index as f64 * self.sequence.cadence_s
     }
 
     /// Intrinsics after downsampling (pixel-centre convention keeps cx = W/2 at the centre).
-    pub fn camera_intrinsics(&self) -> CameraIntrinsics {
+    pub(crate) fn camera_intrinsics(&self) -> CameraIntrinsics {
         let c = &self.camera;
         let k = c.downsample as f64;
         let [cx, cy] = c

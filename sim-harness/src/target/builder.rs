@@ -129,7 +129,7 @@ impl MeshBuilder {
 
     /// A frustum (cylinder when radii are equal) from `base` to `top`, `segments` around and
     /// `rings` along, with optional flat caps.
-    pub fn frustum(
+    pub(crate) fn frustum(
         &mut self,
         base: Vec3,
         top: Vec3,
@@ -197,7 +197,7 @@ impl MeshBuilder {
     /// A paraboloid dish opening towards `axis` (unit), its vertex at `vertex_point`, rim radius
     /// `radius_m` at height `depth_m`; the front (concave) side uses `front`, the back surface,
     /// offset by `thickness_m` along -axis, uses `back`; a rim band closes the shell.
-    pub fn dish(
+    pub(crate) fn dish(
         &mut self,
         vertex_point: Vec3,
         axis: Vec3,
@@ -268,7 +268,12 @@ impl MeshBuilder {
     }
 
     /// Appends all of `other`, transformed by `rotation` then `translation`.
-    pub fn append_transformed(&mut self, other: &MeshBuilder, rotation: Quat, translation: Vec3) {
+    pub(crate) fn append_transformed(
+        &mut self,
+        other: &MeshBuilder,
+        rotation: Quat,
+        translation: Vec3,
+    ) {
         let first = self.vertices_m.len() as u32;
         let material_map: Vec<u16> = other
             .materials

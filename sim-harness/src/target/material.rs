@@ -42,7 +42,7 @@ impl Material {
     }
 
     /// Silver / aluminised MLI: metallic, crinkled.
-    pub fn silver_mli() -> Material {
+    pub(crate) fn silver_mli() -> Material {
         Material {
             name: "silver_mli".into(),
             base_color_linear: [0.90, 0.90, 0.88],
@@ -55,7 +55,7 @@ impl Material {
     }
 
     /// Solar cells: dark blue glossy dielectric with a cell grid.
-    pub fn solar_cell() -> Material {
+    pub(crate) fn solar_cell() -> Material {
         Material {
             name: "solar_cell".into(),
             // Cover glass over dark blue cells: low albedo, but a broad enough glossy lobe that
@@ -83,7 +83,7 @@ impl Material {
     }
 
     /// Bare (slightly brushed) aluminium.
-    pub fn aluminium() -> Material {
+    pub(crate) fn aluminium() -> Material {
         Material {
             name: "aluminium".into(),
             base_color_linear: [0.91, 0.92, 0.92],
@@ -96,7 +96,7 @@ impl Material {
     }
 
     /// Dark grey (RTG fins, nozzles, black paint).
-    pub fn dark_grey() -> Material {
+    pub(crate) fn dark_grey() -> Material {
         Material {
             name: "dark_grey".into(),
             base_color_linear: [0.06, 0.06, 0.06],
@@ -122,7 +122,7 @@ impl Material {
     }
 
     /// The preset whose name (or a known alias) occurs in `name`, if any ("Gold_MLI_2" -> gold MLI).
-    pub fn preset_for_name(name: &str) -> Option<Material> {
+    pub(crate) fn preset_for_name(name: &str) -> Option<Material> {
         let lower = name.to_ascii_lowercase();
         let presets: [(&[&str], PresetMaker); 5] = [
             (&["gold", "kapton"], Material::gold_mli),
@@ -142,7 +142,7 @@ impl Material {
     }
 
     /// Clamps every parameter into its documented range; non-finite values take safe defaults.
-    pub fn sanitized(mut self) -> Material {
+    pub(crate) fn sanitized(mut self) -> Material {
         let clean = |v: f32, lo: f32, hi: f32, fallback: f32| {
             if v.is_finite() {
                 v.clamp(lo, hi)

@@ -3,7 +3,7 @@
 //!
 //! Invariants: the same arithmetic, in the same order, as `Mlp` on those rows.
 
-use crate::nn::mlp::{Mlp, LEAKY_SLOPE};
+use crate::nn::mlp::{BlockTape, Mlp, LEAKY_SLOPE};
 
 /// Sets `v` to `len` values. A vector of another length is replaced by a zeroed one
 /// (fresh zero pages, no serial fill); one of the right length keeps its stale contents,
@@ -129,16 +129,14 @@ pub(super) fn forward_block_layers(
 /// `d_params` and writes the input gradient into `d_x` (`rows x in`).
 pub(super) fn backward_block(
     mlp: &Mlp,
-    x: &[f32],
-    rows: usize,
-    hidden: &[f32],
-    y: &[f32],
+    tape: &BlockTape,
     d_y: &[f32],
     d_params: &mut [f32],
     d_x: &mut [f32],
     d_z: &mut Vec<f32>,
     d_prev: &mut Vec<f32>,
 ) {
+    let &BlockTape { x, rows, hidden, y } = tape;
     let widths = mlp.widths();
     let layers = widths.len() - 1;
     let products = mlp.products();

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use crate::nn::error::{check_finite, check_len, NnError};
 use crate::nn::gather::{check_indices, check_rows_finite, rows_of, unit_vector};
-use crate::nn::mlp::{Mlp, TapeMode, BLOCK_ROWS};
+use crate::nn::mlp::{BlockTape, Mlp, TapeMode, BLOCK_ROWS};
 
 use super::blocks::{
     backward_block, copy_short, forward_block, forward_block_layers, fresh_len, BlockScratch,
@@ -357,18 +357,13 @@ impl ShadowNet {
                         }
                     };
                     d_x.resize(block_rows * width, 0.0);
-                    backward_block(
-                        &folded,
+                    let tape = BlockTape {
                         x,
-                        block_rows,
+                        rows: block_rows,
                         hidden,
                         y,
-                        d_y,
-                        &mut partial,
-                        d_x,
-                        d_z,
-                        d_prev,
-                    );
+                    };
+                    backward_block(&folded, &tape, d_y, &mut partial, d_x, d_z, d_prev);
                     for ((out, d_row), row) in grads
                         .chunks_exact_mut(per_row)
                         .zip(d_x.chunks_exact(width))

@@ -9,10 +9,10 @@
 use super::lanes::{self, Portable, RowOps};
 use super::{
     alpha_row, column_mask, entry_rows, lane_sum, overlap, prefetch_splat, row_mut, row_ref,
-    AlphaMode, Isa, Splat, TileInputs, PREFETCH_AHEAD, REC_CHANNELS, REC_CONIC, REC_DEPTH,
-    REC_MEAN_X, REC_MEAN_Y, REC_OPACITY, ROW,
+    AlphaMode, Isa, TileInputs, PREFETCH_AHEAD, REC_CHANNELS, REC_CONIC, REC_DEPTH, REC_MEAN_X,
+    REC_MEAN_Y, REC_OPACITY, ROW,
 };
-use crate::raster::bin::{PixelRect, TILE_PIXELS};
+use crate::raster::bin::TILE_PIXELS;
 
 /// Pixel gradients for one tile, read from image-layout buffers.
 pub struct PixelGradsView<'a> {
@@ -41,28 +41,13 @@ pub(super) struct BackwardPass<'a> {
 /// Backward of one tile: writes one gradient record (`REC_CHANNELS + n_channels` values)
 /// per list entry into `records` (which holds exactly this tile's entries).
 pub fn blend_tile_backward(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
+    inp: &TileInputs,
     state: TileForwardState,
     grads: &PixelGradsView,
     records: &mut [f32],
 ) {
-    let inp = TileInputs {
-        tile,
-        list,
-        splats,
-        splat_channels,
-        n_channels,
-        background,
-        mode,
-    };
     backward_entry(
-        &inp,
+        inp,
         BackwardPass {
             state,
             grads,

@@ -8,9 +8,9 @@
 use super::lanes::{self, Portable, RowOps};
 use super::{
     column_mask, entry_rows, full_rows, overlap, prefetch_splat, row_mut, row_step, AlphaMode, Isa,
-    Splat, TileInputs, PREFETCH_AHEAD, ROW,
+    TileInputs, PREFETCH_AHEAD, ROW,
 };
-use crate::raster::bin::{PixelRect, TILE_PIXELS};
+use crate::raster::bin::TILE_PIXELS;
 
 /// One tile's forward outputs, tile-local pixel index `ly * 16 + lx`.
 pub struct TileForwardOut<'a> {
@@ -25,27 +25,8 @@ pub struct TileForwardOut<'a> {
 ///
 /// Runs the widest build of the tile loops the CPU supports (AVX-512, AVX2, portable):
 /// the same bits on each.
-pub fn blend_tile_forward(
-    tile: &PixelRect,
-    list: &[u32],
-    splats: &[Splat],
-    splat_channels: &[f32],
-    n_channels: usize,
-    background: &[f32],
-    mode: AlphaMode,
-    early_termination: bool,
-    out: TileForwardOut,
-) {
-    let inp = TileInputs {
-        tile,
-        list,
-        splats,
-        splat_channels,
-        n_channels,
-        background,
-        mode,
-    };
-    forward_with(Isa::best(), &inp, early_termination, out);
+pub fn blend_tile_forward(inp: &TileInputs, early_termination: bool, out: TileForwardOut) {
+    forward_with(Isa::best(), inp, early_termination, out);
 }
 
 /// [`blend_tile_forward`] on the build `isa` (one the CPU supports).

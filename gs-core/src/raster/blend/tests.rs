@@ -61,14 +61,17 @@ fn forward_on(
     let mut depth = vec![0.0; TILE_PIXELS];
     let mut trans = vec![0.0; TILE_PIXELS];
     let mut last = vec![0; TILE_PIXELS];
-    blend_tile_forward(
-        t,
+    let inputs = TileInputs {
+        tile: t,
         list,
         splats,
-        channels,
-        NC,
-        &[0.25, 0.75],
+        splat_channels: channels,
+        n_channels: NC,
+        background: &[0.25, 0.75],
         mode,
+    };
+    blend_tile_forward(
+        &inputs,
         early_termination,
         TileForwardOut {
             color: &mut color,
@@ -151,14 +154,17 @@ fn check_backward_against_finite_differences(
     let (_, _, trans, last) = render_tile(splats, channels, early_termination);
     let (wc, wa, wd) = weights();
     let mut records = vec![f32::NAN; n * (REC_CHANNELS + NC)];
-    blend_tile_backward(
-        &tile(),
-        &list,
+    let inputs = TileInputs {
+        tile: &tile(),
+        list: &list,
         splats,
-        channels,
-        NC,
-        &[0.25, 0.75],
-        AlphaMode { smooth: false },
+        splat_channels: channels,
+        n_channels: NC,
+        background: &[0.25, 0.75],
+        mode: AlphaMode { smooth: false },
+    };
+    blend_tile_backward(
+        &inputs,
         TileForwardState {
             transmittance: &trans,
             last: &last,

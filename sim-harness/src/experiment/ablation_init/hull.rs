@@ -277,10 +277,13 @@ pub struct HullPruner {
 
 impl HullPruner {
     /// Voxels of slack around the occupied ones before a Gaussian counts as outside.
-    pub const DILATE_VOXELS: u32 = 1;
+    pub(crate) const DILATE_VOXELS: u32 = 1;
 
     /// `Some` when `preset` starts from a hull and asks for re-carving.
-    pub fn for_preset(scene: &SceneData, preset: &Preset) -> Result<Option<Self>, OnlineError> {
+    pub(crate) fn for_preset(
+        scene: &SceneData,
+        preset: &Preset,
+    ) -> Result<Option<Self>, OnlineError> {
         if preset.init != InitKind::Hull || !preset.hull_recarve {
             return Ok(None);
         }
@@ -297,7 +300,7 @@ impl HullPruner {
     }
 
     /// Occupied voxels now.
-    pub fn occupied_voxels(&self) -> usize {
+    pub(crate) fn occupied_voxels(&self) -> usize {
         self.volume.occupied()
     }
 
@@ -308,7 +311,7 @@ impl HullPruner {
 
     /// Carves with sequence frame `frame` of `scene` (just taken into the window) and
     /// prunes the trainer's Gaussians outside the hull; returns how many it pruned.
-    pub fn keyframe_added(
+    pub(crate) fn keyframe_added(
         &mut self,
         trainer: &mut OnlineTrainer,
         scene: &SceneData,
