@@ -21,7 +21,6 @@ pub mod regularizer;
 pub mod rng;
 pub mod sh;
 pub mod sunaware;
-pub mod train;
 
 /// The device engine interface (`sunaware::engine`), at the root for the backend crates.
 pub use sunaware::engine;
