@@ -98,6 +98,7 @@ fn push_flat(m: &mut GaussianModel, centre: Vec3, rotation: Quat, size: f32, rgb
         vec![],
         vec![],
         vec![],
+        vec![],
     ];
     m.params
         .push_row(|p| &row[p.index()])

@@ -760,7 +760,7 @@ fn bad_host_arguments_are_rejected_before_recording() {
     };
     let mut enc = probe.encoder();
     let phi_in = |enc: &mut wgpu::CommandEncoder,
-                  offsets: &[u32; 9],
+                  offsets: &[u32; Param::COUNT + 1],
                   sun: [f32; 3],
                   cam: [f32; 3],
                   input: &wgpu::Buffer| {
@@ -817,7 +817,9 @@ fn bad_host_arguments_are_rejected_before_recording() {
     );
     let psi_d_input = probe.buffer_f32("psi d_input", &vec![0.0; n * psi.input_width()]);
     let grads = probe.buffer_f32("grads", &s.params);
-    let psi_grad = |enc: &mut wgpu::CommandEncoder, offsets: &[u32; 9], d_input: &wgpu::Buffer| {
+    let psi_grad = |enc: &mut wgpu::CommandEncoder,
+                    offsets: &[u32; Param::COUNT + 1],
+                    d_input: &wgpu::Buffer| {
         io.encode_psi_input_grad(
             enc,
             &scratch,

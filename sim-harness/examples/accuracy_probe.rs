@@ -19,6 +19,7 @@ usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
   --earth F            Earth-albedo fill (default: the preset's)
   --extra TOML         preset lines added to the demo preset's top-level keys, before
                        its tables such as [rates] (\\n for new lines)
+  --rates TOML         lines added to the demo preset's [rates] table ('normal = 0.01')
   --max-gaussians N    densification cap
   --steps N            offline steps (default 3000)
   --densify-every N    offline: densify every N steps in the first half (default 100)
@@ -60,7 +61,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Top-level keys must come before the preset's first table, or TOML files them in it.
     let tables_at = DEMO_PRESET.find("\n[").unwrap_or(DEMO_PRESET.len());
     let (top, tables) = DEMO_PRESET.split_at(tables_at);
-    let mut preset = Preset::from_toml_str(&format!("{top}\n{extra}\n{tables}\n"), "demo")?;
+    // The demo preset's last table is [rates]: lines after it land there.
+    let rates = arg("--rates").unwrap_or_default().replace("\\n", "\n");
+    let mut preset =
+        Preset::from_toml_str(&format!("{top}\n{extra}\n{tables}\n{rates}\n"), "demo")?;
     let base = match arg("--scenario") {
         Some(path) => Scenario::load(std::path::Path::new(&path))?,
         None => Scenario::from_toml_str(

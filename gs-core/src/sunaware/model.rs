@@ -64,7 +64,7 @@ use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 use super::config::{ShadowRefinement, SunAwareConfig};
 use super::engine::{Backend, DeviceRender, Engine};
 use super::error::SunAwareError;
-use super::shading::{shade_backward, shade_forward, ShadePass, Shading};
+use super::shading::{initial_normals, shade_backward, shade_forward, ShadePass, Shading};
 use super::sun_visibility::sun_visibility;
 
 /// Where the camera pass's rasterizer and the shadow pass run (see the module header).
@@ -379,6 +379,8 @@ impl SunAwareModel {
             )));
         }
         let mut gaussians = gaussians;
+        let (lo, hi) = (Vec3::from(scene_box.min_m()), Vec3::from(scene_box.max_m()));
+        initial_normals(&mut gaussians.params, (lo + hi) * 0.5);
         let encoding = PositionalEncoding::new(config.encoding_frequencies)?;
         let v = config.variant;
         // A precision this CPU cannot run fails here, at configuration, not mid-training.
@@ -665,12 +667,13 @@ impl SunAwareModel {
         };
         let shade = match self.config.shading {
             Shading::None => None,
-            Shading::Lambert => {
+            Shading::Lambert | Shading::LambertLearned => {
                 let mut colour = vec![0.0f32; n * 3];
                 for i in 0..n {
                     colour[i * 3..i * 3 + 3].copy_from_slice(&channels[i * nc..i * nc + 3]);
                 }
                 let pass = shade_forward(
+                    self.config.shading,
                     p,
                     &network_list,
                     cam_pos,
