@@ -439,8 +439,8 @@ fn learned_normals_train_checkpoint_and_export() {
             |k: usize| f32::from_le_bytes(bytes[at + 4 * k..at + 4 * k + 4].try_into().unwrap());
         let v = t.model.gaussians.params.row(Param::Normal, g);
         let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-        for k in 0..3 {
-            assert_eq!(f(3 + k), v[k] / len, "Gaussian {g}, n{k}");
+        for (k, &vk) in v.iter().enumerate() {
+            assert_eq!(f(3 + k), vk / len, "Gaussian {g}, n{k}");
         }
     }
 }

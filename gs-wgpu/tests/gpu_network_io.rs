@@ -68,7 +68,7 @@ struct Scene {
 
 impl Scene {
     fn new(seed: u64, n: usize, feature_dim: usize, latent_dim: usize, keep: f32) -> Self {
-        let dims = [3, 3, 4, 1, 3, 9, feature_dim, latent_dim];
+        let dims = [3, 3, 4, 1, 3, 9, feature_dim, latent_dim, 0];
         let offsets = packed_offsets(&dims, n).unwrap();
         let mut rng = SplitMix64::new(seed);
         let mut params: Vec<f32> = (0..offsets[8]).map(|_| rng.normal()).collect();
@@ -782,7 +782,7 @@ fn bad_host_arguments_are_rejected_before_recording() {
         "NaN camera",
     );
     // Offsets of a 16-wide feature group: not this network's.
-    let wrong = packed_offsets(&[3, 3, 4, 1, 3, 9, 16, 6], n).unwrap();
+    let wrong = packed_offsets(&[3, 3, 4, 1, 3, 9, 16, 6, 0], n).unwrap();
     invalid(
         phi_in(&mut enc, &wrong, SUN, CAMERA, &phi_input),
         "feature width",
@@ -837,7 +837,7 @@ fn bad_host_arguments_are_rejected_before_recording() {
     psi_grad(&mut enc, &s.offsets, &psi_d_input).unwrap();
     invalid(psi_grad(&mut enc, &s.offsets, &short), "short Psi d_input");
     // Offsets of a 3-wide latent group: not this network's.
-    let latent3 = packed_offsets(&[3, 3, 4, 1, 3, 9, 8, 3], n).unwrap();
+    let latent3 = packed_offsets(&[3, 3, 4, 1, 3, 9, 8, 3, 0], n).unwrap();
     invalid(psi_grad(&mut enc, &latent3, &psi_d_input), "latent width");
     probe.finish_f32(enc, &[]).unwrap();
 }
