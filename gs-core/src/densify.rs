@@ -330,6 +330,7 @@ mod tests {
             sh_degree: 1,
             feature_dim: 2,
             shadow_latent_dim: 1,
+            normal_dim: 3,
         })
         .unwrap();
         let n = scales.len();
@@ -345,6 +346,8 @@ mod tests {
             p.row_mut(Param::OpacityLogit, i)[0] = inverse_sigmoid(opacities[i]);
             p.row_mut(Param::ShDc, i).fill(i as f32 + 0.5);
             p.row_mut(Param::Feature, i).fill(i as f32 + 0.25);
+            p.row_mut(Param::Normal, i)
+                .copy_from_slice(&[i as f32 + 0.75, 1.0, 0.0]);
         }
         m
     }
@@ -404,6 +407,14 @@ mod tests {
             .map(|c| c[0])
             .collect();
         assert_eq!(feat, vec![0.25, 2.25, 0.25, 1.25, 1.25]);
+        // The learned shading normal travels with its Gaussian: clone and children copy it.
+        let normal: Vec<f32> = m
+            .params
+            .get(Param::Normal)
+            .chunks(3)
+            .map(|c| c[0])
+            .collect();
+        assert_eq!(normal, vec![0.75, 2.75, 0.75, 1.75, 1.75]);
         // Moments: survivors keep theirs, new rows start at zero.
         let mm: Vec<f32> = adam.m.get(Param::Mean).chunks(3).map(|c| c[0]).collect();
         assert_eq!(mm, vec![100.0, 102.0, 0.0, 0.0, 0.0]);

@@ -32,10 +32,13 @@ pub enum Param {
     Feature,
     /// Shadow latent fed to the shadow MLP (configurations c-d).
     ShadowLatent,
+    /// Learned shading normal, 3 values, used as `v / |v|` (`shading = "lambert_learned"`,
+    /// `sunaware::shading`); last, so the other groups' packed offsets do not move.
+    Normal,
 }
 
 impl Param {
-    pub const COUNT: usize = 8;
+    pub const COUNT: usize = 9;
     pub const ALL: [Param; Param::COUNT] = [
         Param::Mean,
         Param::LogScale,
@@ -45,6 +48,7 @@ impl Param {
         Param::ShRest,
         Param::Feature,
         Param::ShadowLatent,
+        Param::Normal,
     ];
 
     pub const fn index(self) -> usize {
@@ -61,6 +65,7 @@ impl Param {
             Param::ShRest => "sh_rest",
             Param::Feature => "feature",
             Param::ShadowLatent => "shadow_latent",
+            Param::Normal => "normal",
         }
     }
 }
@@ -79,6 +84,8 @@ pub struct ModelLayout {
     pub feature_dim: usize,
     /// Width of the shadow latent (6 in the paper), 0 when absent.
     pub shadow_latent_dim: usize,
+    /// Width of the learned shading normal: 3 with `shading = "lambert_learned"`, else 0.
+    pub normal_dim: usize,
 }
 
 impl ModelLayout {
@@ -88,6 +95,7 @@ impl ModelLayout {
             sh_degree,
             feature_dim: 0,
             shadow_latent_dim: 0,
+            normal_dim: 0,
         }
     }
 
@@ -101,6 +109,7 @@ impl ModelLayout {
             (sh_coeff_count(self.sh_degree) - 1) * 3,
             self.feature_dim,
             self.shadow_latent_dim,
+            self.normal_dim,
         ]
     }
 }
@@ -329,6 +338,7 @@ mod tests {
             sh_degree: 1,
             feature_dim: 2,
             shadow_latent_dim: 0,
+            normal_dim: 3,
         })
         .unwrap();
         for i in 0..n {

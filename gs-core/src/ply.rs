@@ -4,7 +4,9 @@
 //! `x y z nx ny nz f_dc_0..2 f_rest_0..(3(K-1)-1) opacity scale_0..2 rot_0..3`, all
 //! `float`, one `vertex` element. Values are stored raw, as 3DGS does: log scales,
 //! opacity logits, unnormalised `[w, x, y, z]` quaternions, SH coefficients; the normals
-//! are zero. 3DGS stores `f_rest` CHANNEL-major (all red coefficients, then green, then
+//! are the learned shading normal `v / |v|` where the model has one (`Param::Normal`,
+//! `shading = "lambert_learned"`; zero where `|v|` is degenerate), else zero (the reader
+//! ignores them). 3DGS stores `f_rest` CHANNEL-major (all red coefficients, then green, then
 //! blue: `f_rest_{c (K-1) + k-1}`) while our `ShRest` is coefficient-major
 //! (`[c1.r, c1.g, c1.b, c2.r, ...]`): this module converts both ways.
 //!
@@ -119,7 +121,7 @@ pub fn write_ply<W: Write>(model: &GaussianModel, out: W) -> Result<(), PlyError
     for i in 0..model.len() {
         row.clear();
         row.extend_from_slice(p.row(Param::Mean, i));
-        row.extend_from_slice(&[0.0, 0.0, 0.0]);
+        row.extend_from_slice(&unit_normal(p, i));
         row.extend_from_slice(p.row(Param::ShDc, i));
         let rest = p.row(Param::ShRest, i);
         for c in 0..3 {
@@ -136,6 +138,21 @@ pub fn write_ply<W: Write>(model: &GaussianModel, out: W) -> Result<(), PlyError
     }
     out.flush()?;
     Ok(())
+}
+
+/// `v / |v|` of row `i`'s learned normal; zeros without a normal group or where `|v|` is
+/// degenerate or not finite.
+fn unit_normal(p: &crate::model::ParamSet, i: usize) -> [f32; 3] {
+    if p.dim(Param::Normal) != 3 {
+        return [0.0; 3];
+    }
+    let v = p.row(Param::Normal, i);
+    let norm2: f32 = v.iter().map(|x| x * x).sum();
+    if !(norm2.is_finite() && norm2 >= crate::raster::project::MIN_QUAT_NORM2) {
+        return [0.0; 3];
+    }
+    let norm = norm2.sqrt();
+    [v[0] / norm, v[1] / norm, v[2] / norm]
 }
 
 /// Writes `model` to `path`.

@@ -10,7 +10,7 @@ use gs_core::camera::{Camera, Intrinsics};
 use gs_core::init::{inverse_sigmoid, SplitMix64};
 use gs_core::model::{GaussianModel, Param};
 use gs_core::nn::SceneBox;
-use gs_core::sunaware::shading::facing_normal;
+use gs_core::sunaware::shading::{facing_normal, learned_facing_normal};
 use gs_core::sunaware::trainer::loss_and_grads;
 use gs_core::sunaware::{
     Observation, Shading, ShadowRefinement, SunAwareConfig, SunAwareModel, Variant,
@@ -21,12 +21,16 @@ fn scene(variant: Variant) -> SunAwareModel {
 }
 
 fn scene_with(variant: Variant, shadow_refinement: ShadowRefinement) -> SunAwareModel {
-    let config = SunAwareConfig {
+    scene_from(SunAwareConfig {
         variant,
         encoding_frequencies: 2,
         shadow_refinement,
         ..SunAwareConfig::for_variant(variant)
-    };
+    })
+}
+
+/// Ten random Gaussians around the origin under `config` (whose layout they take).
+fn scene_from(config: SunAwareConfig) -> SunAwareModel {
     let mut g = GaussianModel::new(config.layout()).unwrap();
     let n = 10;
     g.params.push_zeros(n);
@@ -319,6 +323,91 @@ fn lambert_shading_gradients_match_finite_differences() {
         }
         check_group(&model, &grads.params, Param::Feature, 6, 1e-3, &objective);
         check_group(&model, &grads.params, Param::Mean, 6, 1e-3, &objective);
+    }
+}
+
+/// The learned normal (`lambert_learned`): its gradient through `v / |v|` against finite
+/// differences, on normals of lengths 0.5..2 (so the normalisation matters), and none
+/// along `v` itself (the factor does not depend on `|v|`).
+#[test]
+fn learned_normal_shading_gradients_match_finite_differences() {
+    for variant in [Variant::B, Variant::D] {
+        let mut model = scene_from(SunAwareConfig {
+            encoding_frequencies: 2,
+            shading: Shading::LambertLearned,
+            shading_ambient: 0.2,
+            ..SunAwareConfig::for_variant(variant)
+        });
+        let mut rng = SplitMix64::new(31);
+        for v in model.gaussians.params.get_mut(Param::Normal).chunks_mut(3) {
+            let dir = Vec3::new(
+                rng.next_f32() - 0.5,
+                rng.next_f32() - 0.5,
+                rng.next_f32() - 0.5,
+            );
+            let len = 0.5 + 1.5 * rng.next_f32();
+            v.copy_from_slice(&(dir.normalize() * len).to_array());
+        }
+        let vis = model.sun_visibility(&camera(), sun()).unwrap();
+        let settings = model.raster_settings(true);
+        let vis_arg = variant.uses_shadow().then_some(vis.as_slice());
+        let pass = model
+            .forward(&camera(), sun(), 0, &settings, vis_arg)
+            .unwrap();
+        let f = pass.shading_factors().expect("shading is on");
+        let lit = pass.visible_list.iter().filter(|&&g| f[g as usize] > 0.2);
+        let unlit = pass.visible_list.iter().filter(|&&g| f[g as usize] == 0.2);
+        assert!(lit.count() >= 2 && unlit.count() >= 2, "{variant}: {f:?}");
+        let w = weights(pass.image.len());
+        let grads = model.backward(&pass, &w).unwrap();
+        let objective = |m: &SunAwareModel| {
+            let pass = m.forward(&camera(), sun(), 0, &settings, vis_arg).unwrap();
+            pass.image
+                .iter()
+                .zip(&w)
+                .map(|(&a, &b)| a as f64 * b as f64)
+                .sum::<f64>()
+        };
+        let params = &model.gaussians.params;
+        let d_normal = grads.params.get(Param::Normal);
+        let away_from_flip = |i: usize| {
+            learned_facing_normal(params, i / 3, camera().position())
+                .is_some_and(|n| n.facing_cos > 0.2)
+        };
+        let checked: Vec<usize> = top(d_normal, d_normal.len())
+            .into_iter()
+            .filter(|&i| away_from_flip(i) && d_normal[i] != 0.0)
+            .take(6)
+            .collect();
+        // Two lit Gaussians at least, each normal whole.
+        assert!(checked.len() == 6, "{variant}: {checked:?}");
+        for i in checked {
+            let numeric = central(
+                &model,
+                1e-3,
+                |m, d| m.gaussians.params.get_mut(Param::Normal)[i] += d,
+                objective,
+            );
+            assert_close(
+                &format!("{variant}: normal[{i}]"),
+                d_normal[i],
+                numeric,
+                0.03,
+                2e-4,
+            );
+        }
+        for (g, d) in d_normal.chunks(3).enumerate() {
+            let v = params.row(Param::Normal, g);
+            let radial: f32 = (0..3).map(|j| d[j] * v[j]).sum();
+            let size: f32 = d.iter().map(|x| x.abs()).sum::<f32>() + 1e-12;
+            assert!(
+                radial.abs() <= 1e-4 * size,
+                "{variant}: Gaussian {g}: {d:?}"
+            );
+        }
+        // The rotation keeps only the rasterizer's term: no jump from the normal here.
+        check_group(&model, &grads.params, Param::Rotation, 6, 1e-3, &objective);
+        check_group(&model, &grads.params, Param::Feature, 6, 1e-3, &objective);
     }
 }
 

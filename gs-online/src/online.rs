@@ -342,6 +342,14 @@ fn initial_gaussians(
                         .row_mut(Param::Rotation, i)
                         .copy_from_slice(&[q.w, q.x, q.y, q.z]);
                     model.params.row_mut(Param::LogScale, i)[2] += flatten_log;
+                    // A learned shading normal starts as the surface's (`shading =
+                    // "lambert_learned"`; other models have no such group).
+                    if model.params.dim(Param::Normal) == 3 {
+                        model
+                            .params
+                            .row_mut(Param::Normal, i)
+                            .copy_from_slice(&normal.normalize().to_array());
+                    }
                 }
             }
             Ok(model)

@@ -349,3 +349,40 @@ fn replay_memory_keeps_a_bounded_sample_of_evicted_keyframes_and_trains_on_it() 
     }
     assert_eq!((plain.replay_len(), steps), (0, 4));
 }
+
+/// With `shading = "lambert_learned"`, the surface normals of the initialisation become
+/// the Gaussians' learned shading normals (unit length); other models carry none.
+#[test]
+fn surface_normals_start_the_learned_shading_normals() {
+    use gs_core::sunaware::Shading;
+    use gs_core::Param;
+    let scene = SyntheticScene::plate_and_ball(8, 30).unwrap();
+    let init = surface_init(&scene);
+    let Initialisation::SurfaceSamples {
+        normals: Some(normals),
+        ..
+    } = &init
+    else {
+        unreachable!("surface_init gives normals")
+    };
+    let mut learned = config(4);
+    learned.model.shading = Shading::LambertLearned;
+    let t = OnlineTrainer::new(learned, &init, scene.scene_box).unwrap();
+    let params = &t.trainer().model.gaussians.params;
+    assert_eq!(params.len(), normals.len());
+    for (g, n) in normals.iter().enumerate() {
+        let v = Vec3::from_slice(params.row(Param::Normal, g));
+        assert!(
+            (v - n.normalize()).length() < 1e-6,
+            "Gaussian {g}: {v} vs {n}"
+        );
+    }
+    let plain = OnlineTrainer::new(config(4), &init, scene.scene_box).unwrap();
+    assert!(plain
+        .trainer()
+        .model
+        .gaussians
+        .params
+        .get(Param::Normal)
+        .is_empty());
+}

@@ -50,6 +50,7 @@ mod bench {
             sh_degree: 3,
             feature_dim: 72,
             shadow_latent_dim: 6,
+            normal_dim: 0,
         };
         let mut model = GaussianModel::new(layout).expect("layout");
         model.params.push_zeros(n);

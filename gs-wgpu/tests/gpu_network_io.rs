@@ -71,7 +71,7 @@ struct Scene {
 
 impl Scene {
     fn new(seed: u64, n: usize, feature_dim: usize, latent_dim: usize, keep: f32) -> Self {
-        let dims = [3, 3, 4, 1, 3, 9, feature_dim, latent_dim];
+        let dims = [3, 3, 4, 1, 3, 9, feature_dim, latent_dim, 0];
         let offsets = packed_offsets(&dims, n).unwrap();
         let mut rng = SplitMix64::new(seed);
         let mut params: Vec<f32> = (0..offsets[8]).map(|_| rng.normal()).collect();
@@ -264,7 +264,7 @@ fn bad_host_arguments_are_rejected_before_recording() {
     };
     let mut enc = probe.encoder();
     let phi_in = |enc: &mut wgpu::CommandEncoder,
-                  offsets: &[u32; 9],
+                  offsets: &[u32; Param::COUNT + 1],
                   sun: [f32; 3],
                   cam: [f32; 3],
                   input: &wgpu::Buffer| {
@@ -293,7 +293,7 @@ fn bad_host_arguments_are_rejected_before_recording() {
         "NaN camera",
     );
     // Offsets of a 16-wide feature group: not this network's.
-    let wrong = packed_offsets(&[3, 3, 4, 1, 3, 9, 16, 6], n).unwrap();
+    let wrong = packed_offsets(&[3, 3, 4, 1, 3, 9, 16, 6, 0], n).unwrap();
     invalid(
         phi_in(&mut enc, &wrong, SUN, CAMERA, &phi_input),
         "feature width",
@@ -332,7 +332,9 @@ fn bad_host_arguments_are_rejected_before_recording() {
     );
     let psi_d_input = probe.buffer_f32("psi d_input", &vec![0.0; n * psi.input_width()]);
     let grads = probe.buffer_f32("grads", &s.params);
-    let psi_grad = |enc: &mut wgpu::CommandEncoder, offsets: &[u32; 9], d_input: &wgpu::Buffer| {
+    let psi_grad = |enc: &mut wgpu::CommandEncoder,
+                    offsets: &[u32; Param::COUNT + 1],
+                    d_input: &wgpu::Buffer| {
         io.encode_psi_input_grad(
             enc,
             b.rows(&scratch, n),
@@ -346,7 +348,7 @@ fn bad_host_arguments_are_rejected_before_recording() {
     psi_grad(&mut enc, &s.offsets, &psi_d_input).unwrap();
     invalid(psi_grad(&mut enc, &s.offsets, &short), "short Psi d_input");
     // Offsets of a 3-wide latent group: not this network's.
-    let latent3 = packed_offsets(&[3, 3, 4, 1, 3, 9, 8, 3], n).unwrap();
+    let latent3 = packed_offsets(&[3, 3, 4, 1, 3, 9, 8, 3, 0], n).unwrap();
     invalid(psi_grad(&mut enc, &latent3, &psi_d_input), "latent width");
     probe.finish_f32(enc, &[]).unwrap();
 }

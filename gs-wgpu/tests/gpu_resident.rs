@@ -64,6 +64,7 @@ fn adam_kernel_matches_optim_rs() {
         sh_degree: 1,
         feature_dim: 2,
         shadow_latent_dim: 1,
+        normal_dim: 0,
     };
     let n = 700;
     let mut rng = SplitMix64::new(21);

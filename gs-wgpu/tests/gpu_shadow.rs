@@ -49,6 +49,7 @@ fn model(n: usize, seed: u64) -> GaussianModel {
         sh_degree: 1,
         feature_dim: 5,
         shadow_latent_dim: 3,
+        normal_dim: 0,
     };
     let mut model = GaussianModel::new(layout).unwrap();
     model.params.push_zeros(n);

@@ -20,6 +20,7 @@ usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
   --extra TOML         preset lines added to the demo preset's top-level keys, before
                        its tables such as [rates] (\\n for new lines); a key the
                        preset already sets is replaced
+  --rates TOML         lines added to the demo preset's [rates] table ('normal = 0.01')
   --max-gaussians N    densification cap
   --steps N            offline steps (default 3000)
   --densify-every N    offline: densify every N steps in the first half (default 100)
@@ -73,7 +74,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .filter(|l| !(l.contains('=') && key_of(l).is_some_and(|k| extra_keys.contains(&k))))
         .map(|l| format!("{l}\n"))
         .collect();
-    let mut preset = Preset::from_toml_str(&format!("{top}\n{extra}\n{tables}\n"), "demo")?;
+    // The demo preset's last table is [rates]: lines after it land there.
+    let rates = arg("--rates").unwrap_or_default().replace("\\n", "\n");
+    let mut preset =
+        Preset::from_toml_str(&format!("{top}\n{extra}\n{tables}\n{rates}\n"), "demo")?;
     let base = match arg("--scenario") {
         Some(path) => Scenario::load(std::path::Path::new(&path))?,
         None => Scenario::from_toml_str(

@@ -3,9 +3,10 @@
 //! File layout (all integers and floats little-endian):
 //! ```text
 //! magic     8 bytes  b"SUNGSCKP"
-//! version   u32      5 (older ones are still read: 4 has no shading fields and means
-//!                    none; 3 also no shadow gain, meaning 1; 2 also no hidden-width
-//!                    field, Phi is 256 wide; 1 also no shadow refinement byte, Replace)
+//! version   u32      6 (older ones are still read: 5 has no normal rate, meaning the
+//!                    default; 4 also no shading fields and means none; 3 also no shadow
+//!                    gain, meaning 1; 2 also no hidden-width field, Phi is 256 wide; 1
+//!                    also no shadow refinement byte, Replace)
 //! length    u64      payload bytes
 //! payload   length bytes (below)
 //! checksum  u64      FNV-1a 64 of the payload
@@ -23,8 +24,9 @@
 //!    background 3 f32, near_m f32, seed u64, feature_init_std f32, from version 2
 //!    shadow refinement u8 (0 replace, 1 multiply), from version 3 appearance hidden width
 //!    u64 (the width of Phi's hidden layers: the weights' shape depends on it), from
-//!    version 4 shadow gain f32, from version 5 shading u8 (0 none, 1 Lambert) and shading
-//!    ambient f32;
+//!    version 4 shadow gain f32, from version 5 shading u8 (0 none, 1 Lambert, 2 Lambert
+//!    with a learned normal) and shading ambient f32, from version 6 the learned normal's
+//!    learning rate f32;
 //! 2. scene box: min 3 f32, max 3 f32;
 //! 3. Gaussians: count u64, then each group of `Param::ALL` in order (count x width f32,
 //!    widths from the config's layout);
@@ -63,7 +65,7 @@ use super::model::SunAwareModel;
 use super::trainer::{FlatAdam, SunAwareTrainer};
 
 pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
-pub const VERSION: u32 = 5;
+pub const VERSION: u32 = 6;
 /// Oldest version [`from_bytes`] reads.
 pub const OLDEST_READABLE_VERSION: u32 = 1;
 /// Largest Adam step a checkpoint may hold: the bias correction raises the betas to the
@@ -232,6 +234,7 @@ fn write_config(w: &mut Writer, c: &SunAwareConfig) {
     w.f32(c.shadow_gain);
     w.u8(c.shading.code());
     w.f32(c.shading_ambient);
+    w.f32(c.lr.normal);
 }
 
 fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareError> {
@@ -274,6 +277,8 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
         shadow_latent: v[8],
         appearance_mlp: v[9],
         shadow_mlp: v[10],
+        // Version 6 stores it after the shading fields (read below).
+        normal: SunAwareRates::default().normal,
     };
     // The grad threshold may be infinite in memory only transiently; stored values are finite.
     let d = r.f32s(6, "densify settings")?;
@@ -289,7 +294,7 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
     let max_gaussians = r.usize("max_gaussians")?;
     let densify_from_step = r.u64("densify_from_step")?;
     let bg = r.f32s(3, "background")?;
-    let config = SunAwareConfig {
+    let mut config = SunAwareConfig {
         variant,
         sh_degree,
         sh_degree_interval,
@@ -345,6 +350,10 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
         },
         ..SunAwareConfig::default()
     };
+    // Before version 6, the default rate (no stored model had a learned normal).
+    if version >= 6 {
+        config.lr.normal = r.f32("normal learning rate")?;
+    }
     config
         .validate()
         .map_err(|e| ck(format!("stored configuration is invalid: {e}")))?;
@@ -684,21 +693,33 @@ mod tests {
 
     /// The version-5 fields at the end of the config section: shading u8, ambient f32.
     const SHADING_BYTES: usize = 5;
+    /// The version-6 field after them: the learned normal's rate f32.
+    const NORMAL_RATE_BYTES: usize = 4;
+    /// Everything after the version-4 section.
+    const AFTER_V4_BYTES: usize = SHADING_BYTES + NORMAL_RATE_BYTES;
 
     #[test]
     fn shading_round_trips_and_versions_before_5_mean_none() {
-        let config = SunAwareConfig {
-            shading: Shading::Lambert,
+        let mut config = SunAwareConfig {
+            shading: Shading::LambertLearned,
             shading_ambient: 0.25,
             ..SunAwareConfig::for_variant(Variant::D)
         };
+        config.lr.normal = 0.02;
         let mut w = Writer(Vec::new());
         write_config(&mut w, &config);
-        let bytes = w.0;
-        let back = read(&bytes, 5).unwrap();
+        let full = w.0;
+        let back = read(&full, 6).unwrap();
         assert_eq!(
-            (back.shading, back.shading_ambient),
-            (Shading::Lambert, 0.25)
+            (back.shading, back.shading_ambient, back.lr.normal),
+            (Shading::LambertLearned, 0.25, 0.02)
+        );
+        // Version 5: no normal rate, the default.
+        let bytes = full[..full.len() - NORMAL_RATE_BYTES].to_vec();
+        let v5 = read(&bytes, 5).unwrap();
+        assert_eq!(
+            (v5.shading, v5.lr.normal),
+            (Shading::LambertLearned, SunAwareRates::default().normal)
         );
         let v4 = read(&bytes[..bytes.len() - SHADING_BYTES], 4).unwrap();
         assert_eq!(v4.shading, Shading::None);
@@ -712,6 +733,16 @@ mod tests {
         bad[at..].copy_from_slice(&1.5f32.to_le_bytes());
         let err = read(&bad, 5).unwrap_err().to_string();
         assert!(err.contains("shading_ambient"), "{err}");
+        for (rate, named) in [
+            (f32::NAN, "normal learning rate is not finite"),
+            (-1.0, "learning rate normal"),
+        ] {
+            let mut bad = full.clone();
+            let at = bad.len() - 4;
+            bad[at..].copy_from_slice(&rate.to_le_bytes());
+            let err = read(&bad, 6).unwrap_err().to_string();
+            assert!(err.contains(named), "{err}");
+        }
     }
 
     #[test]
@@ -723,7 +754,7 @@ mod tests {
         let mut w = Writer(Vec::new());
         write_config(&mut w, &config);
         // The version-4 section: without the trailing shading fields.
-        let bytes = w.0[..w.0.len() - SHADING_BYTES].to_vec();
+        let bytes = w.0[..w.0.len() - AFTER_V4_BYTES].to_vec();
         assert_eq!(read(&bytes, 4).unwrap().shadow_gain, 2.0);
         assert_eq!(read(&bytes[..bytes.len() - 4], 3).unwrap().shadow_gain, 1.0);
         // A gain the model refuses is refused on load too.
@@ -738,7 +769,7 @@ mod tests {
     fn shadow_refinement_round_trips_and_version_1_means_replace() {
         for refinement in [ShadowRefinement::Replace, ShadowRefinement::Multiply] {
             let full = config_bytes(refinement);
-            let bytes = &full[..full.len() - SHADING_BYTES];
+            let bytes = &full[..full.len() - AFTER_V4_BYTES];
             assert_eq!(read(bytes, 4).unwrap().shadow_refinement, refinement);
             // A version-3 config section ends before the shadow gain (4 bytes), a version-2
             // one also before the hidden width (8 bytes), a version-1 one also before the
@@ -751,7 +782,7 @@ mod tests {
             assert_eq!(v1.shadow_refinement, ShadowRefinement::Replace);
         }
         let mut bad = config_bytes(ShadowRefinement::Multiply);
-        bad.truncate(bad.len() - SHADING_BYTES);
+        bad.truncate(bad.len() - AFTER_V4_BYTES);
         let at = bad.len() - 13;
         bad[at] = 7;
         let err = read(&bad, 4).unwrap_err().to_string();
@@ -767,7 +798,7 @@ mod tests {
         };
         write_config(&mut w, &config);
         // The version-3 section: without the trailing shadow gain (4 bytes) and shading.
-        let bytes = &w.0[..w.0.len() - 4 - SHADING_BYTES];
+        let bytes = &w.0[..w.0.len() - 4 - AFTER_V4_BYTES];
         assert_eq!(read(bytes, 3).unwrap().appearance_hidden_width, 64);
         let v2 = read(&bytes[..bytes.len() - 8], 2).unwrap();
         assert_eq!(v2.appearance_hidden_width, 256);

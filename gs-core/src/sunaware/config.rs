@@ -227,6 +227,9 @@ pub struct SunAwareRates {
     pub shadow_latent: f32,
     pub appearance_mlp: f32,
     pub shadow_mlp: f32,
+    /// The learned shading normal `v` of `shading = "lambert_learned"` (Adam step size on
+    /// the unnormalised vector; `v` starts unit length, so this is about radians per step).
+    pub normal: f32,
 }
 
 impl Default for SunAwareRates {
@@ -244,6 +247,8 @@ impl Default for SunAwareRates {
             shadow_latent: 2.5e-3,
             appearance_mlp: 5e-4,
             shadow_mlp: 1e-3,
+            // As the rotation's: the normal turns as fast as a Gaussian's axes can.
+            normal: 1e-3,
         }
     }
 }
@@ -308,9 +313,9 @@ pub struct SunAwareConfig {
     /// Colour times a Lambertian factor of each Gaussian's normal and the Sun
     /// ([`Shading`], `super::shading`): `None` is the paper's form. A model knob, stored in
     /// checkpoints (from version 5; older ones load as `None`). The wgpu backend refuses
-    /// `Lambert`.
+    /// `Lambert` and `LambertLearned` (which adds the per-Gaussian group `Param::Normal`).
     pub shading: Shading,
-    /// The ambient floor `k_a` of [`Shading::Lambert`], in [0, 1): the factor is
+    /// The ambient floor `k_a` of the Lambertian shadings, in [0, 1): the factor is
     /// `k_a + (1 - k_a) max(0, n . s)`. Stored in checkpoints with `shading`.
     pub shading_ambient: f32,
     pub lr: SunAwareRates,
@@ -446,6 +451,11 @@ impl SunAwareConfig {
             } else {
                 0
             },
+            normal_dim: if self.shading == Shading::LambertLearned {
+                3
+            } else {
+                0
+            },
         }
     }
 
@@ -549,6 +559,7 @@ impl SunAwareConfig {
             ("shadow_latent", r.shadow_latent),
             ("appearance_mlp", r.appearance_mlp),
             ("shadow_mlp", r.shadow_mlp),
+            ("normal", r.normal),
         ];
         for (name, v) in rates {
             if !(v.is_finite() && v >= 0.0) {
@@ -635,6 +646,33 @@ mod tests {
         );
         let d = SunAwareConfig::for_variant(Variant::D).layout();
         assert_eq!((d.feature_dim, d.shadow_latent_dim), (72, 6));
+        // Only the learned-normal shading carries a normal group.
+        assert_eq!((a.normal_dim, b.normal_dim, d.normal_dim), (0, 0, 0));
+        for (shading, width) in [(Shading::Lambert, 0), (Shading::LambertLearned, 3)] {
+            let c = SunAwareConfig {
+                shading,
+                ..SunAwareConfig::for_variant(Variant::D)
+            };
+            assert_eq!(c.layout().normal_dim, width, "{shading}");
+        }
+    }
+
+    #[test]
+    fn a_bad_normal_rate_or_learned_shading_on_a_is_refused() {
+        let mut c = SunAwareConfig {
+            shading: Shading::LambertLearned,
+            ..SunAwareConfig::for_variant(Variant::D)
+        };
+        assert!(c.validate().is_ok());
+        c.lr.normal = f32::INFINITY;
+        let msg = c.validate().unwrap_err().to_string();
+        assert!(msg.contains("learning rate normal"), "{msg}");
+        let c = SunAwareConfig {
+            shading: Shading::LambertLearned,
+            ..SunAwareConfig::for_variant(Variant::A)
+        };
+        let msg = c.validate().unwrap_err().to_string();
+        assert!(msg.contains("lambert_learned"), "{msg}");
     }
 
     #[test]

@@ -4,7 +4,9 @@
 //! the colour model). For (b)-(d), Phi's colour for the given Sun and the view vector from
 //! each Gaussian to `camera_centre` (times the Lambertian factor when `config.shading` is
 //! on) becomes the SH DC term (degree 0), multiplied for (c)-(d) by the refined visibility
-//! `V'` of that Sun: the file shows the target as lit and shadowed for that geometry. Geometry and opacity are copied unchanged. Features,
+//! `V'` of that Sun: the file shows the target as lit and shadowed for that geometry.
+//! Geometry and opacity are copied unchanged, and a learned shading normal becomes the
+//! PLY's `nx ny nz`. Features,
 //! latents and network weights are not representable in a PLY: they live in the checkpoint.
 
 use std::io::Write;
@@ -53,8 +55,9 @@ pub fn baked_colours(
         &mut input,
     )?;
     let mut rgb = phi.mlp.forward(&input, n)?;
-    if model.config.shading == Shading::Lambert {
+    if model.config.shading != Shading::None {
         shade_forward(
+            model.config.shading,
             p,
             &all,
             camera_centre,
@@ -120,14 +123,19 @@ pub fn bake(
         return Ok(out);
     }
     let rgb = baked_colours(model, camera_centre, sun_dir)?;
-    let mut out = GaussianModel::new(ModelLayout::sh(0))?;
-    out.params.push_zeros(model.len());
     let src = &model.gaussians.params;
+    // A learned shading normal goes to the PLY's nx, ny, nz.
+    let mut out = GaussianModel::new(ModelLayout {
+        normal_dim: src.dim(Param::Normal),
+        ..ModelLayout::sh(0)
+    })?;
+    out.params.push_zeros(model.len());
     for p in [
         Param::Mean,
         Param::LogScale,
         Param::Rotation,
         Param::OpacityLogit,
+        Param::Normal,
     ] {
         out.params.get_mut(p).copy_from_slice(src.get(p));
     }

@@ -3,22 +3,29 @@
 //! positional encoding of the Sun (which sees one cone of Sun directions during a
 //! rendezvous and cannot extrapolate off it: docs/results/accuracy.md section 6).
 //!
-//! With [`Shading::Lambert`] a Gaussian's colour (Phi's output, or its SH colour in
-//! configuration a) is multiplied by
+//! With [`Shading::Lambert`] or [`Shading::LambertLearned`] a Gaussian's colour (Phi's
+//! output) is multiplied by
 //!
 //! `f_i = k_a + (1 - k_a) * max(0, n_i . s)`
 //!
 //! with `s` the unit Sun vector (target body frame), `k_a` the ambient floor
-//! (`SunAwareConfig::shading_ambient`) and `n_i` the Gaussian's shortest scale axis (a
-//! column of its rotation), flipped to face the camera (GaussianShader / relightable 3DGS
-//! style). The normal needs no new per-Gaussian state: checkpoints only carry the setting.
+//! (`SunAwareConfig::shading_ambient`) and `n_i` a unit normal flipped to face the camera
+//! (GaussianShader / relightable 3DGS style):
+//! - `Lambert`: the Gaussian's shortest scale axis (a column of its rotation). No new
+//!   per-Gaussian state: checkpoints only carry the setting.
+//! - `LambertLearned`: `v_i / |v_i|` with `v_i` the Gaussian's own parameter group
+//!   `Param::Normal` (width 3 only under this setting), so the shading is oriented
+//!   independently of the Gaussian's shape (configuration d's isotropic loss makes the
+//!   shortest axis a poor normal). [`initial_normals`] starts `v_i` from what the
+//!   initialiser knew (a surface normal) or from the Gaussian's shape and position.
 //!
 //! Gradients: `f_i` flows into the colour (`dL/dc = f_i dL/dc'`) and, where the Gaussian is
-//! lit (`n_i . s > 0`), into its rotation through `n_i`. The choice of axis (argmin of the
-//! log-scales) and the flip toward the camera are piecewise constant: no gradient reaches
-//! scales or means through them. A Gaussian with a non-finite or degenerate rotation or
-//! scale (the rasterizer culls those) gets `f_i = 1` and no gradient, so nothing
-//! non-finite leaves this module.
+//! lit (`n_i . s > 0`), into its rotation (`Lambert`) or into `v_i` through the
+//! normalisation (`LambertLearned`). The choice of axis (argmin of the log-scales) and the
+//! flip toward the camera are piecewise constant: no gradient reaches scales or means
+//! through them. A Gaussian with a non-finite or degenerate rotation, scale or normal
+//! (`|v_i|^2 < MIN_NORMAL_NORM2`) gets `f_i = 1` and no gradient, so nothing non-finite
+//! leaves this module.
 
 use std::str::FromStr;
 
@@ -38,13 +45,25 @@ pub enum Shading {
     /// `colour * (k_a + (1 - k_a) max(0, n . s))`, `n` the shortest scale axis facing the
     /// camera.
     Lambert,
+    /// The same factor with `n` the Gaussian's learned normal (`Param::Normal`, used as
+    /// `v / |v|`) facing the camera.
+    LambertLearned,
 }
+
+/// `|v|^2` below which a learned normal is degenerate (factor 1, no gradient): the
+/// rasterizer's threshold for quaternions, for the same reason (a direction from a vector
+/// that small is noise).
+pub const MIN_NORMAL_NORM2: f32 = MIN_QUAT_NORM2;
+
+/// The `axis` code of [`FacingNormal`] for a learned normal.
+pub const LEARNED_AXIS: usize = 3;
 
 impl Shading {
     pub fn name(self) -> &'static str {
         match self {
             Shading::None => "none",
             Shading::Lambert => "lambert",
+            Shading::LambertLearned => "lambert_learned",
         }
     }
 
@@ -52,6 +71,7 @@ impl Shading {
         match self {
             Shading::None => 0,
             Shading::Lambert => 1,
+            Shading::LambertLearned => 2,
         }
     }
 
@@ -59,6 +79,7 @@ impl Shading {
         match code {
             0 => Some(Shading::None),
             1 => Some(Shading::Lambert),
+            2 => Some(Shading::LambertLearned),
             _ => None,
         }
     }
@@ -67,13 +88,14 @@ impl Shading {
 impl FromStr for Shading {
     type Err = SunAwareError;
 
-    /// `none` or `lambert` (either case).
+    /// `none`, `lambert` or `lambert_learned` (either case).
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s.trim().to_ascii_lowercase().as_str() {
             "none" => Ok(Shading::None),
             "lambert" => Ok(Shading::Lambert),
+            "lambert_learned" => Ok(Shading::LambertLearned),
             other => Err(SunAwareError::Config(format!(
-                "unknown shading {other:?}: expected none or lambert"
+                "unknown shading {other:?}: expected none, lambert or lambert_learned"
             ))),
         }
     }
@@ -92,8 +114,9 @@ pub struct ShadePass {
     pub factor: Vec<f32>,
     /// The colour before shading, `n * 3` (what `dL/d f_i` multiplies).
     pub unshaded: Vec<f32>,
-    /// Index of the rotation column used as the normal, its sign (+1 or -1), or
-    /// `u8::MAX` where `f_i` is constant (unlit, degenerate or not computed).
+    /// Index of the rotation column used as the normal ([`LEARNED_AXIS`] for a learned
+    /// normal), its sign (+1 or -1), or `u8::MAX` where `f_i` is constant (unlit,
+    /// degenerate or not computed).
     axis: Vec<(u8, f32)>,
 }
 
@@ -170,22 +193,98 @@ pub fn facing_normal(params: &ParamSet, g: usize, cam_pos: Vec3) -> Option<Facin
     // The first smallest scale: ties resolve the same way every run.
     let axis = (1..3).fold(0, |k, j| if ls[j] < ls[k] { j } else { k });
     let a = Vec3::from(axis_of(q_hat, axis));
-    let to_cam = (cam_pos - Vec3::from([mean[0], mean[1], mean[2]])).normalize_or_zero();
+    Some(turned_toward(a, axis, mean, cam_pos))
+}
+
+/// The unit direction `a` (normal `axis`) of the Gaussian at `mean`, turned to face
+/// `cam_pos`.
+fn turned_toward(a: Vec3, axis: usize, mean: &[f32], cam_pos: Vec3) -> FacingNormal {
+    let to_cam = (cam_pos - Vec3::new(mean[0], mean[1], mean[2])).normalize_or_zero();
     let facing = a.dot(to_cam);
     let sign = if facing < 0.0 { -1.0 } else { 1.0 };
-    Some(FacingNormal {
+    FacingNormal {
         normal: a * sign,
         axis,
         sign,
         facing_cos: facing.abs(),
-    })
+    }
+}
+
+/// The learned normal of Gaussian `g` (`v / |v|` of its `Param::Normal` row) turned
+/// toward `cam_pos`, as [`facing_normal`] with `axis` = [`LEARNED_AXIS`]; `None` where the
+/// model has no normal group, or the normal or mean is non-finite or degenerate.
+pub fn learned_facing_normal(params: &ParamSet, g: usize, cam_pos: Vec3) -> Option<FacingNormal> {
+    if params.dim(Param::Normal) != 3 {
+        return None;
+    }
+    let v = params.row(Param::Normal, g);
+    let mean = params.row(Param::Mean, g);
+    let norm2: f32 = v.iter().map(|x| x * x).sum();
+    if !(norm2.is_finite() && mean.iter().all(|x| x.is_finite())) || norm2 < MIN_NORMAL_NORM2 {
+        return None;
+    }
+    let a = Vec3::new(v[0], v[1], v[2]) / norm2.sqrt();
+    Some(turned_toward(a, LEARNED_AXIS, mean, cam_pos))
+}
+
+/// The normal `shading` uses for Gaussian `g` ([`facing_normal`] or
+/// [`learned_facing_normal`]); `None` for `Shading::None`.
+pub fn shading_normal(
+    shading: Shading,
+    params: &ParamSet,
+    g: usize,
+    cam_pos: Vec3,
+) -> Option<FacingNormal> {
+    match shading {
+        Shading::None => None,
+        Shading::Lambert => facing_normal(params, g, cam_pos),
+        Shading::LambertLearned => learned_facing_normal(params, g, cam_pos),
+    }
+}
+
+/// Starts every learned normal that the initialiser left unset (`|v|^2` below
+/// [`MIN_NORMAL_NORM2`], e.g. the zeros of `init::from_points`): the Gaussian's shortest
+/// scale axis where one axis is strictly the shortest, else (a round or needle-like
+/// Gaussian, as every isotropic initial Gaussian is) the direction from `centre` to its
+/// mean, outward as a convex body's surface normal is. Rows already set (a surface normal)
+/// are kept. Does nothing without a normal group. Every value written is finite and unit
+/// length; a Gaussian at `centre` with no shortest axis gets +x.
+pub fn initial_normals(params: &mut ParamSet, centre: Vec3) {
+    if params.dim(Param::Normal) != 3 {
+        return;
+    }
+    for g in 0..params.len() {
+        let v = params.row(Param::Normal, g);
+        let norm2: f32 = v.iter().map(|x| x * x).sum();
+        if norm2.is_finite() && norm2 >= MIN_NORMAL_NORM2 {
+            continue;
+        }
+        let ls = params.row(Param::LogScale, g);
+        let q = params.row(Param::Rotation, g);
+        let q_norm2: f32 = q.iter().map(|x| x * x).sum();
+        let k = (1..3).fold(0, |k, j| if ls[j] < ls[k] { j } else { k });
+        let strictly_shortest = (0..3).all(|j| j == k || ls[k] < ls[j]);
+        let mean = params.row(Param::Mean, g);
+        let radial = Vec3::new(mean[0], mean[1], mean[2]) - centre;
+        let normal = if strictly_shortest && q_norm2.is_finite() && q_norm2 >= MIN_QUAT_NORM2 {
+            let q_norm = q_norm2.sqrt();
+            let q_hat = [q[0] / q_norm, q[1] / q_norm, q[2] / q_norm, q[3] / q_norm];
+            Vec3::from(axis_of(q_hat, k))
+        } else {
+            radial
+        };
+        let normal = normal.try_normalize().unwrap_or(Vec3::X);
+        params
+            .row_mut(Param::Normal, g)
+            .copy_from_slice(&normal.to_array());
+    }
 }
 
 /// See [`facing_normal`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FacingNormal {
     pub normal: Vec3,
-    /// Which rotation column (the shortest scale axis).
+    /// Which rotation column (the shortest scale axis), or [`LEARNED_AXIS`].
     pub axis: usize,
     /// +1 or -1: the column turned toward the camera.
     pub sign: f32,
@@ -193,9 +292,10 @@ pub struct FacingNormal {
     pub facing_cos: f32,
 }
 
-/// `f_i` for the Gaussians in `list` (every other one keeps 1), with what backward needs.
-/// `colour` is the unshaded colour, `n * 3`; it is scaled in place.
+/// `f_i` of `shading` for the Gaussians in `list` (every other one keeps 1), with what
+/// backward needs. `colour` is the unshaded colour, `n * 3`; it is scaled in place.
 pub fn shade_forward(
+    shading: Shading,
     params: &ParamSet,
     list: &[u32],
     cam_pos: Vec3,
@@ -211,7 +311,7 @@ pub fn shade_forward(
     };
     for &g in list {
         let g = g as usize;
-        let Some(normal) = facing_normal(params, g, cam_pos) else {
+        let Some(normal) = shading_normal(shading, params, g, cam_pos) else {
             continue;
         };
         let cos = normal.normal.dot(sun_dir);
@@ -231,7 +331,7 @@ pub fn shade_forward(
 
 /// Backward of [`shade_forward`]: `d_colour` (`dL/d` shaded colour, `n * 3`) becomes
 /// `dL/d` unshaded colour in place, and the normal's term is added to the rotation
-/// gradient in `grads`.
+/// gradient (`Lambert`) or the learned normal's (`LambertLearned`) in `grads`.
 pub fn shade_backward(
     pass: &ShadePass,
     params: &ParamSet,
@@ -241,7 +341,6 @@ pub fn shade_backward(
     grads: &mut ParamSet,
 ) {
     let s = sun_dir.to_array();
-    let d_rot = grads.get_mut(Param::Rotation);
     for (g, &f) in pass.factor.iter().enumerate() {
         let d = &mut d_colour[g * 3..g * 3 + 3];
         let d_f: f32 = (0..3).map(|c| d[c] * pass.unshaded[g * 3 + c]).sum();
@@ -250,6 +349,24 @@ pub fn shade_backward(
         }
         let (k, sign) = pass.axis[g];
         if k == u8::MAX || d_f == 0.0 {
+            continue;
+        }
+        if k as usize == LEARNED_AXIS {
+            // f = k_a + (1 - k_a) sign (v / |v|) . s: d f / d v = (1 - k_a) sign
+            // (s - n (n . s)) / |v|, n = v / |v| (the normalisation removes the radial part).
+            let v = params.row(Param::Normal, g);
+            let v_norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            let n_hat = [v[0] / v_norm, v[1] / v_norm, v[2] / v_norm];
+            let n_dot_s: f32 = (0..3).map(|j| n_hat[j] * s[j]).sum();
+            let scale = d_f * (1.0 - ambient) * sign / v_norm;
+            let grad: Vec<f32> = (0..3)
+                .map(|j| scale * (s[j] - n_hat[j] * n_dot_s))
+                .collect();
+            if grad.iter().all(|x| x.is_finite()) {
+                for (o, x) in grads.row_mut(Param::Normal, g).iter_mut().zip(grad) {
+                    *o += x;
+                }
+            }
             continue;
         }
         let q = params.row(Param::Rotation, g);
@@ -264,7 +381,7 @@ pub fn shade_backward(
             .map(|j| (d_hat[j] - q_hat[j] * dot) / q_norm)
             .collect();
         if grad.iter().all(|v| v.is_finite()) {
-            for (o, v) in d_rot[g * 4..g * 4 + 4].iter_mut().zip(grad) {
+            for (o, v) in grads.row_mut(Param::Rotation, g).iter_mut().zip(grad) {
                 *o += v;
             }
         }
@@ -277,13 +394,18 @@ mod tests {
 
     #[test]
     fn names_round_trip_and_unknown_ones_are_refused() {
-        for s in [Shading::None, Shading::Lambert] {
+        for s in [Shading::None, Shading::Lambert, Shading::LambertLearned] {
             assert_eq!(s.name().parse::<Shading>().unwrap(), s);
             assert_eq!(Shading::from_code(s.code()), Some(s));
         }
         let err = "phong".parse::<Shading>().unwrap_err().to_string();
-        assert!(err.contains("none or lambert"), "{err}");
+        assert!(err.contains("none, lambert or lambert_learned"), "{err}");
         assert_eq!(Shading::from_code(7), None);
+        assert_eq!(
+            " Lambert_Learned ".parse::<Shading>().unwrap(),
+            Shading::LambertLearned
+        );
+        assert_eq!(Shading::LambertLearned.code(), 2);
     }
 
     #[test]
@@ -308,5 +430,89 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn initial_normals_keep_set_rows_then_use_the_shortest_axis_else_the_radial() {
+        use crate::model::ModelLayout;
+        let layout = ModelLayout {
+            normal_dim: 3,
+            ..ModelLayout::sh(0)
+        };
+        let mut p = ParamSet::new(layout.dims());
+        p.push_zeros(5);
+        let h = std::f32::consts::FRAC_1_SQRT_2;
+        for g in 0..5 {
+            p.row_mut(Param::Rotation, g)
+                .copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+            p.row_mut(Param::Mean, g)
+                .copy_from_slice(&[1.0, 2.0 + g as f32, 3.0]);
+        }
+        // 0: a surface normal from the initialiser (not unit: kept as it is).
+        p.row_mut(Param::Normal, 0)
+            .copy_from_slice(&[0.0, 0.0, 2.0]);
+        // 1: flat along its y axis, rotated 90 degrees about z (its y axis is world -x).
+        p.row_mut(Param::LogScale, 1)
+            .copy_from_slice(&[0.0, -2.0, 0.0]);
+        p.row_mut(Param::Rotation, 1)
+            .copy_from_slice(&[h, 0.0, 0.0, h]);
+        // 2: round; 3: a needle (two shortest axes tie): both radial from the centre.
+        p.row_mut(Param::LogScale, 3)
+            .copy_from_slice(&[-1.0, -1.0, 0.0]);
+        // 4: round and at the centre: +x.
+        p.row_mut(Param::Mean, 4).copy_from_slice(&[1.0, 2.0, 3.0]);
+        // A NaN normal is unset too.
+        p.row_mut(Param::Normal, 2)[0] = f32::NAN;
+        initial_normals(&mut p, Vec3::new(1.0, 2.0, 3.0));
+        let row = |g: usize| Vec3::from_slice(p.row(Param::Normal, g));
+        assert_eq!(row(0), Vec3::new(0.0, 0.0, 2.0));
+        assert!(
+            (row(1) - Vec3::new(-1.0, 0.0, 0.0)).length() < 1e-6,
+            "{}",
+            row(1)
+        );
+        assert!((row(2) - Vec3::Y).length() < 1e-6, "{}", row(2));
+        assert!((row(3) - Vec3::Y).length() < 1e-6, "{}", row(3));
+        assert_eq!(row(4), Vec3::X);
+        assert!(p.get(Param::Normal).iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn a_degenerate_learned_normal_shades_nothing() {
+        use crate::model::ModelLayout;
+        let layout = ModelLayout {
+            normal_dim: 3,
+            ..ModelLayout::sh(0)
+        };
+        let mut p = ParamSet::new(layout.dims());
+        p.push_zeros(3);
+        p.row_mut(Param::Normal, 0)
+            .copy_from_slice(&[0.0, 0.0, 1.0]);
+        p.row_mut(Param::Normal, 1)
+            .copy_from_slice(&[0.0, 0.0, 1e-4]);
+        p.row_mut(Param::Normal, 2)
+            .copy_from_slice(&[f32::INFINITY, 0.0, 1.0]);
+        let mut colour = vec![1.0f32; 9];
+        let cam = Vec3::new(0.0, 0.0, 5.0);
+        let sun = Vec3::new(0.6, 0.0, 0.8);
+        let pass = shade_forward(
+            Shading::LambertLearned,
+            &p,
+            &[0, 1, 2],
+            cam,
+            sun,
+            0.1,
+            &mut colour,
+        );
+        assert!((pass.factor[0] - (0.1 + 0.9 * 0.8)).abs() < 1e-6);
+        assert_eq!(&pass.factor[1..], &[1.0, 1.0]);
+        let mut grads = p.zeros_like();
+        let mut d = vec![1.0f32; 9];
+        shade_backward(&pass, &p, sun, 0.1, &mut d, &mut grads);
+        assert_eq!(&grads.get(Param::Normal)[3..], &[0.0; 6]);
+        // Only the lit, valid normal gets a gradient, and it is tangent to the normal.
+        let g0 = grads.row(Param::Normal, 0);
+        assert!(g0[0] > 0.0 && g0[2] == 0.0, "{g0:?}");
+        assert!(grads.get(Param::Rotation).iter().all(|&v| v == 0.0));
     }
 }

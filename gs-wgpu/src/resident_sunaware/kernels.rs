@@ -262,7 +262,9 @@ pub(super) fn adam_words(
     let bias1 = 1.0 - (beta1 as f64).powi(t);
     let bias2 = 1.0 - (beta2 as f64).powi(t);
     let mut words = [0u32; 28];
-    words[..9].copy_from_slice(&off);
+    // The kernel knows the first 8 groups; word 8 ends them (a learned shading normal,
+    // which the engine refuses, would stay unstepped).
+    words[..9].copy_from_slice(&off[..9]);
     let mut active = 0u32;
     for p in Param::ALL {
         let lr = rates[p.index()];

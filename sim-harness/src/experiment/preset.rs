@@ -164,10 +164,11 @@ pub struct Preset {
     /// default 1; the wgpu backend supports only 1).
     pub shadow_gain: f32,
     /// Colour times a Lambertian factor of a per-Gaussian normal and the Sun: "none" (the
-    /// paper) or "lambert" (`SunAwareConfig::shading`; configurations b-d, (a) stays plain;
-    /// the wgpu backend refuses it).
+    /// paper), "lambert" (the shortest scale axis) or "lambert_learned" (a learned normal
+    /// per Gaussian, its rate `[rates] normal`) (`SunAwareConfig::shading`; configurations
+    /// b-d, (a) stays plain; the wgpu backend refuses both).
     pub shading: String,
-    /// Ambient floor `k_a` of "lambert" shading, in [0, 1).
+    /// Ambient floor `k_a` of the Lambertian shadings, in [0, 1).
     pub shading_ambient: f32,
     /// Evicted keyframes kept for replay (0: none, the paper; `OnlineConfig`).
     pub replay_capacity: usize,
@@ -204,6 +205,7 @@ pub struct RateOverrides {
     pub shadow_latent: Option<f32>,
     pub appearance_mlp: Option<f32>,
     pub shadow_mlp: Option<f32>,
+    pub normal: Option<f32>,
 }
 
 impl RateOverrides {
@@ -222,6 +224,7 @@ impl RateOverrides {
             shadow_latent: pick(self.shadow_latent, base.shadow_latent),
             appearance_mlp: pick(self.appearance_mlp, base.appearance_mlp),
             shadow_mlp: pick(self.shadow_mlp, base.shadow_mlp),
+            normal: pick(self.normal, base.normal),
         }
     }
 }
@@ -674,6 +677,20 @@ mod tests {
         assert_eq!((m.shading, m.shading_ambient), (Shading::Lambert, 0.2));
         assert_eq!(p.model_config(Variant::A).shading, Shading::None);
         assert_eq!((m.lr.sh_dc, m.lr.opacity), (0.01, 0.05));
+        let learned = Preset::from_toml_str(
+            "shading = \"lambert_learned\"\n[rates]\nnormal = 0.004\n",
+            "t.toml",
+        )
+        .unwrap()
+        .model_config(Variant::D);
+        assert_eq!(
+            (
+                learned.shading,
+                learned.lr.normal,
+                learned.layout().normal_dim
+            ),
+            (Shading::LambertLearned, 0.004, 3)
+        );
         assert_eq!(
             m.lr.feature, base.lr.feature,
             "unnamed rates keep the default"
@@ -690,6 +707,7 @@ mod tests {
             ("shadow_gain = inf\n", "shadow_gain"),
             ("shading = \"phong\"\n", "shading"),
             ("shading_ambient = 1.0\n", "shading_ambient"),
+            ("[rates]\nnormal = -1.0\n", "normal"),
         ] {
             let e = Preset::from_toml_str(text, "t.toml")
                 .unwrap_err()

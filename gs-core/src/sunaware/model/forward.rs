@@ -199,12 +199,13 @@ impl SunAwareModel {
         };
         let shade = match self.config.shading {
             Shading::None => None,
-            Shading::Lambert => {
+            Shading::Lambert | Shading::LambertLearned => {
                 let mut colour = vec![0.0f32; n * 3];
                 for i in 0..n {
                     colour[i * 3..i * 3 + 3].copy_from_slice(&channels[i * nc..i * nc + 3]);
                 }
                 let pass = shade_forward(
+                    self.config.shading,
                     p,
                     &network_list,
                     cam_pos,

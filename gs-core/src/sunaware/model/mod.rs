@@ -67,7 +67,7 @@ use crate::raster::{RasterSettings, RasterWorkspace, RenderOutput};
 use super::config::SunAwareConfig;
 use super::engine::{Backend, DeviceRender, Engine};
 use super::error::SunAwareError;
-use super::shading::ShadePass;
+use super::shading::{initial_normals, ShadePass};
 use super::sun_visibility::sun_visibility;
 
 pub use backward::BackwardTimings;
@@ -335,6 +335,8 @@ impl SunAwareModel {
             )));
         }
         let mut gaussians = gaussians;
+        let (lo, hi) = (Vec3::from(scene_box.min_m()), Vec3::from(scene_box.max_m()));
+        initial_normals(&mut gaussians.params, (lo + hi) * 0.5);
         let encoding = PositionalEncoding::new(config.encoding_frequencies)?;
         let v = config.variant;
         // A precision this CPU cannot run fails here, at configuration, not mid-training.

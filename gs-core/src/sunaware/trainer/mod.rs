@@ -165,6 +165,7 @@ impl SunAwareTrainer {
         r[Param::ShRest.index()] = lr.sh_rest;
         r[Param::Feature.index()] = lr.feature;
         r[Param::ShadowLatent.index()] = lr.shadow_latent;
+        r[Param::Normal.index()] = lr.normal;
         r
     }
 
