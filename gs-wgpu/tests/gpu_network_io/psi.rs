@@ -191,7 +191,7 @@ fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
             let gpu = probe
                 .finish_f32(enc, &[(&chans, n * nc), (&d_out, n)])
                 .unwrap();
-            // The model's loops (sunaware/model.rs forward_with, backward_timed).
+            // The model's loops (sunaware/model/forward.rs forward_with, model/backward.rs backward_timed).
             let mut want_chans = chans0.clone();
             let mut want_d_out = vec![0.0f32; n];
             for (r, &g) in s.list[..count].iter().enumerate() {
