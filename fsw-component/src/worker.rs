@@ -761,7 +761,11 @@ fn run_frame(learner: &mut dyn Learner, shared: &WorkerShared, job: FrameJob) {
             Err(_) => internal_event(shared, event_detail::ROUND_FAILED),
         }
     }
+    // The learner's figures change with the frame counters under one lock, so a reader that
+    // sees the frame processed also sees the round it ran.
+    let stats = learner.stats();
     let mut s = lock(&shared.snapshot);
+    s.learner = stats;
     s.frames_processed += 1;
     s.frames_used += u64::from(used);
     if round.is_some() {

@@ -168,3 +168,106 @@ fn the_model_runs_in_the_configured_denormal_mode() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A learner that counts the frames offered to it as rounds and is slow to report its
+/// events (the worker asks for them after every job, before it used to refresh the
+/// learner's figures in the snapshot).
+struct SlowReporter {
+    offered: u32,
+}
+
+impl Learner for SlowReporter {
+    fn offer(&mut self, _frame: &ObservedFrame) -> OfferResult {
+        self.offered += 1;
+        OfferResult::Added
+    }
+    fn run_round_if_due(&mut self) -> Result<Option<RoundSummary>, LearnerError> {
+        Ok(None)
+    }
+    fn predict(&self, _view: &ViewRequest) -> Result<PredictedImage, LearnerError> {
+        Err(LearnerError::NothingToRender)
+    }
+    fn reset(&mut self) -> Result<(), LearnerError> {
+        self.offered = 0;
+        Ok(())
+    }
+    fn save(&self) -> Vec<u8> {
+        Vec::new()
+    }
+    fn load(&mut self, _bytes: &[u8]) -> Result<(), LearnerError> {
+        Ok(())
+    }
+    fn inspect(&self, _bytes: &[u8]) -> Result<u64, LearnerError> {
+        Ok(0)
+    }
+    fn stats(&self) -> LearnerStats {
+        LearnerStats {
+            rounds: self.offered,
+            ..LearnerStats::default()
+        }
+    }
+    fn take_events(&mut self) -> Vec<EventKind> {
+        std::thread::sleep(Duration::from_millis(300));
+        Vec::new()
+    }
+}
+
+#[test]
+fn a_processed_frame_and_the_learner_figures_it_changed_are_seen_together() {
+    let dir = std::env::temp_dir().join(format!("fsw-worker-snap-{}", std::process::id()));
+    let worker = Worker::start(
+        Box::new(SlowReporter { offered: 0 }),
+        limits(),
+        CheckpointSettings {
+            path: dir.join("ckpt.bin"),
+            period: None,
+        },
+        1,
+        DenormalMode::FlushToZero,
+        Duration::from_secs(60),
+    )
+    .unwrap();
+    let shared = Arc::clone(&worker.shared);
+    let view = glam::DVec3::new(0.0, 0.0, -1.0);
+    let frame = ObservedFrame {
+        frame_id: 1,
+        time_us: 1_000_000,
+        width: 4,
+        height: 2,
+        format: PixelFormat::Rgb8,
+        pixels: vec![100; 24],
+        mask: None,
+        camera: gs_core::Intrinsics::from_fov_x(0.6, 4, 2),
+        telemetry: crate::sync::SyncedTelemetry {
+            time_us: 1_000_000,
+            camera_from_target: glam::DQuat::IDENTITY,
+            target_in_camera_m: -view * 10.0,
+            pose_quality: 1.0,
+            sun_in_body: glam::DVec3::Z,
+            sun_in_camera: glam::DVec3::Z,
+            sun_in_target: glam::DVec3::Z,
+            view_in_target: view,
+            range_m: 10.0,
+            eclipse: false,
+        },
+    };
+    assert!(!shared.push_frame(FrameJob {
+        frame,
+        usage: FrameUse::PredictAndTrain,
+    }));
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let snapshot = loop {
+        let s = *lock(&shared.snapshot);
+        if s.frames_processed >= 1 {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "the frame was not processed");
+        std::thread::sleep(Duration::from_millis(1));
+    };
+    assert_eq!(
+        snapshot.learner.rounds, 1,
+        "frames_processed moved before the learner's figures"
+    );
+    worker.finish();
+    let _ = std::fs::remove_dir_all(&dir);
+}
