@@ -13,6 +13,29 @@ fn limits() -> QueueLimits {
     }
 }
 
+/// A worker over `learner` with checkpoints in `dir` (none periodic) and a 60 s round
+/// deadline.
+fn start_worker(
+    learner: Box<dyn Learner>,
+    dir: &std::path::Path,
+    threads: usize,
+    mode: DenormalMode,
+) -> Worker {
+    let checkpoints = CheckpointSettings {
+        path: dir.join("ckpt.bin"),
+        period: None,
+    };
+    Worker::start(
+        learner,
+        limits(),
+        checkpoints,
+        threads,
+        mode,
+        Duration::from_secs(60),
+    )
+    .unwrap()
+}
+
 #[test]
 fn full_queues_drop_oldest_frames_and_refuse_commands() {
     let shared = WorkerShared {
@@ -62,18 +85,7 @@ fn full_queues_drop_oldest_frames_and_refuse_commands() {
 fn finish_drains_queued_commands() {
     let learner = NearestKeyframeLearner::new(WindowConfig::default()).expect("default window");
     let dir = std::env::temp_dir().join(format!("fsw-worker-{}", std::process::id()));
-    let worker = Worker::start(
-        Box::new(learner),
-        limits(),
-        CheckpointSettings {
-            path: dir.join("ckpt.bin"),
-            period: None,
-        },
-        1,
-        DenormalMode::FlushToZero,
-        Duration::from_secs(60),
-    )
-    .unwrap();
+    let worker = start_worker(Box::new(learner), &dir, 1, DenormalMode::FlushToZero);
     let shared = Arc::clone(&worker.shared);
     shared
         .push_command(CommandJob {
@@ -140,19 +152,7 @@ fn the_model_runs_in_the_configured_denormal_mode() {
             inner: NearestKeyframeLearner::new(WindowConfig::default()).expect("default window"),
             seen: Arc::clone(&seen),
         };
-        let checkpoints = CheckpointSettings {
-            path: dir.join("ckpt.bin"),
-            period: None,
-        };
-        let worker = Worker::start(
-            Box::new(probe),
-            limits(),
-            checkpoints,
-            2,
-            mode,
-            Duration::from_secs(60),
-        )
-        .unwrap();
+        let worker = start_worker(Box::new(probe), &dir, 2, mode);
         let save = CommandJob {
             sequence: 1,
             opcode: 3,
@@ -215,18 +215,8 @@ impl Learner for SlowReporter {
 #[test]
 fn a_processed_frame_and_the_learner_figures_it_changed_are_seen_together() {
     let dir = std::env::temp_dir().join(format!("fsw-worker-snap-{}", std::process::id()));
-    let worker = Worker::start(
-        Box::new(SlowReporter { offered: 0 }),
-        limits(),
-        CheckpointSettings {
-            path: dir.join("ckpt.bin"),
-            period: None,
-        },
-        1,
-        DenormalMode::FlushToZero,
-        Duration::from_secs(60),
-    )
-    .unwrap();
+    let reporter = Box::new(SlowReporter { offered: 0 });
+    let worker = start_worker(reporter, &dir, 1, DenormalMode::FlushToZero);
     let shared = Arc::clone(&worker.shared);
     let view = glam::DVec3::new(0.0, 0.0, -1.0);
     let frame = ObservedFrame {
