@@ -188,12 +188,20 @@ pub fn facing_normal(params: &ParamSet, g: usize, cam_pos: Vec3) -> Option<Facin
     {
         return None;
     }
-    let q_norm = q_norm2.sqrt();
-    let q_hat = [q[0] / q_norm, q[1] / q_norm, q[2] / q_norm, q[3] / q_norm];
-    // The first smallest scale: ties resolve the same way every run.
-    let axis = (1..3).fold(0, |k, j| if ls[j] < ls[k] { j } else { k });
-    let a = Vec3::from(axis_of(q_hat, axis));
+    let axis = first_shortest_axis(ls);
+    let a = Vec3::from(axis_of(unit_quaternion(q, q_norm2), axis));
     Some(turned_toward(a, axis, mean, cam_pos))
+}
+
+/// Index of the first smallest of three log-scales: ties resolve the same way every run.
+fn first_shortest_axis(ls: &[f32]) -> usize {
+    (1..3).fold(0, |k, j| if ls[j] < ls[k] { j } else { k })
+}
+
+/// `q / |q|` for a quaternion whose squared norm `q_norm2` is finite and not degenerate.
+fn unit_quaternion(q: &[f32], q_norm2: f32) -> [f32; 4] {
+    let q_norm = q_norm2.sqrt();
+    [q[0] / q_norm, q[1] / q_norm, q[2] / q_norm, q[3] / q_norm]
 }
 
 /// The unit direction `a` (normal `axis`) of the Gaussian at `mean`, turned to face
@@ -262,14 +270,12 @@ pub fn initial_normals(params: &mut ParamSet, centre: Vec3) {
         let ls = params.row(Param::LogScale, g);
         let q = params.row(Param::Rotation, g);
         let q_norm2: f32 = q.iter().map(|x| x * x).sum();
-        let k = (1..3).fold(0, |k, j| if ls[j] < ls[k] { j } else { k });
+        let k = first_shortest_axis(ls);
         let strictly_shortest = (0..3).all(|j| j == k || ls[k] < ls[j]);
         let mean = params.row(Param::Mean, g);
         let radial = Vec3::new(mean[0], mean[1], mean[2]) - centre;
         let normal = if strictly_shortest && q_norm2.is_finite() && q_norm2 >= MIN_QUAT_NORM2 {
-            let q_norm = q_norm2.sqrt();
-            let q_hat = [q[0] / q_norm, q[1] / q_norm, q[2] / q_norm, q[3] / q_norm];
-            Vec3::from(axis_of(q_hat, k))
+            Vec3::from(axis_of(unit_quaternion(q, q_norm2), k))
         } else {
             radial
         };
