@@ -2,7 +2,9 @@
 //! - default: the offline reference, the same model trained on all lit frames at once (a
 //!   random frame per step, one long schedule, densifying in the first half), masked PSNR on
 //!   those frames as it goes: what the representation can fit without the online procedure;
-//! - `--online 1`: the online procedure (`experiment::runner::run_config`), its ladder line;
+//! - `--online 1`: the online procedure (`experiment::runner::run_config`), its ladder line,
+//!   then each evaluation view (L2) and each held-out frame (L1) with its distance to the
+//!   nearest trained Sun and viewpoint;
 //! - `--noise-ref SPP`: the ground truth's own Monte Carlo noise, masked PSNR of the frames
 //!   at the preset's samples per pixel against the same frames at SPP (the ceiling any model
 //!   scored against that ground truth meets).
@@ -153,21 +155,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let trained = sim_harness::experiment::runner::trained_frames(&scene, &preset);
         let suns: Vec<glam::DVec3> = trained.iter().map(|v| v.sun_dir_target).collect();
         let dirs: Vec<glam::DVec3> = trained.iter().map(|v| v.view_dir_target()).collect();
-        for (view, (m, b)) in scene
-            .eval
-            .iter()
-            .zip(o.eval.per_view.iter().zip(&o.black_eval.per_view))
-        {
-            // Sun and viewpoint of one frame together: the appearance depends on the pair, and
-            // the frame nearest in Sun is rarely the one nearest in viewpoint.
-            let joint_deg = suns
-                .iter()
+        // Sun and viewpoint of one frame together: the appearance depends on the pair, and
+        // the frame nearest in Sun is rarely the one nearest in viewpoint.
+        let joint_deg = |view: &sim_harness::experiment::data::ViewData| {
+            suns.iter()
                 .zip(&dirs)
                 .map(|(s, d)| {
                     let sun_deg = s.angle_between(view.sun_dir_target).to_degrees();
                     sun_deg.max(d.angle_between(view.view_dir_target()).to_degrees())
                 })
-                .fold(f64::INFINITY, f64::min);
+                .fold(f64::INFINITY, f64::min)
+        };
+        for (view, (m, b)) in scene
+            .eval
+            .iter()
+            .zip(o.eval.per_view.iter().zip(&o.black_eval.per_view))
+        {
+            let joint_deg = joint_deg(view);
             eprintln!(
                 "eval view {:3}: masked {:6.2} dB (black {:6.2}); nearest trained Sun {:5.1} deg, view {:5.1} deg, both in one frame {:5.1} deg",
                 view.index,
@@ -178,6 +182,35 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 joint_deg,
             );
         }
+        // L1 per frame against the same distance: whether the held-out frames far from any
+        // trained (Sun, view) pair are the ones the model misses.
+        let held = sim_harness::experiment::runner::held_out_frames(&scene, &preset);
+        let mut by_distance: Vec<(f64, f64, f64)> = held
+            .iter()
+            .zip(o.held_out.per_view.iter().zip(&o.black_held_out.per_view))
+            .map(|(view, (m, b))| (joint_deg(view), m.masked_psnr_db, b.masked_psnr_db))
+            .collect();
+        for (view, (joint, m, b)) in held.iter().zip(&by_distance) {
+            eprintln!(
+                "held-out frame {:3}: masked {m:6.2} dB (black {b:6.2}); nearest trained Sun and view in one frame {joint:5.1} deg",
+                view.index
+            );
+        }
+        by_distance.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let half = by_distance.len() / 2;
+        let margin = |part: &[(f64, f64, f64)]| {
+            part.iter().map(|(_, m, b)| m - b).sum::<f64>() / part.len().max(1) as f64
+        };
+        let deg = |part: &[(f64, f64, f64)]| {
+            part.iter().map(|(d, _, _)| d).sum::<f64>() / part.len().max(1) as f64
+        };
+        eprintln!(
+            "held-out frames nearer than the median (mean {:.1} deg): {:+.2} dB over black; farther (mean {:.1} deg): {:+.2} dB",
+            deg(&by_distance[..half]),
+            margin(&by_distance[..half]),
+            deg(&by_distance[half..]),
+            margin(&by_distance[half..])
+        );
         return Ok(());
     }
     let mut online = gs_online::online::OnlineTrainer::new(

@@ -121,6 +121,18 @@ pub fn trained_frames<'a>(scene: &'a SceneData, preset: &Preset) -> Vec<&'a View
         .collect()
 }
 
+/// The lit sequence frames withheld from training and scored as the held-out rung (L1), in
+/// time order.
+pub fn held_out_frames<'a>(scene: &'a SceneData, preset: &Preset) -> Vec<&'a ViewData> {
+    scene
+        .frames
+        .iter()
+        .enumerate()
+        .filter(|(i, v)| is_held_out(preset, *i) && !v.eclipse)
+        .map(|(_, v)| v)
+        .collect()
+}
+
 /// The scene box of the target: its vertex bounds grown by 5 % on each side.
 pub fn scene_box(scene: &SceneData) -> Result<SceneBox, OnlineError> {
     let (lo, hi) = (scene.bounds_min_m, scene.bounds_max_m);
@@ -347,13 +359,7 @@ pub fn run_config(
         .iter()
         .filter(|v| window_ids.contains(&(v.index as u64)))
         .collect();
-    let held_frames: Vec<&ViewData> = scene
-        .frames
-        .iter()
-        .enumerate()
-        .filter(|(i, v)| is_held_out(preset, *i) && !v.eclipse)
-        .map(|(_, v)| v)
-        .collect();
+    let held_frames = held_out_frames(scene, preset);
     let (window_fit, black_window) = score_with_black(model, k, &window_frames)?;
     let (held_out, black_held_out) = score_with_black(model, k, &held_frames)?;
     let (seen, black_seen) = score_with_black(model, k, &seen_frames)?;
