@@ -171,7 +171,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .iter()
             .zip(o.eval.per_view.iter().zip(&o.black_eval.per_view))
         {
-            let joint_deg = joint_deg(view);
+            let joint = joint_deg(view);
             eprintln!(
                 "eval view {:3}: masked {:6.2} dB (black {:6.2}); nearest trained Sun {:5.1} deg, view {:5.1} deg, both in one frame {:5.1} deg",
                 view.index,
@@ -179,7 +179,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 b.masked_psnr_db,
                 nearest_angle_deg(view.sun_dir_target, &suns),
                 nearest_angle_deg(view.view_dir_target(), &dirs),
-                joint_deg,
+                joint,
             );
         }
         // L1 per frame against the same distance: whether the held-out frames far from any

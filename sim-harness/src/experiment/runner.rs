@@ -112,23 +112,22 @@ pub(crate) fn is_held_out(preset: &Preset, i: usize) -> bool {
 
 /// The lit sequence frames training received (none withheld for L1), in time order.
 pub fn trained_frames<'a>(scene: &'a SceneData, preset: &Preset) -> Vec<&'a ViewData> {
-    scene
-        .frames
-        .iter()
-        .enumerate()
-        .filter(|(i, v)| !is_held_out(preset, *i) && !v.eclipse)
-        .map(|(_, v)| v)
-        .collect()
+    lit_frames(scene, preset, false)
 }
 
 /// The lit sequence frames withheld from training and scored as the held-out rung (L1), in
 /// time order.
 pub fn held_out_frames<'a>(scene: &'a SceneData, preset: &Preset) -> Vec<&'a ViewData> {
+    lit_frames(scene, preset, true)
+}
+
+/// The lit sequence frames that are (`held_out`) or are not withheld for L1, in time order.
+fn lit_frames<'a>(scene: &'a SceneData, preset: &Preset, held_out: bool) -> Vec<&'a ViewData> {
     scene
         .frames
         .iter()
         .enumerate()
-        .filter(|(i, v)| is_held_out(preset, *i) && !v.eclipse)
+        .filter(|(i, v)| is_held_out(preset, *i) == held_out && !v.eclipse)
         .map(|(_, v)| v)
         .collect()
 }
