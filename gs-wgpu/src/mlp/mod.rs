@@ -5,7 +5,8 @@
 //! reduction over rows split into [`WEIGHT_GRADIENT_CHUNK_ROWS`]-row chunks, added in order
 //! by `mlp_sum_chunks.wgsl`),
 //! bias and activation (and their backward) a pointwise kernel (`mlp_pointwise.wgsl`) and
-//! the bias gradient a column sum (`mlp_colsum.wgsl`). Every kernel reads the weights in
+//! the bias gradient a column sum (`mlp_colsum.wgsl`, split into the same row chunks and added
+//! the same way). Every kernel reads the weights in
 //! place from one flat parameter buffer in `nn::mlp`'s layout (word offsets in its
 //! uniform) and writes the parameter gradient into one flat buffer of the same layout.
 //!
@@ -36,7 +37,7 @@
 //!   every chunk of the weight gradient's split reduction past the count sums nothing, so
 //!   it adds exactly 0: the gradients are those of the live rows only;
 //! - every output value is one thread's in-order sum (GEMM over the reduction dimension or
-//!   one chunk of it, the chunks in chunk order, the bias gradient over rows), no atomics,
+//!   one chunk of it, the chunks in chunk order, the bias gradient likewise), no atomics,
 //!   so results are deterministic run to run; the chunk boundaries depend only on the row
 //!   index, so a resident run with `count` live rows gives the host path's bits for
 //!   `count` rows;

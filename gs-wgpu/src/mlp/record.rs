@@ -70,6 +70,26 @@ impl GpuMlp {
         Ok(())
     }
 
+    /// Records `mlp_sum_chunks.wgsl`: `dst[dst_off + i]` = the sum over the `chunks`
+    /// partial results `partials[z * values + i]`, in chunk order, for i < `values`.
+    fn sum_chunks(
+        &self,
+        pass: &mut wgpu::ComputePass,
+        scratch: Option<&Scratch>,
+        label: &str,
+        partials: &wgpu::Buffer,
+        chunks: usize,
+        (dst, dst_off, values): (&wgpu::Buffer, usize, usize),
+    ) -> Result<(), GpuError> {
+        let data = u32_bytes(&[values as u32, chunks as u32, dst_off as u32, 0]);
+        let uniform = uniform_in(&self.ctx, scratch, label, &data)?;
+        let bind = self
+            .ctx
+            .bind_group(&self.sum_chunks, &[&uniform, partials, dst]);
+        dispatch_1d(pass, &self.sum_chunks, &bind, values as u64);
+        Ok(())
+    }
+
     /// Records the forward of the network `widths`/`hidden` whose flat parameters are
     /// `params` over `max_rows` rows of `input` (live count in `count`), every layer's
     /// output into a fresh (host path) or scratch buffer of the returned tape.
@@ -248,30 +268,38 @@ impl GpuMlp {
                 count,
             )?;
             if let Some(partials) = &partials {
-                let values = n_in * n_out;
-                let uniform = uniform_in(
-                    &self.ctx,
-                    scratch,
-                    &format!("mlp {label} backward dW sum {l}"),
-                    &u32_bytes(&[values as u32, chunks as u32, w_at as u32, 0]),
-                )?;
-                let bind = self
-                    .ctx
-                    .bind_group(&self.sum_chunks, &[&uniform, partials, grads]);
-                dispatch_1d(&mut pass, &self.sum_chunks, &bind, values as u64);
+                let label = format!("mlp {label} backward dW sum {l}");
+                let to = (grads, w_at, n_in * n_out);
+                self.sum_chunks(&mut pass, scratch, &label, partials, chunks, to)?;
             }
+            // The bias gradient: chunked like the weight gradient, into the same partials.
+            let b_at = w_at + n_in * n_out;
+            let (db_to, db_at, db_chunk_rows) = match &partials {
+                Some(partials) => (partials, 0, WEIGHT_GRADIENT_CHUNK_ROWS),
+                None => (grads, b_at, rows),
+            };
             let colsum = uniform_in(
                 &self.ctx,
                 scratch,
                 &format!("mlp {label} backward db {l}"),
-                &u32_bytes(&[rows as u32, n_out as u32, (w_at + n_in * n_out) as u32, 0]),
+                &u32_bytes(&[
+                    rows as u32,
+                    n_out as u32,
+                    db_at as u32,
+                    db_chunk_rows as u32,
+                ]),
             )?;
             let bind = self
                 .ctx
-                .bind_group(&self.colsum, &[&colsum, &dz, grads, count]);
+                .bind_group(&self.colsum, &[&colsum, &dz, db_to, count]);
             pass.set_pipeline(&self.colsum);
             pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(n_out.div_ceil(64) as u32, 1, 1);
+            pass.dispatch_workgroups(n_out.div_ceil(64) as u32, chunks as u32, 1);
+            if let Some(partials) = &partials {
+                let label = format!("mlp {label} backward db sum {l}");
+                let to = (grads, b_at, n_out);
+                self.sum_chunks(&mut pass, scratch, &label, partials, chunks, to)?;
+            }
             let d_prev = match (l, d_input) {
                 (0, None) => break,
                 (0, Some(d)) => d,
