@@ -98,13 +98,6 @@ impl Engine for WgpuEngine {
     }
 
     fn supports(&self, config: &SunAwareConfig) -> Result<(), String> {
-        let gain = config.shadow_gain;
-        if config.variant.uses_shadow() && gain != 1.0 {
-            return Err(format!(
-                "the wgpu backend supports shadow_gain = 1 only (this model has {gain}): \
-                 train configurations c-d with another gain on the CPU"
-            ));
-        }
         if config.shading != Shading::None {
             return Err(format!(
                 "the wgpu backend supports shading = \"none\" only (this model has {:?}): \

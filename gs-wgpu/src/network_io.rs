@@ -110,7 +110,8 @@ struct Uniform {
     width: usize,
     dim: usize,
     freqs: usize,
-    multiply: bool,
+    /// `Some(gain)`: Psi's output multiplies `gain * V` (ShadowRefinement::Multiply).
+    multiply_gain: Option<f32>,
     camera_centre: [f32; 3],
     box_min: [f32; 3],
     box_extent: [f32; 3],
@@ -128,11 +129,12 @@ impl Uniform {
             self.width,
             self.dim,
             self.freqs,
-            usize::from(self.multiply),
+            usize::from(self.multiply_gain.is_some()),
         ]) {
             // Validated to fit u32 before any uniform is built.
             *w = v as u32;
         }
+        words[14] = self.multiply_gain.unwrap_or(1.0).to_bits();
         let vec4 = |words: &mut [u32], at: usize, v: [f32; 3]| {
             for (w, x) in words[at..at + 3].iter_mut().zip(v) {
                 *w = x.to_bits();
@@ -551,9 +553,10 @@ impl NetworkIo {
         )
     }
 
-    /// Psi's output P (`n`, row r = list[r]'s) into channel 3: `chans[g * nc + 3] = V_g *
-    /// P_r` when `multiply` (ShadowRefinement::Multiply), else `P_r`, for r < count, g =
-    /// list[r]; other Gaussians' channels are not touched. `nc` must be 4.
+    /// Psi's output P (`n`, row r = list[r]'s) into channel 3: `chans[g * nc + 3] = gain *
+    /// V_g * P_r` when `multiply_gain` is `Some(gain)` (ShadowRefinement::Multiply), else
+    /// `P_r`, for r < count, g = list[r]; other Gaussians' channels are not touched. `nc`
+    /// must be 4.
     pub fn encode_psi_scatter(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -561,7 +564,7 @@ impl NetworkIo {
         nc: usize,
         visibility: &wgpu::Buffer,
         output: &wgpu::Buffer,
-        multiply: bool,
+        multiply_gain: Option<f32>,
         chans: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
@@ -574,7 +577,7 @@ impl NetworkIo {
         let uniform = Uniform {
             n,
             nc,
-            multiply,
+            multiply_gain,
             ..Uniform::default()
         };
         if n == 0 {
@@ -592,8 +595,8 @@ impl NetworkIo {
     }
 
     /// Psi's output gradient (`n`): `d_out[r] = rows[g * (13 + nc) + 16]` (channel 3's
-    /// gradient) times V_g when `multiply`, for r < count, g = list[r]; 0 for rows
-    /// `>= count`. `nc` must be 4.
+    /// gradient) times `gain * V_g` when `multiply_gain` is `Some(gain)`, for r < count, g =
+    /// list[r]; 0 for rows `>= count`. `nc` must be 4.
     pub fn encode_psi_d_output(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -601,7 +604,7 @@ impl NetworkIo {
         nc: usize,
         visibility: &wgpu::Buffer,
         rows: &wgpu::Buffer,
-        multiply: bool,
+        multiply_gain: Option<f32>,
         d_out: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
@@ -614,7 +617,7 @@ impl NetworkIo {
         let uniform = Uniform {
             n,
             nc,
-            multiply,
+            multiply_gain,
             ..Uniform::default()
         };
         if n == 0 {

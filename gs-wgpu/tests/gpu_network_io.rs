@@ -320,14 +320,22 @@ fn bad_host_arguments_are_rejected_before_recording() {
             3,
             &vis,
             &short,
-            true,
+            Some(1.0),
             &chans4,
         ),
         "Psi with 3 channels",
     );
     let tiny = probe.buffer_f32("tiny", &vec![0.5; n / 2]);
     invalid(
-        io.encode_psi_d_output(&mut enc, b.rows(&scratch, n), 4, &tiny, &rows, true, &short),
+        io.encode_psi_d_output(
+            &mut enc,
+            b.rows(&scratch, n),
+            4,
+            &tiny,
+            &rows,
+            Some(1.0),
+            &short,
+        ),
         "short visibility",
     );
     let psi_d_input = probe.buffer_f32("psi d_input", &vec![0.0; n * psi.input_width()]);

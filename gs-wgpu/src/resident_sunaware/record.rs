@@ -252,7 +252,8 @@ impl SunAwareResident {
             }
         };
         mark(&mut encoder, "phi-f");
-        let multiply = model.config.shadow_refinement == ShadowRefinement::Multiply;
+        let multiply_gain = (model.config.shadow_refinement == ShadowRefinement::Multiply)
+            .then_some(model.config.shadow_gain);
         let psi_parts = match (model.shadow.as_ref(), self.shadow_net.as_ref(), shadowed) {
             (Some(net), Some(psi), true) => {
                 let psi_in = nets.storage(
@@ -290,7 +291,7 @@ impl SunAwareResident {
                     nc,
                     &visibility,
                     &psi_out,
-                    multiply,
+                    multiply_gain,
                     &chans,
                 )?;
                 Some((net, psi, tape))
@@ -451,7 +452,7 @@ impl SunAwareResident {
                 nc,
                 &visibility,
                 &rows,
-                multiply,
+                multiply_gain,
                 &psi_d_out,
             )?;
             self.mlp.encode_backward(

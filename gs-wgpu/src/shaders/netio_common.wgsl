@@ -16,9 +16,10 @@ struct NetIo {
     dim: u32,
     // Frequencies L of the encoding.
     freqs: u32,
-    // Non-zero: Psi's output multiplies V (ShadowRefinement::Multiply).
+    // Non-zero: Psi's output multiplies V (ShadowRefinement::Multiply), times `gain`.
     multiply: u32,
-    pad0: u32,
+    // SunAwareConfig::shadow_gain (read under Multiply only).
+    gain: f32,
     pad1: u32,
     // Camera centre (Phi), .w unused.
     cam: vec4<f32>,

@@ -1,6 +1,6 @@
 // Psi's output gradient (sunaware/model.rs `backward_timed`): for r < count, g = list[r],
-// d_out[r] = rows[g * (13 + nc) + 16] (channel 3's gradient) times V_g under
-// ShadowRefinement::Multiply (V is data: no gradient); rows r >= count are zeros.
+// d_out[r] = rows[g * (13 + nc) + 16] (channel 3's gradient) times gain, then times V_g,
+// under ShadowRefinement::Multiply (V is data: no gradient); rows r >= count are zeros.
 
 @group(0) @binding(3) var<storage, read> visibility: array<f32>;
 @group(0) @binding(4) var<storage, read> rows: array<f32>;
@@ -17,7 +17,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if g < u.n {
         v = rows[g * (13u + u.nc) + 16u];
         if u.multiply != 0u {
-            v = v * visibility[g];
+            v = v * u.gain * visibility[g];
         }
     }
     d_out[r] = v;

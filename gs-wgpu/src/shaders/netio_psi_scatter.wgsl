@@ -1,5 +1,6 @@
 // Psi's output into channel 3 (sunaware/model.rs `forward_with`): for r < count,
-// g = list[r], chans[g * nc + 3] = V_g * P_r under ShadowRefinement::Multiply, else P_r.
+// g = list[r], chans[g * nc + 3] = gain * V_g * P_r under ShadowRefinement::Multiply (in
+// the CPU's order: (gain V_g) P_r), else P_r.
 // Other Gaussians' channels are not touched.
 
 @group(0) @binding(3) var<storage, read> visibility: array<f32>;
@@ -15,7 +16,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
     var v = output[r];
     if u.multiply != 0u {
-        v = visibility[g] * output[r];
+        v = u.gain * visibility[g] * output[r];
     }
     chans[g * u.nc + 3u] = v;
 }

@@ -158,8 +158,15 @@ fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
     let output = visibility(52, n);
     let chans0 = junk(53, n * nc);
     let rows = junk(54, n * (13 + nc));
-    for mode in [ShadowRefinement::Multiply, ShadowRefinement::Replace] {
+    // Gain 1, the demo's 2 and an inexact one under Multiply, in the CPU's order.
+    for (mode, gain) in [
+        (ShadowRefinement::Multiply, 1.0f32),
+        (ShadowRefinement::Multiply, 2.0),
+        (ShadowRefinement::Multiply, 1.37),
+        (ShadowRefinement::Replace, 2.0),
+    ] {
         let multiply = mode == ShadowRefinement::Multiply;
+        let multiply_gain = multiply.then_some(gain);
         for count in [s.count, 0] {
             let b = upload(&probe, &s, count);
             let vis_buf = probe.buffer_f32("visibility", &vis);
@@ -174,7 +181,7 @@ fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
                 nc,
                 &vis_buf,
                 &out_buf,
-                multiply,
+                multiply_gain,
                 &chans,
             )
             .unwrap();
@@ -184,7 +191,7 @@ fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
                 nc,
                 &vis_buf,
                 &rows_buf,
-                multiply,
+                multiply_gain,
                 &d_out,
             )
             .unwrap();
@@ -197,15 +204,23 @@ fn psi_scatter_and_output_gradient_follow_the_refinement_mode() {
             for (r, &g) in s.list[..count].iter().enumerate() {
                 let g = g as usize;
                 want_chans[g * nc + 3] = if multiply {
-                    vis[g] * output[r]
+                    gain * vis[g] * output[r]
                 } else {
                     output[r]
                 };
                 let d = rows[g * (13 + nc) + 13 + 3];
-                want_d_out[r] = if multiply { d * vis[g] } else { d };
+                want_d_out[r] = if multiply { d * gain * vis[g] } else { d };
             }
-            assert_eq!(bits(&gpu[0]), bits(&want_chans), "channels, {mode:?}");
-            assert_eq!(bits(&gpu[1]), bits(&want_d_out), "d_out, {mode:?}");
+            assert_eq!(
+                bits(&gpu[0]),
+                bits(&want_chans),
+                "channels, {mode:?} gain {gain}"
+            );
+            assert_eq!(
+                bits(&gpu[1]),
+                bits(&want_d_out),
+                "d_out, {mode:?} gain {gain}"
+            );
             if count > 0 {
                 assert_ne!(bits(&gpu[0]), bits(&chans0), "nothing scattered");
             }
