@@ -4,7 +4,8 @@
 //!   those frames as it goes: what the representation can fit without the online procedure;
 //! - `--online 1`: the online procedure (`experiment::runner::run_config`), its ladder line,
 //!   then each evaluation view (L2) and each held-out frame (L1) with its distance to the
-//!   nearest trained Sun and viewpoint;
+//!   nearest trained Sun and viewpoint, then the error of the held-out frames (L1) and of
+//!   the final window (L0) split by the material each pixel's centre ray hits;
 //! - `--noise-ref SPP`: the ground truth's own Monte Carlo noise, masked PSNR of the frames
 //!   at the preset's samples per pixel against the same frames at SPP (the ceiling any model
 //!   scored against that ground truth meets).
@@ -32,16 +33,97 @@ usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
   --online 1           run the online procedure instead (--rounds R, --window W)
   --noise-ref SPP      measure the ground truth's noise against SPP samples per pixel";
 
+use gs_core::loss::psnr_db_from_mse;
 use gs_core::sunaware::trainer::Observation;
 use gs_core::sunaware::Variant;
 use sim_harness::experiment::data::render_scene;
 use sim_harness::experiment::demo::DEMO_PRESET;
 use sim_harness::experiment::evaluate::{
-    black_baseline, camera_of, evaluate_views, nearest_angle_deg, sun_of,
+    black_baseline, camera_of, evaluate_views, frame_request_of, nearest_angle_deg, sun_of,
 };
 use sim_harness::experiment::preset::Preset;
 use sim_harness::experiment::runner::{online_config, scene_box, try_initialisation};
+use sim_harness::raytrace::material_ids;
 use sim_harness::scenario::Scenario;
+
+/// Squared error (summed over channels, images clamped to [0, 1]) of the model and of an
+/// all-black render over the target pixels of one material, and the model's summed signed
+/// error (render - truth).
+#[derive(Clone, Copy, Default)]
+struct MaterialError {
+    pixels: u64,
+    model_se: f64,
+    black_se: f64,
+    model_bias: f64,
+}
+
+/// Prints, for `views` pooled, each material's target pixels, its share of the model's masked
+/// squared error, its PSNR and the all-black PSNR over its pixels only, and the model's mean
+/// signed error there in 8-bit levels (negative: drawn too dark).
+fn print_material_split(
+    rung: &str,
+    rt: &sim_harness::raytrace::Scene,
+    model: &gs_core::sunaware::SunAwareModel,
+    k: &sim_harness::experiment::data::SceneIntrinsics,
+    views: &[&sim_harness::experiment::data::ViewData],
+) -> Result<(), Box<dyn std::error::Error>> {
+    let mut names: Vec<String> = rt
+        .mesh()
+        .materials()
+        .iter()
+        .map(|m| m.name.clone())
+        .collect();
+    // Masked pixels whose centre ray hits nothing (none expected: the mask is that hit).
+    names.push("(no centre hit)".into());
+    let mut split = vec![MaterialError::default(); names.len()];
+    for view in views {
+        let ids = material_ids(rt, &frame_request_of(k, view))?;
+        let render = model.render(&camera_of(k, view), sun_of(view))?.image;
+        let truth = view.rgb_f32();
+        for (p, (&m, id)) in view.mask_f32().iter().zip(&ids).enumerate() {
+            if m <= 0.0 {
+                continue;
+            }
+            let e = &mut split[id.map_or(names.len() - 1, usize::from)];
+            e.pixels += 1;
+            for c in 3 * p..3 * p + 3 {
+                let t = truth[c].clamp(0.0, 1.0) as f64;
+                let d = render[c].clamp(0.0, 1.0) as f64 - t;
+                e.model_se += d * d;
+                e.black_se += t * t;
+                e.model_bias += d;
+            }
+        }
+    }
+    let all = split
+        .iter()
+        .fold(MaterialError::default(), |a, e| MaterialError {
+            pixels: a.pixels + e.pixels,
+            model_se: a.model_se + e.model_se,
+            black_se: a.black_se + e.black_se,
+            model_bias: a.model_bias + e.model_bias,
+        });
+    let psnr = |se: f64, pixels: u64| psnr_db_from_mse(se / (3 * pixels.max(1)) as f64);
+    eprintln!(
+        "{rung}, {} frames pooled, by material (centre-ray hit):\n| material | pixels | share of pixels | share of squared error | PSNR | all-black PSNR | mean render - truth |\n|---|---:|---:|---:|---:|---:|---:|",
+        views.len()
+    );
+    for (name, e) in names.iter().zip(&split).chain([(&"all".to_string(), &all)]) {
+        if e.pixels == 0 {
+            continue;
+        }
+        eprintln!(
+            "| {name} | {} | {:.1} % | {:.1} % | {:.2} dB | {:.2} dB | {:+.1} /255 |",
+            e.pixels,
+            100.0 * e.pixels as f64 / all.pixels.max(1) as f64,
+            100.0 * e.model_se / all.model_se,
+            psnr(e.model_se, e.pixels),
+            psnr(e.black_se, e.pixels),
+            255.0 * e.model_bias / (3 * e.pixels) as f64
+        );
+    }
+    Ok(())
+}
 
 fn arg(name: &str) -> Option<String> {
     let args: Vec<String> = std::env::args().collect();
@@ -141,7 +223,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some(w) = arg("--window") {
             preset.window = w.parse()?;
         }
-        let (o, _) =
+        let (o, trainer) =
             sim_harness::experiment::runner::run_config(&scene, &preset, variant, 0, &mut |m| {
                 eprintln!("{m}");
             })?;
@@ -211,6 +293,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             deg(&by_distance[half..]),
             margin(&by_distance[half..])
         );
+        // L1 and the L0 window split by the material each pixel's centre ray hits.
+        let rt = sim_harness::raytrace::Scene::new(sim_harness::dataset::load_target(&scenario)?);
+        let window = sim_harness::experiment::runner::window_frames(&scene, &trainer);
+        for (rung, views) in [("L1 held-out", &held), ("L0 window", &window)] {
+            let model = &trainer.trainer().model;
+            print_material_split(rung, &rt, model, &scene.intrinsics, views)?;
+        }
         return Ok(());
     }
     let mut online = gs_online::online::OnlineTrainer::new(

@@ -137,8 +137,8 @@ pub(crate) fn wxyz(q: DQuat) -> [f64; 4] {
     [q.w, q.x, q.y, q.z]
 }
 
-/// Loads the scenario's target mesh.
-pub(crate) fn load_target(scenario: &Scenario) -> Result<TargetMesh, DatasetError> {
+/// Loads the scenario's target mesh (built-in or OBJ), the one the dataset renders.
+pub fn load_target(scenario: &Scenario) -> Result<TargetMesh, DatasetError> {
     Ok(match scenario.target_source()? {
         TargetSource::Builtin(kind) => builtin_target(kind),
         TargetSource::Obj(path) => load_obj(&path)?,

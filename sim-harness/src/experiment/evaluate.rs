@@ -11,6 +11,7 @@
 //! its image was rendered with; a non-finite metric is an error, never averaged in.
 
 use super::data::{SceneData, SceneIntrinsics, ViewData};
+use crate::raytrace::{FrameRequest, PinholeCamera};
 use glam::{Quat, Vec3};
 use gs_core::camera::{Camera, Intrinsics};
 use gs_core::loss::{psnr, ssim, ImageShape};
@@ -43,6 +44,32 @@ pub fn camera_of(k: &SceneIntrinsics, view: &ViewData) -> Camera {
 /// The view's Sun vector, target body frame, unit length.
 pub fn sun_of(view: &ViewData) -> Vec3 {
     view.sun_dir_target.as_vec3().normalize()
+}
+
+/// The ray-tracer request of a view's camera, pose and Sun (one sample, no Earth fill): for
+/// maps of what each pixel's centre ray hits (`raytrace::material_ids`, the Sun classes), not
+/// for re-rendering the view's image.
+pub fn frame_request_of(k: &SceneIntrinsics, view: &ViewData) -> FrameRequest {
+    let camera = camera_of(k, view);
+    let i = camera.intrinsics;
+    FrameRequest {
+        camera: PinholeCamera {
+            fx: i.fx,
+            fy: i.fy,
+            cx: i.cx,
+            cy: i.cy,
+            width: i.width,
+            height: i.height,
+        },
+        camera_from_target_rotation: camera.rotation,
+        camera_from_target_translation_m: camera.translation,
+        sun_dir_target: sun_of(view),
+        sun_lit: !view.eclipse,
+        earth_albedo: None,
+        samples_per_pixel: 1,
+        exposure: 1.0,
+        seed: 0,
+    }
 }
 
 /// Scores of one evaluation view.

@@ -121,6 +121,17 @@ pub fn held_out_frames<'a>(scene: &'a SceneData, preset: &Preset) -> Vec<&'a Vie
     lit_frames(scene, preset, true)
 }
 
+/// The sequence frames in `trainer`'s keyframe window (the ladder's L0 window), in time
+/// order.
+pub fn window_frames<'a>(scene: &'a SceneData, trainer: &OnlineTrainer) -> Vec<&'a ViewData> {
+    let window_ids: Vec<u64> = trainer.window().keyframes().iter().map(|k| k.id).collect();
+    scene
+        .frames
+        .iter()
+        .filter(|v| window_ids.contains(&(v.index as u64)))
+        .collect()
+}
+
 /// The lit sequence frames that are (`held_out`) or are not withheld for L1, in time order.
 fn lit_frames<'a>(scene: &'a SceneData, preset: &Preset, held_out: bool) -> Vec<&'a ViewData> {
     scene
@@ -352,12 +363,7 @@ pub fn run_config(
     let k = &scene.intrinsics;
     let trained = trained_frames(scene, preset);
     let seen_frames = seen_views(&trained, 20);
-    let window_ids: Vec<u64> = trainer.window().keyframes().iter().map(|k| k.id).collect();
-    let window_frames: Vec<&ViewData> = scene
-        .frames
-        .iter()
-        .filter(|v| window_ids.contains(&(v.index as u64)))
-        .collect();
+    let window_frames = window_frames(scene, &trainer);
     let held_frames = held_out_frames(scene, preset);
     let (window_fit, black_window) = score_with_black(model, k, &window_frames)?;
     let (held_out, black_held_out) = score_with_black(model, k, &held_frames)?;

@@ -10,6 +10,7 @@
 //! Geometry: `x_cam = R x_target + t`, OpenCV axes (x right, y down, z forward), pixel centres
 //! at +0.5. Mask and depth come from the ray through each pixel centre; colour averages
 //! `samples_per_pixel` stratified, seeded jittered rays (1 sample = the centre ray).
+//! [`material_ids`] gives the material the same centre ray hits (scores split by material).
 //!
 //! Invariants: rendering is deterministic (each pixel seeds its own RNG from the request seed
 //! and its index; rows are independent, so the thread count does not matter); radiance is
@@ -269,8 +270,7 @@ pub(crate) fn render_radiance_with(
 ) -> Result<RadianceFrame, RenderError> {
     req.validate()?;
     let (width, height) = (req.camera.width as usize, req.camera.height as usize);
-    let target_from_camera = req.camera_from_target_rotation.normalize().inverse();
-    let origin = target_from_camera * -req.camera_from_target_translation_m;
+    let rays = CameraRays::new(req);
     let lights = Lights::from_request(req);
 
     let mut radiance_rgb = vec![[0.0f32; 3]; width * height];
@@ -284,16 +284,7 @@ pub(crate) fn render_radiance_with(
         .for_each(|(y, ((rgb_row, mask_row), depth_row))| {
             for x in 0..width {
                 let pixel_index = (y * width + x) as u64;
-                let ray_through = |px: f32, py: f32| {
-                    let d_cam = Vec3::new(
-                        (px - req.camera.cx) / req.camera.fx,
-                        (py - req.camera.cy) / req.camera.fy,
-                        1.0,
-                    );
-                    // Camera z of a point at ray parameter s equals s, since d_cam.z = 1.
-                    Ray::new(origin, target_from_camera * d_cam)
-                };
-                let centre_ray = ray_through(x as f32 + 0.5, y as f32 + 0.5);
+                let centre_ray = rays.centre(x, y);
                 let centre_hit = scene.bvh.closest_hit(&centre_ray, 0.0, f32::INFINITY);
                 if let Some(hit) = centre_hit {
                     mask_row[x] = 255;
@@ -316,7 +307,7 @@ pub(crate) fn render_radiance_with(
                         let (i, j) = (k % columns, k / columns);
                         let sx = (i as f32 + rng.next_f32()) / columns as f32;
                         let sy = (j as f32 + rng.next_f32()) / rows as f32;
-                        let ray = ray_through(x as f32 + sx, y as f32 + sy);
+                        let ray = rays.through(x as f32 + sx, y as f32 + sy);
                         if let Some(hit) = scene.bvh.closest_hit(&ray, 0.0, f32::INFINITY) {
                             sum += shade(scene, &lights, &ray, hit, cast_shadows);
                         }
@@ -333,6 +324,58 @@ pub(crate) fn render_radiance_with(
         mask,
         depth_m,
     })
+}
+
+/// The rays of a request's camera in the target frame (shared by every per-pixel pass, so
+/// the image, its mask and the maps of what each pixel sees use the same rays).
+pub(crate) struct CameraRays {
+    origin: Vec3,
+    target_from_camera: Quat,
+    camera: PinholeCamera,
+}
+
+impl CameraRays {
+    pub(crate) fn new(req: &FrameRequest) -> CameraRays {
+        let target_from_camera = req.camera_from_target_rotation.normalize().inverse();
+        CameraRays {
+            origin: target_from_camera * -req.camera_from_target_translation_m,
+            target_from_camera,
+            camera: req.camera,
+        }
+    }
+
+    /// The ray through image point (`px`, `py`) (pixel units, top-left corner at 0).
+    pub(crate) fn through(&self, px: f32, py: f32) -> Ray {
+        let c = &self.camera;
+        let d_cam = Vec3::new((px - c.cx) / c.fx, (py - c.cy) / c.fy, 1.0);
+        // Camera z of a point at ray parameter s equals s, since d_cam.z = 1.
+        Ray::new(self.origin, self.target_from_camera * d_cam)
+    }
+
+    /// The ray through the centre of pixel (`x`, `y`): the one that makes mask and depth.
+    pub(crate) fn centre(&self, x: usize, y: usize) -> Ray {
+        self.through(x as f32 + 0.5, y as f32 + 0.5)
+    }
+}
+
+/// The material index (into `scene.mesh().materials()`) of the first surface each pixel's
+/// centre ray hits, row-major from the top-left pixel; `None` where the ray misses the target
+/// (background). The ray is the one that makes the frame's mask, so a pixel has `Some` exactly
+/// where `render_frame` gives it mask 255. Only the request's camera and pose matter.
+pub fn material_ids(scene: &Scene, req: &FrameRequest) -> Result<Vec<Option<u16>>, RenderError> {
+    req.validate()?;
+    let width = req.camera.width as usize;
+    let rays = CameraRays::new(req);
+    let mut ids = vec![None; width * req.camera.height as usize];
+    ids.par_chunks_mut(width).enumerate().for_each(|(y, row)| {
+        for (x, id) in row.iter_mut().enumerate() {
+            *id = scene
+                .bvh
+                .closest_hit(&rays.centre(x, y), 0.0, f32::INFINITY)
+                .map(|hit| scene.mesh.material_of_triangle()[hit.triangle_index as usize]);
+        }
+    });
+    Ok(ids)
 }
 
 /// Directional lights: (unit direction towards the light, irradiance).
@@ -430,8 +473,73 @@ pub fn linear_to_srgb8(linear: f32) -> u8 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
+    use crate::target::{Material, MeshBuilder};
+
+    /// A 64x64 request (focal length 80 pixels) from `eye` towards the origin, image up +z.
+    pub(crate) fn request(eye: Vec3, sun: Vec3) -> FrameRequest {
+        let (rotation, translation) = camera_pose_looking_at(eye, Vec3::ZERO, Vec3::Z).unwrap();
+        FrameRequest {
+            camera: PinholeCamera {
+                fx: 80.0,
+                fy: 80.0,
+                cx: 32.0,
+                cy: 32.0,
+                width: 64,
+                height: 64,
+            },
+            camera_from_target_rotation: rotation,
+            camera_from_target_translation_m: translation,
+            sun_dir_target: sun,
+            sun_lit: true,
+            earth_albedo: None,
+            samples_per_pixel: 1,
+            exposure: 1.0,
+            seed: 0,
+        }
+    }
+
+    #[test]
+    fn material_ids_name_the_centre_hit_and_none_for_background() {
+        // Gold over x in [-1, 0], z in [-1, 1]; white paint over x in [0, 1], z in [0, 1]
+        // only, in the plane y = 0, seen from -y: image x is +x, image y (down) is -z.
+        let mut b = MeshBuilder::new();
+        let gold = b.material(Material::gold_mli());
+        let white = b.material(Material::white_paint());
+        b.quad_grid(
+            Vec3::new(-1.0, 0.0, -1.0),
+            Vec3::X,
+            2.0 * Vec3::Z,
+            2,
+            4,
+            gold,
+        );
+        b.quad_grid(Vec3::ZERO, Vec3::X, Vec3::Z, 2, 2, white);
+        let scene = Scene::new(b.build().unwrap());
+        let mut req = request(Vec3::new(0.0, -5.0, 0.0), Vec3::NEG_Y);
+        // Only the centre ray counts, however many samples the colour takes.
+        req.samples_per_pixel = 4;
+        let ids = material_ids(&scene, &req).unwrap();
+        // 1 m is 16 pixels at 5 m: the plate spans pixels 16..48 each way.
+        let at = |x: usize, y: usize| ids[y * 64 + x];
+        assert_eq!(at(24, 24), Some(gold));
+        assert_eq!(at(24, 40), Some(gold));
+        assert_eq!(at(40, 24), Some(white));
+        assert_eq!(at(40, 40), None, "below the white quad is background");
+        assert_eq!(at(2, 2), None);
+        assert_eq!(at(60, 32), None);
+        assert_eq!(scene.mesh().materials()[gold as usize].name, "gold_mli");
+        // Some exactly where the frame's mask is set.
+        let frame = render_frame(&scene, &req);
+        for (id, m) in ids.iter().zip(&frame.mask) {
+            assert_eq!(id.is_some(), *m == 255);
+        }
+        assert_eq!(ids.iter().filter(|i| **i == Some(white)).count(), 16 * 16);
+        let mut bad = req;
+        bad.camera.fx = 0.0;
+        assert!(material_ids(&scene, &bad).is_err());
+    }
 
     #[test]
     fn srgb_encoding_reference_points() {

@@ -20,7 +20,7 @@
 //! renderer.
 
 use super::bvh::Ray;
-use super::{FrameRequest, RenderError, Scene};
+use super::{CameraRays, FrameRequest, RenderError, Scene};
 use glam::Vec3;
 use rayon::prelude::*;
 
@@ -66,8 +66,7 @@ pub(crate) fn render_sunlight(
 ) -> Result<SunlightMap, RenderError> {
     req.validate()?;
     let (width, height) = (req.camera.width as usize, req.camera.height as usize);
-    let target_from_camera = req.camera_from_target_rotation.normalize().inverse();
-    let origin = target_from_camera * -req.camera_from_target_translation_m;
+    let rays = CameraRays::new(req);
     let sun = req.sun_dir_target.normalize();
     let mut class = vec![SunClass::Background; width * height];
     class
@@ -75,12 +74,7 @@ pub(crate) fn render_sunlight(
         .enumerate()
         .for_each(|(y, row)| {
             for (x, out) in row.iter_mut().enumerate() {
-                let d_cam = Vec3::new(
-                    (x as f32 + 0.5 - req.camera.cx) / req.camera.fx,
-                    (y as f32 + 0.5 - req.camera.cy) / req.camera.fy,
-                    1.0,
-                );
-                let ray = Ray::new(origin, target_from_camera * d_cam);
+                let ray = rays.centre(x, y);
                 let Some(hit) = scene.bvh.closest_hit(&ray, 0.0, f32::INFINITY) else {
                     continue;
                 };
@@ -135,7 +129,7 @@ pub(crate) fn sun_reaches_point(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::raytrace::{camera_pose_looking_at, PinholeCamera};
+    use crate::raytrace::tests::request;
     use crate::target::{Material, MeshBuilder};
 
     /// A 2 m plate at z = 1 over a 0.5 m cube at the origin.
@@ -152,28 +146,6 @@ mod tests {
         );
         b.simple_box(Vec3::ZERO, Vec3::splat(0.25), 0.25, m);
         Scene::new(b.build().unwrap())
-    }
-
-    fn request(eye: Vec3, sun: Vec3) -> FrameRequest {
-        let (rotation, translation) = camera_pose_looking_at(eye, Vec3::ZERO, Vec3::Z).unwrap();
-        FrameRequest {
-            camera: PinholeCamera {
-                fx: 80.0,
-                fy: 80.0,
-                cx: 32.0,
-                cy: 32.0,
-                width: 64,
-                height: 64,
-            },
-            camera_from_target_rotation: rotation,
-            camera_from_target_translation_m: translation,
-            sun_dir_target: sun,
-            sun_lit: true,
-            earth_albedo: None,
-            samples_per_pixel: 1,
-            exposure: 1.0,
-            seed: 0,
-        }
     }
 
     #[test]

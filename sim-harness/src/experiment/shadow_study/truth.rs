@@ -9,40 +9,15 @@
 use super::report::{quantiles, ShadowHeadroom, SunCoverage};
 use crate::dataset::{eval, frame_request, framing_radius_m, load_target};
 use crate::experiment::data::{SceneData, SceneIntrinsics, ViewData};
-use crate::experiment::evaluate::sun_of;
+use crate::experiment::evaluate::{frame_request_of, sun_of};
 use crate::experiment::ExperimentError;
 use crate::raytrace::sunlight::{render_sunlight, SunClass, SunlightMap};
-use crate::raytrace::{try_render_frame_with, FrameRequest, PinholeCamera, Scene};
+use crate::raytrace::{try_render_frame_with, Scene};
 use crate::scenario::{Scenario, TargetSize};
 use glam::Vec3;
 use gs_core::loss::{psnr, psnr_db_from_mse, ImageShape};
 use gs_core::rng::mix64;
 use rayon::prelude::*;
-
-fn frame_request_of(k: &SceneIntrinsics, view: &ViewData) -> FrameRequest {
-    let q = view.q_camera_from_target;
-    FrameRequest {
-        camera: PinholeCamera {
-            fx: k.fx as f32,
-            fy: k.fy as f32,
-            cx: k.cx as f32,
-            cy: k.cy as f32,
-            width: k.width,
-            height: k.height,
-        },
-        camera_from_target_rotation: glam::Quat::from_xyzw(
-            q.x as f32, q.y as f32, q.z as f32, q.w as f32,
-        )
-        .normalize(),
-        camera_from_target_translation_m: view.t_camera_from_target_m.as_vec3(),
-        sun_dir_target: sun_of(view),
-        sun_lit: !view.eclipse,
-        earth_albedo: None,
-        samples_per_pixel: 1,
-        exposure: 1.0,
-        seed: 0,
-    }
-}
 
 pub(super) fn sunlight_of(
     rt: &Scene,
