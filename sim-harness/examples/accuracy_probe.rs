@@ -55,11 +55,13 @@ struct MaterialError {
     model_se: f64,
     black_se: f64,
     model_bias: f64,
+    /// Sum of the render's accumulated opacity: below 1 where the model leaves holes.
+    alpha_sum: f64,
 }
 
 /// Prints, for `views` pooled, each material's target pixels, its share of the model's masked
 /// squared error, its PSNR and the all-black PSNR over its pixels only, and the model's mean
-/// signed error there in 8-bit levels (negative: drawn too dark).
+/// signed error there in 8-bit levels (negative: drawn too dark) and its mean opacity.
 fn print_material_split(
     rung: &str,
     rt: &sim_harness::raytrace::Scene,
@@ -78,7 +80,8 @@ fn print_material_split(
     let mut split = vec![MaterialError::default(); names.len()];
     for view in views {
         let ids = material_ids(rt, &frame_request_of(k, view))?;
-        let render = model.render(&camera_of(k, view), sun_of(view))?.image;
+        let rendered = model.render(&camera_of(k, view), sun_of(view))?;
+        let render = rendered.image;
         let truth = view.rgb_f32();
         for (p, (&m, id)) in view.mask_f32().iter().zip(&ids).enumerate() {
             if m <= 0.0 {
@@ -86,6 +89,7 @@ fn print_material_split(
             }
             let e = &mut split[id.map_or(names.len() - 1, usize::from)];
             e.pixels += 1;
+            e.alpha_sum += rendered.alpha[p] as f64;
             for c in 3 * p..3 * p + 3 {
                 let t = truth[c].clamp(0.0, 1.0) as f64;
                 let d = render[c].clamp(0.0, 1.0) as f64 - t;
@@ -102,10 +106,11 @@ fn print_material_split(
             model_se: a.model_se + e.model_se,
             black_se: a.black_se + e.black_se,
             model_bias: a.model_bias + e.model_bias,
+            alpha_sum: a.alpha_sum + e.alpha_sum,
         });
     let psnr = |se: f64, pixels: u64| psnr_db_from_mse(se / (3 * pixels.max(1)) as f64);
     eprintln!(
-        "{rung}, {} frames pooled, by material (centre-ray hit):\n| material | pixels | share of pixels | share of squared error | PSNR | all-black PSNR | mean render - truth |\n|---|---:|---:|---:|---:|---:|---:|",
+        "{rung}, {} frames pooled, by material (centre-ray hit):\n| material | pixels | share of pixels | share of squared error | PSNR | all-black PSNR | mean render - truth | mean alpha |\n|---|---:|---:|---:|---:|---:|---:|---:|",
         views.len()
     );
     for (name, e) in names.iter().zip(&split).chain([(&"all".to_string(), &all)]) {
@@ -113,13 +118,14 @@ fn print_material_split(
             continue;
         }
         eprintln!(
-            "| {name} | {} | {:.1} % | {:.1} % | {:.2} dB | {:.2} dB | {:+.1} /255 |",
+            "| {name} | {} | {:.1} % | {:.1} % | {:.2} dB | {:.2} dB | {:+.1} /255 | {:.3} |",
             e.pixels,
             100.0 * e.pixels as f64 / all.pixels.max(1) as f64,
             100.0 * e.model_se / all.model_se,
             psnr(e.model_se, e.pixels),
             psnr(e.black_se, e.pixels),
-            255.0 * e.model_bias / (3 * e.pixels) as f64
+            255.0 * e.model_bias / (3 * e.pixels) as f64,
+            e.alpha_sum / e.pixels as f64
         );
     }
     Ok(())
@@ -296,7 +302,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         // L1 and the L0 window split by the material each pixel's centre ray hits.
         let rt = sim_harness::raytrace::Scene::new(sim_harness::dataset::load_target(&scenario)?);
         let window = sim_harness::experiment::runner::window_frames(&scene, &trainer);
-        for (rung, views) in [("L1 held-out", &held), ("L0 window", &window)] {
+        let trained = sim_harness::experiment::runner::trained_frames(&scene, &preset);
+        let seen = sim_harness::experiment::evaluate::seen_views(&trained, 20);
+        for (rung, views) in [
+            ("L1 held-out", &held),
+            ("L0 window", &window),
+            ("L0 seen", &seen),
+        ] {
             let model = &trainer.trainer().model;
             print_material_split(rung, &rt, model, &scene.intrinsics, views)?;
         }

@@ -308,8 +308,8 @@ pub struct SunAwareConfig {
     /// at about half its brightness. A gain of 2 lets Psi restore it while a Gaussian the
     /// light pass puts in full shadow (`V = 0`) stays dark: +1.65 dB masked training fit on
     /// the demo scenario (offline reference, 1,500 steps; docs/results/accuracy.md). The
-    /// default stays 1 (the wgpu backend supports only 1 and refuses other gains); the
-    /// experiment presets set 2. A model knob, stored in checkpoints (from version 4; older
+    /// default stays 1 (the paper's form); the experiment presets set 2. Both backends
+    /// apply it. A model knob, stored in checkpoints (from version 4; older
     /// ones load as 1).
     pub shadow_gain: f32,
     /// Colour times a Lambertian factor of each Gaussian's normal and the Sun

@@ -216,7 +216,7 @@ pub fn black_baseline<'a>(
 }
 
 /// Up to `max` lit frames of `frames` (time order), evenly spaced: views the model trained on.
-pub(crate) fn seen_views<'a>(frames: &[&'a ViewData], max: usize) -> Vec<&'a ViewData> {
+pub fn seen_views<'a>(frames: &[&'a ViewData], max: usize) -> Vec<&'a ViewData> {
     let lit: Vec<&ViewData> = frames.iter().copied().filter(|v| !v.eclipse).collect();
     if lit.len() <= max {
         return lit;

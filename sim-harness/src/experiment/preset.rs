@@ -161,7 +161,7 @@ pub struct Preset {
     /// BF16; elsewhere the run's configuration is refused).
     pub mlp_precision: String,
     /// `V' = shadow_gain * V * Psi` in configurations (c)-(d) (`SunAwareConfig`; gs-core's
-    /// default 1; the wgpu backend supports only 1).
+    /// default 1; both backends apply it).
     pub shadow_gain: f32,
     /// Colour times a Lambertian factor of a per-Gaussian normal and the Sun: "none" (the
     /// paper), "lambert" (the shortest scale axis) or "lambert_learned" (a learned normal
