@@ -5,7 +5,8 @@
 //! - `--online 1`: the online procedure (`experiment::runner::run_config`), its ladder line,
 //!   then each evaluation view (L2) and each held-out frame (L1) with its distance to the
 //!   nearest trained Sun and viewpoint, then the error of the held-out frames (L1) and of
-//!   the final window (L0) split by the material each pixel's centre ray hits;
+//!   the final window (L0) split by the material each pixel's centre ray hits, then the
+//!   Sun sweep: model and ray-traced truth of the window's frames with only the Sun moved;
 //! - `--noise-ref SPP`: the ground truth's own Monte Carlo noise, masked PSNR of the frames
 //!   at the preset's samples per pixel against the same frames at SPP (the ceiling any model
 //!   scored against that ground truth meets).
@@ -127,6 +128,88 @@ fn print_material_split(
             255.0 * e.model_bias / (3 * e.pixels) as f64,
             e.alpha_sum / e.pixels as f64
         );
+    }
+    Ok(())
+}
+
+/// Signed Sun offsets of the Sun sweep, degrees.
+const SUN_OFFSETS_DEG: [f64; 9] = [-20.0, -10.0, -5.0, -2.0, 0.0, 2.0, 5.0, 10.0, 20.0];
+
+/// Sun sweep: held-out frames are drawn too dark while the window's are not, so this moves
+/// only the Sun away from each of `views`' own (rotated about Sun x view direction, positive
+/// towards the camera, i.e. a smaller phase angle; camera unchanged) and prints, pooled, each
+/// material's mean 8-bit level in the ray-traced truth (the frame's dataset request with that
+/// Sun) and in the model's render, and the masked PSNR of all target pixels: whether the
+/// model's brightness falls off faster than the truth's away from a trained Sun.
+fn print_sun_sweep(
+    rung: &str,
+    scenario: &Scenario,
+    rt: &sim_harness::raytrace::Scene,
+    model: &gs_core::sunaware::SunAwareModel,
+    k: &sim_harness::experiment::data::SceneIntrinsics,
+    views: &[&sim_harness::experiment::data::ViewData],
+) -> Result<(), Box<dyn std::error::Error>> {
+    let names: Vec<String> = rt
+        .mesh()
+        .materials()
+        .iter()
+        .map(|m| m.name.clone())
+        .collect();
+    // Per offset: per material (truth sum, render sum, channel values), and all target
+    // pixels' squared error and channel values.
+    let mut sums =
+        vec![(vec![(0.0f64, 0.0f64, 0u64); names.len()], 0.0f64, 0u64); SUN_OFFSETS_DEG.len()];
+    let mut zero_offset_identical = true;
+    for view in views {
+        let ids = material_ids(rt, &frame_request_of(k, view))?;
+        let request = sim_harness::experiment::data::sequence_frame_request(scenario, view.index)?;
+        let sun = view.sun_dir_target;
+        let axis = sun
+            .cross(view.view_dir_target())
+            .try_normalize()
+            .unwrap_or_else(|| sun.any_orthonormal_vector());
+        for (deg, (per_material, se, n)) in SUN_OFFSETS_DEG.iter().zip(&mut sums) {
+            let moved = (glam::DQuat::from_axis_angle(axis, deg.to_radians()) * sun).as_vec3();
+            let truth = sim_harness::raytrace::try_render_frame(
+                rt,
+                &sim_harness::raytrace::FrameRequest {
+                    sun_dir_target: moved.normalize(),
+                    ..request
+                },
+            )?
+            .rgb8;
+            zero_offset_identical &= *deg != 0.0 || truth == view.rgb8;
+            let render = model.render(&camera_of(k, view), moved.normalize())?.image;
+            for (p, id) in ids.iter().enumerate() {
+                let Some(id) = id else { continue };
+                let e = &mut per_material[usize::from(*id)];
+                for c in 3 * p..3 * p + 3 {
+                    let t = truth[c] as f64 / 255.0;
+                    let r = render[c].clamp(0.0, 1.0) as f64;
+                    *e = (e.0 + 255.0 * t, e.1 + 255.0 * r, e.2 + 1);
+                    *se += (r - t) * (r - t);
+                    *n += 1;
+                }
+            }
+        }
+    }
+    eprintln!(
+        "{rung}, {} frames pooled, Sun sweep (offset > 0: towards the camera; offset 0 truth identical to the stored frames: {zero_offset_identical}), mean 8-bit level truth / render by material (centre-ray hit):",
+        views.len()
+    );
+    let header: String = names.iter().map(|m| format!(" {m} |")).collect();
+    let rule: String = names.iter().map(|_| "---:|").collect();
+    eprintln!("| Sun offset |{header} masked PSNR |\n|---:|{rule}---:|");
+    for (deg, (per_material, se, n)) in SUN_OFFSETS_DEG.iter().zip(&sums) {
+        let levels: String = per_material
+            .iter()
+            .map(|(t, r, c)| {
+                let c = (*c).max(1) as f64;
+                format!(" {:.1} / {:.1} |", t / c, r / c)
+            })
+            .collect();
+        let psnr = psnr_db_from_mse(se / (*n).max(1) as f64);
+        eprintln!("| {deg:+.0} deg |{levels} {psnr:.2} dB |");
     }
     Ok(())
 }
@@ -312,6 +395,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let model = &trainer.trainer().model;
             print_material_split(rung, &rt, model, &scene.intrinsics, views)?;
         }
+        let model = &trainer.trainer().model;
+        print_sun_sweep(
+            "L0 window",
+            &scenario,
+            &rt,
+            model,
+            &scene.intrinsics,
+            &window,
+        )?;
         return Ok(());
     }
     let mut online = gs_online::online::OnlineTrainer::new(

@@ -10,10 +10,10 @@
 //! the format version) matches, so a changed scenario never reads stale images.
 
 use crate::dataset::{eval, frame_request, framing_radius_m, load_target, DatasetError};
-use crate::orbit::FrameGeometry;
-use crate::raytrace::{try_render_frame, Scene};
+use crate::orbit::{FrameGeometry, RendezvousGeometry};
+use crate::raytrace::{try_render_frame, FrameRequest, Scene};
 use crate::scenario::{Scenario, TargetSize};
-use crate::target::SurfaceSample;
+use crate::target::{SurfaceSample, TargetMesh};
 use glam::{DQuat, DVec3};
 use gs_core::rng::mix64;
 use rayon::prelude::*;
@@ -104,6 +104,41 @@ fn view_from(
     }
 }
 
+fn point_seed(scenario: &Scenario) -> u64 {
+    mix64(scenario.seed ^ 0x706F_696E_7473)
+}
+
+fn sequence_seed(scenario: &Scenario, index: u32) -> u64 {
+    mix64(scenario.seed.wrapping_add(mix64(index as u64)))
+}
+
+/// The scenario's geometry, the target framed by the size `render_scene` gives it.
+fn scenario_geometry(
+    scenario: &Scenario,
+    mesh: &TargetMesh,
+) -> Result<RendezvousGeometry, DatasetError> {
+    let radius_m = mesh.bounding_radius_m();
+    let framing_samples = mesh.sample_surface(
+        scenario.target.surface_points as usize,
+        point_seed(scenario),
+    );
+    Ok(scenario.geometry(TargetSize {
+        bounding_radius_m: radius_m as f64,
+        framing_radius_m: framing_radius_m(&framing_samples).unwrap_or(radius_m as f64),
+    })?)
+}
+
+/// The request that rendered sequence frame `index` in `render_scene` (same geometry, lights,
+/// exposure and seed): for ray-tracing that frame again with something changed.
+pub fn sequence_frame_request(
+    scenario: &Scenario,
+    index: u32,
+) -> Result<FrameRequest, DatasetError> {
+    let mesh = load_target(scenario)?;
+    let g = scenario_geometry(scenario, &mesh)?.at(scenario.frame_time_s(index));
+    Ok(frame_request(scenario, &g, sequence_seed(scenario, index)))
+}
+
 /// Renders the scenario's sequence and evaluation views into memory. `surface_points`
 /// samples are drawn for initialisation (with the same seed `generate` uses for points.ply).
 pub fn render_scene(
@@ -115,14 +150,8 @@ pub fn render_scene(
     let started = Instant::now();
     let mesh = load_target(scenario)?;
     let radius_m = mesh.bounding_radius_m();
-    let point_seed = mix64(scenario.seed ^ 0x706F_696E_7473);
-    let framing_samples = mesh.sample_surface(scenario.target.surface_points as usize, point_seed);
-    let target_size = TargetSize {
-        bounding_radius_m: radius_m as f64,
-        framing_radius_m: framing_radius_m(&framing_samples).unwrap_or(radius_m as f64),
-    };
-    let (surface, lo, hi) = mesh_facts(&mesh, surface_points, point_seed);
-    let geometry = scenario.geometry(target_size)?;
+    let (surface, lo, hi) = mesh_facts(&mesh, surface_points, point_seed(scenario));
+    let geometry = scenario_geometry(scenario, &mesh)?;
     let k = scenario.camera_intrinsics();
     let scene = Scene::new(mesh);
     let frame_count = scenario.frame_count();
@@ -135,11 +164,7 @@ pub fn render_scene(
         .map(|index| {
             let t_s = scenario.frame_time_s(index);
             let g = geometry.at(t_s);
-            let request = frame_request(
-                scenario,
-                &g,
-                mix64(scenario.seed.wrapping_add(mix64(index as u64))),
-            );
+            let request = frame_request(scenario, &g, sequence_seed(scenario, index));
             try_render_frame(&scene, &request)
                 .map(|frame| view_from(&g, index, Some(t_s), frame))
                 .map_err(|e| DatasetError::Render {
@@ -190,7 +215,7 @@ pub fn render_scene(
 
 /// Surface samples and the vertex bounds of a mesh.
 fn mesh_facts(
-    mesh: &crate::target::TargetMesh,
+    mesh: &TargetMesh,
     surface_points: usize,
     point_seed: u64,
 ) -> (Vec<SurfaceSample>, [f32; 3], [f32; 3]) {
