@@ -151,6 +151,12 @@ pub struct OnlineConfig {
     /// Steps per round on frames drawn from the replay memory, after the window's steps
     /// (against forgetting views that left the window).
     pub replay_steps_per_round: usize,
+    /// Each training step sees its frame's Sun turned by a random angle up to this (radians,
+    /// uniform over the spherical cap; 0: the frame's own Sun, the paper). The appearance
+    /// network otherwise fits each trained Sun direction as a peak and draws the target too
+    /// dark 5-10 degrees away (docs/results/accuracy.md); the jitter asks it for a colour
+    /// that holds around each trained Sun.
+    pub sun_jitter_rad: f32,
 }
 
 impl Default for OnlineConfig {
@@ -169,6 +175,7 @@ impl Default for OnlineConfig {
             normal_flatten: 1.0,
             replay_capacity: 0,
             replay_steps_per_round: 0,
+            sun_jitter_rad: 0.0,
         }
     }
 }
@@ -357,6 +364,17 @@ fn initial_gaussians(
     }
 }
 
+/// `sun` turned by an angle up to `max_rad`, uniform over the spherical cap around it, in a
+/// uniformly random direction; still a unit vector.
+fn jittered_sun(sun: Vec3, max_rad: f32, rng: &mut SplitMix64) -> Vec3 {
+    let (u, v) = (rng.next_f32(), rng.next_f32());
+    // Uniform over the cap: cos(angle) uniform in [cos(max), 1].
+    let cos_angle = 1.0 - u * (1.0 - max_rad.cos());
+    let angle = cos_angle.clamp(-1.0, 1.0).acos();
+    let axis = Quat::from_axis_angle(sun, v * std::f32::consts::TAU) * sun.any_orthonormal_vector();
+    (Quat::from_axis_angle(axis, angle) * sun).normalize()
+}
+
 impl OnlineTrainer {
     /// A trainer with initial Gaussians from `init`; `scene_box` bounds the target (body
     /// frame) and normalises means for Psi.
@@ -379,6 +397,14 @@ impl OnlineTrainer {
             return Err(OnlineError::Config(
                 "normal_flatten must be finite and positive".into(),
             ));
+        }
+        if !(config.sun_jitter_rad.is_finite()
+            && (0.0..=std::f32::consts::FRAC_PI_2).contains(&config.sun_jitter_rad))
+        {
+            return Err(OnlineError::Config(format!(
+                "sun_jitter_rad {} is outside [0, pi/2]",
+                config.sun_jitter_rad
+            )));
         }
         let window = KeyframeWindow::new(config.window)?;
         let gaussians = initial_gaussians(init, &config)?;
@@ -605,6 +631,16 @@ impl OnlineTrainer {
                 batch.push((frame.observation(), 1.0));
             }
         }
+        if self.config.sun_jitter_rad > 0.0 {
+            // Its own stream, so a zero jitter leaves the shuffles and replay draws as they were.
+            let mut jitter = SplitMix64::new(
+                self.config.shuffle_seed ^ self.rounds.wrapping_mul(0xD1B5_4A32_D192_ED03) ^ 0x5A,
+            );
+            for (observation, _) in &mut batch {
+                observation.sun_dir =
+                    jittered_sun(observation.sun_dir, self.config.sun_jitter_rad, &mut jitter);
+            }
+        }
         // One batch: on a device-resident trainer the round's state stays on the device.
         for stats in self.trainer.step_many(&batch)? {
             if !stats.skipped {
@@ -641,5 +677,62 @@ impl OnlineTrainer {
         sun_dir_target: Vec3,
     ) -> Result<RenderedImages, OnlineError> {
         Ok(self.trainer.render(camera, sun_dir_target)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The jitter stays a unit vector within the cap, reaches its edge, turns every way
+    /// around the Sun, and repeats for a seed.
+    #[test]
+    fn jittered_sun_covers_the_cap_and_no_more() {
+        let sun = Vec3::new(0.3, -0.5, 0.81).normalize();
+        let max = 10f32.to_radians();
+        let mut rng = SplitMix64::new(7);
+        let mut widest = 0.0f32;
+        let (mut left, mut right) = (0, 0);
+        let side = sun.any_orthonormal_vector();
+        for _ in 0..2000 {
+            let j = jittered_sun(sun, max, &mut rng);
+            assert!((j.length() - 1.0).abs() < 1e-6, "{j}");
+            let angle = sun.dot(j).clamp(-1.0, 1.0).acos();
+            assert!(angle <= max + 1e-5, "{angle} beyond {max}");
+            widest = widest.max(angle);
+            if (j - sun).dot(side) > 0.0 {
+                left += 1;
+            } else {
+                right += 1;
+            }
+        }
+        assert!(widest > 0.95 * max, "never near the cap's edge: {widest}");
+        assert!(left > 800 && right > 800, "one-sided: {left} / {right}");
+        let (mut a, mut b) = (SplitMix64::new(3), SplitMix64::new(3));
+        assert_eq!(
+            jittered_sun(sun, max, &mut a),
+            jittered_sun(sun, max, &mut b)
+        );
+    }
+
+    #[test]
+    fn a_sun_jitter_outside_a_quarter_turn_is_refused() {
+        let init = Initialisation::RandomSphere {
+            count: 10,
+            centre: Vec3::ZERO,
+            radius_m: 1.0,
+            seed: 1,
+        };
+        for bad in [-0.1, 1.6, f32::NAN] {
+            let config = OnlineConfig {
+                sun_jitter_rad: bad,
+                ..OnlineConfig::default()
+            };
+            let scene_box = SceneBox::new([-1.0; 3], [1.0; 3]).unwrap();
+            let Err(e) = OnlineTrainer::new(config, &init, scene_box) else {
+                panic!("sun_jitter_rad {bad} was accepted");
+            };
+            assert!(e.to_string().contains("sun_jitter_rad"), "{e}");
+        }
     }
 }

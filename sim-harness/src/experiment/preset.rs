@@ -174,6 +174,9 @@ pub struct Preset {
     pub replay_capacity: usize,
     /// Steps per round on replayed keyframes.
     pub replay_steps_per_round: usize,
+    /// Each step's Sun turned by a random angle up to this, degrees (0: off, the paper;
+    /// `OnlineConfig::sun_jitter_rad`).
+    pub sun_jitter_deg: f32,
     /// Earth-albedo fill of the ray-traced frames (fraction of the Sun's irradiance under a
     /// fully lit Earth; None: the scenario's). The model has no input for the Earth's
     /// direction, so this light is one it cannot predict (see `docs/results/accuracy.md`).
@@ -279,6 +282,7 @@ impl Default for Preset {
             shading_ambient: SunAwareConfig::default().shading_ambient,
             replay_capacity: 0,
             replay_steps_per_round: 0,
+            sun_jitter_deg: 0.0,
             earth_albedo: None,
             holdout_every: 0,
             rates: RateOverrides::default(),
@@ -490,6 +494,12 @@ impl Preset {
             return bad(format!(
                 "min_view_angle_deg {} is outside [0, 180]",
                 self.min_view_angle_deg
+            ));
+        }
+        if !(self.sun_jitter_deg.is_finite() && (0.0..=90.0).contains(&self.sun_jitter_deg)) {
+            return bad(format!(
+                "sun_jitter_deg {} is outside [0, 90]",
+                self.sun_jitter_deg
             ));
         }
         if self.densify_every_rounds == 0 {
@@ -707,6 +717,8 @@ mod tests {
             ("shadow_gain = inf\n", "shadow_gain"),
             ("shading = \"phong\"\n", "shading"),
             ("shading_ambient = 1.0\n", "shading_ambient"),
+            ("sun_jitter_deg = 91.0\n", "sun_jitter_deg"),
+            ("sun_jitter_deg = nan\n", "sun_jitter_deg"),
             ("[rates]\nnormal = -1.0\n", "normal"),
         ] {
             let e = Preset::from_toml_str(text, "t.toml")

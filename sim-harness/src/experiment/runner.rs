@@ -176,6 +176,7 @@ pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
         shuffle_seed: preset.seed,
         replay_capacity: preset.replay_capacity,
         replay_steps_per_round: preset.replay_steps_per_round,
+        sun_jitter_rad: preset.sun_jitter_deg.to_radians(),
         // Extra rounds on an unchanged window only when the preset asks for them (the
         // runner counts them per change; the trainer alone would refuse a repeat).
         require_window_change: preset.rounds_per_window_change <= 1 && preset.skip_unchanged_window,
