@@ -142,6 +142,7 @@ const SUN_OFFSETS_DEG: [f64; 9] = [-20.0, -10.0, -5.0, -2.0, 0.0, 2.0, 5.0, 10.0
 /// Sun) and in the model's render, and the masked PSNR of all target pixels: whether the
 /// model's brightness falls off faster than the truth's away from a trained Sun.
 fn print_sun_sweep(
+    move_view: bool,
     rung: &str,
     scenario: &Scenario,
     rt: &sim_harness::raytrace::Scene,
@@ -161,25 +162,45 @@ fn print_sun_sweep(
         vec![(vec![(0.0f64, 0.0f64, 0u64); names.len()], 0.0f64, 0u64); SUN_OFFSETS_DEG.len()];
     let mut zero_offset_identical = true;
     for view in views {
-        let ids = material_ids(rt, &frame_request_of(k, view))?;
         let request = sim_harness::experiment::data::sequence_frame_request(scenario, view.index)?;
         let sun = view.sun_dir_target;
         let axis = sun
             .cross(view.view_dir_target())
             .try_normalize()
             .unwrap_or_else(|| sun.any_orthonormal_vector());
+        // View mode: the camera orbits the target's origin about the part of the Sun
+        // perpendicular to the view, so the phase angle stays (to first order) and the Sun
+        // stays fixed in the body frame.
+        let view_axis = view
+            .view_dir_target()
+            .cross(axis)
+            .try_normalize()
+            .unwrap_or(axis);
         for (deg, (per_material, se, n)) in SUN_OFFSETS_DEG.iter().zip(&mut sums) {
-            let moved = (glam::DQuat::from_axis_angle(axis, deg.to_radians()) * sun).as_vec3();
+            let turn = glam::DQuat::from_axis_angle(
+                if move_view { view_axis } else { axis },
+                deg.to_radians(),
+            );
+            let mut moved_view = (*view).clone();
+            let mut moved = sun.as_vec3();
+            if move_view {
+                moved_view.q_camera_from_target = view.q_camera_from_target * turn;
+            } else {
+                moved = (turn * sun).as_vec3();
+            }
+            let ids = material_ids(rt, &frame_request_of(k, &moved_view))?;
+            let camera = camera_of(k, &moved_view);
             let truth = sim_harness::raytrace::try_render_frame(
                 rt,
                 &sim_harness::raytrace::FrameRequest {
                     sun_dir_target: moved.normalize(),
+                    camera_from_target_rotation: camera.rotation,
                     ..request
                 },
             )?
             .rgb8;
             zero_offset_identical &= *deg != 0.0 || truth == view.rgb8;
-            let render = model.render(&camera_of(k, view), moved.normalize())?.image;
+            let render = model.render(&camera, moved.normalize())?.image;
             for (p, id) in ids.iter().enumerate() {
                 let Some(id) = id else { continue };
                 let e = &mut per_material[usize::from(*id)];
@@ -194,12 +215,14 @@ fn print_sun_sweep(
         }
     }
     eprintln!(
-        "{rung}, {} frames pooled, Sun sweep (offset > 0: towards the camera; offset 0 truth identical to the stored frames: {zero_offset_identical}), mean 8-bit level truth / render by material (centre-ray hit):",
-        views.len()
+        "{rung}, {} frames pooled, {} sweep (offset > 0: towards the camera; offset 0 truth identical to the stored frames: {zero_offset_identical}), mean 8-bit level truth / render by material (centre-ray hit):",
+        views.len(),
+        if move_view { "view" } else { "Sun" }
     );
     let header: String = names.iter().map(|m| format!(" {m} |")).collect();
     let rule: String = names.iter().map(|_| "---:|").collect();
-    eprintln!("| Sun offset |{header} masked PSNR |\n|---:|{rule}---:|");
+    let what = if move_view { "view" } else { "Sun" };
+    eprintln!("| {what} offset |{header} masked PSNR |\n|---:|{rule}---:|");
     for (deg, (per_material, se, n)) in SUN_OFFSETS_DEG.iter().zip(&sums) {
         let levels: String = per_material
             .iter()
@@ -396,14 +419,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             print_material_split(rung, &rt, model, &scene.intrinsics, views)?;
         }
         let model = &trainer.trainer().model;
-        print_sun_sweep(
-            "L0 window",
-            &scenario,
-            &rt,
-            model,
-            &scene.intrinsics,
-            &window,
-        )?;
+        for move_view in [false, true] {
+            print_sun_sweep(
+                move_view,
+                "L0 window",
+                &scenario,
+                &rt,
+                model,
+                &scene.intrinsics,
+                &window,
+            )?;
+        }
         return Ok(());
     }
     let mut online = gs_online::online::OnlineTrainer::new(
