@@ -6,7 +6,8 @@
 //!   then each evaluation view (L2) and each held-out frame (L1) with its distance to the
 //!   nearest trained Sun and viewpoint, then the error of the held-out frames (L1) and of
 //!   the final window (L0) split by the material each pixel's centre ray hits, then the
-//!   Sun sweep: model and ray-traced truth of the window's frames with only the Sun moved;
+//!   Sun and view sweeps: model and ray-traced truth of the window's frames with only the
+//!   Sun, then only the camera, moved;
 //! - `--noise-ref SPP`: the ground truth's own Monte Carlo noise, masked PSNR of the frames
 //!   at the preset's samples per pixel against the same frames at SPP (the ceiling any model
 //!   scored against that ground truth meets).
@@ -47,6 +48,15 @@ use sim_harness::experiment::runner::{online_config, scene_box, try_initialisati
 use sim_harness::raytrace::material_ids;
 use sim_harness::scenario::Scenario;
 
+/// The target's material names, in `raytrace::material_ids` index order.
+fn material_names(rt: &sim_harness::raytrace::Scene) -> Vec<String> {
+    rt.mesh()
+        .materials()
+        .iter()
+        .map(|m| m.name.clone())
+        .collect()
+}
+
 /// Squared error (summed over channels, images clamped to [0, 1]) of the model and of an
 /// all-black render over the target pixels of one material, and the model's summed signed
 /// error (render - truth).
@@ -70,12 +80,7 @@ fn print_material_split(
     k: &sim_harness::experiment::data::SceneIntrinsics,
     views: &[&sim_harness::experiment::data::ViewData],
 ) -> Result<(), Box<dyn std::error::Error>> {
-    let mut names: Vec<String> = rt
-        .mesh()
-        .materials()
-        .iter()
-        .map(|m| m.name.clone())
-        .collect();
+    let mut names = material_names(rt);
     // Masked pixels whose centre ray hits nothing (none expected: the mask is that hit).
     names.push("(no centre hit)".into());
     let mut split = vec![MaterialError::default(); names.len()];
@@ -132,16 +137,17 @@ fn print_material_split(
     Ok(())
 }
 
-/// Signed Sun offsets of the Sun sweep, degrees.
-const SUN_OFFSETS_DEG: [f64; 9] = [-20.0, -10.0, -5.0, -2.0, 0.0, 2.0, 5.0, 10.0, 20.0];
+/// Signed offsets of the Sun and view sweeps, degrees.
+const SWEEP_OFFSETS_DEG: [f64; 9] = [-20.0, -10.0, -5.0, -2.0, 0.0, 2.0, 5.0, 10.0, 20.0];
 
-/// Sun sweep: held-out frames are drawn too dark while the window's are not, so this moves
-/// only the Sun away from each of `views`' own (rotated about Sun x view direction, positive
-/// towards the camera, i.e. a smaller phase angle; camera unchanged) and prints, pooled, each
-/// material's mean 8-bit level in the ray-traced truth (the frame's dataset request with that
-/// Sun) and in the model's render, and the masked PSNR of all target pixels: whether the
-/// model's brightness falls off faster than the truth's away from a trained Sun.
-fn print_sun_sweep(
+/// Sun or view sweep: held-out frames are drawn too dark while the window's are not, so this
+/// moves only the Sun (`move_view` false: rotated about Sun x view direction, positive towards
+/// the camera, i.e. a smaller phase angle; camera unchanged) or only the camera (`move_view`
+/// true: orbiting the target's origin, Sun fixed in the body frame) away from each of
+/// `views`' own, and prints, pooled, each material's mean 8-bit level in the ray-traced truth
+/// (the frame's dataset request, so moved) and in the model's render, and the masked PSNR of
+/// all target pixels: whether the model's brightness falls off faster than the truth's.
+fn print_sweep(
     move_view: bool,
     rung: &str,
     scenario: &Scenario,
@@ -150,19 +156,15 @@ fn print_sun_sweep(
     k: &sim_harness::experiment::data::SceneIntrinsics,
     views: &[&sim_harness::experiment::data::ViewData],
 ) -> Result<(), Box<dyn std::error::Error>> {
-    let names: Vec<String> = rt
-        .mesh()
-        .materials()
-        .iter()
-        .map(|m| m.name.clone())
-        .collect();
+    let names = material_names(rt);
     // Per offset: per material (truth sum, render sum, channel values), and all target
     // pixels' squared error and channel values.
     let mut sums =
-        vec![(vec![(0.0f64, 0.0f64, 0u64); names.len()], 0.0f64, 0u64); SUN_OFFSETS_DEG.len()];
+        vec![(vec![(0.0f64, 0.0f64, 0u64); names.len()], 0.0f64, 0u64); SWEEP_OFFSETS_DEG.len()];
     let mut zero_offset_identical = true;
     for view in views {
-        let request = sim_harness::experiment::data::sequence_frame_request(scenario, view.index)?;
+        let request =
+            sim_harness::experiment::data::sequence_frame_request(scenario, rt.mesh(), view.index)?;
         let sun = view.sun_dir_target;
         let axis = sun
             .cross(view.view_dir_target())
@@ -176,7 +178,7 @@ fn print_sun_sweep(
             .cross(axis)
             .try_normalize()
             .unwrap_or(axis);
-        for (deg, (per_material, se, n)) in SUN_OFFSETS_DEG.iter().zip(&mut sums) {
+        for (deg, (per_material, se, n)) in SWEEP_OFFSETS_DEG.iter().zip(&mut sums) {
             let turn = glam::DQuat::from_axis_angle(
                 if move_view { view_axis } else { axis },
                 deg.to_radians(),
@@ -214,16 +216,22 @@ fn print_sun_sweep(
             }
         }
     }
+    let (what, positive) = if move_view {
+        (
+            "view",
+            "the camera turned about the Sun's part across the view",
+        )
+    } else {
+        ("Sun", "towards the camera")
+    };
     eprintln!(
-        "{rung}, {} frames pooled, {} sweep (offset > 0: towards the camera; offset 0 truth identical to the stored frames: {zero_offset_identical}), mean 8-bit level truth / render by material (centre-ray hit):",
+        "{rung}, {} frames pooled, {what} sweep (offset > 0: {positive}; offset 0 truth identical to the stored frames: {zero_offset_identical}), mean 8-bit level truth / render by material (centre-ray hit):",
         views.len(),
-        if move_view { "view" } else { "Sun" }
     );
     let header: String = names.iter().map(|m| format!(" {m} |")).collect();
     let rule: String = names.iter().map(|_| "---:|").collect();
-    let what = if move_view { "view" } else { "Sun" };
     eprintln!("| {what} offset |{header} masked PSNR |\n|---:|{rule}---:|");
-    for (deg, (per_material, se, n)) in SUN_OFFSETS_DEG.iter().zip(&sums) {
+    for (deg, (per_material, se, n)) in SWEEP_OFFSETS_DEG.iter().zip(&sums) {
         let levels: String = per_material
             .iter()
             .map(|(t, r, c)| {
@@ -420,7 +428,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let model = &trainer.trainer().model;
         for move_view in [false, true] {
-            print_sun_sweep(
+            print_sweep(
                 move_view,
                 "L0 window",
                 &scenario,

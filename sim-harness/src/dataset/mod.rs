@@ -269,14 +269,7 @@ pub fn generate(
     let mesh = load_target(scenario)?;
     let radius_m = mesh.bounding_radius_m() as f64;
     let triangles = mesh.triangle_count();
-    let samples = mesh.sample_surface(
-        scenario.target.surface_points as usize,
-        mix64(scenario.seed ^ 0x706F_696E_7473),
-    );
-    let target_size = TargetSize {
-        bounding_radius_m: radius_m,
-        framing_radius_m: framing_radius_m(&samples).unwrap_or(radius_m),
-    };
+    let target_size = target_size(scenario, &mesh);
     let geometry = scenario.geometry(target_size)?;
     let a_m = geometry.chief.semi_major_axis_m;
     let frames = scenario.frame_count();
@@ -294,7 +287,7 @@ pub fn generate(
 
     let samples = mesh.sample_surface(
         scenario.target.surface_points as usize,
-        mix64(scenario.seed ^ 0x706F_696E_7473),
+        point_seed(scenario),
     );
     let points: Vec<files::PlyPoint> = samples
         .iter()
@@ -330,11 +323,7 @@ pub fn generate(
     for index in 0..frames {
         let t_s = scenario.frame_time_s(index);
         let g = geometry.at(t_s);
-        let request = frame_request(
-            scenario,
-            &g,
-            mix64(scenario.seed.wrapping_add(mix64(index as u64))),
-        );
+        let request = frame_request(scenario, &g, sequence_seed(scenario, index));
         let frame = render(&scene, &request, || format!("frame {index}"))?;
         let [frame_name, mask_name, depth_name] = sequence.write(index, &frame)?;
         let noisy = noise.apply(
@@ -420,11 +409,7 @@ pub fn generate(
         let mut eval_telemetry = String::new();
         for k in 0..eval_views {
             let view = eval::eval_view(scenario, &geometry, k, (range_lo, range_hi));
-            let request = frame_request(
-                scenario,
-                &view,
-                mix64(scenario.seed ^ 0x6576_616C ^ mix64(k as u64)),
-            );
+            let request = frame_request(scenario, &view, eval_seed(scenario, k));
             let frame = render(&scene, &request, || format!("evaluation view {k}"))?;
             let [frame_name, mask_name, depth_name] = eval_set.write(k, &frame)?;
             eval_telemetry.push_str(&jsonl_line(&TelemetryLine {
@@ -464,6 +449,35 @@ pub fn generate(
         roe_scaled_m: geometry.roe.scaled_m(a_m),
         surface_points: points.len(),
     })
+}
+
+/// Seed of the target's surface samples (framing, points.ply, initialisation).
+pub(crate) fn point_seed(scenario: &Scenario) -> u64 {
+    mix64(scenario.seed ^ 0x706F_696E_7473)
+}
+
+/// Ray-tracing seed of sequence frame `index`.
+pub(crate) fn sequence_seed(scenario: &Scenario, index: u32) -> u64 {
+    mix64(scenario.seed.wrapping_add(mix64(index as u64)))
+}
+
+/// Ray-tracing seed of evaluation view `k`.
+pub(crate) fn eval_seed(scenario: &Scenario, k: u32) -> u64 {
+    mix64(scenario.seed ^ 0x6576_616C ^ mix64(k as u64))
+}
+
+/// The size the scenario's geometry frames `mesh` by: its bounding radius and the 90th
+/// percentile of its surface samples' distances (the scenario's sample count and seed).
+pub(crate) fn target_size(scenario: &Scenario, mesh: &TargetMesh) -> TargetSize {
+    let radius_m = mesh.bounding_radius_m() as f64;
+    let samples = mesh.sample_surface(
+        scenario.target.surface_points as usize,
+        point_seed(scenario),
+    );
+    TargetSize {
+        bounding_radius_m: radius_m,
+        framing_radius_m: framing_radius_m(&samples).unwrap_or(radius_m),
+    }
 }
 
 /// 90th percentile of the samples' distances from the body origin (None without samples).

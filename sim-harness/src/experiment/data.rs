@@ -9,13 +9,15 @@
 //! frame. A cache file is only ever used when its key (a hash of the scenario's TOML text and
 //! the format version) matches, so a changed scenario never reads stale images.
 
-use crate::dataset::{eval, frame_request, framing_radius_m, load_target, DatasetError};
-use crate::orbit::{FrameGeometry, RendezvousGeometry};
+use crate::dataset::{
+    eval, eval_seed, frame_request, load_target, point_seed, sequence_seed, target_size,
+    DatasetError,
+};
+use crate::orbit::FrameGeometry;
 use crate::raytrace::{try_render_frame, FrameRequest, Scene};
-use crate::scenario::{Scenario, TargetSize};
+use crate::scenario::Scenario;
 use crate::target::{SurfaceSample, TargetMesh};
 use glam::{DQuat, DVec3};
-use gs_core::rng::mix64;
 use rayon::prelude::*;
 use std::path::Path;
 use std::time::Instant;
@@ -104,38 +106,16 @@ fn view_from(
     }
 }
 
-fn point_seed(scenario: &Scenario) -> u64 {
-    mix64(scenario.seed ^ 0x706F_696E_7473)
-}
-
-fn sequence_seed(scenario: &Scenario, index: u32) -> u64 {
-    mix64(scenario.seed.wrapping_add(mix64(index as u64)))
-}
-
-/// The scenario's geometry, the target framed by the size `render_scene` gives it.
-fn scenario_geometry(
-    scenario: &Scenario,
-    mesh: &TargetMesh,
-) -> Result<RendezvousGeometry, DatasetError> {
-    let radius_m = mesh.bounding_radius_m();
-    let framing_samples = mesh.sample_surface(
-        scenario.target.surface_points as usize,
-        point_seed(scenario),
-    );
-    Ok(scenario.geometry(TargetSize {
-        bounding_radius_m: radius_m as f64,
-        framing_radius_m: framing_radius_m(&framing_samples).unwrap_or(radius_m as f64),
-    })?)
-}
-
-/// The request that rendered sequence frame `index` in `render_scene` (same geometry, lights,
-/// exposure and seed): for ray-tracing that frame again with something changed.
+/// The request that rendered sequence frame `index` of `mesh` (the scenario's target) in
+/// `render_scene` (same geometry, lights, exposure and seed): for ray-tracing that frame again
+/// with something changed.
 pub fn sequence_frame_request(
     scenario: &Scenario,
+    mesh: &TargetMesh,
     index: u32,
 ) -> Result<FrameRequest, DatasetError> {
-    let mesh = load_target(scenario)?;
-    let g = scenario_geometry(scenario, &mesh)?.at(scenario.frame_time_s(index));
+    let geometry = scenario.geometry(target_size(scenario, mesh))?;
+    let g = geometry.at(scenario.frame_time_s(index));
     Ok(frame_request(scenario, &g, sequence_seed(scenario, index)))
 }
 
@@ -151,7 +131,7 @@ pub fn render_scene(
     let mesh = load_target(scenario)?;
     let radius_m = mesh.bounding_radius_m();
     let (surface, lo, hi) = mesh_facts(&mesh, surface_points, point_seed(scenario));
-    let geometry = scenario_geometry(scenario, &mesh)?;
+    let geometry = scenario.geometry(target_size(scenario, &mesh))?;
     let k = scenario.camera_intrinsics();
     let scene = Scene::new(mesh);
     let frame_count = scenario.frame_count();
@@ -178,11 +158,7 @@ pub fn render_scene(
         .into_par_iter()
         .map(|view| {
             let g = eval::eval_view(scenario, &geometry, view, ranges);
-            let request = frame_request(
-                scenario,
-                &g,
-                mix64(scenario.seed ^ 0x6576_616C ^ mix64(view as u64)),
-            );
+            let request = frame_request(scenario, &g, eval_seed(scenario, view));
             try_render_frame(&scene, &request)
                 .map(|frame| view_from(&g, view, None, frame))
                 .map_err(|e| DatasetError::Render {
@@ -250,9 +226,8 @@ pub(crate) fn load_or_render_scene(
         ));
         // The surface samples and bounds are cheap and not cached: recompute them.
         let mesh = load_target(scenario)?;
-        let point_seed = mix64(scenario.seed ^ 0x706F_696E_7473);
         let mut scene = scene;
-        let (surface, lo, hi) = mesh_facts(&mesh, surface_points, point_seed);
+        let (surface, lo, hi) = mesh_facts(&mesh, surface_points, point_seed(scenario));
         scene.surface = surface;
         scene.bounds_min_m = lo;
         scene.bounds_max_m = hi;

@@ -7,16 +7,15 @@
 //! rendered with.
 
 use super::report::{quantiles, ShadowHeadroom, SunCoverage};
-use crate::dataset::{eval, frame_request, framing_radius_m, load_target};
+use crate::dataset::{eval, eval_seed, frame_request, target_size};
 use crate::experiment::data::{SceneData, SceneIntrinsics, ViewData};
 use crate::experiment::evaluate::{frame_request_of, sun_of};
 use crate::experiment::ExperimentError;
 use crate::raytrace::sunlight::{render_sunlight, SunClass, SunlightMap};
 use crate::raytrace::{try_render_frame_with, Scene};
-use crate::scenario::{Scenario, TargetSize};
+use crate::scenario::Scenario;
 use glam::Vec3;
 use gs_core::loss::{psnr, psnr_db_from_mse, ImageShape};
-use gs_core::rng::mix64;
 use rayon::prelude::*;
 
 pub(super) fn sunlight_of(
@@ -88,15 +87,7 @@ pub(super) fn shadow_headroom(
     rt: &Scene,
     scene: &SceneData,
 ) -> Result<ShadowHeadroom, ExperimentError> {
-    let mesh = load_target(scenario)?;
-    let radius_m = mesh.bounding_radius_m();
-    let point_seed = mix64(scenario.seed ^ 0x706F_696E_7473);
-    let framing = mesh.sample_surface(scenario.target.surface_points as usize, point_seed);
-    let target_size = TargetSize {
-        bounding_radius_m: radius_m as f64,
-        framing_radius_m: framing_radius_m(&framing).unwrap_or(radius_m as f64),
-    };
-    let geometry = scenario.geometry(target_size)?;
+    let geometry = scenario.geometry(target_size(scenario, rt.mesh()))?;
     let ranges = eval::scenario_range_m(scenario, &geometry);
     let k = &scene.intrinsics;
     let shape = ImageShape::new(k.width as usize, k.height as usize, 3);
@@ -105,11 +96,7 @@ pub(super) fn shadow_headroom(
         .par_iter()
         .map(|view| {
             let g = eval::eval_view(scenario, &geometry, view.index, ranges);
-            let request = frame_request(
-                scenario,
-                &g,
-                mix64(scenario.seed ^ 0x6576_616C ^ mix64(view.index as u64)),
-            );
+            let request = frame_request(scenario, &g, eval_seed(scenario, view.index));
             let render = |cast| {
                 try_render_frame_with(rt, &request, cast)
                     .map_err(|e| ExperimentError::Invalid(format!("headroom render: {e}")))
