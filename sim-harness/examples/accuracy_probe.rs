@@ -30,7 +30,8 @@ usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
   --steps N            offline steps (default 3000)
   --densify-every N    offline: densify every N steps in the first half (default 100)
   --masked 1           offline: masked loss
-  --png PATH           offline: truth | render for four training frames
+  --png PATH           offline: truth | render for four training frames; online: per
+                       held-out frame, nearest trained frame | truth | render
   --png-eval 1         offline: the figure shows evaluation views instead
   --online 1           run the online procedure instead (--rounds R, --window W)
   --noise-ref SPP      measure the ground truth's noise against SPP samples per pixel";
@@ -245,6 +246,39 @@ fn print_sweep(
     Ok(())
 }
 
+/// Writes `rows` of equally sized sRGB panels (`w x h` each) side by side, rows stacked,
+/// upscaled 3x (nearest neighbour) as a PNG.
+fn write_panels(
+    path: &str,
+    w: usize,
+    h: usize,
+    rows: &[Vec<Vec<u8>>],
+) -> Result<(), Box<dyn std::error::Error>> {
+    let cols = rows.iter().map(Vec::len).max().unwrap_or(0);
+    let mut out = vec![0u8; 3 * (cols * w) * (h * rows.len())];
+    for (r, panels) in rows.iter().enumerate() {
+        for (c, panel) in panels.iter().enumerate() {
+            for y in 0..h {
+                let dst = 3 * ((r * h + y) * cols * w + c * w);
+                out[dst..dst + 3 * w].copy_from_slice(&panel[3 * y * w..3 * (y + 1) * w]);
+            }
+        }
+    }
+    let up = sim_harness::experiment::figure::upscale_rgb(
+        (cols * w) as u32,
+        (h * rows.len()) as u32,
+        &out,
+        3,
+    );
+    sim_harness::dataset::files::write_png_rgb(
+        std::path::Path::new(path),
+        (3 * cols * w) as u32,
+        (3 * h * rows.len()) as u32,
+        &up,
+    )?;
+    Ok(())
+}
+
 fn arg(name: &str) -> Option<String> {
     let args: Vec<String> = std::env::args().collect();
     args.iter()
@@ -392,11 +426,65 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .zip(o.held_out.per_view.iter().zip(&o.black_held_out.per_view))
             .map(|(view, (m, b))| (joint_deg(view), m.masked_psnr_db, b.masked_psnr_db))
             .collect();
+        // The trained frames just before and after each held-out one, scored by the same
+        // final model: low there too means forgotten, high there means a new view missed.
+        let model = &trainer.trainer().model;
+        let mut neighbour_sum = (0.0f64, 0usize);
         for (view, (joint, m, b)) in held.iter().zip(&by_distance) {
+            let neighbours: Vec<&sim_harness::experiment::data::ViewData> = trained
+                .iter()
+                .copied()
+                .filter(|t| t.index + 1 == view.index || t.index == view.index + 1)
+                .collect();
+            let (n, _) = evaluate_views(model, &scene.intrinsics, &neighbours, 0)?;
+            if !neighbours.is_empty() {
+                neighbour_sum.0 += n.masked_psnr_db;
+                neighbour_sum.1 += 1;
+            }
             eprintln!(
-                "held-out frame {:3}: masked {m:6.2} dB (black {b:6.2}); nearest trained Sun and view in one frame {joint:5.1} deg",
-                view.index
+                "held-out frame {:3}: masked {m:6.2} dB (black {b:6.2}); its trained neighbours {:6.2} dB; nearest trained Sun and view in one frame {joint:5.1} deg",
+                view.index, n.masked_psnr_db
             );
+        }
+        eprintln!(
+            "held-out frames' trained neighbours, mean masked {:.2} dB over {} frames (the L1 rung's forgetting part)",
+            neighbour_sum.0 / neighbour_sum.1.max(1) as f64,
+            neighbour_sum.1
+        );
+        if let Some(png) = arg("--png") {
+            // Per held-out frame: the trained frame nearest in Sun and view together, the
+            // held-out truth, the final model's render of it.
+            let nearest = |view: &sim_harness::experiment::data::ViewData| {
+                trained
+                    .iter()
+                    .min_by(|a, b| {
+                        let d = |t: &&sim_harness::experiment::data::ViewData| {
+                            let sun_deg = t.sun_dir_target.angle_between(view.sun_dir_target);
+                            sun_deg.max(t.view_dir_target().angle_between(view.view_dir_target()))
+                        };
+                        d(a).total_cmp(&d(b))
+                    })
+                    .map(|t| t.rgb8.clone())
+            };
+            let model = &trainer.trainer().model;
+            let mut rows = Vec::new();
+            for view in &held {
+                let render = model
+                    .render(&camera_of(&scene.intrinsics, view), sun_of(view))?
+                    .image;
+                rows.push(vec![
+                    nearest(view).unwrap_or_else(|| vec![0; view.rgb8.len()]),
+                    view.rgb8.clone(),
+                    sim_harness::experiment::evaluate::to_rgb8(&render),
+                ]);
+            }
+            write_panels(
+                &png,
+                scene.intrinsics.width as usize,
+                scene.intrinsics.height as usize,
+                &rows,
+            )?;
+            eprintln!("wrote {png}: per held-out frame, nearest trained frame | truth | render");
         }
         by_distance.sort_by(|a, b| a.0.total_cmp(&b.0));
         let half = by_distance.len() / 2;
@@ -503,35 +591,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             scene.intrinsics.width as usize,
             scene.intrinsics.height as usize,
         );
-        let picks: Vec<usize> = (0..4).map(|i| i * views.len() / 4).collect();
-        let mut out = vec![0u8; 3 * (2 * w) * (h * picks.len())];
-        for (row, &k) in picks.iter().enumerate() {
+        let mut rows = Vec::new();
+        for k in (0..4).map(|i| i * views.len() / 4) {
             let render = t
                 .model
                 .render(&camera_of(&scene.intrinsics, views[k]), sun_of(views[k]))?
                 .image;
             let render8 = sim_harness::experiment::evaluate::to_rgb8(&render);
-            for y in 0..h {
-                for x in 0..w {
-                    let dst = 3 * ((row * h + y) * 2 * w + x);
-                    let src = 3 * (y * w + x);
-                    out[dst..dst + 3].copy_from_slice(&views[k].rgb8[src..src + 3]);
-                    out[dst + 3 * w..dst + 3 * w + 3].copy_from_slice(&render8[src..src + 3]);
-                }
-            }
+            rows.push(vec![views[k].rgb8.clone(), render8]);
         }
-        let up = sim_harness::experiment::figure::upscale_rgb(
-            (2 * w) as u32,
-            (h * picks.len()) as u32,
-            &out,
-            3,
-        );
-        sim_harness::dataset::files::write_png_rgb(
-            std::path::Path::new(&png),
-            (6 * w) as u32,
-            (3 * h * picks.len()) as u32,
-            &up,
-        )?;
+        write_panels(&png, w, h, &rows)?;
     }
     Ok(())
 }
