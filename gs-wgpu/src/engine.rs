@@ -4,9 +4,9 @@
 //!
 //! Invariants: the kernels are compiled once, when the engine opens (a failure is an
 //! error then, never later a fallback); [`WgpuEngine::supports`] refuses the
-//! configurations the kernels lack (Lambertian shading, a shadow gain other than 1) with
-//! the setting's name; every device error reaches the caller as a `SunAwareError`
-//! (rasterizer input errors keep their type).
+//! configurations the kernels lack (`shading = "lambert"`, the shortest-axis normal;
+//! `"lambert_learned"` runs on the device) with the setting's name; every device error
+//! reaches the caller as a `SunAwareError` (rasterizer input errors keep their type).
 
 use std::sync::Arc;
 
@@ -98,14 +98,15 @@ impl Engine for WgpuEngine {
     }
 
     fn supports(&self, config: &SunAwareConfig) -> Result<(), String> {
-        if config.shading != Shading::None {
-            return Err(format!(
-                "the wgpu backend supports shading = \"none\" only (this model has {:?}): \
-                 train with shading on the CPU",
+        match config.shading {
+            Shading::None | Shading::LambertLearned => Ok(()),
+            Shading::Lambert => Err(format!(
+                "the wgpu backend supports shading = \"none\" and \"lambert_learned\" \
+                 (this model has {:?}, the shortest-axis normal, which has no device \
+                 kernels): use shading = \"lambert_learned\" or train on the CPU",
                 config.shading.name()
-            ));
+            )),
         }
-        Ok(())
     }
 
     fn render(

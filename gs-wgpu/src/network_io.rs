@@ -6,8 +6,11 @@
 //! Ported operation for operation from the CPU: `nn::appearance::AppearanceNet::
 //! {assemble_input, scatter_input_grad}`, `nn::shadow_net::ShadowNet::{assemble_input,
 //! scatter_input_grad}` (full rows, not the folded training path), `nn::encoding`
-//! (`sin_cos_pi`'s quarter-turn reduction and polynomials, not the GPU's own sin/cos) and
-//! the channel routing of `sunaware::model::{forward_with, backward_timed}`.
+//! (`sin_cos_pi`'s quarter-turn reduction and polynomials, not the GPU's own sin/cos),
+//! the channel routing of `sunaware::model::{forward_with, backward_timed}` and, with
+//! `shading = "lambert_learned"`, the learned-normal Lambertian factor on Phi's colour
+//! (`sunaware::shading::{shade_forward, shade_backward}`: [`PhiShading`] in Phi's scatter,
+//! [`PhiShadingGrad`] in its output gradient, which also adds the normal's gradient).
 //!
 //! Conventions: `params`/`grads` are the packed group-major parameter buffers with group
 //! starts `offsets` ([`PackedParams`], [`packed_offsets`]); the batch ([`NetworkBatch`]):
@@ -38,6 +41,7 @@ use super::{
 };
 use gs_core::model::Param;
 use gs_core::nn::{AppearanceNet, SceneBox, ShadowNet};
+use gs_core::sunaware::shading::MIN_NORMAL_NORM2;
 
 const NETIO_COMMON: &str = include_str!("shaders/netio_common.wgsl");
 const NETIO_ENCODING_BACKWARD: &str = include_str!("shaders/netio_encoding_backward.wgsl");
@@ -60,7 +64,9 @@ const SHADOWED_CHANNELS: usize = 4;
 /// Sun-code floats the uniform holds: 6 L for L up to `nn::encoding::MAX_FREQUENCIES`.
 const SUN_CODE_CAPACITY: usize = 96;
 /// Bytes of the `NetIo` uniform (netio_common.wgsl).
-const UNIFORM_BYTES: usize = 128 + SUN_CODE_CAPACITY * 4;
+const UNIFORM_BYTES: usize = 160 + SUN_CODE_CAPACITY * 4;
+/// First word of the Sun code in the `NetIo` uniform.
+const SUN_CODE_WORD: usize = 40;
 
 /// Start of each group in the packed layout for `n` rows, and the total: the public face
 /// of `packed::offsets` (tests and tools build packed buffers by hand with it).
@@ -80,6 +86,62 @@ pub struct NetworkBatch<'a> {
     pub n: usize,
     pub list: &'a wgpu::Buffer,
     pub count: &'a wgpu::Buffer,
+}
+
+/// The learned-normal Lambertian factor on Phi's colour (`Shading::LambertLearned`,
+/// `gs_core::sunaware::shading`): what [`NetworkIo::encode_phi_scatter`] needs to
+/// compute it. `params` holds the Normal group (3 per Gaussian) and the means;
+/// `sun_dir` is the unit Sun vector exactly as the CPU's forward uses it (normalised by
+/// the caller: the kernels do not normalise it again); `ambient` is `k_a` in [0, 1);
+/// `factors` (`2n` f32) receives, per row, `f` and the normal's sign where the Gaussian is
+/// lit (0 where `f` is constant), for [`NetworkIo::encode_phi_d_output`].
+#[derive(Clone, Copy, Debug)]
+pub struct PhiShading<'a> {
+    pub params: PackedParams<'a>,
+    pub camera_centre: [f32; 3],
+    pub sun_dir: [f32; 3],
+    pub ambient: f32,
+    pub factors: &'a wgpu::Buffer,
+}
+
+/// The shading's backward in [`NetworkIo::encode_phi_d_output`]: the forward's
+/// [`PhiShading`] (its `factors` as the scatter wrote them), Phi's unshaded output (`n *
+/// 3`) and the packed gradient buffer whose Normal group receives the normal's term.
+#[derive(Clone, Copy, Debug)]
+pub struct PhiShadingGrad<'a> {
+    pub shading: PhiShading<'a>,
+    pub output: &'a wgpu::Buffer,
+    pub grads: &'a wgpu::Buffer,
+}
+
+impl PhiShading<'_> {
+    /// The uniform's terms after checking the arguments against `n` rows (`grads`, when
+    /// given, must hold the packed layout too).
+    fn terms(&self, n: usize, grads: Option<&wgpu::Buffer>) -> Result<ShadingTerms, GpuError> {
+        let offsets = self.params.offsets;
+        let mut buffers = vec![("params", self.params.buffer)];
+        if let Some(g) = grads {
+            buffers.push(("grads", g));
+        }
+        check_layout(offsets, n, Param::Normal, 3, &buffers)?;
+        check_finite3("camera centre", self.camera_centre)?;
+        check_finite3("Sun direction", self.sun_dir)?;
+        if self.sun_dir.iter().all(|&x| x == 0.0) {
+            return Err(GpuError::Invalid("Sun direction has zero length".into()));
+        }
+        if !(self.ambient.is_finite() && (0.0..1.0).contains(&self.ambient)) {
+            return Err(GpuError::Invalid(format!(
+                "shading ambient {} is outside [0, 1)",
+                self.ambient
+            )));
+        }
+        check_buffer("shading factors", self.factors, 2 * n)?;
+        Ok(ShadingTerms {
+            normal_offset: offsets[Param::Normal.index()],
+            sun_unit: self.sun_dir,
+            ambient: self.ambient,
+        })
+    }
 }
 
 /// Compiled kernels of the networks' input assembly and output scatter.
@@ -117,6 +179,16 @@ struct Uniform {
     box_extent: [f32; 3],
     box_inv_extent: [f32; 3],
     sun_code: Vec<f32>,
+    /// The learned-normal shading's terms (Phi's scatter and output gradient).
+    shading: Option<ShadingTerms>,
+}
+
+/// What the `NetIo` uniform holds for the learned-normal shading.
+#[derive(Clone, Copy)]
+struct ShadingTerms {
+    normal_offset: u32,
+    sun_unit: [f32; 3],
+    ambient: f32,
 }
 
 impl Uniform {
@@ -144,7 +216,14 @@ impl Uniform {
         vec4(&mut words, 20, self.box_min);
         vec4(&mut words, 24, self.box_extent);
         vec4(&mut words, 28, self.box_inv_extent);
-        for (w, x) in words[32..].iter_mut().zip(&self.sun_code) {
+        if let Some(t) = self.shading {
+            vec4(&mut words, 32, t.sun_unit);
+            words[36] = t.normal_offset;
+            words[37] = 1;
+            words[38] = MIN_NORMAL_NORM2.to_bits();
+            words[39] = t.ambient.to_bits();
+        }
+        for (w, x) in words[SUN_CODE_WORD..].iter_mut().zip(&self.sun_code) {
             *w = x.to_bits();
         }
         u32_bytes(&words)
@@ -293,6 +372,15 @@ impl NetworkIo {
         })
     }
 
+    /// Placeholder buffers for the shading's bindings of a kernel run without shading
+    /// (read-only ones, which may alias each other, and a writable one).
+    fn unused(&self, scratch: &Scratch) -> Result<(wgpu::Buffer, wgpu::Buffer), GpuError> {
+        Ok((
+            scratch.storage(&self.ctx, "netio unshaded in", 16)?,
+            scratch.storage(&self.ctx, "netio unshaded out", 16)?,
+        ))
+    }
+
     /// Writes `uniform` to its scratch slot and records one pass of `pipeline` over `n`
     /// rows with `uniform` at binding 0 and `buffers` at 1, 2, ... (`list` and `count`
     /// first: the bindings netio_common.wgsl declares for every kernel).
@@ -374,13 +462,17 @@ impl NetworkIo {
 
     /// Phi's output (`n * 3`, row r = list[r]'s RGB) into the channels: `chans[g * nc + k]
     /// = output[r * 3 + k]`, k < 3, for r < count, g = list[r]; other Gaussians' channels
-    /// are not touched. `nc` is 3 or 4.
+    /// are not touched. `nc` is 3 or 4. With `shading`, the colour is multiplied by the
+    /// Gaussian's learned-normal Lambertian factor `f_g` (`shade_forward`: 1 for a
+    /// degenerate or non-finite normal), and row r's `f_g` and sign go to
+    /// `shading.factors`.
     pub fn encode_phi_scatter(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         batch: NetworkBatch,
         nc: usize,
         output: &wgpu::Buffer,
+        shading: Option<PhiShading>,
         chans: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
@@ -389,15 +481,23 @@ impl NetworkIo {
         check_batch(n, list, count)?;
         check_buffer("Phi output", output, n * PHI_OUT)?;
         check_buffer("channels", chans, n * nc)?;
+        let terms = shading.as_ref().map(|s| s.terms(n, None)).transpose()?;
         let uniform = Uniform {
             n,
             nc,
+            offsets: shading.map_or([0; Param::COUNT + 1], |s| *s.params.offsets),
+            camera_centre: shading.map_or([0.0; 3], |s| s.camera_centre),
+            shading: terms,
             ..Uniform::default()
         };
         if n == 0 {
             return Ok(());
         }
-        let buffers = [list, count, output, chans];
+        let (unused_in, unused_out) = self.unused(scratch)?;
+        let buffers = match shading {
+            Some(s) => [list, count, output, chans, s.params.buffer, s.factors],
+            None => [list, count, output, chans, &unused_in, &unused_out],
+        };
         self.record(
             encoder,
             scratch,
@@ -410,13 +510,16 @@ impl NetworkIo {
 
     /// Phi's output gradient (`n * 3`) from the rasterizer's gradient rows (`n * (13 +
     /// nc)`): `d_out[r * 3 + k] = rows[g * (13 + nc) + 13 + k]` for r < count, g = list[r];
-    /// 0 for rows `>= count`.
+    /// 0 for rows `>= count`. With `shading` (`shade_backward`): that gradient times the
+    /// row's `f_g`, and the normal's term of a lit Gaussian ADDED to its Normal row of
+    /// `shading.grads` (which the caller cleared; Gaussians not lit get nothing).
     pub fn encode_phi_d_output(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         batch: NetworkBatch,
         nc: usize,
         rows: &wgpu::Buffer,
+        shading: Option<PhiShadingGrad>,
         d_out: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
@@ -425,15 +528,46 @@ impl NetworkIo {
         check_batch(n, list, count)?;
         check_buffer("rasterizer gradient rows", rows, n * (ROW_HEAD + nc))?;
         check_buffer("Phi output gradient", d_out, n * PHI_OUT)?;
+        let terms = match &shading {
+            Some(s) => {
+                check_buffer("Phi output", s.output, n * PHI_OUT)?;
+                Some(s.shading.terms(n, Some(s.grads))?)
+            }
+            None => None,
+        };
         let uniform = Uniform {
             n,
             nc,
+            offsets: shading.map_or([0; Param::COUNT + 1], |s| *s.shading.params.offsets),
+            shading: terms,
             ..Uniform::default()
         };
         if n == 0 {
             return Ok(());
         }
-        let buffers = [list, count, rows, d_out];
+        let (unused_in, unused_out) = self.unused(scratch)?;
+        let buffers = match shading {
+            Some(s) => [
+                list,
+                count,
+                rows,
+                d_out,
+                s.shading.params.buffer,
+                s.shading.factors,
+                s.output,
+                s.grads,
+            ],
+            None => [
+                list,
+                count,
+                rows,
+                d_out,
+                &unused_in,
+                &unused_in,
+                &unused_in,
+                &unused_out,
+            ],
+        };
         self.record(
             encoder,
             scratch,

@@ -71,10 +71,23 @@ struct Scene {
 
 impl Scene {
     fn new(seed: u64, n: usize, feature_dim: usize, latent_dim: usize, keep: f32) -> Self {
-        let dims = [3, 3, 4, 1, 3, 9, feature_dim, latent_dim, 0];
+        Self::with_dims(
+            seed,
+            n,
+            [3, 3, 4, 1, 3, 9, feature_dim, latent_dim, 0],
+            keep,
+        )
+    }
+
+    /// [`Scene::new`] with a learned shading normal group (3 per Gaussian, normal values).
+    fn with_normals(seed: u64, n: usize, feature_dim: usize, keep: f32) -> Self {
+        Self::with_dims(seed, n, [3, 3, 4, 1, 3, 9, feature_dim, 6, 3], keep)
+    }
+
+    fn with_dims(seed: u64, n: usize, dims: [usize; Param::COUNT], keep: f32) -> Self {
         let offsets = packed_offsets(&dims, n).unwrap();
         let mut rng = SplitMix64::new(seed);
-        let mut params: Vec<f32> = (0..offsets[8]).map(|_| rng.normal()).collect();
+        let mut params: Vec<f32> = (0..offsets[Param::COUNT]).map(|_| rng.normal()).collect();
         // Means fill a box a little larger than Psi's scene box (some lie outside it).
         for v in &mut params[..3 * n] {
             *v = rng.uniform(-1.6, 1.6);
@@ -302,15 +315,15 @@ fn bad_host_arguments_are_rejected_before_recording() {
     let more = packed_offsets(&s.dims, n + 1).unwrap();
     invalid(phi_in(&mut enc, &more, SUN, CAMERA, &phi_input), "rows");
     invalid(
-        io.encode_phi_scatter(&mut enc, b.rows(&scratch, n), 5, &short, &chans4),
+        io.encode_phi_scatter(&mut enc, b.rows(&scratch, n), 5, &short, None, &chans4),
         "5 channels",
     );
     invalid(
-        io.encode_phi_scatter(&mut enc, b.rows(&scratch, n), 4, &short, &chans4),
+        io.encode_phi_scatter(&mut enc, b.rows(&scratch, n), 4, &short, None, &chans4),
         "short Phi output",
     );
     invalid(
-        io.encode_phi_d_output(&mut enc, b.rows(&scratch, n), 4, &short, &chans4),
+        io.encode_phi_d_output(&mut enc, b.rows(&scratch, n), 4, &short, None, &chans4),
         "short rows",
     );
     invalid(

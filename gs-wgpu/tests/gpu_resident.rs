@@ -45,7 +45,8 @@ fn random_set(dims_of: ModelLayout, n: usize, rng: &mut SplitMix64, scale: f32) 
 }
 
 /// The Adam kernel against `optim::Adam::step` for three steps on random parameters and
-/// gradients (every group, including the feature and latent groups, one frozen group).
+/// gradients (every group, including the feature, latent and learned-normal groups, one
+/// frozen group).
 ///
 /// Tolerance (f32 rounding): per step the kernel computes the same operations in the same
 /// order; it may differ from the CPU by FMA contraction and by the Vulkan precision of
@@ -64,7 +65,8 @@ fn adam_kernel_matches_optim_rs() {
         sh_degree: 1,
         feature_dim: 2,
         shadow_latent_dim: 1,
-        normal_dim: 0,
+        // The learned shading normal: the ninth group, at its own rate.
+        normal_dim: 3,
     };
     let n = 700;
     let mut rng = SplitMix64::new(21);

@@ -25,7 +25,7 @@ use gs_core::rng::SplitMix64;
 use gs_core::sunaware::checkpoint;
 use gs_core::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
 use gs_core::sunaware::{
-    LightConfig, Observation, SunAwareConfig, SunAwareModel, SunAwareTrainer, Variant,
+    LightConfig, Observation, Shading, SunAwareConfig, SunAwareModel, SunAwareTrainer, Variant,
 };
 use gs_core::{Camera, Param};
 use gs_wgpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer, WgpuEngine};
@@ -59,6 +59,17 @@ fn setup_with_width(
     count: usize,
     appearance_hidden_width: usize,
 ) -> (SunAwareModel, Vec<View>) {
+    setup_shaded(variant, count, appearance_hidden_width, Shading::None)
+}
+
+/// [`setup_with_width`] with `shading` (the model's layout carries the learned normal
+/// group under `lambert_learned`, started by the model from the Gaussians' shapes).
+fn setup_shaded(
+    variant: Variant,
+    count: usize,
+    appearance_hidden_width: usize,
+    shading: Shading,
+) -> (SunAwareModel, Vec<View>) {
     let scene = SyntheticScene::plate_and_ball(24, 400).unwrap();
     let config = SunAwareConfig {
         light: LightConfig {
@@ -66,6 +77,7 @@ fn setup_with_width(
             ..LightConfig::default()
         },
         appearance_hidden_width,
+        shading,
         ..SunAwareConfig::for_variant(variant)
     };
     let (points, _, colours) = scene.surface_samples(0.02, 5);
@@ -248,14 +260,16 @@ fn randomise_shapes(model: &mut SunAwareModel, seed: u64) {
 /// `sunaware_step_gradients_match_cpu`, all but 0.2% of the values (the shadow pass's
 /// differences reach Psi's inputs). The loss parts agree to f32 rounding of their sums.
 fn resident_step_parity(variant: Variant) {
-    resident_step_parity_with_gain(variant, 1.0);
+    resident_step_parity_with(variant, 1.0, Shading::None);
 }
 
-fn resident_step_parity_with_gain(variant: Variant, shadow_gain: f32) {
+/// [`resident_step_parity`] with a shadow gain and a shading; under `lambert_learned` the
+/// Normal group's moments are compared too.
+fn resident_step_parity_with(variant: Variant, shadow_gain: f32, shading: Shading) {
     let Some(backend) = gpu_backend() else {
         return;
     };
-    let (mut start, obs) = setup_with_width(variant, 2, 64);
+    let (mut start, obs) = setup_shaded(variant, 2, 64, shading);
     randomise_shapes(&mut start, 4);
     start.config.shadow_gain = shadow_gain;
     let observations = observations(&obs);
@@ -315,7 +329,11 @@ fn resident_step_parity_with_gain(variant: Variant, shadow_gain: f32) {
             Param::ShadowLatent,
         ]
     };
-    for &p in groups {
+    let mut groups = groups.to_vec();
+    if shading == Shading::LambertLearned {
+        groups.push(Param::Normal);
+    }
+    for p in groups {
         assert_close(p.name(), cpu.adam.m.get(p), gpu.adam.m.get(p), 2e-3);
     }
     if variant != Variant::A {
@@ -351,7 +369,20 @@ fn resident_step_d_matches_the_cpu_step() {
 /// `shadow_gain` scales `V Psi` on the device as on the CPU (the demo's preset uses 2).
 #[test]
 fn resident_step_d_with_shadow_gain_2_matches_the_cpu_step() {
-    resident_step_parity_with_gain(Variant::D, 2.0);
+    resident_step_parity_with(Variant::D, 2.0, Shading::None);
+}
+
+/// The learned-normal Lambertian factor on Phi's colour (`shading = "lambert_learned"`):
+/// the shaded channels, Phi's output gradient and the normal's own gradient (its Adam
+/// moments) as on the CPU, with the demo's shadow gain.
+#[test]
+fn resident_step_d_with_lambert_learned_matches_the_cpu_step() {
+    resident_step_parity_with(Variant::D, 2.0, Shading::LambertLearned);
+}
+
+#[test]
+fn resident_step_b_with_lambert_learned_matches_the_cpu_step() {
+    resident_step_parity_with(Variant::B, 1.0, Shading::LambertLearned);
 }
 
 #[test]
@@ -410,10 +441,14 @@ fn resident_network_rows_are_the_cpu_contributing_gaussians() {
 /// `step_many` in batches of 12, as the component's rounds run), densification between
 /// two batches on both; both scored on the CPU: within 0.1 dB.
 fn resident_training_parity(variant: Variant, steps: usize) {
+    resident_training_parity_with(variant, steps, Shading::None);
+}
+
+fn resident_training_parity_with(variant: Variant, steps: usize, shading: Shading) {
     let Some(backend) = gpu_backend() else {
         return;
     };
-    let (mut start, obs) = setup_with_width(variant, 6, 32);
+    let (mut start, obs) = setup_shaded(variant, 6, 32, shading);
     // Densification between the second and third batch must change the model.
     start.config.densify_from_step = 0;
     start.config.densify.grad_threshold = 1e-5;
@@ -466,7 +501,7 @@ fn resident_training_parity(variant: Variant, steps: usize) {
     assert_eq!(gpu.steps, steps as u64);
     let (p0, pc, pg) = (score(&start), score(&cpu.model), score(&gpu.model));
     eprintln!(
-        "resident configuration {variant}: {steps} steps, PSNR start {p0:.3} dB, cpu \
+        "resident configuration {variant}, shading {shading}: {steps} steps, PSNR start {p0:.3} dB, cpu \
          {pc:.3} dB ({cpu_s:.1} s), wgpu resident {pg:.3} dB ({gpu_s:.1} s; software \
          driver), Gaussians cpu {} wgpu {}",
         cpu.model.len(),
@@ -479,6 +514,13 @@ fn resident_training_parity(variant: Variant, steps: usize) {
 #[test]
 fn resident_training_d_reaches_the_same_psnr() {
     resident_training_parity(Variant::D, 48);
+}
+
+/// Learned normals through batches, Adam at their own rate and densification (which
+/// copies the normal group) on the device as on the CPU.
+#[test]
+fn resident_training_d_with_lambert_learned_reaches_the_same_psnr() {
+    resident_training_parity_with(Variant::D, 48, Shading::LambertLearned);
 }
 
 #[test]
@@ -600,16 +642,22 @@ fn a_resident_sort_overflow_is_redone() {
 }
 
 #[test]
-fn a_shading_the_device_lacks_is_refused_with_a_clear_error() {
+fn lambert_learned_is_supported_and_lambert_refused_by_name() {
     let Some(backend) = gpu_backend() else {
         return;
     };
     let (mut model, _) = setup(Variant::D, 1);
     model.config.shadow_gain = 2.0;
     model.set_backend(&backend).unwrap();
-    // Lambertian shading is CPU-only.
+    // The learned normal runs on the device; the shortest-axis normal is CPU-only, and
+    // the refusal names the setting and its value.
+    let (mut learned, _) = setup_shaded(Variant::B, 1, 32, Shading::LambertLearned);
+    learned.set_backend(&backend).unwrap();
     let (mut shaded, _) = setup(Variant::B, 1);
-    shaded.config.shading = gs_core::sunaware::Shading::Lambert;
+    shaded.config.shading = Shading::Lambert;
     let err = shaded.set_backend(&backend).unwrap_err().to_string();
-    assert!(err.contains("shading"), "{err}");
+    assert!(
+        err.contains("shading") && err.contains("\"lambert\""),
+        "{err}"
+    );
 }

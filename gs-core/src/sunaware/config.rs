@@ -314,8 +314,9 @@ pub struct SunAwareConfig {
     pub shadow_gain: f32,
     /// Colour times a Lambertian factor of each Gaussian's normal and the Sun
     /// ([`Shading`], `super::shading`): `None` is the paper's form. A model knob, stored in
-    /// checkpoints (from version 5; older ones load as `None`). The wgpu backend refuses
-    /// `Lambert` and `LambertLearned` (which adds the per-Gaussian group `Param::Normal`).
+    /// checkpoints (from version 5; older ones load as `None`). The wgpu backend runs
+    /// `LambertLearned` (which adds the per-Gaussian group `Param::Normal`) device-resident
+    /// and refuses `Lambert` (the shortest-axis normal has no device kernels).
     pub shading: Shading,
     /// The ambient floor `k_a` of the Lambertian shadings, in [0, 1): the factor is
     /// `k_a + (1 - k_a) max(0, n . s)`. Stored in checkpoints with `shading`.

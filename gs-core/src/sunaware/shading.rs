@@ -26,6 +26,11 @@
 //! through them. A Gaussian with a non-finite or degenerate rotation, scale or normal
 //! (`|v_i|^2 < MIN_NORMAL_NORM2`) gets `f_i = 1` and no gradient, so nothing non-finite
 //! leaves this module.
+//!
+//! Devices: the wgpu backend's device-resident step runs `LambertLearned` with these
+//! functions' operations ported in order (gs-wgpu `network_io`, Phi's scatter and output
+//! gradient; tested against [`shade_forward`] and [`shade_backward`]); `Lambert` is
+//! CPU-only (the engine refuses it).
 
 use std::str::FromStr;
 

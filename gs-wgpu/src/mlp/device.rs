@@ -378,9 +378,10 @@ impl GpuMlp {
         let t = (net.adam_step + 1) as i32;
         let bias1 = 1.0 - (ADAM_BETA1 as f64).powi(t);
         let bias2 = 1.0 - (ADAM_BETA2 as f64).powi(t);
-        let mut words = [0u32; 28];
-        // adam.wgsl's group offsets: group 0 is [0, len), groups 1..7 empty at len.
-        words[1..9].fill(len);
+        let mut words = [0u32; 32];
+        // adam.wgsl's group offsets: group 0 is [0, len), groups 1..8 empty at len, and
+        // the total (word 9).
+        words[1..10].fill(len);
         words[12] = ((lr as f64 / bias1) as f32).to_bits();
         // Group 0 always active: FlatAdam moves the moments even at learning rate 0.
         words[20] = 1;

@@ -145,7 +145,7 @@ impl OptimKernels {
         sink: StepSink,
         encoder: &mut wgpu::CommandEncoder,
         b: &GaussianBuffers,
-        words: &[u32; 28],
+        words: &[u32; ADAM_WORDS],
     ) -> Result<(), GpuError> {
         let adam_u = sink.pool.uniform(sink.ctx, "sa adam", &u32_bytes(words))?;
         let bind = sink.ctx.bind_group(
@@ -153,7 +153,7 @@ impl OptimKernels {
             &[&adam_u, &b.params, &b.grads, &b.m, &b.v, sink.flags],
         );
         let mut pass = encoder.begin_compute_pass(&Default::default());
-        dispatch_1d(&mut pass, &self.adam, &bind, words[8] as u64);
+        dispatch_1d(&mut pass, &self.adam, &bind, words[Param::COUNT] as u64);
         Ok(())
     }
 }
@@ -246,25 +246,28 @@ impl GpuAdam {
     }
 }
 
+/// Words of the Adam kernel's uniform (shaders/adam.wgsl).
+pub(super) const ADAM_WORDS: usize = 32;
+
 /// The Adam kernel's uniform (shaders/adam.wgsl) for Adam step `step` (1-based) over the
-/// packed groups of `n` rows of `dims`: step sizes and the bias correction in f64 as
-/// optim.rs computes them; groups with rate 0 (or width 0) stay untouched.
+/// packed groups of `n` rows of `dims` (all nine, the learned shading normal included):
+/// step sizes and the bias correction in f64 as optim.rs computes them; groups with rate
+/// 0 (or width 0) stay untouched.
 pub(super) fn adam_words(
     dims: &[usize; Param::COUNT],
     n: usize,
     rates: &GroupRates,
     step: u64,
     betas_eps: (f32, f32, f32),
-) -> Result<[u32; 28], GpuError> {
+) -> Result<[u32; ADAM_WORDS], GpuError> {
     let off = offsets(dims, n)?;
     let t = i32::try_from(step).unwrap_or(i32::MAX);
     let (beta1, beta2, eps) = betas_eps;
     let bias1 = 1.0 - (beta1 as f64).powi(t);
     let bias2 = 1.0 - (beta2 as f64).powi(t);
-    let mut words = [0u32; 28];
-    // The kernel knows the first 8 groups; word 8 ends them (a learned shading normal,
-    // which the engine refuses, would stay unstepped).
-    words[..9].copy_from_slice(&off[..9]);
+    let mut words = [0u32; ADAM_WORDS];
+    // Group starts, then the total (word 9).
+    words[..Param::COUNT + 1].copy_from_slice(&off);
     let mut active = 0u32;
     for p in Param::ALL {
         let lr = rates[p.index()];
@@ -277,7 +280,9 @@ pub(super) fn adam_words(
         if lr != 0.0 && dims[p.index()] != 0 {
             active |= 1 << p.index();
         }
-        words[12 + p.index()] = ((lr as f64 / bias1) as f32).to_bits();
+        // Groups 0..7 in words 12..19, the Normal group in word 28.
+        let at = if p.index() < 8 { 12 + p.index() } else { 28 };
+        words[at] = ((lr as f64 / bias1) as f32).to_bits();
     }
     words[20] = active;
     words[21] = beta1.to_bits();

@@ -14,14 +14,16 @@ use super::kernels::{
 use super::{Attempt, SunAwareResident, SunAwareStepInput, SunAwareStepReport};
 use crate::loss::{combine, LossImages};
 use crate::mlp::MlpRecording;
-use crate::network_io::{NetworkBatch, PackedParams};
+use crate::network_io::{NetworkBatch, PackedParams, PhiShading, PhiShadingGrad};
 use crate::packed::offsets;
 use crate::raster::DeviceInputs;
 use crate::sun_visibility::SunLight;
 use crate::{bytes_f32, bytes_u32, dispatch_1d, groups_1d, u32_bytes, GpuError};
 use gs_core::loss::ImageShape;
+use gs_core::model::Param;
 use gs_core::regularizer::IsoReduction;
 use gs_core::sunaware::config::ShadowRefinement;
+use gs_core::sunaware::Shading;
 use gs_core::sunaware::StepTimings;
 use gs_core::sunaware::SunAwareModel;
 
@@ -57,6 +59,20 @@ impl SunAwareResident {
         if model.config.skip_masked_background_tiles {
             settings.blend_tiles = mask_tiles;
         }
+        // The learned-normal Lambertian factor on Phi's colour (the shortest-axis one has
+        // no device kernels: the engine refuses it).
+        let learned_shading = match model.config.shading {
+            Shading::None => false,
+            Shading::LambertLearned if self.dims[Param::Normal.index()] == 3 => true,
+            other => {
+                return Err(GpuError::Invalid(format!(
+                    "shading = {:?} on the device (normal group of width {}): only \
+                     \"lambert_learned\" with its normal group has device kernels",
+                    other.name(),
+                    self.dims[Param::Normal.index()]
+                )))
+            }
+        };
         let phi_parts = match (model.appearance.as_ref(), self.appearance.as_ref()) {
             (Some(net), Some(phi)) => Some((net, phi)),
             (None, _) => None,
@@ -107,6 +123,15 @@ impl SunAwareResident {
         encoder.clear_buffer(&zero_chans, 0, None);
         encoder.clear_buffer(&chans, 0, None);
         encoder.clear_buffer(&list, 0, None);
+        // The Normal group's gradient: only Phi's output gradient adds to it (lit rows).
+        let normal_values = (off[Param::COUNT] - off[Param::Normal.index()]) as u64;
+        if normal_values > 0 {
+            encoder.clear_buffer(
+                &b.grads,
+                off[Param::Normal.index()] as u64 * 4,
+                Some(normal_values * 4),
+            );
+        }
         let mut keep = Vec::new();
         {
             let bind = ctx.bind_group(
@@ -215,6 +240,21 @@ impl SunAwareResident {
             offsets: &off,
         };
         let sun = input.sun_dir.to_array();
+        // Per row: the shading factor and the lit normal's sign (scatter to d_output).
+        let shade_factors = if learned_shading && phi_parts.is_some() {
+            Some(nets.storage(ctx, "sa phi shading", n.max(1) as u64 * 8)?)
+        } else {
+            None
+        };
+        // `input.sun_dir` is the unit vector the CPU's forward uses (the trainer
+        // normalised it).
+        let shading = shade_factors.as_ref().map(|factors| PhiShading {
+            params: packed,
+            camera_centre: cam_pos.to_array(),
+            sun_dir: sun,
+            ambient: model.config.shading_ambient,
+            factors,
+        });
         let phi_tape = match phi_parts {
             None => None,
             Some((appearance, phi)) => {
@@ -247,8 +287,8 @@ impl SunAwareResident {
                     &phi_out,
                 )?;
                 self.io
-                    .encode_phi_scatter(&mut encoder, batch, nc, &phi_out, &chans)?;
-                Some(phi_tape)
+                    .encode_phi_scatter(&mut encoder, batch, nc, &phi_out, shading, &chans)?;
+                Some((phi_tape, phi_out))
             }
         };
         mark(&mut encoder, "phi-f");
@@ -408,15 +448,26 @@ impl SunAwareResident {
                 dispatch_1d(&mut pass, &self.pipelines.grads, &bind, n as u64);
             }
         }
-        if let (Some((appearance, phi)), Some(phi_tape)) = (phi_parts, &phi_tape) {
+        if let (Some((appearance, phi)), Some((phi_tape, phi_out))) = (phi_parts, &phi_tape) {
             let phi_d_out = nets.storage(ctx, "sa phi output gradient", n.max(1) as u64 * 12)?;
             let phi_d_in = nets.storage(
                 ctx,
                 "sa phi input gradient",
                 (n.max(1) * appearance.input_width()) as u64 * 4,
             )?;
-            self.io
-                .encode_phi_d_output(&mut encoder, batch, nc, &rows, &phi_d_out)?;
+            let shading_grad = shading.map(|shading| PhiShadingGrad {
+                shading,
+                output: phi_out,
+                grads: &b.grads,
+            });
+            self.io.encode_phi_d_output(
+                &mut encoder,
+                batch,
+                nc,
+                &rows,
+                shading_grad,
+                &phi_d_out,
+            )?;
             self.mlp.encode_backward(
                 &mut encoder,
                 MlpRecording {
@@ -480,7 +531,13 @@ impl SunAwareResident {
         mark(&mut encoder, "psi-b");
 
         // Checks, statistics, Adam.
-        self.encode_finite(&mut encoder, &b.grads, off[8] as usize, "gradients", &flags)?;
+        self.encode_finite(
+            &mut encoder,
+            &b.grads,
+            off[Param::COUNT] as usize,
+            "gradients",
+            &flags,
+        )?;
         if let Some((_, phi)) = phi_parts {
             self.encode_finite(
                 &mut encoder,

@@ -8,11 +8,11 @@
 // (a non-finite gradient somewhere in the step) nothing is changed.
 
 struct AdamUniform {
-    // Group start offsets 0..7 and the total length (offsets[8]) in .x.y.z.w order.
+    // Group start offsets 0..8 and the total length (offsets[9]) in .x.y.z.w order.
     off0: vec4<u32>,
     off1: vec4<u32>,
     off2: vec4<u32>,
-    // Per-group step size (0 for a frozen group).
+    // Per-group step size of groups 0..7 (0 for a frozen group).
     step0: vec4<f32>,
     step1: vec4<f32>,
     // Bit g set: group g takes a step.
@@ -24,6 +24,8 @@ struct AdamUniform {
     pad0: u32,
     pad1: u32,
     pad2: u32,
+    // Step size of group 8 (the learned shading normal) in .x.
+    step2: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> u: AdamUniform;
@@ -40,24 +42,27 @@ fn offset(g: u32) -> u32 {
     if g < 8u {
         return u.off1[g - 4u];
     }
-    return u.off2[0];
+    return u.off2[g - 8u];
 }
 
 fn step_size(g: u32) -> f32 {
     if g < 4u {
         return u.step0[g];
     }
-    return u.step1[g - 4u];
+    if g < 8u {
+        return u.step1[g - 4u];
+    }
+    return u.step2.x;
 }
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = gid.x + gid.y * nwg.x * 256u;
-    if i >= u.off2[0] || skip[0] != 0u {
+    if i >= u.off2[1] || skip[0] != 0u {
         return;
     }
     var g = 0u;
-    for (var k = 1u; k < 8u; k++) {
+    for (var k = 1u; k < 9u; k++) {
         if i >= offset(k) {
             g = k;
         }

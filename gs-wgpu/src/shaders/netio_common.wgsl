@@ -1,8 +1,9 @@
 // Shared by the network input/output kernels (network_io.rs), prepended to each: the
-// uniform, the bindings every kernel has (uniform, list, count: bindings 0-2; each kernel
-// declares its own buffers from binding 3 on), the row-to-Gaussian lookup, the packed
-// parameter layout's group offsets, and `sin(pi x)`, `cos(pi x)` and the positional
-// encoding ported operation for operation from nn/encoding.rs.
+// uniform (with the learned-normal shading's terms), the bindings every kernel has
+// (uniform, list, count: bindings 0-2; each kernel declares its own buffers from
+// binding 3 on), the row-to-Gaussian lookup, the packed parameter layout's group
+// offsets, and `sin(pi x)`, `cos(pi x)` and the positional encoding ported operation for
+// operation from nn/encoding.rs.
 
 struct NetIo {
     // Start of each parameter group in the packed buffers (Param order).
@@ -27,6 +28,14 @@ struct NetIo {
     box_min: vec4<f32>,
     box_extent: vec4<f32>,
     box_inv_extent: vec4<f32>,
+    // The learned-normal Lambertian factor on Phi's colour (shading.rs, read only where
+    // `shaded` is non-zero): the unit Sun vector (.w unused), the start of the Normal
+    // group in the packed buffers, the degenerate |v|^2 bound and the ambient floor k_a.
+    sun_unit: vec4<f32>,
+    normal_off: u32,
+    shaded: u32,
+    min_norm2: f32,
+    ambient: f32,
     // gamma_L of the unit Sun direction (6L values, computed on the host by the CPU
     // encoding: the same bits as the CPU rows).
     sun: array<vec4<f32>, 24>,
