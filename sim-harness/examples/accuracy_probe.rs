@@ -393,14 +393,29 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let dirs: Vec<glam::DVec3> = trained.iter().map(|v| v.view_dir_target()).collect();
         // Sun and viewpoint of one frame together: the appearance depends on the pair, and
         // the frame nearest in Sun is rarely the one nearest in viewpoint.
-        let joint_deg = |view: &sim_harness::experiment::data::ViewData| {
-            suns.iter()
-                .zip(&dirs)
-                .map(|(s, d)| {
+        // The trained frame nearest to `view` in Sun and viewpoint together (the larger of
+        // the two angles), and that angle in degrees.
+        let nearest_joint = |view: &sim_harness::experiment::data::ViewData| {
+            trained
+                .iter()
+                .zip(suns.iter().zip(&dirs))
+                .map(|(t, (s, d))| {
                     let sun_deg = s.angle_between(view.sun_dir_target).to_degrees();
-                    sun_deg.max(d.angle_between(view.view_dir_target()).to_degrees())
+                    (
+                        *t,
+                        sun_deg.max(d.angle_between(view.view_dir_target()).to_degrees()),
+                    )
                 })
-                .fold(f64::INFINITY, f64::min)
+                .fold(
+                    None,
+                    |best: Option<(&sim_harness::experiment::data::ViewData, f64)>, c| match best {
+                        Some(b) if b.1 <= c.1 => Some(b),
+                        _ => Some(c),
+                    },
+                )
+        };
+        let joint_deg = |view: &sim_harness::experiment::data::ViewData| {
+            nearest_joint(view).map_or(f64::INFINITY, |(_, deg)| deg)
         };
         for (view, (m, b)) in scene
             .eval
@@ -447,25 +462,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             );
         }
         eprintln!(
-            "held-out frames' trained neighbours, mean masked {:.2} dB over {} frames (the L1 rung's forgetting part)",
+            "held-out frames' trained neighbours, mean masked {:.2} dB over {} frames (how well the final model holds the frames the held-out ones sit between)",
             neighbour_sum.0 / neighbour_sum.1.max(1) as f64,
             neighbour_sum.1
         );
         if let Some(png) = arg("--png") {
             // Per held-out frame: the trained frame nearest in Sun and view together, the
             // held-out truth, the final model's render of it.
-            let nearest = |view: &sim_harness::experiment::data::ViewData| {
-                trained
-                    .iter()
-                    .min_by(|a, b| {
-                        let d = |t: &&sim_harness::experiment::data::ViewData| {
-                            let sun_deg = t.sun_dir_target.angle_between(view.sun_dir_target);
-                            sun_deg.max(t.view_dir_target().angle_between(view.view_dir_target()))
-                        };
-                        d(a).total_cmp(&d(b))
-                    })
-                    .map(|t| t.rgb8.clone())
-            };
             let model = &trainer.trainer().model;
             let mut rows = Vec::new();
             for view in &held {
@@ -473,7 +476,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     .render(&camera_of(&scene.intrinsics, view), sun_of(view))?
                     .image;
                 rows.push(vec![
-                    nearest(view).unwrap_or_else(|| vec![0; view.rgb8.len()]),
+                    nearest_joint(view)
+                        .map_or_else(|| vec![0; view.rgb8.len()], |(t, _)| t.rgb8.clone()),
                     view.rgb8.clone(),
                     sim_harness::experiment::evaluate::to_rgb8(&render),
                 ]);
