@@ -13,7 +13,8 @@ use gs_core::nn::SceneBox;
 use gs_core::sunaware::shading::{facing_normal, learned_facing_normal};
 use gs_core::sunaware::trainer::loss_and_grads;
 use gs_core::sunaware::{
-    Observation, Shading, ShadowRefinement, SunAwareConfig, SunAwareModel, Variant,
+    AppearanceInputs, Observation, Shading, ShadowRefinement, SunAwareConfig, SunAwareModel,
+    Variant,
 };
 
 fn scene(variant: Variant) -> SunAwareModel {
@@ -408,6 +409,104 @@ fn learned_normal_shading_gradients_match_finite_differences() {
         // The rotation keeps only the rasterizer's term: no jump from the normal here.
         check_group(&model, &grads.params, Param::Rotation, 6, 1e-3, &objective);
         check_group(&model, &grads.params, Param::Feature, 6, 1e-3, &objective);
+    }
+}
+
+/// Phi's local-frame inputs `[n.s, n.v, n.h]` (`appearance_inputs` = local, local without
+/// the Sun's encoding): the learned normal's gradient (the shading's term plus Phi's)
+/// and the means' (the rasterizer's, Phi's view code and the local inputs through `v`
+/// and `h`) against finite differences of the image, away from the normal's flip; an
+/// unlit Gaussian's normal, which the shading leaves alone, learns through Phi.
+#[test]
+fn local_appearance_inputs_gradients_match_finite_differences() {
+    for inputs in [AppearanceInputs::Local, AppearanceInputs::LocalNoSun] {
+        for variant in [Variant::B, Variant::D] {
+            let what = format!("{variant} {inputs}");
+            let mut model = scene_from(SunAwareConfig {
+                encoding_frequencies: 2,
+                shading: Shading::LambertLearned,
+                shading_ambient: 0.2,
+                appearance_inputs: inputs,
+                ..SunAwareConfig::for_variant(variant)
+            });
+            let phi = model.appearance.as_ref().unwrap();
+            assert_eq!(phi.input_width(), 72 + 2 * 12 + 3, "{what}");
+            let mut rng = SplitMix64::new(31);
+            for v in model.gaussians.params.get_mut(Param::Normal).chunks_mut(3) {
+                let dir = Vec3::new(
+                    rng.next_f32() - 0.5,
+                    rng.next_f32() - 0.5,
+                    rng.next_f32() - 0.5,
+                );
+                let len = 0.5 + 1.5 * rng.next_f32();
+                v.copy_from_slice(&(dir.normalize() * len).to_array());
+            }
+            let vis = model.sun_visibility(&camera(), sun()).unwrap();
+            let settings = model.raster_settings(true);
+            let vis_arg = variant.uses_shadow().then_some(vis.as_slice());
+            let pass = model
+                .forward(&camera(), sun(), 0, &settings, vis_arg)
+                .unwrap();
+            let factors = pass.shading_factors().expect("shading is on").to_vec();
+            let w = weights(pass.image.len());
+            let grads = model.backward(&pass, &w).unwrap();
+            let objective = |m: &SunAwareModel| {
+                let pass = m.forward(&camera(), sun(), 0, &settings, vis_arg).unwrap();
+                pass.image
+                    .iter()
+                    .zip(&w)
+                    .map(|(&a, &b)| a as f64 * b as f64)
+                    .sum::<f64>()
+            };
+            let params = &model.gaussians.params;
+            let away_from_flip = |g: usize| {
+                learned_facing_normal(params, g, camera().position())
+                    .is_some_and(|n| n.facing_cos > 0.2)
+            };
+            let d_normal = grads.params.get(Param::Normal);
+            // The shading gives an unlit Gaussian's normal nothing; Phi's inputs do.
+            assert!(
+                pass.visible_list.iter().any(|&g| {
+                    let g = g as usize;
+                    factors[g] == 0.2 && d_normal[g * 3..g * 3 + 3].iter().any(|&x| x != 0.0)
+                }),
+                "{what}: no unlit normal has a gradient"
+            );
+            for (param, group) in [
+                (Param::Normal, d_normal),
+                (Param::Mean, grads.params.get(Param::Mean)),
+            ] {
+                let checked: Vec<usize> = top(group, group.len())
+                    .into_iter()
+                    .filter(|&i| away_from_flip(i / 3) && group[i] != 0.0)
+                    .take(8)
+                    .collect();
+                assert!(checked.len() == 8, "{what}: {checked:?}");
+                for i in checked {
+                    let numeric = central(
+                        &model,
+                        1e-3,
+                        |m, d| m.gaussians.params.get_mut(param)[i] += d,
+                        objective,
+                    );
+                    assert_close(
+                        &format!("{what}: {}[{i}]", param.name()),
+                        group[i],
+                        numeric,
+                        0.03,
+                        2e-4,
+                    );
+                }
+            }
+            // Still no gradient along v: the inputs read v / |v| only.
+            for (g, d) in d_normal.chunks(3).enumerate() {
+                let v = params.row(Param::Normal, g);
+                let radial: f32 = (0..3).map(|j| d[j] * v[j]).sum();
+                let size: f32 = d.iter().map(|x| x.abs()).sum::<f32>() + 1e-12;
+                assert!(radial.abs() <= 1e-4 * size, "{what}: Gaussian {g}: {d:?}");
+            }
+            check_group(&model, &grads.params, Param::Feature, 6, 1e-3, &objective);
+        }
     }
 }
 

@@ -19,7 +19,7 @@ use gs_core::engine::{
 use gs_core::optim::Adam;
 use gs_core::raster::{GaussianView, RasterSettings};
 use gs_core::sunaware::trainer::FlatAdam;
-use gs_core::sunaware::{Shading, SunAwareConfig, SunAwareError, SunAwareModel};
+use gs_core::sunaware::{AppearanceInputs, Shading, SunAwareConfig, SunAwareError, SunAwareModel};
 
 use crate::resident_sunaware::SunAwareResident;
 use crate::{GpuContext, GpuError, GpuMlp, GpuOptions, GpuRasterizer, GpuSunVisibility, SunLight};
@@ -98,6 +98,14 @@ impl Engine for WgpuEngine {
     }
 
     fn supports(&self, config: &SunAwareConfig) -> Result<(), String> {
+        if config.appearance_inputs != AppearanceInputs::Paper {
+            return Err(format!(
+                "the wgpu backend supports appearance_inputs = \"paper\" only (this model \
+                 has {:?}, Phi's local-frame inputs, which have no device kernels): use \
+                 appearance_inputs = \"paper\" or train on the CPU",
+                config.appearance_inputs.name()
+            ));
+        }
         match config.shading {
             Shading::None | Shading::LambertLearned => Ok(()),
             Shading::Lambert => Err(format!(

@@ -25,7 +25,8 @@ use gs_core::rng::SplitMix64;
 use gs_core::sunaware::checkpoint;
 use gs_core::sunaware::synthetic::{orbit_camera, sun_direction, SyntheticScene};
 use gs_core::sunaware::{
-    LightConfig, Observation, Shading, SunAwareConfig, SunAwareModel, SunAwareTrainer, Variant,
+    AppearanceInputs, LightConfig, Observation, Shading, SunAwareConfig, SunAwareModel,
+    SunAwareTrainer, Variant,
 };
 use gs_core::{Camera, Param};
 use gs_wgpu::{context_or_skip, GpuContext, GpuOptions, GpuRasterizer, WgpuEngine};
@@ -660,4 +661,14 @@ fn lambert_learned_is_supported_and_lambert_refused_by_name() {
         err.contains("shading") && err.contains("\"lambert\""),
         "{err}"
     );
+    // Phi's local-frame inputs have no device kernels: refused by name, the model stays
+    // on the CPU.
+    let (mut local, _) = setup_shaded(Variant::B, 1, 32, Shading::LambertLearned);
+    local.config.appearance_inputs = AppearanceInputs::Local;
+    let err = local.set_backend(&backend).unwrap_err().to_string();
+    assert!(
+        err.contains("appearance_inputs") && err.contains("\"local\""),
+        "{err}"
+    );
+    assert!(matches!(local.backend(), Backend::Cpu));
 }

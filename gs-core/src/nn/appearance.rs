@@ -9,6 +9,14 @@
 //! Gaussian to the camera. Means, camera centre and Sun direction must be in one frame (the
 //! target body frame); the Sun direction is normalised here.
 //!
+//! With [`AppearanceInputs::Local`] or [`AppearanceInputs::LocalNoSun`] the row ends in
+//! [`LOCAL_INPUTS`] more values, `[n.s, n.v, n.h]` of the Gaussian's local frame (width
+//! `feature_dim + 12 L + 3`): [`AppearanceNet::assemble_input`] leaves them 0 and the
+//! caller, which owns the normals, fills them (`crate::sunaware::shading::local_inputs`) and
+//! routes their gradient itself; [`AppearanceNet::scatter_input_grad`] ignores them.
+//! `LocalNoSun` writes zeros in the `gamma_L(sun)` block (Phi then sees the Sun only
+//! through `n.s` and `n.h`).
+//!
 //! Rows are assembled only for the listed Gaussians (e.g. those that survived culling), in
 //! list order; [`AppearanceNet::scatter_input_grad`] routes the input gradient back to the
 //! features and, through the view direction, to the means. The Sun direction is data, so it
@@ -30,6 +38,64 @@ pub const APPEARANCE_HIDDEN_LAYERS: usize = 3;
 /// RGB.
 pub const APPEARANCE_OUTPUT: usize = 3;
 
+/// Values of the local-frame block `[n.s, n.v, n.h]` at the end of a local input row.
+pub const LOCAL_INPUTS: usize = 3;
+
+/// What Phi's input row holds beyond the feature (`SunAwareConfig::appearance_inputs`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum AppearanceInputs {
+    /// The paper's row: `[f_i | gamma(sun) | gamma(view_i)]`.
+    #[default]
+    Paper,
+    /// The paper's row and `[n.s, n.v, n.h]` in the Gaussian's local frame.
+    Local,
+    /// As `Local` with the `gamma(sun)` block zeroed.
+    LocalNoSun,
+}
+
+impl AppearanceInputs {
+    pub const ALL: [AppearanceInputs; 3] = [
+        AppearanceInputs::Paper,
+        AppearanceInputs::Local,
+        AppearanceInputs::LocalNoSun,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            AppearanceInputs::Paper => "paper",
+            AppearanceInputs::Local => "local",
+            AppearanceInputs::LocalNoSun => "local_no_sun",
+        }
+    }
+
+    /// Values appended after the view encoding (0 or [`LOCAL_INPUTS`]).
+    pub fn local_width(self) -> usize {
+        match self {
+            AppearanceInputs::Paper => 0,
+            AppearanceInputs::Local | AppearanceInputs::LocalNoSun => LOCAL_INPUTS,
+        }
+    }
+
+    /// The row carries `gamma(sun)` (else that block is zeros).
+    pub fn encodes_sun(self) -> bool {
+        self != AppearanceInputs::LocalNoSun
+    }
+
+    pub fn code(self) -> u8 {
+        self as u8
+    }
+
+    pub fn from_code(code: u8) -> Option<Self> {
+        Self::ALL.get(code as usize).copied()
+    }
+}
+
+impl std::fmt::Display for AppearanceInputs {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Phi with its encoding and the feature width it expects.
 #[derive(Clone, Debug, PartialEq)]
 pub struct AppearanceNet {
@@ -37,6 +103,7 @@ pub struct AppearanceNet {
     pub mlp: Mlp,
     encoding: PositionalEncoding,
     feature_dim: usize,
+    inputs: AppearanceInputs,
 }
 
 /// Unit vector from `mean` to `camera_centre` and the distance, in f32.
@@ -68,6 +135,23 @@ impl AppearanceNet {
         encoding: PositionalEncoding,
         seed: u64,
     ) -> Result<Self, NnError> {
+        Self::with_inputs(
+            feature_dim,
+            hidden_width,
+            encoding,
+            AppearanceInputs::Paper,
+            seed,
+        )
+    }
+
+    /// A fresh Phi of `hidden_width` whose input rows are laid out per `inputs`.
+    pub fn with_inputs(
+        feature_dim: usize,
+        hidden_width: usize,
+        encoding: PositionalEncoding,
+        inputs: AppearanceInputs,
+        seed: u64,
+    ) -> Result<Self, NnError> {
         if feature_dim == 0 {
             return Err(NnError::Config(
                 "appearance feature width must be positive".into(),
@@ -78,7 +162,7 @@ impl AppearanceNet {
                 "appearance hidden width must be positive".into(),
             ));
         }
-        let widths = Self::widths_for(feature_dim, hidden_width, encoding);
+        let widths = Self::widths_for(feature_dim, hidden_width, encoding, inputs);
         let mlp = Mlp::new(
             &widths,
             HiddenActivation::Relu,
@@ -89,6 +173,7 @@ impl AppearanceNet {
             mlp,
             encoding,
             feature_dim,
+            inputs,
         })
     }
 
@@ -100,7 +185,8 @@ impl AppearanceNet {
         encoding: PositionalEncoding,
     ) -> Result<Self, NnError> {
         let hidden_width = mlp.widths().get(1).copied().unwrap_or(0);
-        let widths = Self::widths_for(feature_dim, hidden_width, encoding);
+        let inputs = AppearanceInputs::Paper;
+        let widths = Self::widths_for(feature_dim, hidden_width, encoding, inputs);
         if mlp.widths() != widths || mlp.hidden_activation() != HiddenActivation::Relu {
             return Err(NnError::Config(format!(
                 "appearance network must be {widths:?} with ReLU, got {:?} with {:?}",
@@ -112,6 +198,7 @@ impl AppearanceNet {
             mlp,
             encoding,
             feature_dim,
+            inputs,
         })
     }
 
@@ -121,17 +208,26 @@ impl AppearanceNet {
         feature_dim: usize,
         hidden_width: usize,
         encoding: PositionalEncoding,
+        inputs: AppearanceInputs,
     ) -> Result<usize, NnError> {
-        super::mlp::param_count(&Self::widths_for(feature_dim, hidden_width, encoding))
+        super::mlp::param_count(&Self::widths_for(
+            feature_dim,
+            hidden_width,
+            encoding,
+            inputs,
+        ))
     }
 
     fn widths_for(
         feature_dim: usize,
         hidden_width: usize,
         encoding: PositionalEncoding,
+        inputs: AppearanceInputs,
     ) -> Vec<usize> {
         // Saturating: an absurd width then fails `param_count` instead of overflowing.
-        let mut widths = vec![feature_dim.saturating_add(2 * encoding.width(3))];
+        let mut widths = vec![feature_dim
+            .saturating_add(2 * encoding.width(3))
+            .saturating_add(inputs.local_width())];
         widths.extend([hidden_width; APPEARANCE_HIDDEN_LAYERS]);
         widths.push(APPEARANCE_OUTPUT);
         widths
@@ -150,9 +246,20 @@ impl AppearanceNet {
         self.encoding
     }
 
-    /// Values per input row: `feature_dim + 12 L`.
+    /// What the input rows hold beyond the feature.
+    pub fn inputs(&self) -> AppearanceInputs {
+        self.inputs
+    }
+
+    /// Values per input row: `feature_dim + 12 L` (+ [`LOCAL_INPUTS`] for local inputs).
     pub fn input_width(&self) -> usize {
         self.mlp.input_width()
+    }
+
+    /// Column of a row where the local-frame block `[n.s, n.v, n.h]` starts (the row's
+    /// end, `input_width()`, for [`AppearanceInputs::Paper`]).
+    pub fn local_start(&self) -> usize {
+        self.feature_dim + 2 * self.encoding.width(3)
     }
 
     /// Fills `input` (resized to `gaussians.len() x input_width()`) with one row per listed
@@ -188,7 +295,9 @@ impl AppearanceNet {
         let f_dim = self.feature_dim;
         let enc_width = self.encoding.width(3);
         let mut sun_code = vec![0.0f32; enc_width];
-        self.encoding.encode_unchecked(&sun, &mut sun_code);
+        if self.inputs.encodes_sun() {
+            self.encoding.encode_unchecked(&sun, &mut sun_code);
+        }
         input.clear();
         input.resize(gaussians.len() * width, 0.0);
         input
@@ -200,7 +309,7 @@ impl AppearanceNet {
                 row[f_dim..f_dim + enc_width].copy_from_slice(&sun_code);
                 let (view, _) = view_direction(&means[g * 3..g * 3 + 3], camera_centre);
                 self.encoding
-                    .encode_unchecked(&view, &mut row[f_dim + enc_width..]);
+                    .encode_unchecked(&view, &mut row[f_dim + enc_width..f_dim + 2 * enc_width]);
             });
         Ok(())
     }
@@ -286,6 +395,8 @@ impl AppearanceNet {
 
         let f_dim = self.feature_dim;
         let view_start = f_dim + self.encoding.width(3);
+        // The local-frame block after the view code belongs to the caller.
+        let view_end = self.local_start();
         // Per-row mean gradients in parallel, then a sequential scatter (fixed order).
         let d_mean_rows: Vec<[f32; 3]> = d_input
             .par_chunks(width)
@@ -295,10 +406,10 @@ impl AppearanceNet {
                 let g = g as usize;
                 let (view, r_m) = view_direction(&means[g * 3..g * 3 + 3], camera_centre);
                 let mut d_view = [0.0f32; 3];
-                let d_code = &row[view_start..];
+                let d_code = &row[view_start..view_end];
                 match input {
                     Some(input) => self.encoding.backward_from_code(
-                        &input[r * width + view_start..(r + 1) * width],
+                        &input[r * width + view_start..r * width + view_end],
                         d_code,
                         &mut d_view,
                     ),
@@ -331,6 +442,61 @@ impl AppearanceNet {
 mod tests {
     use super::*;
     use crate::rng::SplitMix64;
+
+    #[test]
+    fn local_rows_append_three_zeros_and_no_sun_zeroes_its_code() {
+        let enc = PositionalEncoding::default();
+        let nets = AppearanceInputs::ALL
+            .map(|inputs| AppearanceNet::with_inputs(4, 8, enc, inputs, 3).unwrap());
+        let [paper, local, no_sun] = &nets;
+        let e = enc.width(3);
+        assert_eq!(paper.input_width(), 4 + 2 * e);
+        assert_eq!(local.input_width(), 4 + 2 * e + LOCAL_INPUTS);
+        assert_eq!(no_sun.input_width(), local.input_width());
+        assert_eq!(local.local_start(), paper.input_width());
+        assert_eq!(
+            AppearanceNet::param_count(4, 8, enc, AppearanceInputs::Local).unwrap(),
+            local.mlp.num_params()
+        );
+        let features = [0.1f32, -0.2, 0.3, 0.4, 0.5, 0.6, -0.7, 0.8];
+        let means = [0.1f32, 0.2, 0.3, -0.4, 0.5, 0.0];
+        let (sun, camera) = ([0.3, 0.4, -0.8], [0.5, -1.0, 6.0]);
+        let rows = |net: &AppearanceNet| {
+            let mut input = Vec::new();
+            net.assemble_input(&[1, 0], &features, &means, sun, camera, &mut input)
+                .unwrap();
+            input
+        };
+        let (p, l, n) = (rows(paper), rows(local), rows(no_sun));
+        let w = local.input_width();
+        for r in 0..2 {
+            let pr = &p[r * paper.input_width()..(r + 1) * paper.input_width()];
+            let (lr, nr) = (&l[r * w..(r + 1) * w], &n[r * w..(r + 1) * w]);
+            assert_eq!(&lr[..pr.len()], pr);
+            assert_eq!(&lr[pr.len()..], &[0.0; LOCAL_INPUTS]);
+            assert!(pr[4..4 + e].iter().any(|&x| x != 0.0));
+            assert!(nr[4..4 + e].iter().all(|&x| x == 0.0));
+            assert_eq!(&nr[..4], &pr[..4]);
+            assert_eq!(&nr[4 + e..], &lr[4 + e..]);
+        }
+        // The scatter leaves the local block to the caller: a gradient there moves nothing.
+        let mut d_input = vec![0.0f32; 2 * w];
+        d_input[w - 1] = 1.0;
+        d_input[2 * w - 3] = -2.0;
+        let (mut d_f, mut d_m) = (vec![0.0f32; 8], vec![0.0f32; 6]);
+        local
+            .scatter_input_grad_from_input(
+                &[1, 0],
+                &l,
+                &means,
+                camera,
+                &d_input,
+                &mut d_f,
+                &mut d_m,
+            )
+            .unwrap();
+        assert!(d_f.iter().chain(&d_m).all(|&x| x == 0.0));
+    }
 
     #[test]
     fn scatter_from_the_assembled_input_gives_the_same_bits() {

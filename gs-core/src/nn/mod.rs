@@ -40,7 +40,7 @@ pub mod matmul;
 pub mod mlp;
 pub mod shadow_net;
 
-pub use appearance::AppearanceNet;
+pub use appearance::{AppearanceInputs, AppearanceNet};
 pub use encoding::PositionalEncoding;
 pub use error::NnError;
 pub use matmul::{F32Kernel, MatmulPrecision, Products};

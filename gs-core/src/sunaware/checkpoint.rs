@@ -3,8 +3,8 @@
 //! File layout (all integers and floats little-endian):
 //! ```text
 //! magic     8 bytes  b"SUNGSCKP"
-//! version   u32      6 (older ones are still read: 5 has no normal rate, meaning the
-//!                    default; 4 also no shading fields and means none; 3 also no shadow
+//! version   u32      7 (older ones are still read: 6 has no appearance inputs byte,
+//!                    meaning the paper's; 5 also no normal rate, meaning the default; 4 also no shading fields and means none; 3 also no shadow
 //!                    gain, meaning 1; 2 also no hidden-width field, Phi is 256 wide; 1
 //!                    also no shadow refinement byte, Replace)
 //! length    u64      payload bytes
@@ -26,7 +26,8 @@
 //!    u64 (the width of Phi's hidden layers: the weights' shape depends on it), from
 //!    version 4 shadow gain f32, from version 5 shading u8 (0 none, 1 Lambert, 2 Lambert
 //!    with a learned normal) and shading ambient f32, from version 6 the learned normal's
-//!    learning rate f32;
+//!    learning rate f32, from version 7 Phi's appearance inputs u8 (0 paper, 1 local,
+//!    2 local without the Sun's encoding: Phi's input width depends on it);
 //! 2. scene box: min 3 f32, max 3 f32;
 //! 3. Gaussians: count u64, then each group of `Param::ALL` in order (count x width f32,
 //!    widths from the config's layout);
@@ -58,14 +59,15 @@ use crate::optim::Adam;
 use crate::regularizer::IsoReduction;
 
 use super::config::{
-    LightConfig, LightProjection, Shading, ShadowRefinement, SunAwareConfig, SunAwareRates, Variant,
+    AppearanceInputs, LightConfig, LightProjection, Shading, ShadowRefinement, SunAwareConfig,
+    SunAwareRates, Variant,
 };
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
 use super::trainer::{FlatAdam, SunAwareTrainer};
 
 pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
-pub const VERSION: u32 = 6;
+pub const VERSION: u32 = 7;
 /// Oldest version [`from_bytes`] reads.
 pub const OLDEST_READABLE_VERSION: u32 = 1;
 /// Largest Adam step a checkpoint may hold: the bias correction raises the betas to the
@@ -235,6 +237,7 @@ fn write_config(w: &mut Writer, c: &SunAwareConfig) {
     w.u8(c.shading.code());
     w.f32(c.shading_ambient);
     w.f32(c.lr.normal);
+    w.u8(c.appearance_inputs.code());
 }
 
 fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareError> {
@@ -354,6 +357,12 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
     if version >= 6 {
         config.lr.normal = r.f32("normal learning rate")?;
     }
+    // Before version 7, Phi read the paper's row.
+    if version >= 7 {
+        let code = r.u8("appearance inputs")?;
+        config.appearance_inputs = AppearanceInputs::from_code(code)
+            .ok_or_else(|| ck(format!("unknown appearance inputs {code}")))?;
+    }
     config
         .validate()
         .map_err(|e| ck(format!("stored configuration is invalid: {e}")))?;
@@ -364,7 +373,12 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
 fn network_weights(config: &SunAwareConfig) -> Result<[usize; 2], SunAwareError> {
     let encoding = PositionalEncoding::new(config.encoding_frequencies)?;
     let phi = if config.variant.uses_appearance_mlp() {
-        AppearanceNet::param_count(config.feature_dim, config.appearance_hidden_width, encoding)?
+        AppearanceNet::param_count(
+            config.feature_dim,
+            config.appearance_hidden_width,
+            encoding,
+            config.appearance_inputs,
+        )?
     } else {
         0
     };
@@ -695,8 +709,51 @@ mod tests {
     const SHADING_BYTES: usize = 5;
     /// The version-6 field after them: the learned normal's rate f32.
     const NORMAL_RATE_BYTES: usize = 4;
+    /// The version-7 field after it: Phi's appearance inputs u8.
+    const APPEARANCE_INPUTS_BYTES: usize = 1;
     /// Everything after the version-4 section.
-    const AFTER_V4_BYTES: usize = SHADING_BYTES + NORMAL_RATE_BYTES;
+    const AFTER_V4_BYTES: usize = SHADING_BYTES + NORMAL_RATE_BYTES + APPEARANCE_INPUTS_BYTES;
+
+    #[test]
+    fn appearance_inputs_round_trip_and_versions_before_7_mean_paper() {
+        for inputs in AppearanceInputs::ALL {
+            let config = SunAwareConfig {
+                shading: Shading::LambertLearned,
+                appearance_inputs: inputs,
+                ..SunAwareConfig::for_variant(Variant::D)
+            };
+            let mut w = Writer(Vec::new());
+            write_config(&mut w, &config);
+            let full = w.0;
+            assert_eq!(read(&full, 7).unwrap(), config);
+            // Version 6 ends before the byte: Phi read the paper's row.
+            let v6 = read(&full[..full.len() - APPEARANCE_INPUTS_BYTES], 6).unwrap();
+            assert_eq!(v6.appearance_inputs, AppearanceInputs::Paper);
+            assert_eq!(v6.shading, Shading::LambertLearned);
+        }
+        let config = SunAwareConfig {
+            shading: Shading::LambertLearned,
+            appearance_inputs: AppearanceInputs::Local,
+            ..SunAwareConfig::for_variant(Variant::D)
+        };
+        let mut w = Writer(Vec::new());
+        write_config(&mut w, &config);
+        let mut bad = w.0.clone();
+        *bad.last_mut().unwrap() = 9;
+        let err = read(&bad, 7).unwrap_err().to_string();
+        assert!(err.contains("unknown appearance inputs 9"), "{err}");
+        // Local inputs without the learned normal are refused on load as in memory.
+        let mut w = Writer(Vec::new());
+        write_config(
+            &mut w,
+            &SunAwareConfig {
+                shading: Shading::None,
+                ..config.clone()
+            },
+        );
+        let err = read(&w.0, 7).unwrap_err().to_string();
+        assert!(err.contains("appearance_inputs"), "{err}");
+    }
 
     #[test]
     fn shading_round_trips_and_versions_before_5_mean_none() {
@@ -708,7 +765,8 @@ mod tests {
         config.lr.normal = 0.02;
         let mut w = Writer(Vec::new());
         write_config(&mut w, &config);
-        let full = w.0;
+        // The version-6 section: without the trailing appearance inputs byte.
+        let full = w.0[..w.0.len() - APPEARANCE_INPUTS_BYTES].to_vec();
         let back = read(&full, 6).unwrap();
         assert_eq!(
             (back.shading, back.shading_ambient, back.lr.normal),

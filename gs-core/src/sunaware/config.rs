@@ -14,6 +14,7 @@ use crate::regularizer::IsoReduction;
 use super::engine::{Backend, DeviceEngines, OpenEngine};
 use super::error::SunAwareError;
 pub use super::shading::Shading;
+pub use crate::nn::AppearanceInputs;
 
 /// The four configurations of the paper's Table I.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -162,6 +163,23 @@ impl FromStr for BackendKind {
                 "unknown backend {other:?}: expected \"cpu\" or \"wgpu\""
             ))),
         }
+    }
+}
+
+impl FromStr for AppearanceInputs {
+    type Err = SunAwareError;
+
+    /// `paper`, `local` or `local_no_sun` (either case).
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let s = s.trim().to_ascii_lowercase();
+        AppearanceInputs::ALL
+            .into_iter()
+            .find(|i| i.name() == s)
+            .ok_or_else(|| {
+                SunAwareError::Config(format!(
+                    "unknown appearance_inputs {s:?}: expected paper, local or local_no_sun"
+                ))
+            })
     }
 }
 
@@ -321,6 +339,14 @@ pub struct SunAwareConfig {
     /// The ambient floor `k_a` of the Lambertian shadings, in [0, 1): the factor is
     /// `k_a + (1 - k_a) max(0, n . s)`. Stored in checkpoints with `shading`.
     pub shading_ambient: f32,
+    /// What Phi reads beyond the feature ([`AppearanceInputs`]): the paper's
+    /// `[gamma(sun) | gamma(view)]`, or that and `[n.s, n.v, n.h]` in the Gaussian's local
+    /// frame (`n` the learned shading normal facing the camera, `h` the half vector;
+    /// `LocalNoSun` also zeroes `gamma(sun)`). The local ones need
+    /// `shading = LambertLearned` (it owns the normal). A model knob: it sets Phi's input
+    /// width, so checkpoints store it (from version 7; older ones load as `Paper`). The
+    /// wgpu backend runs `Paper` only.
+    pub appearance_inputs: AppearanceInputs,
     pub lr: SunAwareRates,
     pub densify: DensifyConfig,
     /// Prune Gaussians whose screen radius or world size is too big at densification.
@@ -405,6 +431,7 @@ impl Default for SunAwareConfig {
             shadow_gain: 1.0,
             shading: Shading::None,
             shading_ambient: 0.1,
+            appearance_inputs: AppearanceInputs::Paper,
             lr: SunAwareRates::default(),
             densify: DensifyConfig::default(),
             size_prune: false,
@@ -480,6 +507,18 @@ impl SunAwareConfig {
         if self.shading != Shading::None && !self.variant.uses_appearance_mlp() {
             return bad(format!(
                 "shading = {:?} needs the appearance MLP (configurations b-d), not {}",
+                self.shading.name(),
+                self.variant
+            ));
+        }
+        if self.appearance_inputs != AppearanceInputs::Paper
+            && !(self.shading == Shading::LambertLearned && self.variant.uses_appearance_mlp())
+        {
+            return bad(format!(
+                "appearance_inputs = {:?} reads the learned normal: it needs shading = \
+                 \"lambert_learned\" and the appearance MLP (configurations b-d), not \
+                 shading = {:?} in configuration {}",
+                self.appearance_inputs.name(),
                 self.shading.name(),
                 self.variant
             ));
@@ -676,6 +715,44 @@ mod tests {
         };
         let msg = c.validate().unwrap_err().to_string();
         assert!(msg.contains("lambert_learned"), "{msg}");
+    }
+
+    #[test]
+    fn local_appearance_inputs_need_the_learned_normal() {
+        for inputs in AppearanceInputs::ALL {
+            assert_eq!(inputs.name().parse::<AppearanceInputs>().unwrap(), inputs);
+            assert_eq!(AppearanceInputs::from_code(inputs.code()), Some(inputs));
+        }
+        assert_eq!(
+            " Local_No_Sun ".parse::<AppearanceInputs>().unwrap(),
+            AppearanceInputs::LocalNoSun
+        );
+        let e = "global"
+            .parse::<AppearanceInputs>()
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("paper, local or local_no_sun"), "{e}");
+        for inputs in [AppearanceInputs::Local, AppearanceInputs::LocalNoSun] {
+            let ok = SunAwareConfig {
+                shading: Shading::LambertLearned,
+                appearance_inputs: inputs,
+                ..SunAwareConfig::for_variant(Variant::B)
+            };
+            assert!(ok.validate().is_ok());
+            for shading in [Shading::None, Shading::Lambert] {
+                let c = SunAwareConfig {
+                    shading,
+                    ..ok.clone()
+                };
+                let msg = c.validate().unwrap_err().to_string();
+                assert!(
+                    msg.contains("appearance_inputs") && msg.contains("lambert_learned"),
+                    "{msg}"
+                );
+            }
+        }
+        // The paper's row needs nothing.
+        assert!(SunAwareConfig::default().validate().is_ok());
     }
 
     #[test]

@@ -21,7 +21,7 @@ use crate::sh::rgb_to_sh_dc;
 use super::config::ShadowRefinement;
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
-use super::shading::{shade_forward, Shading};
+use super::shading::{fill_local_inputs, shade_forward, Shading};
 
 /// The colour (and for c-d shadow) of every Gaussian for one Sun and viewpoint, `N * 3`.
 pub fn baked_colours(
@@ -54,6 +54,7 @@ pub fn baked_colours(
         camera_centre.to_array(),
         &mut input,
     )?;
+    fill_local_inputs(phi, p, &all, camera_centre, sun, &mut input);
     let mut rgb = phi.mlp.forward(&input, n)?;
     if model.config.shading != Shading::None {
         shade_forward(

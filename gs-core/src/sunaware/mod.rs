@@ -29,8 +29,8 @@ pub mod synthetic;
 pub mod trainer;
 
 pub use config::{
-    BackendKind, LightConfig, LightProjection, Shading, ShadowRefinement, SunAwareConfig,
-    SunAwareRates, Variant,
+    AppearanceInputs, BackendKind, LightConfig, LightProjection, Shading, ShadowRefinement,
+    SunAwareConfig, SunAwareRates, Variant,
 };
 pub use error::SunAwareError;
 pub use model::{FramePass, SunAwareGrads, SunAwareModel};

@@ -27,6 +27,15 @@
 //! (`|v_i|^2 < MIN_NORMAL_NORM2`) gets `f_i = 1` and no gradient, so nothing non-finite
 //! leaves this module.
 //!
+//! Local inputs of Phi (`SunAwareConfig::appearance_inputs` = `Local` / `LocalNoSun`,
+//! `LambertLearned` only): [`local_inputs`] gives `[n.s, n.v, n.h]` with `n` the same
+//! facing learned normal as the shading ([`learned_facing_normal`]), `s` the unit Sun, `v`
+//! the unit vector from the Gaussian to the camera and `h = (s + v) / |s + v|`;
+//! [`local_inputs_backward`] routes their gradient into `Param::Normal` (through the
+//! normalisation; the flip is piecewise constant) and into the mean (through `v` and `h`).
+//! A degenerate normal gives three zeros and no gradient; `|s + v|^2 <`
+//! [`MIN_HALF_NORM2`] gives `n.h = 0` with no gradient through it.
+//!
 //! Devices: the wgpu backend's device-resident step runs `LambertLearned` with these
 //! functions' operations ported in order (gs-wgpu `network_io`, Phi's scatter and output
 //! gradient; tested against [`shade_forward`] and [`shade_backward`]); `Lambert` is
@@ -35,8 +44,11 @@
 use std::str::FromStr;
 
 use glam::Vec3;
+use rayon::prelude::*;
 
 use crate::model::{Param, ParamSet};
+use crate::nn::appearance::LOCAL_INPUTS;
+use crate::nn::AppearanceNet;
 use crate::raster::project::MIN_QUAT_NORM2;
 
 use super::error::SunAwareError;
@@ -291,6 +303,163 @@ pub fn initial_normals(params: &mut ParamSet, centre: Vec3) {
     }
 }
 
+/// `|s + v|^2` below which the half vector is undefined (the Sun straight behind the
+/// Gaussian as seen from the camera): `n.h` is then 0 with no gradient.
+pub const MIN_HALF_NORM2: f32 = 1e-8;
+
+/// Unit vector from `mean` to `cam_pos` and the distance, as Phi's view direction
+/// (`nn::appearance`): the same f32 operations.
+fn unit_view(mean: &[f32], cam_pos: Vec3) -> (Vec3, f32) {
+    let d = [
+        cam_pos.x - mean[0],
+        cam_pos.y - mean[1],
+        cam_pos.z - mean[2],
+    ];
+    let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    (Vec3::new(d[0] / r, d[1] / r, d[2] / r), r)
+}
+
+/// What [`local_inputs`] and its backward share for Gaussian `g`.
+struct LocalFrame {
+    normal: FacingNormal,
+    view: Vec3,
+    view_dist: f32,
+    /// The unit half vector and `|s + v|`, unless degenerate.
+    half: Option<(Vec3, f32)>,
+}
+
+fn local_frame(params: &ParamSet, g: usize, cam_pos: Vec3, sun_dir: Vec3) -> Option<LocalFrame> {
+    let normal = learned_facing_normal(params, g, cam_pos)?;
+    let (view, view_dist) = unit_view(params.row(Param::Mean, g), cam_pos);
+    if !(view_dist.is_finite() && view_dist > 0.0) {
+        return None;
+    }
+    let sum = sun_dir + view;
+    let sum2 = sum.length_squared();
+    let half = (sum2.is_finite() && sum2 >= MIN_HALF_NORM2).then(|| {
+        let len = sum2.sqrt();
+        (sum / len, len)
+    });
+    Some(LocalFrame {
+        normal,
+        view,
+        view_dist,
+        half,
+    })
+}
+
+/// `[n.s, n.v, n.h]` of Gaussian `g` in its local frame (see the module header): `n` its
+/// learned normal facing `cam_pos`, `s = sun_dir` (unit), `v` the unit vector to the
+/// camera, `h` the unit half vector. Zeros where the normal is missing or degenerate;
+/// `n.h = 0` where `|s + v|^2 <` [`MIN_HALF_NORM2`].
+pub fn local_inputs(params: &ParamSet, g: usize, cam_pos: Vec3, sun_dir: Vec3) -> [f32; 3] {
+    let Some(f) = local_frame(params, g, cam_pos, sun_dir) else {
+        return [0.0; 3];
+    };
+    let n = f.normal.normal;
+    [
+        n.dot(sun_dir),
+        n.dot(f.view),
+        f.half.map_or(0.0, |(h, _)| n.dot(h)),
+    ]
+}
+
+/// Backward of [`local_inputs`] for `d = dL/d[n.s, n.v, n.h]`: `(dL/d v_i, dL/d mean_i)`,
+/// `v_i` the unnormalised `Param::Normal` row; `None` (no gradient) where the forward gave
+/// zeros or a value would be non-finite.
+pub fn local_inputs_backward(
+    params: &ParamSet,
+    g: usize,
+    cam_pos: Vec3,
+    sun_dir: Vec3,
+    d: [f32; 3],
+) -> Option<([f32; 3], [f32; 3])> {
+    let f = local_frame(params, g, cam_pos, sun_dir)?;
+    let n_hat = f.normal.normal;
+    let u = f.view;
+    // dL/d n_hat, n_hat = sign v / |v|.
+    let mut d_n = sun_dir * d[0] + u * d[1];
+    // dL/d u: through n.v, and through h = (s + u) / |s + u|.
+    let mut d_u = n_hat * d[1];
+    if let Some((h, len)) = f.half {
+        d_n += h * d[2];
+        d_u += (n_hat - h * h.dot(n_hat)) * (d[2] / len);
+    }
+    let v = params.row(Param::Normal, g);
+    let v = Vec3::new(v[0], v[1], v[2]);
+    let v_norm = v.length();
+    let n = v / v_norm;
+    let d_v = (d_n - n * n.dot(d_n)) * (f.normal.sign / v_norm);
+    // u = (c - mean) / |c - mean|: d u / d mean = -(I - u u^T) / r.
+    let d_mean = -(d_u - u * u.dot(d_u)) / f.view_dist;
+    (d_v.is_finite() && d_mean.is_finite()).then(|| (d_v.to_array(), d_mean.to_array()))
+}
+
+/// Writes [`local_inputs`] of each listed Gaussian into its row of Phi's assembled
+/// `input` (row `r` for `list[r]`, from column `net.local_start()`); nothing for Phi
+/// without local inputs.
+pub fn fill_local_inputs(
+    net: &AppearanceNet,
+    params: &ParamSet,
+    list: &[u32],
+    cam_pos: Vec3,
+    sun_dir: Vec3,
+    input: &mut [f32],
+) {
+    if net.inputs().local_width() == 0 {
+        return;
+    }
+    let (width, start) = (net.input_width(), net.local_start());
+    input
+        .par_chunks_mut(width)
+        .zip(list.par_iter())
+        .for_each(|(row, &g)| {
+            row[start..start + LOCAL_INPUTS]
+                .copy_from_slice(&local_inputs(params, g as usize, cam_pos, sun_dir));
+        });
+}
+
+/// Adds the gradient of the local inputs in Phi's input gradient `d_input` (rows as in
+/// [`fill_local_inputs`]) into `d_normal` (`Param::Normal`, `count x 3`) and `d_means`
+/// (`count x 3`); nothing for Phi without local inputs. Rows are summed in list order.
+#[allow(clippy::too_many_arguments)]
+pub fn scatter_local_input_grad(
+    net: &AppearanceNet,
+    params: &ParamSet,
+    list: &[u32],
+    cam_pos: Vec3,
+    sun_dir: Vec3,
+    d_input: &[f32],
+    d_normal: &mut [f32],
+    d_means: &mut [f32],
+) {
+    if net.inputs().local_width() == 0 {
+        return;
+    }
+    let (width, start) = (net.input_width(), net.local_start());
+    let rows: Vec<Option<([f32; 3], [f32; 3])>> = d_input
+        .par_chunks(width)
+        .zip(list.par_iter())
+        .map(|(row, &g)| {
+            let d = [row[start], row[start + 1], row[start + 2]];
+            if d == [0.0; 3] {
+                return None;
+            }
+            local_inputs_backward(params, g as usize, cam_pos, sun_dir, d)
+        })
+        .collect();
+    for (&g, grads) in list.iter().zip(rows) {
+        let Some((d_v, d_mean)) = grads else {
+            continue;
+        };
+        let g = g as usize;
+        for j in 0..3 {
+            d_normal[g * 3 + j] += d_v[j];
+            d_means[g * 3 + j] += d_mean[j];
+        }
+    }
+}
+
 /// See [`facing_normal`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FacingNormal {
@@ -486,6 +655,125 @@ mod tests {
         assert!((row(3) - Vec3::Y).length() < 1e-6, "{}", row(3));
         assert_eq!(row(4), Vec3::X);
         assert!(p.get(Param::Normal).iter().all(|v| v.is_finite()));
+    }
+
+    fn one_gaussian(normal: [f32; 3], mean: [f32; 3]) -> ParamSet {
+        use crate::model::ModelLayout;
+        let layout = ModelLayout {
+            normal_dim: 3,
+            ..ModelLayout::sh(0)
+        };
+        let mut p = ParamSet::new(layout.dims());
+        p.push_zeros(1);
+        p.row_mut(Param::Normal, 0).copy_from_slice(&normal);
+        p.row_mut(Param::Mean, 0).copy_from_slice(&mean);
+        p
+    }
+
+    /// `[n.s, n.v, n.h]` in f64 from the raw normal row and mean, with the flip `sign`
+    /// held fixed (it is piecewise constant): the reference for the analytic gradient.
+    fn local_inputs_f64(
+        v: [f64; 3],
+        mean: [f64; 3],
+        cam: [f64; 3],
+        s: [f64; 3],
+        sign: f64,
+    ) -> [f64; 3] {
+        let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let unit = |a: [f64; 3]| {
+            let l = dot(a, a).sqrt();
+            [a[0] / l, a[1] / l, a[2] / l]
+        };
+        let n = unit(v).map(|x| x * sign);
+        let u = unit([cam[0] - mean[0], cam[1] - mean[1], cam[2] - mean[2]]);
+        let h = unit([s[0] + u[0], s[1] + u[1], s[2] + u[2]]);
+        [dot(n, s), dot(n, u), dot(n, h)]
+    }
+
+    #[test]
+    fn local_inputs_gradients_match_f64_central_differences() {
+        let cam = Vec3::new(0.4, -0.3, 3.0);
+        let sun = Vec3::new(0.5, 0.6, 0.3).normalize();
+        let cases = [
+            // Normals of length 0.5..2 (the normalisation matters), both flips.
+            ([0.3f32, -0.2, 1.1], [0.1f32, 0.2, -0.1]),
+            ([-0.2, 0.4, -0.25], [-0.3, 0.1, 0.4]),
+            ([1.2, 0.9, 0.7], [0.5, -0.4, 0.2]),
+        ];
+        let d = [0.7f32, -1.3, 0.9];
+        let mut flips = [false; 2];
+        for (v, mean) in cases {
+            let p = one_gaussian(v, mean);
+            let f = learned_facing_normal(&p, 0, cam).unwrap();
+            flips[(f.sign < 0.0) as usize] = true;
+            let sign = f.sign as f64;
+            let (d_v, d_mean) = local_inputs_backward(&p, 0, cam, sun, d).unwrap();
+            let values = local_inputs(&p, 0, cam, sun);
+            let to64 = |a: [f32; 3]| a.map(|x| x as f64);
+            let (cam64, sun64) = (to64(cam.to_array()), to64(sun.to_array()));
+            let reference = local_inputs_f64(to64(v), to64(mean), cam64, sun64, sign);
+            for k in 0..3 {
+                assert!(
+                    (values[k] as f64 - reference[k]).abs() < 1e-6,
+                    "{values:?} {reference:?}"
+                );
+            }
+            let objective = |v: [f64; 3], m: [f64; 3]| -> f64 {
+                let x = local_inputs_f64(v, m, cam64, sun64, sign);
+                (0..3).map(|k| d[k] as f64 * x[k]).sum()
+            };
+            let eps = 1e-6;
+            for j in 0..3 {
+                let (mut hi, mut lo) = (to64(v), to64(v));
+                hi[j] += eps;
+                lo[j] -= eps;
+                let numeric = (objective(hi, to64(mean)) - objective(lo, to64(mean))) / (2.0 * eps);
+                assert!(
+                    (d_v[j] as f64 - numeric).abs() < 1e-4 * (1.0 + numeric.abs()),
+                    "normal[{j}]: {} vs {numeric}",
+                    d_v[j]
+                );
+                let (mut hi, mut lo) = (to64(mean), to64(mean));
+                hi[j] += eps;
+                lo[j] -= eps;
+                let numeric = (objective(to64(v), hi) - objective(to64(v), lo)) / (2.0 * eps);
+                assert!(
+                    (d_mean[j] as f64 - numeric).abs() < 1e-4 * (1.0 + numeric.abs()),
+                    "mean[{j}]: {} vs {numeric}",
+                    d_mean[j]
+                );
+            }
+            // No gradient along v itself: the values depend on v / |v| only.
+            let radial: f32 = (0..3).map(|j| d_v[j] * v[j]).sum();
+            assert!(radial.abs() < 1e-5, "{d_v:?}");
+        }
+        assert_eq!(flips, [true, true], "both flips exercised");
+    }
+
+    #[test]
+    fn degenerate_local_inputs_are_zero_without_gradient() {
+        let cam = Vec3::new(0.0, 0.0, 3.0);
+        let sun = Vec3::new(0.6, 0.0, 0.8);
+        let d = [1.0f32, 1.0, 1.0];
+        // A degenerate or non-finite normal, or no normal group at all: zeros, no gradient.
+        for v in [[0.0f32, 0.0, 1e-4], [0.0; 3], [f32::NAN, 0.0, 1.0]] {
+            let p = one_gaussian(v, [0.0; 3]);
+            assert_eq!(local_inputs(&p, 0, cam, sun), [0.0; 3], "{v:?}");
+            assert!(local_inputs_backward(&p, 0, cam, sun, d).is_none(), "{v:?}");
+        }
+        let mut plain = ParamSet::new(crate::model::ModelLayout::sh(0).dims());
+        plain.push_zeros(1);
+        assert_eq!(local_inputs(&plain, 0, cam, sun), [0.0; 3]);
+        // The Sun straight behind the Gaussian (s = -v): n.h is 0 and carries no
+        // gradient, n.s and n.v keep theirs.
+        let p = one_gaussian([0.3, 0.0, 1.0], [0.0; 3]);
+        let behind = Vec3::new(0.0, 0.0, -1.0);
+        let x = local_inputs(&p, 0, cam, behind);
+        assert!(x[0] < 0.0 && x[1] > 0.0 && x[2] == 0.0, "{x:?}");
+        let (d_v, d_mean) = local_inputs_backward(&p, 0, cam, behind, [0.0, 0.0, 1.0]).unwrap();
+        assert_eq!((d_v, d_mean), ([0.0; 3], [0.0; 3]));
+        let (d_v, _) = local_inputs_backward(&p, 0, cam, behind, [1.0, 0.0, 0.0]).unwrap();
+        assert!(d_v.iter().any(|&x| x != 0.0));
     }
 
     #[test]

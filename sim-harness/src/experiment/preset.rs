@@ -15,7 +15,7 @@
 use crate::scenario::{Scenario, ScenarioError};
 use gs_core::nn::MatmulPrecision;
 use gs_core::sunaware::{
-    BackendKind, Shading, SunAwareConfig, SunAwareError, SunAwareRates, Variant,
+    AppearanceInputs, BackendKind, Shading, SunAwareConfig, SunAwareError, SunAwareRates, Variant,
 };
 use serde::Deserialize;
 use std::fmt;
@@ -170,6 +170,12 @@ pub struct Preset {
     pub shading: String,
     /// Ambient floor `k_a` of the Lambertian shadings, in [0, 1).
     pub shading_ambient: f32,
+    /// What Phi reads beyond the feature: "paper" (the paper's row), "local" (and
+    /// `[n.s, n.v, n.h]` of the learned normal) or "local_no_sun" (local, the Sun's
+    /// encoding zeroed) (`SunAwareConfig::appearance_inputs`; the local ones need
+    /// `shading = "lambert_learned"`; configuration (a) has no Phi; the wgpu backend
+    /// refuses the local ones).
+    pub appearance_inputs: String,
     /// Evicted keyframes kept for replay (0: none, the paper; `OnlineConfig`).
     pub replay_capacity: usize,
     /// Steps per round on replayed keyframes.
@@ -280,6 +286,7 @@ impl Default for Preset {
             shadow_gain: 1.0,
             shading: "none".into(),
             shading_ambient: SunAwareConfig::default().shading_ambient,
+            appearance_inputs: "paper".into(),
             replay_capacity: 0,
             replay_steps_per_round: 0,
             sun_jitter_deg: 0.0,
@@ -426,6 +433,7 @@ impl Preset {
         // name).
         if variant.uses_appearance_mlp() {
             model.shading = self.shading_kind().unwrap_or_default();
+            model.appearance_inputs = self.appearance_inputs_kind().unwrap_or_default();
         }
         model.shading_ambient = self.shading_ambient;
         if let Some(interval) = self.sh_degree_interval {
@@ -465,6 +473,13 @@ impl Preset {
         self.shading
             .parse()
             .map_err(|e: SunAwareError| PresetError::Invalid(format!("shading: {e}")))
+    }
+
+    /// The Phi inputs named by `appearance_inputs`.
+    pub(crate) fn appearance_inputs_kind(&self) -> Result<AppearanceInputs, PresetError> {
+        self.appearance_inputs
+            .parse()
+            .map_err(|e: SunAwareError| PresetError::Invalid(format!("appearance_inputs: {e}")))
     }
 
     /// Checks every value; the error names the field.
@@ -559,6 +574,7 @@ impl Preset {
         self.backend_kind()?;
         self.mlp_precision_kind()?;
         self.shading_kind()?;
+        self.appearance_inputs_kind()?;
         if !(1..=4096).contains(&self.appearance_hidden_width) {
             return bad(format!(
                 "appearance_hidden_width {} is outside 1..=4096",
@@ -701,6 +717,21 @@ mod tests {
             ),
             (Shading::LambertLearned, 0.004, 3)
         );
+        assert_eq!(learned.appearance_inputs, AppearanceInputs::Paper);
+        let local = Preset::from_toml_str(
+            "shading = \"lambert_learned\"\nappearance_inputs = \"local_no_sun\"\n",
+            "t.toml",
+        )
+        .unwrap();
+        assert_eq!(
+            local.model_config(Variant::D).appearance_inputs,
+            AppearanceInputs::LocalNoSun
+        );
+        // Configuration (a) has no Phi: it keeps the paper's (empty) inputs.
+        assert_eq!(
+            local.model_config(Variant::A).appearance_inputs,
+            AppearanceInputs::Paper
+        );
         assert_eq!(
             m.lr.feature, base.lr.feature,
             "unnamed rates keep the default"
@@ -717,6 +748,8 @@ mod tests {
             ("shadow_gain = inf\n", "shadow_gain"),
             ("shading = \"phong\"\n", "shading"),
             ("shading_ambient = 1.0\n", "shading_ambient"),
+            ("appearance_inputs = \"global\"\n", "appearance_inputs"),
+            ("appearance_inputs = \"local\"\n", "appearance_inputs"),
             ("sun_jitter_deg = 91.0\n", "sun_jitter_deg"),
             ("sun_jitter_deg = nan\n", "sun_jitter_deg"),
             ("[rates]\nnormal = -1.0\n", "normal"),

@@ -19,7 +19,7 @@ use crate::sh::sh_to_rgb_backward;
 
 use crate::sunaware::config::ShadowRefinement;
 use crate::sunaware::error::SunAwareError;
-use crate::sunaware::shading::shade_backward;
+use crate::sunaware::shading::{scatter_local_input_grad, shade_backward};
 
 use super::{ms_since, FramePass, PassRender, SunAwareGrads, SunAwareModel};
 
@@ -196,6 +196,18 @@ impl SunAwareModel {
                     params.get_mut(Param::Feature),
                     &mut d_means,
                 )?;
+                // The local-frame inputs (when Phi has them): into the learned normal,
+                // on top of the shading's term, and into the means.
+                scatter_local_input_grad(
+                    net,
+                    p,
+                    &pass.network_list,
+                    cam_pos,
+                    pass.sun_dir,
+                    &d_input,
+                    params.get_mut(Param::Normal),
+                    &mut d_means,
+                );
                 for (a, b) in params.get_mut(Param::Mean).iter_mut().zip(&d_means) {
                     *a += b;
                 }

@@ -23,7 +23,7 @@ use crate::sh::sh_to_rgb;
 
 use crate::sunaware::config::ShadowRefinement;
 use crate::sunaware::error::SunAwareError;
-use crate::sunaware::shading::{shade_forward, Shading};
+use crate::sunaware::shading::{fill_local_inputs, shade_forward, Shading};
 
 use super::{indices_of, ms_since, FramePass, NetPass, PassRender, SunAwareModel};
 
@@ -188,6 +188,7 @@ impl SunAwareModel {
                     cam_pos.to_array(),
                     &mut input,
                 )?;
+                fill_local_inputs(net, p, &network_list, cam_pos, sun_dir, &mut input);
                 net.mlp
                     .forward_train_into(&input, network_list.len(), tape, &mut forward)?;
                 for (r, &g) in network_list.iter().enumerate() {

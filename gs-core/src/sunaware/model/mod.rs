@@ -9,7 +9,9 @@
 //!    the Gaussians the blend reads (an alpha-only pass,
 //!    [`crate::raster::PreparedView::contributing`]): the others have no effect on the
 //!    image, so their channels are left at 0;
-//! 2. colour: SH (a) or Phi([f_i, gamma(sun), gamma(view_i)]) (b-d);
+//! 2. colour: SH (a) or Phi([f_i, gamma(sun), gamma(view_i)]) (b-d), with
+//!    `[n.s, n.v, n.h]` appended under `config.appearance_inputs` = local
+//!    ([`super::shading::local_inputs`]);
 //! 3. shadow (c-d): `V` from the light pass ([`super::light`]), `P = Psi([V_i, gamma(sun),
 //!    gamma(mu_i normalised), l_i])`, and `V' = V_i * P` (default) or `V' = P` (the paper's
 //!    form), per [`super::config::ShadowRefinement`];
@@ -346,10 +348,11 @@ impl SunAwareModel {
             for f in gaussians.params.get_mut(Param::Feature) {
                 *f = rng.normal() * config.feature_init_std;
             }
-            Some(AppearanceNet::with_hidden_width(
+            Some(AppearanceNet::with_inputs(
                 config.feature_dim,
                 config.appearance_hidden_width,
                 encoding,
+                config.appearance_inputs,
                 config.seed.wrapping_add(1),
             )?)
         } else {
