@@ -750,6 +750,79 @@ mod tests {
         assert_eq!(flips, [true, true], "both flips exercised");
     }
 
+    /// `fill_local_inputs` writes each row's local block and `scatter_local_input_grad`
+    /// routes that block's gradient to the listed Gaussian's normal and mean (and only
+    /// there), as `local_inputs` / `local_inputs_backward` give them.
+    #[test]
+    fn local_blocks_fill_and_scatter_per_listed_gaussian() {
+        use crate::model::ModelLayout;
+        use crate::nn::{AppearanceInputs, PositionalEncoding};
+        let net = AppearanceNet::with_inputs(
+            2,
+            4,
+            PositionalEncoding::default(),
+            AppearanceInputs::Local,
+            1,
+        )
+        .unwrap();
+        let layout = ModelLayout {
+            normal_dim: 3,
+            ..ModelLayout::sh(0)
+        };
+        let mut p = ParamSet::new(layout.dims());
+        p.push_zeros(3);
+        for (g, (v, m)) in [
+            ([0.3f32, -0.2, 1.1], [0.1f32, 0.2, -0.1]),
+            ([-0.2, 0.4, -0.25], [-0.3, 0.1, 0.4]),
+            ([1.2, 0.9, 0.7], [0.5, -0.4, 0.2]),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            p.row_mut(Param::Normal, g).copy_from_slice(&v);
+            p.row_mut(Param::Mean, g).copy_from_slice(&m);
+        }
+        let cam = Vec3::new(0.4, -0.3, 3.0);
+        let sun = Vec3::new(0.5, 0.6, 0.3).normalize();
+        let list = [2u32, 0];
+        let (w, start) = (net.input_width(), net.local_start());
+        let mut input = vec![7.0f32; list.len() * w];
+        fill_local_inputs(&net, &p, &list, cam, sun, &mut input);
+        for (r, &g) in list.iter().enumerate() {
+            let row = &input[r * w..(r + 1) * w];
+            assert_eq!(&row[start..], &local_inputs(&p, g as usize, cam, sun));
+            assert!(row[..start].iter().all(|&x| x == 7.0));
+        }
+        let mut d_input = vec![5.0f32; list.len() * w];
+        let d = [[0.7f32, -1.3, 0.9], [-0.4, 0.2, 1.1]];
+        for r in 0..2 {
+            d_input[r * w + start..(r + 1) * w].copy_from_slice(&d[r]);
+        }
+        let (mut d_normal, mut d_means) = (vec![0.0f32; 9], vec![0.0f32; 9]);
+        scatter_local_input_grad(
+            &net,
+            &p,
+            &list,
+            cam,
+            sun,
+            &d_input,
+            &mut d_normal,
+            &mut d_means,
+        );
+        for (r, &g) in list.iter().enumerate() {
+            let g = g as usize;
+            let (d_v, d_m) = local_inputs_backward(&p, g, cam, sun, d[r]).unwrap();
+            assert_eq!(&d_normal[g * 3..g * 3 + 3], &d_v);
+            assert_eq!(&d_means[g * 3..g * 3 + 3], &d_m);
+            assert!(d_v.iter().chain(&d_m).any(|&x| x != 0.0));
+        }
+        // Gaussian 1 is not listed: untouched.
+        assert_eq!(
+            (&d_normal[3..6], &d_means[3..6]),
+            (&[0.0; 3][..], &[0.0; 3][..])
+        );
+    }
+
     #[test]
     fn degenerate_local_inputs_are_zero_without_gradient() {
         let cam = Vec3::new(0.0, 0.0, 3.0);
