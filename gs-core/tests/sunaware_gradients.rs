@@ -327,6 +327,21 @@ fn lambert_shading_gradients_match_finite_differences() {
     }
 }
 
+/// Random learned normals of lengths 0.5..2 (so the normalisation matters), the same every
+/// run.
+fn randomise_learned_normals(model: &mut SunAwareModel) {
+    let mut rng = SplitMix64::new(31);
+    for v in model.gaussians.params.get_mut(Param::Normal).chunks_mut(3) {
+        let dir = Vec3::new(
+            rng.next_f32() - 0.5,
+            rng.next_f32() - 0.5,
+            rng.next_f32() - 0.5,
+        );
+        let len = 0.5 + 1.5 * rng.next_f32();
+        v.copy_from_slice(&(dir.normalize() * len).to_array());
+    }
+}
+
 /// The learned normal (`lambert_learned`): its gradient through `v / |v|` against finite
 /// differences, on normals of lengths 0.5..2 (so the normalisation matters), and none
 /// along `v` itself (the factor does not depend on `|v|`).
@@ -339,16 +354,7 @@ fn learned_normal_shading_gradients_match_finite_differences() {
             shading_ambient: 0.2,
             ..SunAwareConfig::for_variant(variant)
         });
-        let mut rng = SplitMix64::new(31);
-        for v in model.gaussians.params.get_mut(Param::Normal).chunks_mut(3) {
-            let dir = Vec3::new(
-                rng.next_f32() - 0.5,
-                rng.next_f32() - 0.5,
-                rng.next_f32() - 0.5,
-            );
-            let len = 0.5 + 1.5 * rng.next_f32();
-            v.copy_from_slice(&(dir.normalize() * len).to_array());
-        }
+        randomise_learned_normals(&mut model);
         let vis = model.sun_visibility(&camera(), sun()).unwrap();
         let settings = model.raster_settings(true);
         let vis_arg = variant.uses_shadow().then_some(vis.as_slice());
@@ -431,16 +437,7 @@ fn local_appearance_inputs_gradients_match_finite_differences() {
             });
             let phi = model.appearance.as_ref().unwrap();
             assert_eq!(phi.input_width(), 72 + 2 * 12 + 3, "{what}");
-            let mut rng = SplitMix64::new(31);
-            for v in model.gaussians.params.get_mut(Param::Normal).chunks_mut(3) {
-                let dir = Vec3::new(
-                    rng.next_f32() - 0.5,
-                    rng.next_f32() - 0.5,
-                    rng.next_f32() - 0.5,
-                );
-                let len = 0.5 + 1.5 * rng.next_f32();
-                v.copy_from_slice(&(dir.normalize() * len).to_array());
-            }
+            randomise_learned_normals(&mut model);
             let vis = model.sun_visibility(&camera(), sun()).unwrap();
             let settings = model.raster_settings(true);
             let vis_arg = variant.uses_shadow().then_some(vis.as_slice());

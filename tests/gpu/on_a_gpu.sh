@@ -56,7 +56,8 @@ stamp() { echo "=== $1 (t=$(($(date +%s) - t0)) s)"; }
         echo "--- $t"
         timeout 120 "$t" --test-threads 4 2>&1 | grep -E "test result|FAILED|panicked|gpu .* cpu"
     done
-    stamp demo
-    timeout 300 "$dir/sim-harness" --backend wgpu demo --out "$dir/demo"
+    # The demo's preset asks for Phi's local-frame inputs (appearance_inputs = "local"),
+    # which the wgpu backend refuses by name until it has kernels for them.
+    echo "demo: not run (its preset's appearance_inputs = \"local\" is CPU-only)"
     stamp end
 } 2>&1 | tee "$dir/log.txt"
