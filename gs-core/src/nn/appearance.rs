@@ -106,8 +106,9 @@ pub struct AppearanceNet {
     inputs: AppearanceInputs,
 }
 
-/// Unit vector from `mean` to `camera_centre` and the distance, in f32.
-fn view_direction(mean: &[f32], camera_centre: [f32; 3]) -> ([f32; 3], f32) {
+/// Unit vector from `mean` to `camera_centre` and the distance, in f32 (also the local
+/// inputs' view, `sunaware::shading`, so both see the same bits).
+pub(crate) fn view_direction(mean: &[f32], camera_centre: [f32; 3]) -> ([f32; 3], f32) {
     let d = [
         camera_centre[0] - mean[0],
         camera_centre[1] - mean[1],

@@ -47,7 +47,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::model::{Param, ParamSet};
-use crate::nn::appearance::LOCAL_INPUTS;
+use crate::nn::appearance::{view_direction, LOCAL_INPUTS};
 use crate::nn::AppearanceNet;
 use crate::raster::project::MIN_QUAT_NORM2;
 
@@ -307,16 +307,10 @@ pub fn initial_normals(params: &mut ParamSet, centre: Vec3) {
 /// Gaussian as seen from the camera): `n.h` is then 0 with no gradient.
 pub const MIN_HALF_NORM2: f32 = 1e-8;
 
-/// Unit vector from `mean` to `cam_pos` and the distance, as Phi's view direction
-/// (`nn::appearance`): the same f32 operations.
+/// Unit vector from `mean` to `cam_pos` and the distance: Phi's own view direction.
 fn unit_view(mean: &[f32], cam_pos: Vec3) -> (Vec3, f32) {
-    let d = [
-        cam_pos.x - mean[0],
-        cam_pos.y - mean[1],
-        cam_pos.z - mean[2],
-    ];
-    let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-    (Vec3::new(d[0] / r, d[1] / r, d[2] / r), r)
+    let (view, r) = view_direction(mean, cam_pos.to_array());
+    (Vec3::from(view), r)
 }
 
 /// What [`local_inputs`] and its backward share for Gaussian `g`.
