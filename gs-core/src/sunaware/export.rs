@@ -21,7 +21,7 @@ use crate::sh::rgb_to_sh_dc;
 use super::config::ShadowRefinement;
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
-use super::shading::{fill_local_inputs, shade_forward, Shading};
+use super::shading::{assemble_phi_input, shade_forward, Shading};
 
 /// The colour (and for c-d shadow) of every Gaussian for one Sun and viewpoint, `N * 3`.
 pub fn baked_colours(
@@ -46,15 +46,7 @@ pub fn baked_colours(
     let sun = sun_dir.normalize();
     let all: Vec<u32> = (0..n as u32).collect();
     let mut input = Vec::new();
-    phi.assemble_input(
-        &all,
-        p.get(Param::Feature),
-        p.get(Param::Mean),
-        sun.to_array(),
-        camera_centre.to_array(),
-        &mut input,
-    )?;
-    fill_local_inputs(phi, p, &all, camera_centre, sun, &mut input);
+    assemble_phi_input(phi, p, &all, camera_centre, sun, &mut input)?;
     let mut rgb = phi.mlp.forward(&input, n)?;
     if model.config.shading != Shading::None {
         shade_forward(

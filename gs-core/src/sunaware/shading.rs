@@ -389,10 +389,34 @@ pub fn local_inputs_backward(
     (d_v.is_finite() && d_mean.is_finite()).then(|| (d_v.to_array(), d_mean.to_array()))
 }
 
+/// Phi's whole input row for each listed Gaussian (row `r` for `list[r]`): the paper's
+/// columns (`AppearanceNet::assemble_input`: feature, encoded Sun and view) and, for local
+/// inputs, [`local_inputs`]. The one way the model builds Phi's input, so no caller can
+/// leave the local columns unfilled.
+pub fn assemble_phi_input(
+    net: &AppearanceNet,
+    params: &ParamSet,
+    list: &[u32],
+    cam_pos: Vec3,
+    sun_dir: Vec3,
+    input: &mut Vec<f32>,
+) -> Result<(), SunAwareError> {
+    net.assemble_input(
+        list,
+        params.get(Param::Feature),
+        params.get(Param::Mean),
+        sun_dir.to_array(),
+        cam_pos.to_array(),
+        input,
+    )?;
+    fill_local_inputs(net, params, list, cam_pos, sun_dir, input);
+    Ok(())
+}
+
 /// Writes [`local_inputs`] of each listed Gaussian into its row of Phi's assembled
 /// `input` (row `r` for `list[r]`, from column `net.local_start()`); nothing for Phi
 /// without local inputs.
-pub fn fill_local_inputs(
+fn fill_local_inputs(
     net: &AppearanceNet,
     params: &ParamSet,
     list: &[u32],

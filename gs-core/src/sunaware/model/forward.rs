@@ -23,7 +23,7 @@ use crate::sh::sh_to_rgb;
 
 use crate::sunaware::config::ShadowRefinement;
 use crate::sunaware::error::SunAwareError;
-use crate::sunaware::shading::{fill_local_inputs, shade_forward, Shading};
+use crate::sunaware::shading::{assemble_phi_input, shade_forward, Shading};
 
 use super::{indices_of, ms_since, FramePass, NetPass, PassRender, SunAwareModel};
 
@@ -180,15 +180,7 @@ impl SunAwareModel {
                     mut input,
                     mut forward,
                 } = std::mem::take(&mut phi_buffers);
-                net.assemble_input(
-                    &network_list,
-                    p.get(Param::Feature),
-                    p.get(Param::Mean),
-                    sun,
-                    cam_pos.to_array(),
-                    &mut input,
-                )?;
-                fill_local_inputs(net, p, &network_list, cam_pos, sun_dir, &mut input);
+                assemble_phi_input(net, p, &network_list, cam_pos, sun_dir, &mut input)?;
                 net.mlp
                     .forward_train_into(&input, network_list.len(), tape, &mut forward)?;
                 for (r, &g) in network_list.iter().enumerate() {
