@@ -687,6 +687,16 @@ mod tests {
         let k = s.camera_intrinsics();
         assert_eq!((k.width, k.height, paper.window), (960, 600, 10));
         assert_eq!(s.frame_count(), 5764);
+        // Table I and everything derived from the cpu preset keep the paper's model form
+        // (their committed results were measured with it), whatever the demo moves to.
+        for name in ["cpu", "pareto-base", "recommended", "window-ablation"] {
+            let m = Preset::load(name).unwrap().model_config(Variant::D);
+            assert_eq!(
+                (m.shading, m.appearance_inputs),
+                (Shading::None, AppearanceInputs::Paper),
+                "{name}"
+            );
+        }
     }
 
     /// The accuracy knobs reach the model; bad values are refused when the preset loads,
