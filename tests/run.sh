@@ -17,8 +17,10 @@ step "cargo test (unit, integration, gradient checks, fits, live UDP component)"
 # Tests that need a CPU extension skip visibly where the CPU lacks it; where the CPU has
 # it, a skip would hide a detection bug, so it is made a failure.
 if grep -qw avx512f /proc/cpuinfo; then export GS_REQUIRE_AVX512=1; fi
+if grep -qw avx2 /proc/cpuinfo && grep -qw fma /proc/cpuinfo; then export GS_REQUIRE_AVX2=1; fi
 if grep -qw avx512_bf16 /proc/cpuinfo; then export GS_REQUIRE_BF16=1; fi
-echo "GS_REQUIRE_AVX512=${GS_REQUIRE_AVX512:-0} GS_REQUIRE_BF16=${GS_REQUIRE_BF16:-0}"
+echo "GS_REQUIRE_AVX512=${GS_REQUIRE_AVX512:-0} GS_REQUIRE_AVX2=${GS_REQUIRE_AVX2:-0}" \
+    "GS_REQUIRE_BF16=${GS_REQUIRE_BF16:-0}"
 # The GPU backend's tests run in the next step, where a missing adapter is a failure.
 cargo test --workspace --exclude gs-wgpu
 

@@ -6,11 +6,11 @@
 //! gradient reduction, finiteness checks) shows.
 //!
 //! Run: `cargo run --release -p gs-core --example mlp_bench -- [--json] [--quick] [--reps N]
-//! [--mlp-only] [--net phi|psi] [--precision f32|bf16] [--kernel avx512|gemm-crate]
+//! [--mlp-only] [--net phi|psi] [--precision f32|bf16] [--kernel avx512|avx2|gemm-crate]
 //! [--width N] [--reference-python PATH | --no-reference]`. `--mlp-only` skips the GEMM
 //! table; `--net` keeps one network; `--precision` picks the products (both the networks'
-//! and the floor's; bf16 needs AVX-512 BF16); `--kernel` the f32 kernel (default: the
-//! fastest this CPU runs); `--width` sets Phi's hidden width (default 256); `--json`
+//! and the floor's; bf16 needs AVX-512 BF16); `--kernel` the f32 kernel (default:
+//! `F32Kernel::detect`; `kernel_ab` compares kernels alternately in one run); `--width` sets Phi's hidden width (default 256); `--json`
 //! prints one JSON object per line instead of the tables.
 //!
 //! The machine's own rate: before the tables, numpy's `matmul` (its BLAS, OpenBLAS in the
@@ -171,7 +171,7 @@ usage: cargo run --release -p gs-core --example mlp_bench -- [FLAGS]
   --mlp-only       skip the GEMM table
   --net NAME       phi or psi: keep one network
   --precision P    f32 or bf16 products (bf16 needs AVX-512 BF16; default f32)
-  --kernel K       f32 kernel: avx512 or gemm-crate (default: the fastest present)
+  --kernel K       f32 kernel: avx512, avx2 or gemm-crate (default: the one detected)
   --width N        Phi's hidden width (default 256)
   --reference-python PATH
                    Python with numpy for the reference SGEMM rate (default python3)
@@ -208,18 +208,13 @@ fn main() {
             eprintln!("mlp_bench: --kernel applies to f32 products only");
             std::process::exit(2);
         }
-        (Ok(_), Some("gemm-crate")) => Products::f32_on(F32Kernel::Portable),
-        (Ok(_), Some("avx512")) => match F32Kernel::detect() {
-            kernel @ F32Kernel::Avx512(_) => Products::f32_on(kernel),
-            F32Kernel::Portable => {
-                eprintln!("mlp_bench: --kernel avx512: this CPU lacks avx512f");
+        (Ok(_), Some(name)) => match F32Kernel::named(name) {
+            Ok(kernel) => Products::f32_on(kernel),
+            Err(e) => {
+                eprintln!("mlp_bench: --kernel: {e}");
                 std::process::exit(2);
             }
         },
-        (Ok(_), Some(other)) => {
-            eprintln!("mlp_bench: --kernel {other:?}: expected avx512 or gemm-crate");
-            std::process::exit(2);
-        }
     };
     let phi_width = arg_str(&args, "--width")
         .and_then(|v| v.parse::<usize>().ok())

@@ -1,10 +1,14 @@
 //! Single-threaded row-major f32 matrix products, and [`Products`]: the networks' choice
 //! between these and the bfloat16 kernels of `bf16.rs`.
 //!
-//! The f32 products run on the AVX-512 kernels of `avx512.rs` where the CPU has AVX-512F
-//! (detected at run time, never by compile flags: the same binary runs on CPUs without
-//! it), else on the portable `gemm` crate ([`F32Kernel`]). The two sum in different orders,
-//! so their results differ in the last bits; each is bit-reproducible on its own.
+//! The f32 products run on the AVX-512 kernels of `avx512.rs` where the CPU has AVX-512F,
+//! else on the AVX2 kernels of `avx2.rs` where it has AVX2 and FMA, else on the portable
+//! `gemm` crate ([`F32Kernel`]); each is detected at run time, never by compile flags, so
+//! the same binary runs on every x86 CPU. `avx512` and `avx2` sum every element in the same
+//! order (one `fma` chain in increasing reduction index), so they give the same bits: an
+//! AVX-512 machine and an AVX2-only one train alike. The `gemm` crate sums in another
+//! order, so its results differ from theirs in the last bits; each kernel is
+//! bit-reproducible on its own.
 //!
 //! Invariants: every matrix is a dense row-major slice whose length is checked against its
 //! shape before the unsafe call (a mismatch is a bug in this crate, so it panics here rather
@@ -15,12 +19,12 @@
 //!
 //! `gemm` was chosen over `matrixmultiply` by measurement on the target machine (see
 //! `examples/mlp_bench.rs`): similar on the 256-wide shapes, several times faster on the
-//! narrow shapes of the shadow network (55 x 32, 32 x 32). On stable Rust it has only
-//! AVX2 kernels; the AVX-512 kernels replace it where they can run (`mlp_bench --kernel`
-//! compares the two).
+//! narrow shapes of the shadow network (55 x 32, 32 x 32). It is now the fallback for CPUs
+//! without AVX2 and FMA; `mlp_bench --kernel` and `kernel_ab` compare the kernels.
 
 use gemm::Parallelism;
 
+use super::avx2::Avx2Kernels;
 use super::avx512::Avx512Kernels;
 use super::bf16::Bf16Kernels;
 use super::error::NnError;
@@ -48,20 +52,49 @@ impl MatmulPrecision {
 pub enum F32Kernel {
     /// The `gemm` crate (AVX2/FMA or scalar, its own run-time choice): runs everywhere.
     Portable,
+    /// `avx2.rs` (its value proves the CPU has AVX2 and FMA): the same bits as `Avx512`.
+    Avx2(Avx2Kernels),
     /// `avx512.rs` (its value proves the CPU has AVX-512F).
     Avx512(Avx512Kernels),
 }
 
 impl F32Kernel {
-    /// The fastest kernel this CPU runs: AVX-512 where present, else portable.
+    /// The names [`F32Kernel::named`] takes, in the order [`F32Kernel::detect`] prefers.
+    pub const NAMES: [&'static str; 3] = ["avx512", "avx2", "gemm-crate"];
+
+    /// The kernel this CPU runs by default: AVX-512 where present, else AVX2 with FMA, else
+    /// the portable `gemm` crate.
     pub fn detect() -> Self {
-        Avx512Kernels::detect().map_or(Self::Portable, Self::Avx512)
+        Avx512Kernels::detect()
+            .map(Self::Avx512)
+            .or_else(|| Avx2Kernels::detect().map(Self::Avx2))
+            .unwrap_or(Self::Portable)
+    }
+
+    /// The kernel called `name` ([`F32Kernel::name`]), to force one (benchmarks), or why
+    /// this CPU cannot run it.
+    pub fn named(name: &str) -> Result<Self, String> {
+        let missing = |feature: &str| format!("f32 kernel {name}: this CPU lacks {feature}");
+        match name {
+            "gemm-crate" => Ok(Self::Portable),
+            "avx2" => Avx2Kernels::detect()
+                .map(Self::Avx2)
+                .ok_or_else(|| missing("avx2 or fma")),
+            "avx512" => Avx512Kernels::detect()
+                .map(Self::Avx512)
+                .ok_or_else(|| missing("avx512f")),
+            other => Err(format!(
+                "f32 kernel {other:?}: expected one of {}",
+                Self::NAMES.join(", ")
+            )),
+        }
     }
 
     /// The name the benchmarks print.
     pub fn name(self) -> &'static str {
         match self {
             Self::Portable => "gemm-crate",
+            Self::Avx2(_) => "avx2",
             Self::Avx512(_) => "avx512",
         }
     }
@@ -174,6 +207,7 @@ impl Products {
         match (self.bf16, self.f32_kernel) {
             (Some(kernel), _) => kernel.product((m, k, n), a, b, c, accumulate),
             (None, F32Kernel::Avx512(kernel)) => kernel.product((m, k, n), a, b, c, accumulate),
+            (None, F32Kernel::Avx2(kernel)) => kernel.product((m, k, n), a, b, c, accumulate),
             (None, F32Kernel::Portable) => portable::product((m, k, n), a, b, c, accumulate),
         }
     }
@@ -346,13 +380,13 @@ mod tests {
         }
     }
 
-    /// Every f32 kernel this CPU runs: the portable one and the detected one.
+    /// Every f32 kernel this CPU runs.
     fn kernels() -> Vec<Products> {
-        let mut all = vec![Products::f32_on(F32Kernel::Portable)];
-        if F32Kernel::detect() != F32Kernel::Portable {
-            all.push(Products::default());
-        }
-        all
+        F32Kernel::NAMES
+            .iter()
+            .filter_map(|name| F32Kernel::named(name).ok())
+            .map(Products::f32_on)
+            .collect()
     }
 
     #[test]
@@ -393,10 +427,17 @@ mod tests {
             Some(detected)
         );
         #[cfg(target_arch = "x86_64")]
-        assert_eq!(
-            matches!(detected, F32Kernel::Avx512(_)),
-            std::arch::is_x86_feature_detected!("avx512f")
-        );
+        {
+            use std::arch::is_x86_feature_detected as has;
+            let avx512 = has!("avx512f");
+            let avx2 = has!("avx2") && has!("fma");
+            assert_eq!(matches!(detected, F32Kernel::Avx512(_)), avx512);
+            assert_eq!(matches!(detected, F32Kernel::Avx2(_)), avx2 && !avx512);
+            assert_eq!(F32Kernel::named("avx2").is_ok(), avx2);
+        }
+        assert_eq!(F32Kernel::named(detected.name()), Ok(detected));
+        assert_eq!(F32Kernel::named("gemm-crate"), Ok(F32Kernel::Portable));
+        assert!(F32Kernel::named("sse").is_err());
     }
 
     #[test]

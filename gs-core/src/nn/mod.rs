@@ -31,14 +31,19 @@
 //! ```
 
 pub mod appearance;
+pub mod avx2;
 pub mod avx512;
 pub mod bf16;
 pub mod encoding;
 pub mod error;
 mod gather;
+#[cfg(test)]
+mod kernel_tests;
 pub mod matmul;
 pub mod mlp;
 pub mod shadow_net;
+#[cfg(target_arch = "x86_64")]
+mod tiled;
 
 pub use appearance::{AppearanceInputs, AppearanceNet};
 pub use encoding::PositionalEncoding;
