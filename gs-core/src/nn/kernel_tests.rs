@@ -101,8 +101,8 @@ pub(super) fn products_follow_the_stated_order(kernels: Products) {
         (6, 3, 8),
         (7, 40, 9),
         (13, 300, 24),
-        // B's row stride a multiple of 1 KiB with m <= k: packed by the AVX2 kernel only.
-        (4, 9, 256),
+        // B's row stride a multiple of 4 KiB with m <= k: packed by the AVX2 kernel only.
+        (4, 9, 1024),
     ];
     for (m, k, n) in shapes {
         let a = operand(m * k, &mut rng);
