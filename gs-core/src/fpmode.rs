@@ -37,7 +37,11 @@ pub const ENV_VAR: &str = "GS_DENORMALS";
 /// The "environment" part of the binaries' and benchmarks' `--help`.
 pub const ENV_HELP: &str = "environment:
   GS_DENORMALS=ftz|ieee  denormal mode of every thread that computes
-                         (default ftz: flush-to-zero and denormals-are-zero)";
+                         (default ftz: flush-to-zero and denormals-are-zero)
+  GS_F32_KERNEL=avx512|avx2|gemm-crate
+                         the networks' f32 product kernel (default: avx512 where
+                         the CPU has it, else avx2; avx512 and avx2 give the same
+                         bits, the gemm crate other ones)";
 
 /// How a thread's floating-point unit treats subnormal (denormal) numbers.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]

@@ -90,6 +90,24 @@ impl F32Kernel {
         }
     }
 
+    /// [`F32Kernel::detect`]'s kernel, unless the environment variable [`KERNEL_ENV_VAR`]
+    /// names another (`avx512`, `avx2` or `gemm-crate`: to compare kernels end to end, or to
+    /// reproduce results made with the `gemm` crate's order). A name this CPU cannot run,
+    /// or an unknown one, is a configuration error, never a silent fallback.
+    pub fn from_env() -> Result<Self, NnError> {
+        Self::from_setting(std::env::var(KERNEL_ENV_VAR).ok().as_deref())
+    }
+
+    /// [`F32Kernel::from_env`] for the variable's value (`None` or empty: unset).
+    pub fn from_setting(setting: Option<&str>) -> Result<Self, NnError> {
+        match setting {
+            Some(name) if !name.is_empty() => {
+                Self::named(name).map_err(|e| NnError::Config(format!("{KERNEL_ENV_VAR}: {e}")))
+            }
+            _ => Ok(Self::detect()),
+        }
+    }
+
     /// The name the benchmarks print.
     pub fn name(self) -> &'static str {
         match self {
@@ -99,6 +117,9 @@ impl F32Kernel {
         }
     }
 }
+
+/// The environment variable that forces the f32 kernel ([`F32Kernel::from_env`]).
+pub const KERNEL_ENV_VAR: &str = "GS_F32_KERNEL";
 
 impl Default for F32Kernel {
     fn default() -> Self {
@@ -118,14 +139,15 @@ pub struct Products {
 
 impl Products {
     /// Products of `precision`, or an error when the CPU lacks what it needs. f32 products
-    /// take the fastest kernel the CPU runs ([`F32Kernel::detect`]).
+    /// take [`F32Kernel::from_env`]'s kernel (the CPU's default unless `GS_F32_KERNEL`
+    /// names one).
     pub fn new(precision: MatmulPrecision) -> Result<Self, NnError> {
         Ok(Self {
             bf16: match precision {
                 MatmulPrecision::F32 => None,
                 MatmulPrecision::Bf16 => Some(Bf16Kernels::detect()?),
             },
-            f32_kernel: F32Kernel::detect(),
+            f32_kernel: F32Kernel::from_env()?,
         })
     }
 
@@ -424,7 +446,20 @@ mod tests {
         assert_eq!(Products::default().f32_kernel(), Some(detected));
         assert_eq!(
             Products::new(MatmulPrecision::F32).unwrap().f32_kernel(),
-            Some(detected)
+            Some(F32Kernel::from_env().unwrap())
+        );
+        assert_eq!(F32Kernel::from_setting(None), Ok(detected));
+        assert_eq!(F32Kernel::from_setting(Some("")), Ok(detected));
+        assert_eq!(
+            F32Kernel::from_setting(Some("gemm-crate")),
+            Ok(F32Kernel::Portable)
+        );
+        let unknown = F32Kernel::from_setting(Some("sse"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            unknown.contains("GS_F32_KERNEL") && unknown.contains("sse"),
+            "{unknown}"
         );
         #[cfg(target_arch = "x86_64")]
         {
