@@ -1,12 +1,14 @@
 //! What machine a measurement ran on, for the benchmarks' headers and JSON: the CPU model,
 //! how many CPUs this process may use, the instruction-set extensions the fast paths pick
-//! at run time (AVX2, AVX-512F, AVX-512 BF16 on x86_64), and the calling thread's denormal
-//! mode ([`crate::fpmode`]). A timing without these cannot be compared with another.
+//! at run time (AVX2, AVX-512F, AVX-512 BF16 on x86_64), the calling thread's denormal
+//! mode ([`crate::fpmode`]) and the networks' f32 product kernel. A timing without these
+//! cannot be compared with another.
 //!
 //! Reads `/proc/cpuinfo` on Linux; elsewhere the model falls back to the architecture's
 //! name. Never fails.
 
 use crate::fpmode;
+use crate::nn::F32Kernel;
 
 /// One line: CPU model, CPUs available, the extensions that matter, e.g.
 /// `Intel(R) Xeon(R) Processor, 2 CPUs available, avx2 avx512f avx512bf16`
@@ -23,11 +25,14 @@ pub fn cpu_description() -> String {
     }
 }
 
-/// The benchmarks' header line: [`cpu_description`] and the calling thread's denormal mode
-/// (the binaries set the same mode on every training thread).
+/// The benchmarks' header line: [`cpu_description`], the calling thread's denormal mode
+/// (the binaries set the same mode on every training thread) and the networks' f32 product
+/// kernel (`GS_F32_KERNEL`, else the CPU's default; an invalid setting is shown as such,
+/// the network constructors report it as an error).
 pub fn header_line() -> String {
+    let kernel = F32Kernel::from_env().map_or_else(|e| e.to_string(), |k| k.name().to_string());
     format!(
-        "cpu: {}; denormals: {}",
+        "cpu: {}; denormals: {}; f32 kernel: {kernel}",
         cpu_description(),
         fpmode::current()
     )
@@ -120,7 +125,9 @@ mod tests {
         }
         let line = header_line();
         assert!(
-            line.starts_with("cpu: ") && line.contains("; denormals: "),
+            line.starts_with("cpu: ")
+                && line.contains("; denormals: ")
+                && line.contains("; f32 kernel: "),
             "{line}"
         );
     }
