@@ -4,8 +4,9 @@
 //!
 //! Invariants: the kernels are compiled once, when the engine opens (a failure is an
 //! error then, never later a fallback); [`WgpuEngine::supports`] refuses the
-//! configurations the kernels lack (`shading = "lambert"`, the shortest-axis normal;
-//! `"lambert_learned"` runs on the device) with the setting's name; every device error
+//! configurations the kernels lack (`shading = "lambert"`, the shortest-axis normal, and
+//! Phi's local-frame `appearance_inputs`; `"lambert_learned"` runs on the device) with the
+//! setting's name (the rule is `BackendKind::check_model`'s); every device error
 //! reaches the caller as a `SunAwareError` (rasterizer input errors keep their type).
 
 use std::sync::Arc;
@@ -19,7 +20,7 @@ use gs_core::engine::{
 use gs_core::optim::Adam;
 use gs_core::raster::{GaussianView, RasterSettings};
 use gs_core::sunaware::trainer::FlatAdam;
-use gs_core::sunaware::{AppearanceInputs, Shading, SunAwareConfig, SunAwareError, SunAwareModel};
+use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, SunAwareModel};
 
 use crate::resident_sunaware::SunAwareResident;
 use crate::{GpuContext, GpuError, GpuMlp, GpuOptions, GpuRasterizer, GpuSunVisibility, SunLight};
@@ -98,23 +99,9 @@ impl Engine for WgpuEngine {
     }
 
     fn supports(&self, config: &SunAwareConfig) -> Result<(), String> {
-        if config.appearance_inputs != AppearanceInputs::Paper {
-            return Err(format!(
-                "the wgpu backend supports appearance_inputs = \"paper\" only (this model \
-                 has {:?}, Phi's local-frame inputs, which have no device kernels): use \
-                 appearance_inputs = \"paper\" or train on the CPU",
-                config.appearance_inputs.name()
-            ));
-        }
-        match config.shading {
-            Shading::None | Shading::LambertLearned => Ok(()),
-            Shading::Lambert => Err(format!(
-                "the wgpu backend supports shading = \"none\" and \"lambert_learned\" \
-                 (this model has {:?}, the shortest-axis normal, which has no device \
-                 kernels): use shading = \"lambert_learned\" or train on the CPU",
-                config.shading.name()
-            )),
-        }
+        // The rule lives beside the backend's name, so configuration files are checked
+        // against the same statement before a device is opened.
+        BackendKind::Wgpu.check_model(config)
     }
 
     fn render(

@@ -533,7 +533,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         return Ok(());
     }
     let mut online = gs_online::online::OnlineTrainer::new(
-        online_config(&preset, variant),
+        online_config(&preset, variant)?,
         &try_initialisation(&scene, &preset)?,
         scene_box(&scene)?,
     )?;

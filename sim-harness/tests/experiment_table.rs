@@ -254,7 +254,7 @@ fn online_trainer_fits_simulator_frames() {
     let k = scene.intrinsics;
     let (w, h) = (k.width as usize, k.height as usize);
     let shape = ImageShape::new(w, h, 3);
-    let mut config = online_config(&preset, Variant::A);
+    let mut config = online_config(&preset, Variant::A).unwrap();
     config.require_window_change = false;
     let mut trainer = OnlineTrainer::new(
         config,

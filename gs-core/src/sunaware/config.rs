@@ -116,6 +116,36 @@ impl BackendKind {
         self.opener(engines).map(|_| ())
     }
 
+    /// `Ok` when this backend's kernels run models of `config`; otherwise why not, naming
+    /// the setting and what to set instead. The one statement of what each backend runs:
+    /// gs-wgpu's engine answers `Engine::supports` with it, and configuration files are
+    /// checked against it when they load, before any device is opened. The CPU runs every
+    /// model; wgpu runs `shading = "none"` and `"lambert_learned"` (the shortest-axis
+    /// `"lambert"` has no device kernels) and Phi's `appearance_inputs = "paper"` only
+    /// (the local-frame inputs have no device kernels); `shadow_gain` runs on both.
+    pub fn check_model(self, config: &SunAwareConfig) -> Result<(), String> {
+        if self == BackendKind::Cpu {
+            return Ok(());
+        }
+        if config.appearance_inputs != AppearanceInputs::Paper {
+            return Err(format!(
+                "the wgpu backend supports appearance_inputs = \"paper\" only (this model \
+                 has {:?}, Phi's local-frame inputs, which have no device kernels): use \
+                 appearance_inputs = \"paper\" or train on the CPU",
+                config.appearance_inputs.name()
+            ));
+        }
+        match config.shading {
+            Shading::None | Shading::LambertLearned => Ok(()),
+            Shading::Lambert => Err(format!(
+                "the wgpu backend supports shading = \"none\" and \"lambert_learned\" \
+                 (this model has {:?}, the shortest-axis normal, which has no device \
+                 kernels): use shading = \"lambert_learned\" or train on the CPU",
+                config.shading.name()
+            )),
+        }
+    }
+
     fn opener(self, engines: &DeviceEngines) -> Result<Option<OpenEngine>, SunAwareError> {
         match self {
             BackendKind::Cpu => Ok(None),
@@ -663,6 +693,33 @@ mod tests {
             e.contains("\"wgpu\"") && e.contains("no Vulkan adapter"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn wgpu_runs_the_paper_inputs_and_the_learned_normal_only() {
+        let demo = SunAwareConfig {
+            shading: Shading::LambertLearned,
+            appearance_inputs: AppearanceInputs::Local,
+            shadow_gain: 2.0,
+            ..SunAwareConfig::default()
+        };
+        assert!(BackendKind::Cpu.check_model(&demo).is_ok());
+        let e = BackendKind::Wgpu.check_model(&demo).unwrap_err();
+        assert!(
+            e.contains("appearance_inputs = \"paper\"") && e.contains("\"local\""),
+            "{e}"
+        );
+        let paper_inputs = SunAwareConfig {
+            appearance_inputs: AppearanceInputs::Paper,
+            ..demo.clone()
+        };
+        assert!(BackendKind::Wgpu.check_model(&paper_inputs).is_ok());
+        let lambert = SunAwareConfig {
+            shading: Shading::Lambert,
+            ..paper_inputs
+        };
+        let e = BackendKind::Wgpu.check_model(&lambert).unwrap_err();
+        assert!(e.contains("\"lambert\""), "{e}");
     }
 
     #[test]

@@ -8,7 +8,8 @@
 //!   `S`; the image is `RGB * S`;
 //! - (d) + the isotropic scale loss `lambda_iso L_iso`.
 //!
-//! Modules: [`config`] (variants and settings), [`sun_visibility`] (the Sun visibility pass),
+//! Modules: [`config`] (variants and settings), [`keys`] (the settings by name, as files
+//! write them), [`sun_visibility`] (the Sun visibility pass),
 //! [`model`] (model, forward and backward of one image), [`shading`] (an optional
 //! Lambertian factor from a normal and the Sun, beyond the paper), [`trainer`] (Adam, steps,
 //! densification, evaluation), [`checkpoint`] (bit-exact save/load), [`export`] (PLY baked
@@ -22,6 +23,7 @@ pub mod config;
 pub mod engine;
 pub mod error;
 pub mod export;
+pub mod keys;
 pub mod model;
 pub mod shading;
 pub mod sun_visibility;
@@ -33,5 +35,6 @@ pub use config::{
     SunAwareConfig, SunAwareRates, Variant,
 };
 pub use error::SunAwareError;
+pub use keys::ModelKey;
 pub use model::{FramePass, SunAwareGrads, SunAwareModel};
 pub use trainer::{Observation, StepStats, StepTimings, SunAwareTrainer, ViewScore};

@@ -509,7 +509,7 @@ mod tests {
             colours: None,
         };
         let mut trainer = OnlineTrainer::new(
-            online_config(&preset, Variant::D),
+            online_config(&preset, Variant::D).unwrap(),
             &init,
             scene_box(&scene).unwrap(),
         )

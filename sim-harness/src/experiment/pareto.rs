@@ -357,9 +357,9 @@ mod tests {
         assert_eq!(presets[2].mlp_precision, "bf16");
         assert_eq!(presets[2].appearance_hidden_width, 256);
         assert_eq!(presets[0].mlp_precision, "f32");
-        let c = super::super::runner::online_config(&presets[2], Variant::D);
+        let c = super::super::runner::online_config(&presets[2], Variant::D).unwrap();
         assert_eq!(c.model.mlp_precision, MatmulPrecision::Bf16);
-        let c = super::super::runner::online_config(&presets[1], Variant::D);
+        let c = super::super::runner::online_config(&presets[1], Variant::D).unwrap();
         assert_eq!(c.model.appearance_hidden_width, 64);
         assert_eq!(
             describe(&[Knob::MlpPrecision(MatmulPrecision::Bf16)]),

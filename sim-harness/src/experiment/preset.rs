@@ -13,9 +13,8 @@
 //! re-validates the scenario.
 
 use crate::scenario::{Scenario, ScenarioError};
-use gs_core::nn::MatmulPrecision;
 use gs_core::sunaware::{
-    AppearanceInputs, BackendKind, Shading, SunAwareConfig, SunAwareError, SunAwareRates, Variant,
+    BackendKind, ModelKey, SunAwareConfig, SunAwareError, SunAwareRates, Variant,
 };
 use serde::Deserialize;
 use std::fmt;
@@ -412,37 +411,46 @@ impl Preset {
     }
 
     /// gs-core's model settings for `variant` under this preset (the training loop's
-    /// settings are `experiment::runner::online_config`).
-    pub(crate) fn model_config(&self, variant: Variant) -> SunAwareConfig {
+    /// settings are `experiment::runner::online_config`). The keys a file writes as text
+    /// go through gs-core's [`SunAwareConfig::set_key`] (as the flight component's
+    /// `[training]` does), so a refused one is named.
+    pub(crate) fn model_config(&self, variant: Variant) -> Result<SunAwareConfig, PresetError> {
         let mut model = SunAwareConfig::for_variant(variant);
+        for key in self.model_keys() {
+            model
+                .set_key(key)
+                .map_err(|e| PresetError::Invalid(format!("{}: {e}", key.name())))?;
+        }
         model.max_gaussians = self.max_gaussians;
         model.light.resolution_px = self.light_resolution_px;
         model.seed = self.seed;
         model.feature_dim = self.feature_dim;
-        model.encoding_frequencies = self.encoding_frequencies;
         model.skip_noncontributing_in_mlp = self.skip_noncontributing_in_mlp;
         model.cull_outside_frustum = self.cull_outside_frustum;
         model.early_termination = self.early_termination;
         model.skip_masked_background_tiles = self.skip_masked_background_tiles;
-        model.appearance_hidden_width = self.appearance_hidden_width;
-        // `validate` refuses any other name.
-        model.mlp_precision = self.mlp_precision_kind().unwrap_or_default();
         model.lr = self.rates.applied_to(model.lr);
-        model.shadow_gain = self.shadow_gain;
-        // Shading scales Phi's colour: configuration (a) has none (`validate` refuses a bad
-        // name).
-        if variant.uses_appearance_mlp() {
-            model.shading = self.shading_kind().unwrap_or_default();
-            model.appearance_inputs = self.appearance_inputs_kind().unwrap_or_default();
-        }
-        model.shading_ambient = self.shading_ambient;
         if let Some(interval) = self.sh_degree_interval {
             model.sh_degree_interval = interval;
         }
         if let Some(from) = self.densify_from_step {
             model.densify_from_step = from;
         }
-        model
+        Ok(model)
+    }
+
+    /// The model keys this preset writes as gs-core names them, in the order they depend
+    /// on each other (`shading` before `appearance_inputs`).
+    fn model_keys(&self) -> [ModelKey<'_>; 7] {
+        [
+            ModelKey::AppearanceHiddenWidth(self.appearance_hidden_width),
+            ModelKey::EncodingFrequencies(self.encoding_frequencies),
+            ModelKey::MlpPrecision(&self.mlp_precision),
+            ModelKey::ShadowGain(self.shadow_gain),
+            ModelKey::ShadingAmbient(self.shading_ambient),
+            ModelKey::Shading(&self.shading),
+            ModelKey::AppearanceInputs(&self.appearance_inputs),
+        ]
     }
 
     /// The backend named by `backend`, checked against this build (`wgpu` needs the cargo
@@ -455,31 +463,6 @@ impl Preset {
         kind.check_compiled_in(&fsw_component::engines::device_engines())
             .map_err(|e| PresetError::Invalid(format!("backend: {e}")))?;
         Ok(kind)
-    }
-
-    /// The precision named by `mlp_precision`.
-    pub(crate) fn mlp_precision_kind(&self) -> Result<MatmulPrecision, PresetError> {
-        match self.mlp_precision.as_str() {
-            "f32" => Ok(MatmulPrecision::F32),
-            "bf16" => Ok(MatmulPrecision::Bf16),
-            other => Err(PresetError::Invalid(format!(
-                "mlp_precision {other:?} is not \"f32\" or \"bf16\""
-            ))),
-        }
-    }
-
-    /// The shading named by `shading`.
-    pub(crate) fn shading_kind(&self) -> Result<Shading, PresetError> {
-        self.shading
-            .parse()
-            .map_err(|e: SunAwareError| PresetError::Invalid(format!("shading: {e}")))
-    }
-
-    /// The Phi inputs named by `appearance_inputs`.
-    pub(crate) fn appearance_inputs_kind(&self) -> Result<AppearanceInputs, PresetError> {
-        self.appearance_inputs
-            .parse()
-            .map_err(|e: SunAwareError| PresetError::Invalid(format!("appearance_inputs: {e}")))
     }
 
     /// Checks every value; the error names the field.
@@ -572,9 +555,6 @@ impl Preset {
             return bad("configs is empty".into());
         }
         self.backend_kind()?;
-        self.mlp_precision_kind()?;
-        self.shading_kind()?;
-        self.appearance_inputs_kind()?;
         if !(1..=4096).contains(&self.appearance_hidden_width) {
             return bad(format!(
                 "appearance_hidden_width {} is outside 1..=4096",
@@ -588,9 +568,9 @@ impl Preset {
                 ));
             }
         }
-        // The model's own checks (rates, shadow gain, SH interval, ...), before any
+        // The model's own checks (the keys, then rates, SH interval, ...), before any
         // rendering; the variant does not change which settings are valid here.
-        self.model_config(Variant::D)
+        self.model_config(Variant::D)?
             .validate()
             .map_err(|e| PresetError::Invalid(format!("model settings: {e}")))?;
         Ok(())
@@ -616,6 +596,8 @@ impl Preset {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use gs_core::nn::MatmulPrecision;
+    use gs_core::sunaware::{AppearanceInputs, Shading};
 
     #[test]
     fn backend_is_checked_against_the_build() {
@@ -707,18 +689,19 @@ mod tests {
                     shading = \"lambert\"\nshading_ambient = 0.2\n\
                     [rates]\nsh_dc = 0.01\nopacity = 0.05\n";
         let p = Preset::from_toml_str(text, "t.toml").unwrap();
-        let m = p.model_config(Variant::D);
+        let m = p.model_config(Variant::D).unwrap();
         let base = SunAwareConfig::for_variant(Variant::D);
         assert_eq!((m.shadow_gain, m.sh_degree_interval), (2.0, 100));
         assert_eq!((m.shading, m.shading_ambient), (Shading::Lambert, 0.2));
-        assert_eq!(p.model_config(Variant::A).shading, Shading::None);
+        assert_eq!(p.model_config(Variant::A).unwrap().shading, Shading::None);
         assert_eq!((m.lr.sh_dc, m.lr.opacity), (0.01, 0.05));
         let learned = Preset::from_toml_str(
             "shading = \"lambert_learned\"\n[rates]\nnormal = 0.004\n",
             "t.toml",
         )
         .unwrap()
-        .model_config(Variant::D);
+        .model_config(Variant::D)
+        .unwrap();
         assert_eq!(
             (
                 learned.shading,
@@ -734,12 +717,12 @@ mod tests {
         )
         .unwrap();
         assert_eq!(
-            local.model_config(Variant::D).appearance_inputs,
+            local.model_config(Variant::D).unwrap().appearance_inputs,
             AppearanceInputs::LocalNoSun
         );
         // Configuration (a) has no Phi: it keeps the paper's (empty) inputs.
         assert_eq!(
-            local.model_config(Variant::A).appearance_inputs,
+            local.model_config(Variant::A).unwrap().appearance_inputs,
             AppearanceInputs::Paper
         );
         assert_eq!(
@@ -781,7 +764,7 @@ mod tests {
     fn skip_and_network_knobs_parse_and_reach_the_config() {
         use gs_core::sunaware::{SunAwareConfig, Variant};
         let d = Preset::default();
-        let c = super::super::runner::online_config(&d, Variant::D);
+        let c = super::super::runner::online_config(&d, Variant::D).unwrap();
         let base = SunAwareConfig::for_variant(Variant::D);
         assert!(!d.masked_loss);
         assert_eq!(c.model.cull_outside_frustum, base.cull_outside_frustum);
@@ -803,7 +786,7 @@ mod tests {
         )
         .unwrap();
         assert!(p.masked_loss);
-        let c = super::super::runner::online_config(&p, Variant::D);
+        let c = super::super::runner::online_config(&p, Variant::D).unwrap();
         assert!(!c.model.cull_outside_frustum);
         assert!(!c.model.early_termination);
         assert!(!c.model.skip_masked_background_tiles);

@@ -17,7 +17,7 @@ use super::evaluate::{
     black_baseline, camera_of, evaluate_model, nearest_angle_deg, score_with_black, seen_views,
     summarise, sun_of, EvalSummary,
 };
-use super::preset::{InitKind, Preset};
+use super::preset::{InitKind, Preset, PresetError};
 use crate::raytrace::linear_to_srgb8;
 use glam::{DVec3, Vec3};
 use gs_core::nn::SceneBox;
@@ -158,10 +158,11 @@ pub fn scene_box(scene: &SceneData) -> Result<SceneBox, OnlineError> {
         .map_err(|e| OnlineError::Config(format!("scene box of {}: {e}", scene.name)))
 }
 
-/// The online trainer's settings for `variant` under `preset`.
-pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
-    let model = preset.model_config(variant);
-    OnlineConfig {
+/// The online trainer's settings for `variant` under `preset` (a model key the model refuses
+/// is named).
+pub fn online_config(preset: &Preset, variant: Variant) -> Result<OnlineConfig, PresetError> {
+    let model = preset.model_config(variant)?;
+    Ok(OnlineConfig {
         window: WindowConfig {
             capacity: preset.window,
             min_view_angle_deg: preset.min_view_angle_deg,
@@ -181,7 +182,7 @@ pub fn online_config(preset: &Preset, variant: Variant) -> OnlineConfig {
         // runner counts them per change; the trainer alone would refuse a repeat).
         require_window_change: preset.rounds_per_window_change <= 1 && preset.skip_unchanged_window,
         ..OnlineConfig::default()
-    }
+    })
 }
 
 /// How the Gaussians start: the preset's choice, from the scene's surface samples (with
@@ -263,7 +264,7 @@ pub fn run_config(
 ) -> Result<(RunOutcome, OnlineTrainer), OnlineError> {
     let label = format!("{}/{}", scene.name, variant.name());
     let mut trainer = OnlineTrainer::new(
-        online_config(preset, variant),
+        online_config(preset, variant).map_err(|e| OnlineError::Config(e.to_string()))?,
         &try_initialisation(scene, preset)?,
         scene_box(scene)?,
     )?;

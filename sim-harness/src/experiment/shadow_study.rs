@@ -289,7 +289,7 @@ pub fn run_shadow_study(
 
     let variant = Variant::C;
     let fresh = OnlineTrainer::new(
-        online_config(&job.preset, variant),
+        online_config(&job.preset, variant)?,
         &initialisation(&scene, &job.preset),
         scene_box(&scene)?,
     )?;
