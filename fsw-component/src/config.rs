@@ -14,8 +14,7 @@ use crate::sync::SyncConfig;
 use crate::timeguard::TimeGuardConfig;
 use glam::DQuat;
 use gs_core::fpmode::DenormalMode;
-use gs_core::nn::MatmulPrecision;
-use gs_core::sunaware::{BackendKind, SunAwareConfig, SunAwareError, Variant};
+use gs_core::sunaware::{BackendKind, ModelKey, SunAwareConfig, SunAwareError, Variant};
 use gs_online::keyframe::{KeyframeError, KeyframeWindow, WindowConfig};
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -177,6 +176,18 @@ pub struct TrainingConfig {
     /// The networks' matrix products: "f32" (default) or "bf16" (AVX-512 BF16 only; a CPU
     /// without it fails validation).
     pub mlp_precision: String,
+    /// Colour times `k_a + (1 - k_a) max(0, n.s)`: "lambert_learned" (default: a learned
+    /// normal n per Gaussian, the demo's model), "none" (the paper) or "lambert" (the
+    /// shortest scale axis; CPU only). Configuration (a) has no Phi colour and stays plain.
+    pub shading: String,
+    /// What Phi reads beyond the feature: "local" (default: and `[n.s, n.v, n.h]` of the
+    /// learned normal; needs `shading = "lambert_learned"`; CPU only), "paper" or
+    /// "local_no_sun". With `shading = "lambert_learned"` and "local" the demo scored
+    /// +1.0 dB on held-out frames and +2.0 dB on new Sun directions (docs/results/accuracy.md).
+    pub appearance_inputs: String,
+    /// `V' = shadow_gain * V * Psi` in configurations (c)-(d), 0.5 to 8 (default 2, the
+    /// demo's; the paper's form is 1).
+    pub shadow_gain: f32,
     /// A trainer job (a frame with its training round, or a command) running longer than
     /// this is reported with an `Internal` event (`ROUND_DEADLINE_MISSED`), once per job,
     /// within the 50 ms housekeeping tick. 100 ms to one hour.
@@ -301,6 +312,10 @@ impl Default for TrainingConfig {
             appearance_hidden_width: 128,
             encoding_frequencies: 2,
             mlp_precision: "f32".to_string(),
+            // The model docs/results/accuracy.md measured best (the demo preset's).
+            shading: "lambert_learned".to_string(),
+            appearance_inputs: "local".to_string(),
+            shadow_gain: 2.0,
             round_deadline_ms: 60_000,
             denormals: DenormalMode::default().name().to_string(),
         }
@@ -507,8 +522,10 @@ impl ComponentConfig {
         if self.training.threads == 0 {
             return Err(invalid("training.threads", "must be at least 1"));
         }
-        self.backend()?;
+        // The model first: whether the backend runs it is a property of the file, the
+        // same in every build; whether this build has the backend comes after.
         self.model_config()?;
+        self.backend()?;
         self.denormals()?;
         if self.checkpoint.path.as_os_str().is_empty() {
             return Err(invalid("checkpoint.path", "must not be empty"));
@@ -617,14 +634,18 @@ impl ComponentConfig {
     /// The backend named by `training.backend`, checked against this build (`wgpu` needs
     /// the cargo feature). Whether an adapter exists is found when it is opened.
     pub fn backend(&self) -> Result<BackendKind, ConfigError> {
-        let kind: BackendKind = self
-            .training
-            .backend
-            .parse()
-            .map_err(|e: SunAwareError| invalid("training.backend", e.to_string()))?;
+        let kind = self.backend_kind()?;
         kind.check_compiled_in(&crate::engines::device_engines())
             .map_err(|e| invalid("training.backend", e.to_string()))?;
         Ok(kind)
+    }
+
+    /// The backend named by `training.backend`, whether or not this build has it.
+    fn backend_kind(&self) -> Result<BackendKind, ConfigError> {
+        self.training
+            .backend
+            .parse()
+            .map_err(|e: SunAwareError| invalid("training.backend", e.to_string()))
     }
 
     /// The trainer threads' denormal mode named by `training.denormals`.
@@ -636,32 +657,53 @@ impl ComponentConfig {
     }
 
     /// The Sun-aware model's settings: the variant and the `[training]` model keys over
-    /// the trainer's defaults. Each key is checked by the model's own validation, one at a
-    /// time, so the error names the key.
+    /// the trainer's defaults, each set by gs-core's [`SunAwareConfig::set_key`] (the
+    /// model's own parsers; the simulator's presets go through it too) and checked by the
+    /// model's validation one at a time, so the error names the key. Then the backend must
+    /// run the model ([`BackendKind::check_model`]): checked here, when the file loads, not
+    /// when the device opens.
     pub fn model_config(&self) -> Result<SunAwareConfig, ConfigError> {
         let t = &self.training;
         let mut model = SunAwareConfig {
             variant: self.variant()?,
             ..SunAwareConfig::default()
         };
-        let check = |model: &SunAwareConfig, key: &'static str| {
-            model.validate().map_err(|e| invalid(key, e.to_string()))
-        };
-        model.appearance_hidden_width = t.appearance_hidden_width;
-        check(&model, "training.appearance_hidden_width")?;
-        model.encoding_frequencies = t.encoding_frequencies;
-        check(&model, "training.encoding_frequencies")?;
-        model.mlp_precision = match t.mlp_precision.as_str() {
-            "f32" => MatmulPrecision::F32,
-            "bf16" => MatmulPrecision::Bf16,
-            other => {
-                return Err(invalid(
-                    "training.mlp_precision",
-                    format!("{other:?} is not \"f32\" or \"bf16\""),
-                ))
-            }
-        };
-        check(&model, "training.mlp_precision")?;
+        // In dependency order: `appearance_inputs = "local"` needs the learned normal.
+        let keys = [
+            (
+                "training.appearance_hidden_width",
+                ModelKey::AppearanceHiddenWidth(t.appearance_hidden_width),
+            ),
+            (
+                "training.encoding_frequencies",
+                ModelKey::EncodingFrequencies(t.encoding_frequencies),
+            ),
+            (
+                "training.mlp_precision",
+                ModelKey::MlpPrecision(&t.mlp_precision),
+            ),
+            ("training.shadow_gain", ModelKey::ShadowGain(t.shadow_gain)),
+            ("training.shading", ModelKey::Shading(&t.shading)),
+            (
+                "training.appearance_inputs",
+                ModelKey::AppearanceInputs(&t.appearance_inputs),
+            ),
+        ];
+        for (name, key) in keys {
+            model
+                .set_key(key)
+                .map_err(|e| invalid(name, e.to_string()))?;
+        }
+        self.backend_kind()?.check_model(&model).map_err(|why| {
+            invalid(
+                "training.backend",
+                format!(
+                    "backend = {:?} cannot train the model the [training] keys describe: \
+                         {why}",
+                    t.backend
+                ),
+            )
+        })?;
         Ok(model)
     }
 

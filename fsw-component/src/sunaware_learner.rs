@@ -240,9 +240,11 @@ impl SunAwareLearner {
             .map_err(|e| LearnerError::BadCheckpoint(e.to_string()))?;
         let mut differences = Vec::new();
         if stored_model != &configured.model {
+            // By name, so an operator sees which [training] key to set (e.g. a checkpoint
+            // of the paper's model under the default learned-normal shading).
             differences.push(format!(
-                "model: checkpoint {stored_model:?}, configured {:?}",
-                configured.model
+                "model settings (checkpoint, configured): {}",
+                stored_model.differences(&configured.model).join("; ")
             ));
         }
         if let Some(s) = stored {

@@ -3,20 +3,26 @@
 //! window, counters), bit for bit, as N + M frames in one run; the split points cover a
 //! pending hull start, a full window, replay memory and a densification after the resume.
 //! Also: a configuration that differs from the checkpoint's is refused by default and used
-//! (with a log line) when configured so; a checkpoint claiming a huge window is refused
-//! before allocating; a version-1 checkpoint still loads.
+//! (with a log line) when configured so, and a checkpoint of the paper's model is refused
+//! by the default (learned-normal) model naming the settings that differ; the learned
+//! normals start finite and outward on the random and the hull start; a checkpoint
+//! claiming a huge window is refused before allocating; a version-1 checkpoint still loads.
 
+use fsw_component::config::ComponentConfig;
 use fsw_component::learner::{Learner, ObservedFrame};
+use fsw_component::runtime::{build_learner, LearnerKind};
 use fsw_component::sunaware_learner::{
     OnConfigMismatch, SunAwareLearner, SunAwareSettings, CHECKPOINT_MAGIC,
 };
 use fsw_component::sync::SyncedTelemetry;
-use glam::{DQuat, DVec3};
+use glam::{DQuat, DVec3, Vec3};
 use gs_core::Intrinsics;
+use gs_core::Param;
 use gs_online::keyframe::WindowConfig;
 use interfaces::crc::crc32_ieee;
 use interfaces::messages::{EventKind, InitSource, PixelFormat};
 use orbit_disc::{disc_frame, DiscFrame};
+use std::path::Path;
 
 mod orbit_disc;
 
@@ -168,6 +174,95 @@ fn a_different_configuration_is_refused_or_used_on_request() {
     let mut wider = settings();
     wider.online.window.capacity = 4;
     assert!(SunAwareLearner::new(wider).unwrap().load(&saved).is_err());
+}
+
+/// A component configuration from TOML text, built the way the binary builds its learner.
+fn component_learner(text: &str) -> Box<dyn Learner> {
+    let config = ComponentConfig::from_toml_str(text, Path::new("t.toml")).unwrap();
+    build_learner(&config, LearnerKind::SunAware).unwrap()
+}
+
+/// A checkpoint of the paper's model (the component's default model before the
+/// learned-normal shading) under today's default model: refused, naming the settings
+/// that differ and no other; with `use_checkpoint` it resumes as the paper's model.
+#[test]
+fn a_paper_model_checkpoint_is_refused_by_the_default_model_naming_the_settings() {
+    const SMALL: &str = "[model]\ninit = \"random\"\ninitial_gaussians = 40\n";
+    let paper = component_learner(&format!(
+        "[training]\nshading = \"none\"\nappearance_inputs = \"paper\"\nshadow_gain = 1.0\n{SMALL}"
+    ));
+    let saved = paper.save();
+    let mut default = component_learner(SMALL);
+    let error = default.load(&saved).unwrap_err().to_string();
+    for named in [
+        "on_config_mismatch",
+        "shading: None, LambertLearned",
+        "appearance_inputs: Paper, Local",
+        "shadow_gain: 1.0, 2.0",
+    ] {
+        assert!(error.contains(named), "{named:?} missing: {error}");
+    }
+    // Only what differs is named (the Phi width and encoding are the same).
+    assert!(!error.contains("appearance_hidden_width"), "{error}");
+    assert!(default.inspect(&saved).is_err());
+    let mut using = component_learner(&format!(
+        "[checkpoint]\non_config_mismatch = \"use_checkpoint\"\n{SMALL}"
+    ));
+    using.load(&saved).unwrap();
+    assert!(
+        using.save() == saved,
+        "the checkpoint's paper model is used as it was"
+    );
+}
+
+/// Every learned shading normal of the default model starts finite and unit length,
+/// facing out of the start (the radial rule of `gs_core::sunaware::shading::initial_normals`
+/// for round Gaussians): the random start, and the hull start that replaces it.
+#[test]
+fn the_hull_start_gives_the_learned_normals_a_finite_outward_start() {
+    let mut s = settings();
+    s.online.model = ComponentConfig::default().model_config().unwrap();
+    let mut learner = SunAwareLearner::new(s).unwrap();
+    check_normals(&learner.save(), "random start", 1e-5);
+    let mut k = 0;
+    while hull_starts(&mut learner) == 0 {
+        learner.offer(&frame(k));
+        learner.run_round_if_due().unwrap();
+        k += 1;
+        assert!(k < FRAMES, "no hull start");
+    }
+    // The hull start is followed at once by its first round, which turns the normals a
+    // little (Adam on the unnormalised vector): still finite, near unit, outward.
+    check_normals(&learner.save(), "hull start after one round", 0.5);
+}
+
+/// Checks the learned normals in a component checkpoint: finite, length within `slack`
+/// of 1, and pointing away from the scene box's centre.
+fn check_normals(saved: &[u8], what: &str, slack: f32) {
+    let trainer_len = u64::from_le_bytes(saved[9..17].try_into().unwrap()) as usize;
+    let trainer = gs_core::sunaware::checkpoint::from_bytes(&saved[17..17 + trainer_len]).unwrap();
+    let model = &trainer.model;
+    let params = &model.gaussians.params;
+    assert!(!params.is_empty(), "{what}");
+    let centre = (Vec3::from(model.scene_box.min_m()) + Vec3::from(model.scene_box.max_m())) * 0.5;
+    let mut outward = 0;
+    for g in 0..params.len() {
+        let n = Vec3::from_slice(params.row(Param::Normal, g));
+        assert!(n.is_finite(), "{what}: Gaussian {g}: {n}");
+        assert!(
+            (n.length() - 1.0).abs() <= slack,
+            "{what}: Gaussian {g}: |{n}|"
+        );
+        let mean = Vec3::from_slice(params.row(Param::Mean, g));
+        if n.dot(mean - centre) > 0.0 {
+            outward += 1;
+        }
+    }
+    assert!(
+        outward * 10 >= params.len() * 9,
+        "{what}: {outward} of {} normals face out",
+        params.len()
+    );
 }
 
 #[test]

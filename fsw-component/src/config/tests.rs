@@ -1,6 +1,7 @@
 //! Tests of `config` (a child module, so they reach its private items).
 
 use super::*;
+use gs_core::sunaware::{AppearanceInputs, Shading};
 
 fn parse(text: &str) -> Result<ComponentConfig, ConfigError> {
     ComponentConfig::from_toml_str(text, Path::new("test.toml"))
@@ -56,7 +57,9 @@ fn training_backend_is_validated_against_the_build() {
         invalid_key("[training]\nbackend = \"cuda\"\n"),
         "training.backend"
     );
-    let wgpu = parse("[training]\nbackend = \"wgpu\"\n");
+    // Phi's local inputs (the default) have no device kernels: see
+    // `wgpu_with_local_inputs_is_refused_at_load_naming_both_keys`.
+    let wgpu = parse("[training]\nbackend = \"wgpu\"\nappearance_inputs = \"paper\"\n");
     if cfg!(feature = "wgpu") {
         assert_eq!(wgpu.unwrap().backend().unwrap(), BackendKind::Wgpu);
     } else {
@@ -66,6 +69,84 @@ fn training_backend_is_validated_against_the_build() {
             "{message}"
         );
     }
+}
+
+/// The default model is the demo's, measured best (docs/results/accuracy.md): the
+/// learned-normal shading, Phi's local-frame inputs and V' = 2 V Psi.
+#[test]
+fn the_default_model_is_the_demos() {
+    let model = ComponentConfig::default().model_config().unwrap();
+    assert_eq!(model.shading, Shading::LambertLearned);
+    assert_eq!(model.appearance_inputs, AppearanceInputs::Local);
+    assert_eq!(model.shadow_gain, 2.0);
+    assert_eq!(
+        model.layout().normal_dim,
+        3,
+        "the learned normal is a parameter"
+    );
+    // The paper's model stays one file away.
+    let paper =
+        parse("[training]\nshading = \"none\"\nappearance_inputs = \"paper\"\nshadow_gain = 1.0\n")
+            .unwrap()
+            .model_config()
+            .unwrap();
+    assert_eq!(
+        (paper.shading, paper.appearance_inputs, paper.shadow_gain),
+        (Shading::None, AppearanceInputs::Paper, 1.0)
+    );
+    // Configuration (a) has no Phi colour to shade: the defaults leave it plain.
+    let a = parse("[training]\nvariant = \"a\"\n")
+        .unwrap()
+        .model_config()
+        .unwrap();
+    assert_eq!(
+        (a.shading, a.appearance_inputs, a.layout().normal_dim),
+        (Shading::None, AppearanceInputs::Paper, 0)
+    );
+}
+
+/// wgpu has no kernels for Phi's local-frame inputs: refused when the file loads (in
+/// every build, before the backend is opened), naming the backend and the inputs and
+/// saying what to set. The learned-normal shading and the shadow gain run there.
+#[test]
+fn wgpu_with_local_inputs_is_refused_at_load_naming_both_keys() {
+    for inputs in [
+        "",
+        "appearance_inputs = \"local\"\n",
+        "appearance_inputs = \"local_no_sun\"\n",
+    ] {
+        let text = format!("[training]\nbackend = \"wgpu\"\n{inputs}");
+        let message = parse(&text).unwrap_err().to_string();
+        assert!(
+            message.contains("training.backend")
+                && message.contains("appearance_inputs")
+                && message.contains("appearance_inputs = \"paper\""),
+            "{text:?}: {message}"
+        );
+        assert_eq!(invalid_key(&text), "training.backend");
+    }
+    let lambert =
+        "[training]\nbackend = \"wgpu\"\nappearance_inputs = \"paper\"\nshading = \"lambert\"\n";
+    let message = parse(lambert).unwrap_err().to_string();
+    assert!(
+        message.contains("training.backend") && message.contains("\"lambert\""),
+        "{message}"
+    );
+    // What the device runs passes the model rule (then needs the build's feature).
+    let runs =
+        parse("[training]\nbackend = \"wgpu\"\nappearance_inputs = \"paper\"\nshadow_gain = 2.0\n");
+    match runs {
+        Ok(config) => assert_eq!(
+            config.model_config().unwrap().shading,
+            Shading::LambertLearned
+        ),
+        Err(e) => assert!(e.to_string().contains("feature `wgpu`"), "{e}"),
+    }
+    // The CPU runs every model.
+    assert!(parse(
+        "[training]\nbackend = \"cpu\"\nshading = \"lambert\"\nappearance_inputs = \"paper\"\n"
+    )
+    .is_ok());
 }
 
 #[test]
@@ -174,6 +255,21 @@ fn validation_names_the_key() {
         invalid_key("[training]\nmlp_precision = \"f16\"\n"),
         "training.mlp_precision"
     );
+    for (text, key) in [
+        ("shading = \"phong\"", "training.shading"),
+        ("shadow_gain = 0.0", "training.shadow_gain"),
+        ("shadow_gain = nan", "training.shadow_gain"),
+        (
+            "appearance_inputs = \"global\"",
+            "training.appearance_inputs",
+        ),
+        // The local inputs read the learned normal: without it the inputs are refused.
+        ("shading = \"none\"", "training.appearance_inputs"),
+        // (a) has no Phi: the shading keys are still parsed.
+        ("variant = \"a\"\nshading = \"phong\"", "training.shading"),
+    ] {
+        assert_eq!(invalid_key(&format!("[training]\n{text}\n")), key, "{text}");
+    }
     assert_eq!(
         invalid_key("[training]\npasses_per_round = 0\n"),
         "training.passes_per_round"
