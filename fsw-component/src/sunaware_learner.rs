@@ -13,7 +13,10 @@
 //! `init = "hull"` a visual hull carved from the window's keyframes replaces them when the
 //! window first fills, before the first round, with the scene box fitted to the hull (or the
 //! random start stays when too few keyframes carry masks or carving fails). Each start is
-//! reported once as `EventKind::ModelInitialised`.
+//! reported once as `EventKind::ModelInitialised`. With `shading = "lambert_learned"` both
+//! starts give the learned normals gs-core's start (`shading::initial_normals`: the hull's
+//! points carry no normals, so each round Gaussian's points away from the scene box's
+//! centre); a resume takes them from the checkpoint.
 //!
 //! Checkpoint format (little-endian), version 2: magic `FSWSAL02`, hull start pending u8,
 //! trainer length u64, the gs-core Sun-aware trainer checkpoint (Gaussians, features,
