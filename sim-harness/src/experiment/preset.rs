@@ -672,7 +672,10 @@ mod tests {
         // Table I and everything derived from the cpu preset keep the paper's model form
         // (their committed results were measured with it), whatever the demo moves to.
         for name in ["cpu", "pareto-base", "recommended", "window-ablation"] {
-            let m = Preset::load(name).unwrap().model_config(Variant::D);
+            let m = Preset::load(name)
+                .unwrap()
+                .model_config(Variant::D)
+                .unwrap();
             assert_eq!(
                 (m.shading, m.appearance_inputs),
                 (Shading::None, AppearanceInputs::Paper),
