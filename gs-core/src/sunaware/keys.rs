@@ -120,45 +120,13 @@ impl SunAwareConfig {
 
 /// Every field of `c` by name, its value in Debug formatting.
 fn fields(c: &SunAwareConfig) -> Vec<(&'static str, String)> {
-    // No `..`: a field added to SunAwareConfig must be added here.
-    let SunAwareConfig {
-        variant,
-        sh_degree,
-        sh_degree_interval,
-        feature_dim,
-        shadow_latent_dim,
-        encoding_frequencies,
-        lambda_dssim,
-        lambda_iso,
-        iso_reduction,
-        light,
-        shadow_refinement,
-        shadow_gain,
-        shading,
-        shading_ambient,
-        appearance_inputs,
-        lr,
-        densify,
-        size_prune,
-        max_gaussians,
-        densify_from_step,
-        background,
-        near_m,
-        seed,
-        feature_init_std,
-        skip_noncontributing_in_mlp,
-        mlp_recompute_activations,
-        reuse_step_buffers,
-        appearance_hidden_width,
-        mlp_precision,
-        cull_outside_frustum,
-        early_termination,
-        skip_masked_background_tiles,
-    } = c;
+    // The list is written once: it destructures `c` with no `..`, so a field added to
+    // SunAwareConfig fails to compile until it is listed here.
     macro_rules! named {
-        ($($field:ident),* $(,)?) => {
+        ($($field:ident),* $(,)?) => {{
+            let SunAwareConfig { $($field),* } = c;
             vec![$((stringify!($field), format!("{:?}", $field))),*]
-        };
+        }};
     }
     named![
         variant,
