@@ -363,6 +363,7 @@ mod x86 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::nn::kernel_tests::{operand, transpose};
     use crate::nn::matmul::{MatmulPrecision, Products};
     use crate::rng::SplitMix64;
 
@@ -429,29 +430,6 @@ mod tests {
             }
         }
         (exact, rounded, magnitude)
-    }
-
-    fn transpose(x: &[f32], rows: usize, cols: usize) -> Vec<f32> {
-        let mut t = vec![0.0; x.len()];
-        for i in 0..rows {
-            for j in 0..cols {
-                t[j * rows + i] = x[i * cols + j];
-            }
-        }
-        t
-    }
-
-    /// Values over several binades, signed, with exact zeros.
-    fn operand(len: usize, rng: &mut SplitMix64) -> Vec<f32> {
-        (0..len)
-            .map(|_| {
-                if rng.below(17) == 0 {
-                    0.0
-                } else {
-                    rng.uniform(-1.0, 1.0) * 2f32.powi(rng.below(8) as i32 - 4)
-                }
-            })
-            .collect()
     }
 
     /// Checks `got` against both references: the stated bf16 bound against exact arithmetic,

@@ -1,13 +1,14 @@
 //! Checks shared by the x86 f32 kernels' tests (`avx512.rs`, `avx2.rs`), each taking the
 //! kernel under test as `Products`: the stated summation order against a scalar `mul_add`
 //! chain (bit for bit) and an f64 bound, empty shapes, repeatability under row and
-//! reduction splits, and agreement of two kernels bit for bit on random shapes.
+//! reduction splits, and agreement of two kernels bit for bit on random shapes; and the
+//! operand helpers the bf16 and `matmul.rs` tests use too.
 
 use crate::nn::matmul::Products;
 use crate::rng::SplitMix64;
 
 /// Values over several binades, signed, with exact zeros.
-fn operand(len: usize, rng: &mut SplitMix64) -> Vec<f32> {
+pub(super) fn operand(len: usize, rng: &mut SplitMix64) -> Vec<f32> {
     (0..len)
         .map(|_| {
             if rng.below(17) == 0 {
@@ -19,7 +20,8 @@ fn operand(len: usize, rng: &mut SplitMix64) -> Vec<f32> {
         .collect()
 }
 
-fn transpose(x: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+/// `x` (`rows x cols`, row-major) stored transposed (`cols x rows`).
+pub(super) fn transpose(x: &[f32], rows: usize, cols: usize) -> Vec<f32> {
     let mut t = vec![0.0; x.len()];
     for i in 0..rows {
         for j in 0..cols {

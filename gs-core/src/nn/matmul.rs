@@ -362,6 +362,7 @@ pub fn matmul_a_bt(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::nn::kernel_tests::transpose;
 
     fn naive(a: &[f32], b: &[f32], m: usize, k: usize, n: usize) -> Vec<f64> {
         let mut c = vec![0.0f64; m * n];
@@ -373,16 +374,6 @@ mod tests {
             }
         }
         c
-    }
-
-    fn transpose(x: &[f32], rows: usize, cols: usize) -> Vec<f32> {
-        let mut t = vec![0.0; x.len()];
-        for i in 0..rows {
-            for j in 0..cols {
-                t[j * rows + i] = x[i * cols + j];
-            }
-        }
-        t
     }
 
     fn filled(len: usize, seed: u32) -> Vec<f32> {
