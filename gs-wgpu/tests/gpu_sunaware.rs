@@ -397,11 +397,24 @@ fn resident_step_a_matches_the_cpu_step() {
 }
 
 /// With the non-contributing skip on and the masked-tile skip off, the device's network
-/// batch is exactly the CPU's (`PreparedView::contributing`, from the device's alpha-only
-/// walk), smaller than the visible list on a view where Gaussians hide each other; with the
-/// skip off it is the visible list.
+/// batch is the CPU's (`PreparedView::contributing`, from the device's alpha-only walk),
+/// smaller than the visible list on a view where Gaussians hide each other; with the skip
+/// off it is the visible list.
+///
+/// Up to the Gaussians at the 1/255 alpha cut: the device computes the opacity's sigmoid
+/// and the scales with WGSL's `exp` (3 + 2|x| ULP) and the projection and the conic with
+/// its division (2.5 ULP), where the CPU rounds correctly, so a Gaussian whose largest
+/// alpha lies within their effect of the cut may fall on the other side (an H200 counted
+/// 838 rows where the CPU counts 839). That effect, summed through the projection at the
+/// cut's falloff (`|power| = 5.5`), is about 3e-5 to 6e-5 of alpha; the test allows
+/// `ALPHA_REL_ERR = 1e-4`: the device's count must lie between the CPU's counts with every
+/// alpha scaled by `1 -/+ ALPHA_REL_ERR` (opacity logits moved by `ALPHA_REL_ERR / (1 -
+/// sigmoid)`); those nearly opaque Gaussians stop their pixels far from the transmittance
+/// cut (T falls from 2.5e-3 to 6e-6 across the stop at 1e-4), so only the alpha cut moves.
 #[test]
 fn resident_network_rows_are_the_cpu_contributing_gaussians() {
+    const ALPHA_REL_ERR: f32 = 1e-4;
+    const LOGIT: f32 = 6.0;
     let Some(backend) = gpu_backend() else {
         return;
     };
@@ -409,26 +422,47 @@ fn resident_network_rows_are_the_cpu_contributing_gaussians() {
     start.config.skip_masked_background_tiles = false;
     // Large, nearly opaque Gaussians: the front ones stop the pixels (T < 1e-4), so the
     // ones behind are never read.
-    let params = &mut start.gaussians.params;
-    params.get_mut(Param::OpacityLogit).fill(6.0);
-    for s in params.get_mut(Param::LogScale) {
+    for s in start.gaussians.params.get_mut(Param::LogScale) {
         *s += 1.0;
     }
+    let logit_step = ALPHA_REL_ERR / (1.0 - 1.0 / (1.0 + (-LOGIT).exp()));
+    let with_logit = |logit: f32| {
+        let mut m = start.clone();
+        m.gaussians.params.get_mut(Param::OpacityLogit).fill(logit);
+        m
+    };
     let observations = observations(&obs);
     for skip in [true, false] {
-        start.config.skip_noncontributing_in_mlp = skip;
-        let mut cpu = SunAwareTrainer::new(start.clone());
-        let mut gpu = SunAwareTrainer::new(start.clone());
+        let trainer = |logit: f32| {
+            let mut model = with_logit(logit);
+            model.config.skip_noncontributing_in_mlp = skip;
+            SunAwareTrainer::new(model)
+        };
+        let mut cpu = trainer(LOGIT);
+        let mut cpu_bracket = [trainer(LOGIT - logit_step), trainer(LOGIT + logit_step)];
+        let mut gpu = trainer(LOGIT);
         gpu.set_backend(&backend).unwrap();
         for o in &observations {
             let c = cpu.step(o, 0.0).unwrap();
             let g = gpu.step(o, 0.0).unwrap();
+            let bracket = cpu_bracket
+                .each_mut()
+                .map(|t| t.step(o, 0.0).unwrap().network_rows);
+            let (lo, hi) = (
+                bracket.iter().copied().fold(c.network_rows, usize::min),
+                bracket.iter().copied().fold(c.network_rows, usize::max),
+            );
             eprintln!(
-                "skip {skip}: visible {} / {}, network rows {} / {}",
+                "skip {skip}: visible {} / {}, network rows {} / {} (CPU at alpha -/+ \
+                 {ALPHA_REL_ERR:e}: {bracket:?})",
                 c.visible, g.visible, c.network_rows, g.network_rows
             );
             assert_eq!(c.visible, g.visible);
-            assert_eq!(c.network_rows, g.network_rows);
+            assert!(
+                (lo..=hi).contains(&g.network_rows),
+                "device rows {} outside the CPU's {lo}..={hi}",
+                g.network_rows
+            );
             if skip {
                 assert!(g.network_rows < g.visible, "the skip skipped nothing");
             } else {
