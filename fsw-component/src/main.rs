@@ -9,7 +9,7 @@
 //! Live mode prints one `listening frames=ADDR telemetry=ADDR` line on stdout once the sockets
 //! are bound (useful with port 0), then runs until SIGINT or SIGTERM. Replay mode exits when
 //! the logs are processed, printing a summary line. `--help` prints the usage and exits 0.
-//! Exit status 2 for usage errors (a bad `GS_DENORMALS` included), 1 for configuration,
+//! Exit status 2 for usage errors (a bad `GS_DENORMALS` or `GS_F32_KERNEL` included), 1 for configuration,
 //! transport or replay errors, each with a message on stderr.
 //!
 //! `GS_DENORMALS=ftz|ieee`, read once at start, overrides `[training] denormals` (the
@@ -86,6 +86,8 @@ fn parse(args: &[String]) -> Result<Option<Options>, String> {
         return Err("--record and --replay exclude each other".into());
     }
     options.denormals = fpmode::mode_from_env()?;
+    // A GS_F32_KERNEL this CPU cannot run is a usage error now, not at the first round.
+    gs_core::nn::F32Kernel::from_env().map_err(|e| e.to_string())?;
     Ok(Some(options))
 }
 

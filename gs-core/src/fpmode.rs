@@ -174,8 +174,11 @@ pub fn mode_from_env() -> Result<Option<DenormalMode>, String> {
 }
 
 /// [`mode_from_env`] (default flush-to-zero) applied by [`init_global_pool`]: the one call
-/// a binary or benchmark makes first thing in `main`. Returns the mode set.
+/// a binary or benchmark makes first thing in `main`. Returns the mode set. It also checks
+/// `GS_F32_KERNEL` ([`crate::nn::F32Kernel::from_env`]), so that a kernel name this CPU
+/// cannot run stops the program at start, not when its first network is built.
 pub fn init_from_env(threads: Option<usize>) -> Result<DenormalMode, String> {
+    crate::nn::F32Kernel::from_env().map_err(|e| e.to_string())?;
     let mode = mode_from_env()?.unwrap_or_default();
     init_global_pool(mode, threads).map_err(|e| format!("rayon global pool: {e}"))?;
     Ok(mode)
