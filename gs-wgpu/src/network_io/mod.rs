@@ -1,6 +1,6 @@
 //! Input assembly and output scatter of the Sun-aware networks (Phi, Psi) on the device,
 //! forward and backward, for the device-resident Sun-aware step: [`NetworkIo`]'s
-//! `encode_*` functions record kernels (shaders/netio_*.wgsl) into the caller's command
+//! `encode_*` functions record kernels (../shaders/netio_*.wgsl) into the caller's command
 //! encoder on the caller's device buffers; nothing is submitted or read back.
 //!
 //! Ported operation for operation from the CPU: `nn::appearance::AppearanceNet::
@@ -11,6 +11,9 @@
 //! `shading = "lambert_learned"`, the learned-normal Lambertian factor on Phi's colour
 //! (`sunaware::shading::{shade_forward, shade_backward}`: [`PhiShading`] in Phi's scatter,
 //! [`PhiShadingGrad`] in its output gradient, which also adds the normal's gradient).
+//!
+//! Files: this one holds the types and Phi's kernels; `psi.rs` Psi's; `uniform.rs` the
+//! kernels' uniform and the host-side argument checks; `probe.rs` [`NetworkIoProbe`].
 //!
 //! Conventions: `params`/`grads` are the packed group-major parameter buffers with group
 //! starts `offsets` ([`PackedParams`], [`packed_offsets`]); the batch ([`NetworkBatch`]):
@@ -36,24 +39,30 @@
 //!   deterministic.
 
 pub use super::packed::PackedParams;
-use super::{
-    bytes_f32, bytes_u32, dispatch_1d, f32_bytes, u32_bytes, GpuContext, GpuError, Scratch,
-};
+use super::{dispatch_1d, GpuContext, GpuError, Scratch};
 use gs_core::model::Param;
-use gs_core::nn::{AppearanceNet, SceneBox, ShadowNet};
-use gs_core::sunaware::shading::MIN_NORMAL_NORM2;
+use gs_core::nn::AppearanceNet;
+pub use probe::NetworkIoProbe;
+use uniform::{
+    check_batch, check_buffer, check_channels, check_finite3, check_layout, check_rows, sun_code,
+    ShadingTerms, Uniform,
+};
 
-const NETIO_COMMON: &str = include_str!("shaders/netio_common.wgsl");
-const NETIO_ENCODING_BACKWARD: &str = include_str!("shaders/netio_encoding_backward.wgsl");
-const NETIO_INPUT_ROWS: &str = include_str!("shaders/netio_input_rows.wgsl");
-const NETIO_PHI_INPUT: &str = include_str!("shaders/netio_phi_input.wgsl");
-const NETIO_PHI_SCATTER: &str = include_str!("shaders/netio_phi_scatter.wgsl");
-const NETIO_PHI_D_OUTPUT: &str = include_str!("shaders/netio_phi_d_output.wgsl");
-const NETIO_PHI_INPUT_GRAD: &str = include_str!("shaders/netio_phi_input_grad.wgsl");
-const NETIO_PSI_INPUT: &str = include_str!("shaders/netio_psi_input.wgsl");
-const NETIO_PSI_SCATTER: &str = include_str!("shaders/netio_psi_scatter.wgsl");
-const NETIO_PSI_D_OUTPUT: &str = include_str!("shaders/netio_psi_d_output.wgsl");
-const NETIO_PSI_INPUT_GRAD: &str = include_str!("shaders/netio_psi_input_grad.wgsl");
+mod probe;
+mod psi;
+mod uniform;
+
+const NETIO_COMMON: &str = include_str!("../shaders/netio_common.wgsl");
+const NETIO_ENCODING_BACKWARD: &str = include_str!("../shaders/netio_encoding_backward.wgsl");
+const NETIO_INPUT_ROWS: &str = include_str!("../shaders/netio_input_rows.wgsl");
+const NETIO_PHI_INPUT: &str = include_str!("../shaders/netio_phi_input.wgsl");
+const NETIO_PHI_SCATTER: &str = include_str!("../shaders/netio_phi_scatter.wgsl");
+const NETIO_PHI_D_OUTPUT: &str = include_str!("../shaders/netio_phi_d_output.wgsl");
+const NETIO_PHI_INPUT_GRAD: &str = include_str!("../shaders/netio_phi_input_grad.wgsl");
+const NETIO_PSI_INPUT: &str = include_str!("../shaders/netio_psi_input.wgsl");
+const NETIO_PSI_SCATTER: &str = include_str!("../shaders/netio_psi_scatter.wgsl");
+const NETIO_PSI_D_OUTPUT: &str = include_str!("../shaders/netio_psi_d_output.wgsl");
+const NETIO_PSI_INPUT_GRAD: &str = include_str!("../shaders/netio_psi_input_grad.wgsl");
 
 /// Floats per rasterizer gradient row before the channels (project_backward.wgsl).
 const ROW_HEAD: usize = 13;
@@ -161,182 +170,6 @@ impl std::fmt::Debug for NetworkIo {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "NetworkIo({})", self.ctx.adapter_name())
     }
-}
-
-/// What one kernel's uniform says (the `NetIo` struct of netio_common.wgsl).
-#[derive(Default)]
-struct Uniform {
-    offsets: [u32; Param::COUNT + 1],
-    n: usize,
-    nc: usize,
-    width: usize,
-    dim: usize,
-    freqs: usize,
-    /// `Some(gain)`: Psi's output multiplies `gain * V` (ShadowRefinement::Multiply).
-    multiply_gain: Option<f32>,
-    camera_centre: [f32; 3],
-    box_min: [f32; 3],
-    box_extent: [f32; 3],
-    box_inv_extent: [f32; 3],
-    sun_code: Vec<f32>,
-    /// The learned-normal shading's terms (Phi's scatter and output gradient).
-    shading: Option<ShadingTerms>,
-}
-
-/// What the `NetIo` uniform holds for the learned-normal shading.
-#[derive(Clone, Copy)]
-struct ShadingTerms {
-    normal_offset: u32,
-    sun_unit: [f32; 3],
-    ambient: f32,
-}
-
-impl Uniform {
-    fn bytes(&self) -> Vec<u8> {
-        let mut words = [0u32; UNIFORM_BYTES / 4];
-        words[..8].copy_from_slice(&self.offsets[..8]);
-        for (w, v) in words[8..14].iter_mut().zip([
-            self.n,
-            self.nc,
-            self.width,
-            self.dim,
-            self.freqs,
-            usize::from(self.multiply_gain.is_some()),
-        ]) {
-            // Validated to fit u32 before any uniform is built.
-            *w = v as u32;
-        }
-        words[14] = self.multiply_gain.unwrap_or(1.0).to_bits();
-        let vec4 = |words: &mut [u32], at: usize, v: [f32; 3]| {
-            for (w, x) in words[at..at + 3].iter_mut().zip(v) {
-                *w = x.to_bits();
-            }
-        };
-        vec4(&mut words, 16, self.camera_centre);
-        vec4(&mut words, 20, self.box_min);
-        vec4(&mut words, 24, self.box_extent);
-        vec4(&mut words, 28, self.box_inv_extent);
-        if let Some(t) = self.shading {
-            vec4(&mut words, 32, t.sun_unit);
-            words[36] = t.normal_offset;
-            words[37] = 1;
-            words[38] = MIN_NORMAL_NORM2.to_bits();
-            words[39] = t.ambient.to_bits();
-        }
-        for (w, x) in words[SUN_CODE_WORD..].iter_mut().zip(&self.sun_code) {
-            *w = x.to_bits();
-        }
-        u32_bytes(&words)
-    }
-}
-
-/// `v` scaled to unit length in f64, as `nn::gather::unit_vector` (the CPU's Sun
-/// normalisation); a non-finite or zero vector is an error.
-fn unit_vector(what: &str, v: [f32; 3]) -> Result<[f32; 3], GpuError> {
-    if v.iter().any(|x| !x.is_finite()) {
-        return Err(GpuError::Invalid(format!("{what} {v:?} is not finite")));
-    }
-    let norm = (v[0] as f64).hypot(v[1] as f64).hypot(v[2] as f64);
-    if norm < 1e-12 {
-        return Err(GpuError::Invalid(format!("{what} {v:?} has zero length")));
-    }
-    Ok([
-        (v[0] as f64 / norm) as f32,
-        (v[1] as f64 / norm) as f32,
-        (v[2] as f64 / norm) as f32,
-    ])
-}
-
-/// gamma_L of the unit Sun direction, by the CPU encoding (the same bits as its rows).
-fn sun_code(
-    encoding: gs_core::nn::PositionalEncoding,
-    sun_dir: [f32; 3],
-) -> Result<Vec<f32>, GpuError> {
-    let sun = unit_vector("Sun direction", sun_dir)?;
-    let mut code = vec![0.0f32; encoding.width(3)];
-    encoding
-        .encode(&sun, &mut code)
-        .map_err(|e| GpuError::Invalid(format!("Sun direction encoding: {e}")))?;
-    if code.len() > SUN_CODE_CAPACITY {
-        return Err(GpuError::Invalid(format!(
-            "{} Sun-code values exceed the uniform's {SUN_CODE_CAPACITY}",
-            code.len()
-        )));
-    }
-    Ok(code)
-}
-
-/// `buf` holds at least `floats` 4-byte values.
-fn check_buffer(what: &str, buf: &wgpu::Buffer, floats: usize) -> Result<(), GpuError> {
-    let need = floats as u64 * 4;
-    if buf.size() < need {
-        return Err(GpuError::Invalid(format!(
-            "{what} buffer has {} bytes, needs {need}",
-            buf.size()
-        )));
-    }
-    Ok(())
-}
-
-/// `n` and every row-index product the kernels form (`n * widest`) fit u32.
-fn check_rows(n: usize, widest: usize) -> Result<(), GpuError> {
-    if (n as u64).saturating_mul(widest.max(1) as u64) > u32::MAX as u64 {
-        return Err(GpuError::TooLarge(format!(
-            "{n} rows of {widest} values exceed 32-bit indexing"
-        )));
-    }
-    Ok(())
-}
-
-/// `list` (max(n, 1) u32) and `count` (1 u32).
-fn check_batch(n: usize, list: &wgpu::Buffer, count: &wgpu::Buffer) -> Result<(), GpuError> {
-    check_buffer("list", list, n.max(1))?;
-    check_buffer("count", count, 1)
-}
-
-/// The offsets are a packed layout of `n` rows whose Mean group is `3n` wide and whose
-/// `group` is `n * dim` wide, and `params` (and `grads`, when given) hold all of it.
-fn check_layout(
-    offsets: &[u32; Param::COUNT + 1],
-    n: usize,
-    group: Param,
-    dim: usize,
-    buffers: &[(&str, &wgpu::Buffer)],
-) -> Result<(), GpuError> {
-    if offsets[0] != 0 || offsets.windows(2).any(|w| w[1] < w[0]) {
-        return Err(GpuError::Invalid(format!(
-            "parameter offsets {offsets:?} do not start at 0 and increase"
-        )));
-    }
-    let size = |p: Param| (offsets[p.index() + 1] - offsets[p.index()]) as u64;
-    for (p, width) in [(Param::Mean, 3), (group, dim)] {
-        if size(p) != (n * width) as u64 {
-            return Err(GpuError::Invalid(format!(
-                "parameter offsets {offsets:?}: group {p:?} holds {} values, expected {n} x {width}",
-                size(p)
-            )));
-        }
-    }
-    for (what, buf) in buffers {
-        check_buffer(what, buf, offsets[Param::COUNT] as usize)?;
-    }
-    Ok(())
-}
-
-fn check_finite3(what: &str, v: [f32; 3]) -> Result<(), GpuError> {
-    if v.iter().all(|x| x.is_finite()) {
-        Ok(())
-    } else {
-        Err(GpuError::Invalid(format!("{what} {v:?} is not finite")))
-    }
-}
-
-/// The scene box's corner, extent and inverse extent as shadow.rs forms them (f32).
-fn box_terms(scene_box: &SceneBox) -> ([f32; 3], [f32; 3], [f32; 3]) {
-    let (min, max) = (scene_box.min_m(), scene_box.max_m());
-    let extent: [f32; 3] = std::array::from_fn(|a| max[a] - min[a]);
-    let inv: [f32; 3] = std::array::from_fn(|a| 1.0 / (max[a] - min[a]));
-    (min, extent, inv)
 }
 
 impl NetworkIo {
@@ -627,261 +460,5 @@ impl NetworkIo {
             &uniform,
             &buffers,
         )
-    }
-
-    /// Psi's full input rows (`n * input_width` f32 in `input`) for `list[0..count]`: row r
-    /// is `[V_g | gamma_L(sun) | gamma_L(p_g) | l_g]` of g = list[r], V_g from `visibility`
-    /// (n f32), p_g the mean normalised over `scene_box`; rows `>= count` are written as 0.
-    /// A non-finite V, mean or latent sets `flags` bit 0.
-    pub fn encode_psi_input(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: NetworkBatch,
-        net: &ShadowNet,
-        scene_box: &SceneBox,
-        params: PackedParams,
-        sun_dir: [f32; 3],
-        visibility: &wgpu::Buffer,
-        input: &wgpu::Buffer,
-        flags: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        let (params, offsets) = (params.buffer, params.offsets);
-        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
-        let width = net.input_width();
-        check_rows(n, width)?;
-        check_layout(
-            offsets,
-            n,
-            Param::ShadowLatent,
-            net.latent_dim(),
-            &[("params", params)],
-        )?;
-        check_batch(n, list, count)?;
-        check_buffer("visibility", visibility, n)?;
-        check_buffer("Psi input", input, n * width)?;
-        check_buffer("flags", flags, 1)?;
-        let (box_min, box_extent, box_inv_extent) = box_terms(scene_box);
-        let uniform = Uniform {
-            offsets: *offsets,
-            n,
-            width,
-            dim: net.latent_dim(),
-            freqs: net.encoding().num_frequencies(),
-            box_min,
-            box_extent,
-            box_inv_extent,
-            sun_code: sun_code(net.encoding(), sun_dir)?,
-            ..Uniform::default()
-        };
-        if n == 0 {
-            return Ok(());
-        }
-        let buffers = [list, count, params, input, flags, visibility];
-        self.record(
-            encoder,
-            scratch,
-            "netio psi input",
-            &self.psi_input,
-            &uniform,
-            &buffers,
-        )
-    }
-
-    /// Psi's output P (`n`, row r = list[r]'s) into channel 3: `chans[g * nc + 3] = gain *
-    /// V_g * P_r` when `multiply_gain` is `Some(gain)` (ShadowRefinement::Multiply), else
-    /// `P_r`, for r < count, g = list[r]; other Gaussians' channels are not touched. `nc`
-    /// must be 4.
-    pub fn encode_psi_scatter(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: NetworkBatch,
-        nc: usize,
-        visibility: &wgpu::Buffer,
-        output: &wgpu::Buffer,
-        multiply_gain: Option<f32>,
-        chans: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
-        check_channels(nc, &[SHADOWED_CHANNELS])?;
-        check_rows(n, ROW_HEAD + nc)?;
-        check_batch(n, list, count)?;
-        check_buffer("visibility", visibility, n)?;
-        check_buffer("Psi output", output, n)?;
-        check_buffer("channels", chans, n * nc)?;
-        let uniform = Uniform {
-            n,
-            nc,
-            multiply_gain,
-            ..Uniform::default()
-        };
-        if n == 0 {
-            return Ok(());
-        }
-        let buffers = [list, count, visibility, output, chans];
-        self.record(
-            encoder,
-            scratch,
-            "netio psi scatter",
-            &self.psi_scatter,
-            &uniform,
-            &buffers,
-        )
-    }
-
-    /// Psi's output gradient (`n`): `d_out[r] = rows[g * (13 + nc) + 16]` (channel 3's
-    /// gradient) times `gain * V_g` when `multiply_gain` is `Some(gain)`, for r < count, g =
-    /// list[r]; 0 for rows `>= count`. `nc` must be 4.
-    pub fn encode_psi_d_output(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: NetworkBatch,
-        nc: usize,
-        visibility: &wgpu::Buffer,
-        rows: &wgpu::Buffer,
-        multiply_gain: Option<f32>,
-        d_out: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
-        check_channels(nc, &[SHADOWED_CHANNELS])?;
-        check_rows(n, ROW_HEAD + nc)?;
-        check_batch(n, list, count)?;
-        check_buffer("visibility", visibility, n)?;
-        check_buffer("rasterizer gradient rows", rows, n * (ROW_HEAD + nc))?;
-        check_buffer("Psi output gradient", d_out, n)?;
-        let uniform = Uniform {
-            n,
-            nc,
-            multiply_gain,
-            ..Uniform::default()
-        };
-        if n == 0 {
-            return Ok(());
-        }
-        let buffers = [list, count, visibility, rows, d_out];
-        self.record(
-            encoder,
-            scratch,
-            "netio psi d_output",
-            &self.psi_d_output,
-            &uniform,
-            &buffers,
-        )
-    }
-
-    /// Psi's input gradient (`d_input`, `n * input_width`) into `grads` (packed like
-    /// `params`): for r < count, g = list[r], the ShadowLatent row g is set to the row's
-    /// latent columns, and the chain rule of its position columns through the encoding and
-    /// the box normalisation is ADDED to the Mean row g. The V column gets nothing.
-    pub fn encode_psi_input_grad(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: NetworkBatch,
-        net: &ShadowNet,
-        scene_box: &SceneBox,
-        params: PackedParams,
-        d_input: &wgpu::Buffer,
-        grads: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        let (params, offsets) = (params.buffer, params.offsets);
-        let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
-        let width = net.input_width();
-        check_rows(n, width)?;
-        check_layout(
-            offsets,
-            n,
-            Param::ShadowLatent,
-            net.latent_dim(),
-            &[("params", params), ("grads", grads)],
-        )?;
-        check_batch(n, list, count)?;
-        check_buffer("Psi input gradient", d_input, n * width)?;
-        let (box_min, box_extent, box_inv_extent) = box_terms(scene_box);
-        let uniform = Uniform {
-            offsets: *offsets,
-            n,
-            width,
-            dim: net.latent_dim(),
-            freqs: net.encoding().num_frequencies(),
-            box_min,
-            box_extent,
-            box_inv_extent,
-            ..Uniform::default()
-        };
-        if n == 0 {
-            return Ok(());
-        }
-        let buffers = [list, count, params, d_input, grads];
-        self.record(
-            encoder,
-            scratch,
-            "netio psi input grad",
-            &self.psi_input_grad,
-            &uniform,
-            &buffers,
-        )
-    }
-}
-
-fn check_channels(nc: usize, allowed: &[usize]) -> Result<(), GpuError> {
-    if allowed.contains(&nc) {
-        Ok(())
-    } else {
-        Err(GpuError::Invalid(format!(
-            "{nc} channels per Gaussian, expected one of {allowed:?}"
-        )))
-    }
-}
-
-/// Host data into device buffers and back, for tests and diagnostics outside the crate
-/// that record [`NetworkIo`]'s `encode_*` functions (the context's buffer helpers are
-/// crate-private): buffers from host slices, an encoder, one submission and readback.
-#[derive(Debug)]
-pub struct NetworkIoProbe {
-    ctx: GpuContext,
-}
-
-impl NetworkIoProbe {
-    pub fn new(ctx: &GpuContext) -> Self {
-        Self { ctx: ctx.clone() }
-    }
-
-    /// A storage buffer holding `data` (at least 16 bytes).
-    pub fn buffer_f32(&self, label: &str, data: &[f32]) -> wgpu::Buffer {
-        self.ctx.storage_init(label, &f32_bytes(data))
-    }
-
-    /// A storage buffer holding `data` (at least 16 bytes).
-    pub fn buffer_u32(&self, label: &str, data: &[u32]) -> wgpu::Buffer {
-        self.ctx.storage_init(label, &u32_bytes(data))
-    }
-
-    pub fn encoder(&self) -> wgpu::CommandEncoder {
-        self.ctx.encoder("netio probe")
-    }
-
-    /// Submits `encoder` and reads back the first `len` f32 of each buffer.
-    pub fn finish_f32(
-        &self,
-        encoder: wgpu::CommandEncoder,
-        buffers: &[(&wgpu::Buffer, usize)],
-    ) -> Result<Vec<Vec<f32>>, GpuError> {
-        let ranges: Vec<(&wgpu::Buffer, u64)> = buffers
-            .iter()
-            .map(|(b, len)| (*b, *len as u64 * 4))
-            .collect();
-        Ok(self
-            .ctx
-            .read_back(encoder, &ranges)?
-            .iter()
-            .map(|b| bytes_f32(b))
-            .collect())
-    }
-
-    /// The first `len` u32 of `buffer` (after everything submitted so far).
-    pub fn read_u32(&self, buffer: &wgpu::Buffer, len: usize) -> Result<Vec<u32>, GpuError> {
-        let bytes = self
-            .ctx
-            .read_back(self.encoder(), &[(buffer, len as u64 * 4)])?;
-        Ok(bytes_u32(&bytes[0]))
     }
 }
