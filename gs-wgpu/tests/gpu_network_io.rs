@@ -17,7 +17,8 @@
 //! [`box_coordinate_err`]; the worst error of each comparison is printed.
 //!
 //! This file holds the rig, the scene and the shared checks; `gpu_network_io/phi.rs` and
-//! `psi.rs` the tests of each network's kernels.
+//! `psi.rs` the tests of each network's kernels, `phi_local.rs` those of Phi's
+//! local-frame inputs.
 //!
 //! Without an adapter the tests print a skip notice, unless `GS_REQUIRE_GPU=1` (CI).
 
@@ -426,5 +427,7 @@ fn bad_host_arguments_are_rejected_before_recording() {
 
 #[path = "gpu_network_io/phi.rs"]
 mod phi;
+#[path = "gpu_network_io/phi_local.rs"]
+mod phi_local;
 #[path = "gpu_network_io/psi.rs"]
 mod psi;

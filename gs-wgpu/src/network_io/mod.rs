@@ -10,7 +10,12 @@
 //! the channel routing of `sunaware::model::{forward_with, backward_timed}` and, with
 //! `shading = "lambert_learned"`, the learned-normal Lambertian factor on Phi's colour
 //! (`sunaware::shading::{shade_forward, shade_backward}`: [`PhiShading`] in Phi's scatter,
-//! [`PhiShadingGrad`] in its output gradient, which also adds the normal's gradient).
+//! [`PhiShadingGrad`] in its output gradient, which also adds the normal's gradient), and
+//! Phi's local-frame inputs `[n.s, n.v, n.h]` (`appearance_inputs = "local"` /
+//! `"local_no_sun"`, `sunaware::shading::{local_inputs, local_inputs_backward}`: in Phi's
+//! input rows, and in its input gradient into the Normal and Mean groups). The learned
+//! normal's facing flip and the local frame are one WGSL copy (shaders/netio_normal.wgsl)
+//! shared by those kernels.
 //!
 //! Files: this one holds the types and Phi's kernels; `psi.rs` Psi's; `uniform.rs` the
 //! kernels' uniform and the host-side argument checks; `probe.rs` [`NetworkIoProbe`].
@@ -45,7 +50,7 @@ use gs_core::nn::AppearanceNet;
 pub use probe::NetworkIoProbe;
 use uniform::{
     check_batch, check_buffer, check_channels, check_finite3, check_layout, check_rows, sun_code,
-    ShadingTerms, Uniform,
+    NormalTerms, Uniform,
 };
 
 mod probe;
@@ -54,6 +59,7 @@ mod uniform;
 
 const NETIO_COMMON: &str = include_str!("../shaders/netio_common.wgsl");
 const NETIO_ENCODING_BACKWARD: &str = include_str!("../shaders/netio_encoding_backward.wgsl");
+const NETIO_NORMAL: &str = include_str!("../shaders/netio_normal.wgsl");
 const NETIO_INPUT_ROWS: &str = include_str!("../shaders/netio_input_rows.wgsl");
 const NETIO_PHI_INPUT: &str = include_str!("../shaders/netio_phi_input.wgsl");
 const NETIO_PHI_SCATTER: &str = include_str!("../shaders/netio_phi_scatter.wgsl");
@@ -126,7 +132,7 @@ pub struct PhiShadingGrad<'a> {
 impl PhiShading<'_> {
     /// The uniform's terms after checking the arguments against `n` rows (`grads`, when
     /// given, must hold the packed layout too).
-    fn terms(&self, n: usize, grads: Option<&wgpu::Buffer>) -> Result<ShadingTerms, GpuError> {
+    fn terms(&self, n: usize, grads: Option<&wgpu::Buffer>) -> Result<NormalTerms, GpuError> {
         let offsets = self.params.offsets;
         let mut buffers = vec![("params", self.params.buffer)];
         if let Some(g) = grads {
@@ -145,7 +151,7 @@ impl PhiShading<'_> {
             )));
         }
         check_buffer("shading factors", self.factors, 2 * n)?;
-        Ok(ShadingTerms {
+        Ok(NormalTerms {
             normal_offset: offsets[Param::Normal.index()],
             sun_unit: self.sun_dir,
             ambient: self.ambient,
@@ -178,17 +184,21 @@ impl NetworkIo {
         let common = format!("{NETIO_COMMON}\n");
         let rows = format!("{common}{NETIO_INPUT_ROWS}\n");
         let grad = format!("{common}{NETIO_ENCODING_BACKWARD}\n");
+        // Phi's kernels that read the learned normal.
+        let normal = format!("{common}{NETIO_NORMAL}\n");
+        let phi_rows = format!("{normal}{NETIO_INPUT_ROWS}\n");
+        let phi_grad = format!("{normal}{NETIO_ENCODING_BACKWARD}\n");
         Ok(Self {
-            phi_input: ctx.pipeline("netio_phi_input", &format!("{rows}{NETIO_PHI_INPUT}"))?,
+            phi_input: ctx.pipeline("netio_phi_input", &format!("{phi_rows}{NETIO_PHI_INPUT}"))?,
             phi_scatter: ctx
-                .pipeline("netio_phi_scatter", &format!("{common}{NETIO_PHI_SCATTER}"))?,
+                .pipeline("netio_phi_scatter", &format!("{normal}{NETIO_PHI_SCATTER}"))?,
             phi_d_output: ctx.pipeline(
                 "netio_phi_d_output",
                 &format!("{common}{NETIO_PHI_D_OUTPUT}"),
             )?,
             phi_input_grad: ctx.pipeline(
                 "netio_phi_input_grad",
-                &format!("{grad}{NETIO_PHI_INPUT_GRAD}"),
+                &format!("{phi_grad}{NETIO_PHI_INPUT_GRAD}"),
             )?,
             psi_input: ctx.pipeline("netio_psi_input", &format!("{rows}{NETIO_PSI_INPUT}"))?,
             psi_scatter: ctx
@@ -242,7 +252,10 @@ impl NetworkIo {
     /// `[f_g | gamma_L(sun) | gamma_L(view_g)]` of g = list[r], view_g the unit vector
     /// from mean_g to the camera centre; rows `>= count` are written as 0. A non-finite
     /// feature or mean, or a Gaussian at the camera centre (view distance not > 0 and
-    /// finite), sets `flags` bit 0.
+    /// finite), sets `flags` bit 0. With local inputs (`net.inputs()`), the row ends in
+    /// `[n.s, n.v, n.h]` (`sunaware::shading::local_inputs`, the Normal group of
+    /// `params`, `s = sun_dir` as given: the caller passes the unit vector the CPU's
+    /// forward uses), and under `LocalNoSun` the Sun's code is zeros.
     pub fn encode_phi_input(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -269,6 +282,11 @@ impl NetworkIo {
         check_buffer("Phi input", input, n * width)?;
         check_buffer("flags", flags, 1)?;
         check_finite3("camera centre", camera_centre)?;
+        let local = local_terms(net, n, offsets, &[("params", params)], sun_dir)?;
+        let mut code = sun_code(net.encoding(), sun_dir)?;
+        if !net.inputs().encodes_sun() {
+            code.fill(0.0);
+        }
         let uniform = Uniform {
             offsets: *offsets,
             n,
@@ -276,7 +294,9 @@ impl NetworkIo {
             dim: net.feature_dim(),
             freqs: net.encoding().num_frequencies(),
             camera_centre,
-            sun_code: sun_code(net.encoding(), sun_dir)?,
+            sun_code: code,
+            normal: local,
+            local: local.is_some(),
             ..Uniform::default()
         };
         if n == 0 {
@@ -320,7 +340,8 @@ impl NetworkIo {
             nc,
             offsets: shading.map_or([0; Param::COUNT + 1], |s| *s.params.offsets),
             camera_centre: shading.map_or([0.0; 3], |s| s.camera_centre),
-            shading: terms,
+            shaded: terms.is_some(),
+            normal: terms,
             ..Uniform::default()
         };
         if n == 0 {
@@ -372,7 +393,8 @@ impl NetworkIo {
             n,
             nc,
             offsets: shading.map_or([0; Param::COUNT + 1], |s| *s.shading.params.offsets),
-            shading: terms,
+            shaded: terms.is_some(),
+            normal: terms,
             ..Uniform::default()
         };
         if n == 0 {
@@ -414,7 +436,8 @@ impl NetworkIo {
     /// Phi's input gradient (`d_input`, `n * input_width`) into `grads` (packed like
     /// `params`): for r < count, g = list[r], the Feature row g is set to the row's feature
     /// columns, and the view-direction chain rule of its view columns,
-    /// `-(d_view - (d_view . v) v) / |c - mu_g|`, is ADDED to the Mean row g.
+    /// `-(d_view - (d_view . v) v) / |c - mu_g|`, is ADDED to the Mean row g. For Phi
+    /// without local inputs; with them, [`NetworkIo::encode_phi_input_grad_with_sun`].
     pub fn encode_phi_input_grad(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -422,6 +445,46 @@ impl NetworkIo {
         net: &AppearanceNet,
         params: PackedParams,
         camera_centre: [f32; 3],
+        d_input: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+    ) -> Result<(), GpuError> {
+        if net.inputs().local_width() != 0 {
+            return Err(GpuError::Invalid(format!(
+                "Phi has appearance_inputs = {:?}: its input gradient needs the Sun \
+                 (encode_phi_input_grad_with_sun)",
+                net.inputs().name()
+            )));
+        }
+        // The Sun is not read without local inputs.
+        let sun = [0.0, 0.0, 1.0];
+        self.encode_phi_input_grad_with_sun(
+            encoder,
+            batch,
+            net,
+            params,
+            camera_centre,
+            sun,
+            d_input,
+            grads,
+        )
+    }
+
+    /// [`NetworkIo::encode_phi_input_grad`] for any Phi: with local inputs, the gradient
+    /// of each row's `[n.s, n.v, n.h]` columns (`sunaware::shading::
+    /// scatter_local_input_grad`, `sun_dir` as given to [`NetworkIo::encode_phi_input`])
+    /// is ADDED to the Normal row g, and its mean term joins the view direction's before
+    /// their sum is added to the Mean row g (the CPU's order); a row whose local gradient
+    /// is all zero, whose normal is degenerate or whose gradient is not finite adds
+    /// nothing there.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_phi_input_grad_with_sun(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: NetworkBatch,
+        net: &AppearanceNet,
+        params: PackedParams,
+        camera_centre: [f32; 3],
+        sun_dir: [f32; 3],
         d_input: &wgpu::Buffer,
         grads: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
@@ -439,6 +502,8 @@ impl NetworkIo {
         check_batch(n, list, count)?;
         check_buffer("Phi input gradient", d_input, n * width)?;
         check_finite3("camera centre", camera_centre)?;
+        let buffers = [("params", params), ("grads", grads)];
+        let local = local_terms(net, n, offsets, &buffers, sun_dir)?;
         let uniform = Uniform {
             offsets: *offsets,
             n,
@@ -446,6 +511,8 @@ impl NetworkIo {
             dim: net.feature_dim(),
             freqs: net.encoding().num_frequencies(),
             camera_centre,
+            normal: local,
+            local: local.is_some(),
             ..Uniform::default()
         };
         if n == 0 {
@@ -461,4 +528,29 @@ impl NetworkIo {
             &buffers,
         )
     }
+}
+
+/// The learned normal's terms for Phi's local inputs (`None` without them), after checking
+/// that `offsets` hold a Normal group of 3 per Gaussian and `sun_dir` is finite and not
+/// zero.
+fn local_terms(
+    net: &AppearanceNet,
+    n: usize,
+    offsets: &[u32; Param::COUNT + 1],
+    buffers: &[(&str, &wgpu::Buffer)],
+    sun_dir: [f32; 3],
+) -> Result<Option<NormalTerms>, GpuError> {
+    if net.inputs().local_width() == 0 {
+        return Ok(None);
+    }
+    check_layout(offsets, n, Param::Normal, 3, buffers)?;
+    check_finite3("Sun direction", sun_dir)?;
+    if sun_dir.iter().all(|&x| x == 0.0) {
+        return Err(GpuError::Invalid("Sun direction has zero length".into()));
+    }
+    Ok(Some(NormalTerms {
+        normal_offset: offsets[Param::Normal.index()],
+        sun_unit: sun_dir,
+        ambient: 0.0,
+    }))
 }

@@ -6,7 +6,7 @@ use super::{SUN_CODE_CAPACITY, SUN_CODE_WORD, UNIFORM_BYTES};
 use crate::{u32_bytes, GpuError};
 use gs_core::model::Param;
 use gs_core::nn::SceneBox;
-use gs_core::sunaware::shading::MIN_NORMAL_NORM2;
+use gs_core::sunaware::shading::{MIN_HALF_NORM2, MIN_NORMAL_NORM2};
 
 /// What one kernel's uniform says (the `NetIo` struct of netio_common.wgsl).
 #[derive(Default)]
@@ -24,13 +24,19 @@ pub(super) struct Uniform {
     pub(super) box_extent: [f32; 3],
     pub(super) box_inv_extent: [f32; 3],
     pub(super) sun_code: Vec<f32>,
-    /// The learned-normal shading's terms (Phi's scatter and output gradient).
-    pub(super) shading: Option<ShadingTerms>,
+    /// The learned normal's terms (the shading in Phi's scatter and output gradient, the
+    /// local inputs in Phi's input rows and input gradient).
+    pub(super) normal: Option<NormalTerms>,
+    /// The kernel applies the learned-normal shading (`normal` is set).
+    pub(super) shaded: bool,
+    /// Phi's rows end in the local inputs `[n.s, n.v, n.h]` (`normal` is set).
+    pub(super) local: bool,
 }
 
-/// What the `NetIo` uniform holds for the learned-normal shading.
+/// What the `NetIo` uniform holds for the learned normal: the start of the Normal group,
+/// the unit Sun vector as the CPU uses it and the shading's ambient floor.
 #[derive(Clone, Copy)]
-pub(super) struct ShadingTerms {
+pub(super) struct NormalTerms {
     pub(super) normal_offset: u32,
     pub(super) sun_unit: [f32; 3],
     pub(super) ambient: f32,
@@ -52,6 +58,7 @@ impl Uniform {
             *w = v as u32;
         }
         words[14] = self.multiply_gain.unwrap_or(1.0).to_bits();
+        words[15] = u32::from(self.local);
         let vec4 = |words: &mut [u32], at: usize, v: [f32; 3]| {
             for (w, x) in words[at..at + 3].iter_mut().zip(v) {
                 *w = x.to_bits();
@@ -61,10 +68,11 @@ impl Uniform {
         vec4(&mut words, 20, self.box_min);
         vec4(&mut words, 24, self.box_extent);
         vec4(&mut words, 28, self.box_inv_extent);
-        if let Some(t) = self.shading {
+        if let Some(t) = self.normal {
             vec4(&mut words, 32, t.sun_unit);
+            words[35] = MIN_HALF_NORM2.to_bits();
             words[36] = t.normal_offset;
-            words[37] = 1;
+            words[37] = u32::from(self.shaded);
             words[38] = MIN_NORMAL_NORM2.to_bits();
             words[39] = t.ambient.to_bits();
         }

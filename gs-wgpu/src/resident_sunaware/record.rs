@@ -479,12 +479,15 @@ impl SunAwareResident {
                 &phi_d_out,
                 Some(&phi_d_in),
             )?;
-            self.io.encode_phi_input_grad(
+            // With local inputs, their gradient joins the Normal group after the
+            // shading's term (Phi's output gradient above), as on the CPU.
+            self.io.encode_phi_input_grad_with_sun(
                 &mut encoder,
                 batch,
                 appearance,
                 packed,
                 cam_pos.to_array(),
+                sun,
                 &phi_d_in,
                 &b.grads,
             )?;

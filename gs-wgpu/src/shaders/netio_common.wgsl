@@ -21,16 +21,19 @@ struct NetIo {
     multiply: u32,
     // SunAwareConfig::shadow_gain (read under Multiply only).
     gain: f32,
-    pad1: u32,
+    // Non-zero: Phi's rows end in the local inputs [n.s, n.v, n.h] (netio_normal.wgsl).
+    local: u32,
     // Camera centre (Phi), .w unused.
     cam: vec4<f32>,
     // Scene box (Psi): minimum corner, extent max - min, 1 / extent (host f32, as shadow.rs).
     box_min: vec4<f32>,
     box_extent: vec4<f32>,
     box_inv_extent: vec4<f32>,
-    // The learned-normal Lambertian factor on Phi's colour (shading.rs, read only where
-    // `shaded` is non-zero): the unit Sun vector (.w unused), the start of the Normal
-    // group in the packed buffers, the degenerate |v|^2 bound and the ambient floor k_a.
+    // The learned normal (shading.rs; read where `shaded` or `local` is non-zero): the
+    // unit Sun vector as the CPU uses it (.w: MIN_HALF_NORM2 of the local inputs' half
+    // vector), the start of the Normal group in the packed buffers, the degenerate |v|^2
+    // bound, and the ambient floor k_a of the Lambertian factor on Phi's colour (applied
+    // where `shaded` is non-zero).
     sun_unit: vec4<f32>,
     normal_off: u32,
     shaded: u32,

@@ -3,6 +3,11 @@
 // the Gaussian's mean to the camera centre; rows r >= count are zeros. A non-finite
 // feature or mean, a Gaussian at the camera centre (distance not > 0 and finite) or a
 // list entry out of range sets flags[0] bit 0 (where the CPU returns an error).
+//
+// With `local` (appearance_inputs "local" / "local_no_sun", shading.rs
+// `fill_local_inputs`), the row ends in [n.s, n.v, n.h] of the Gaussian's local frame
+// (netio_normal.wgsl: zeros for a degenerate normal); under "local_no_sun" the host's Sun
+// code is zeros.
 
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
@@ -42,6 +47,15 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             input[vo + c * two_l + 2u * k] = sc.x;
             input[vo + c * two_l + 2u * k + 1u] = sc.y;
         }
+    }
+    if u.local != 0u {
+        let no = u.normal_off + 3u * g;
+        let v = vec3<f32>(params[no], params[no + 1u], params[no + 2u]);
+        let x = local_inputs(local_frame(v, mean));
+        let lo = base + u.width - 3u;
+        input[lo] = x.x;
+        input[lo + 1u] = x.y;
+        input[lo + 2u] = x.z;
     }
     if !ok {
         atomicOr(&flags[0], 1u);

@@ -14,36 +14,21 @@
 @group(0) @binding(5) var<storage, read> params: array<f32>;
 @group(0) @binding(6) var<storage, read_write> shade: array<f32>;
 
-// (f_g, sign) as shading.rs `learned_facing_normal`, `turned_toward` and `shade_forward`.
+// (f_g, sign) as shading.rs `shade_forward` on `learned_facing_normal` (netio_normal.wgsl).
 fn learned_shade(g: u32) -> vec2<f32> {
     let no = u.normal_off + 3u * g;
     let v = vec3<f32>(params[no], params[no + 1u], params[no + 2u]);
     let mo = goff(u, G_MEAN) + 3u * g;
     let mean = vec3<f32>(params[mo], params[mo + 1u], params[mo + 2u]);
-    let norm2 = v.x * v.x + v.y * v.y + v.z * v.z;
-    if !(finite(norm2) && finite(mean.x) && finite(mean.y) && finite(mean.z))
-        || norm2 < u.min_norm2 {
+    let facing = learned_facing_normal(v, mean);
+    if facing.w == 0.0 {
         return vec2<f32>(1.0, 0.0);
     }
-    let len = sqrt(norm2);
-    let a = vec3<f32>(v.x / len, v.y / len, v.z / len);
-    // glam's normalize_or_zero: times 1 / |d|, or zero where that is not finite and > 0.
-    let d = u.cam.xyz - mean;
-    let rcp = 1.0 / sqrt(d.x * d.x + d.y * d.y + d.z * d.z);
-    var to_cam = vec3<f32>(0.0);
-    if finite(rcp) && rcp > 0.0 {
-        to_cam = vec3<f32>(d.x * rcp, d.y * rcp, d.z * rcp);
-    }
-    let facing = a.x * to_cam.x + a.y * to_cam.y + a.z * to_cam.z;
-    var sign = 1.0;
-    if facing < 0.0 {
-        sign = -1.0;
-    }
-    let nrm = vec3<f32>(a.x * sign, a.y * sign, a.z * sign);
+    let nrm = facing.xyz;
     let s = u.sun_unit;
     let cosine = nrm.x * s.x + nrm.y * s.y + nrm.z * s.z;
     if cosine > 0.0 {
-        return vec2<f32>(u.ambient + (1.0 - u.ambient) * cosine, sign);
+        return vec2<f32>(u.ambient + (1.0 - u.ambient) * cosine, facing.w);
     }
     return vec2<f32>(u.ambient, 0.0);
 }
