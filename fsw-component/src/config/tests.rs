@@ -57,8 +57,8 @@ fn training_backend_is_validated_against_the_build() {
         invalid_key("[training]\nbackend = \"cuda\"\n"),
         "training.backend"
     );
-    // Phi's local inputs (the default) have no device kernels: see
-    // `wgpu_with_local_inputs_is_refused_at_load_naming_both_keys`.
+    // Phi's local inputs (the default) run there too: see
+    // `wgpu_with_local_inputs_is_accepted_and_lambert_refused_at_load`.
     let wgpu = parse("[training]\nbackend = \"wgpu\"\nappearance_inputs = \"paper\"\n");
     if cfg!(feature = "wgpu") {
         assert_eq!(wgpu.unwrap().backend().unwrap(), BackendKind::Wgpu);
@@ -105,25 +105,36 @@ fn the_default_model_is_the_demos() {
     );
 }
 
-/// wgpu has no kernels for Phi's local-frame inputs: refused when the file loads (in
-/// every build, before the backend is opened), naming the backend and the inputs and
-/// saying what to set. The learned-normal shading and the shadow gain run there.
+/// wgpu runs Phi's local-frame inputs (the default) with the learned-normal shading:
+/// such a file passes the model rule when it loads (then needs the build's feature);
+/// the shortest-axis `shading = "lambert"` is still refused at load, naming the backend
+/// and the setting, in every build.
 #[test]
-fn wgpu_with_local_inputs_is_refused_at_load_naming_both_keys() {
-    for inputs in [
-        "",
-        "appearance_inputs = \"local\"\n",
-        "appearance_inputs = \"local_no_sun\"\n",
+fn wgpu_with_local_inputs_is_accepted_and_lambert_refused_at_load() {
+    for (inputs, want) in [
+        ("", AppearanceInputs::Local),
+        ("appearance_inputs = \"local\"\n", AppearanceInputs::Local),
+        (
+            "appearance_inputs = \"local_no_sun\"\n",
+            AppearanceInputs::LocalNoSun,
+        ),
     ] {
         let text = format!("[training]\nbackend = \"wgpu\"\n{inputs}");
-        let message = parse(&text).unwrap_err().to_string();
-        assert!(
-            message.contains("training.backend")
-                && message.contains("appearance_inputs")
-                && message.contains("appearance_inputs = \"paper\""),
-            "{text:?}: {message}"
-        );
-        assert_eq!(invalid_key(&text), "training.backend");
+        let loaded = parse(&text);
+        if cfg!(feature = "wgpu") {
+            let model = loaded.unwrap().model_config().unwrap();
+            assert_eq!(model.appearance_inputs, want, "{text:?}");
+            assert_eq!(model.shading, Shading::LambertLearned, "{text:?}");
+        } else {
+            // Refused for the build only, not for the model.
+            let message = loaded.unwrap_err().to_string();
+            assert!(
+                message.contains("training.backend")
+                    && message.contains("feature `wgpu`")
+                    && !message.contains("appearance_inputs"),
+                "{text:?}: {message}"
+            );
+        }
     }
     let lambert =
         "[training]\nbackend = \"wgpu\"\nappearance_inputs = \"paper\"\nshading = \"lambert\"\n";

@@ -121,19 +121,12 @@ impl BackendKind {
     /// gs-wgpu's engine answers `Engine::supports` with it, and configuration files are
     /// checked against it when they load, before any device is opened. The CPU runs every
     /// model; wgpu runs `shading = "none"` and `"lambert_learned"` (the shortest-axis
-    /// `"lambert"` has no device kernels) and Phi's `appearance_inputs = "paper"` only
-    /// (the local-frame inputs have no device kernels); `shadow_gain` runs on both.
+    /// `"lambert"` has no device kernels); every `appearance_inputs` (`"paper"`, and the
+    /// local-frame `"local"` / `"local_no_sun"`, which `validate` ties to
+    /// `"lambert_learned"`) and `shadow_gain` run on both.
     pub fn check_model(self, config: &SunAwareConfig) -> Result<(), String> {
         if self == BackendKind::Cpu {
             return Ok(());
-        }
-        if config.appearance_inputs != AppearanceInputs::Paper {
-            return Err(format!(
-                "the wgpu backend supports appearance_inputs = \"paper\" only (this model \
-                 has {:?}, Phi's local-frame inputs, which have no device kernels): use \
-                 appearance_inputs = \"paper\" or train on the CPU",
-                config.appearance_inputs.name()
-            ));
         }
         match config.shading {
             Shading::None | Shading::LambertLearned => Ok(()),
@@ -374,8 +367,8 @@ pub struct SunAwareConfig {
     /// frame (`n` the learned shading normal facing the camera, `h` the half vector;
     /// `LocalNoSun` also zeroes `gamma(sun)`). The local ones need
     /// `shading = LambertLearned` (it owns the normal). A model knob: it sets Phi's input
-    /// width, so checkpoints store it (from version 7; older ones load as `Paper`). The
-    /// wgpu backend runs `Paper` only.
+    /// width, so checkpoints store it (from version 7; older ones load as `Paper`). Both
+    /// backends run all three.
     pub appearance_inputs: AppearanceInputs,
     pub lr: SunAwareRates,
     pub densify: DensifyConfig,
@@ -696,19 +689,21 @@ mod tests {
     }
 
     #[test]
-    fn wgpu_runs_the_paper_inputs_and_the_learned_normal_only() {
+    fn wgpu_runs_every_appearance_input_and_the_learned_normal_only() {
         let demo = SunAwareConfig {
             shading: Shading::LambertLearned,
             appearance_inputs: AppearanceInputs::Local,
             shadow_gain: 2.0,
             ..SunAwareConfig::default()
         };
-        assert!(BackendKind::Cpu.check_model(&demo).is_ok());
-        let e = BackendKind::Wgpu.check_model(&demo).unwrap_err();
-        assert!(
-            e.contains("appearance_inputs = \"paper\"") && e.contains("\"local\""),
-            "{e}"
-        );
+        for inputs in AppearanceInputs::ALL {
+            let config = SunAwareConfig {
+                appearance_inputs: inputs,
+                ..demo.clone()
+            };
+            assert!(BackendKind::Cpu.check_model(&config).is_ok());
+            assert!(BackendKind::Wgpu.check_model(&config).is_ok(), "{inputs}");
+        }
         let paper_inputs = SunAwareConfig {
             appearance_inputs: AppearanceInputs::Paper,
             ..demo.clone()

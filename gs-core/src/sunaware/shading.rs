@@ -36,10 +36,12 @@
 //! A degenerate normal gives three zeros and no gradient; `|s + v|^2 <`
 //! [`MIN_HALF_NORM2`] gives `n.h = 0` with no gradient through it.
 //!
-//! Devices: the wgpu backend's device-resident step runs `LambertLearned` with these
-//! functions' operations ported in order (gs-wgpu `network_io`, Phi's scatter and output
-//! gradient; tested against [`shade_forward`] and [`shade_backward`]); `Lambert` is
-//! CPU-only (the engine refuses it).
+//! Devices: the wgpu backend's device-resident step runs `LambertLearned` and the local
+//! inputs with these functions' operations ported in order (gs-wgpu `network_io`: the
+//! factor in Phi's scatter and output gradient, tested against [`shade_forward`] and
+//! [`shade_backward`]; the local inputs in Phi's input rows and input gradient, tested
+//! against [`assemble_phi_input`] and [`scatter_local_input_grad`]); `Lambert` is CPU-only
+//! (the engine refuses it).
 
 use std::str::FromStr;
 

@@ -17,8 +17,10 @@
 //! 3. (c-d) the shadow pass `V` from the packed parameters ([`GpuSunVisibility`]);
 //! 4. (a) SH colour in step 1 instead (`resident_pack`, the SH-colour kernel, whose
 //!    `resident_grads` then gives the SH and geometry gradients in step 6);
-//!    (b-d) Phi's input, forward, and scatter into channels 0..3 (with `shading =
-//!    "lambert_learned"` times each Gaussian's Lambertian factor of its learned normal);
+//!    (b-d) Phi's input (with `appearance_inputs = "local"` / `"local_no_sun"` ending in
+//!    `[n.s, n.v, n.h]` of the learned normal), forward, and scatter into channels 0..3
+//!    (with `shading = "lambert_learned"` times each Gaussian's Lambertian factor of its
+//!    learned normal);
 //!    (c-d) Psi's, into channel 3 (`V * P` or `P`) ([`NetworkIo`], [`GpuMlp`]); the
 //!    channels are checked finite;
 //! 5. the blend with those channels, `RGB * S` (`sa_compose`), the masked
@@ -27,7 +29,8 @@
 //! 6. the geometry gradients and `L_iso` (`sa_grads`), then Phi's and Psi's backward and
 //!    the scatter of their input gradients into features, latents and means (Phi's output
 //!    gradient times the shading factor, and the learned normals' gradient, the Normal
-//!    group cleared at the step's start);
+//!    group cleared at the step's start; with local inputs their gradient into the normals
+//!    and the means in the same input-gradient kernel, one writer per Gaussian);
 //! 7. every gradient checked finite (`sa_finite`); densification statistics; Adam on the
 //!    Gaussians (`adam.wgsl`, per-group rates, the learned normal's included) and on each
 //!    network (the same kernel).
