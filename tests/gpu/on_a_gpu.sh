@@ -56,8 +56,10 @@ stamp() { echo "=== $1 (t=$(($(date +%s) - t0)) s)"; }
         echo "--- $t"
         timeout 120 "$t" --test-threads 4 2>&1 | grep -E "test result|FAILED|panicked|gpu .* cpu"
     done
-    # The demo's preset asks for Phi's local-frame inputs (appearance_inputs = "local"),
-    # which the wgpu backend refuses by name until it has kernels for them.
-    echo "demo: not run (its preset's appearance_inputs = \"local\" is CPU-only)"
+    # The demo's preset (learned normal, Phi's local-frame inputs) trained on the device;
+    # its ladder lines ("masked PSNR") and summary ("demo:") or its error.
+    stamp demo
+    timeout 300 "$dir/sim-harness" --backend wgpu demo --out "$dir/demo" 2>&1 |
+        grep -E "masked PSNR|^demo:|[Ee]rror|panicked"
     stamp end
 } 2>&1 | tee "$dir/log.txt"

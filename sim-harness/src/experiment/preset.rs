@@ -172,8 +172,8 @@ pub struct Preset {
     /// What Phi reads beyond the feature: "paper" (the paper's row), "local" (and
     /// `[n.s, n.v, n.h]` of the learned normal) or "local_no_sun" (local, the Sun's
     /// encoding zeroed) (`SunAwareConfig::appearance_inputs`; the local ones need
-    /// `shading = "lambert_learned"`; configuration (a) has no Phi; the wgpu backend
-    /// refuses the local ones).
+    /// `shading = "lambert_learned"`; configuration (a) has no Phi; both backends run
+    /// all three).
     pub appearance_inputs: String,
     /// Evicted keyframes kept for replay (0: none, the paper; `OnlineConfig`).
     pub replay_capacity: usize,
