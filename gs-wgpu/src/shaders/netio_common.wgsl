@@ -1,5 +1,5 @@
-// Shared by the network input/output kernels (network_io.rs), prepended to each: the
-// uniform (with the learned-normal shading's terms), the bindings every kernel has
+// Shared by the network input/output kernels (network_io/), prepended to each: the
+// uniform (with the learned normal's terms: the shading, the local inputs), the bindings every kernel has
 // (uniform, list, count: bindings 0-2; each kernel declares its own buffers from
 // binding 3 on), the row-to-Gaussian lookup, the packed parameter layout's group
 // offsets, and `sin(pi x)`, `cos(pi x)` and the positional encoding ported operation for
