@@ -50,6 +50,36 @@ const EPS: f32 = f32::EPSILON;
 /// the division 2.5 + 0.5 eps, so `|v_gpu - v_cpu| <= VIEW_REL_ERR |v|`.
 const VIEW_REL_ERR: f32 = 9.0 * EPS;
 
+/// Tolerance of Phi's column `c >= view_start` (the view direction's encoding, then the
+/// local block `[n.s, n.v, n.h]` when Phi has one) for the Gaussian at `mean`, seen from
+/// [`CAMERA`] with the Sun along `sun`. The encoding: its argument, the view direction's
+/// component, may differ by [`VIEW_REL_ERR`] of itself. The local block: the normal
+/// `n = v / |v|` and the view direction `u` are each within 9 eps of themselves (the same
+/// root and division as [`VIEW_REL_ERR`]), and a dot product of unit vectors rounds
+/// within 3 eps (fused or not): `n.s` 9 + 3 eps, `n.v` 9 + 9 + 3 eps; the half vector
+/// `h = (s + u) / |s + u|` moves by u's 9 eps over `|s + u|`, plus its sum's rounding and
+/// normalisation (2 + 9 eps), so `n.h` within (23 + 9 / |s + u|) eps.
+fn phi_view_column_tol(
+    mean: &[f32],
+    sun: glam::Vec3,
+    c: usize,
+    view_start: usize,
+    freqs: usize,
+) -> f32 {
+    let d = glam::Vec3::from(CAMERA) - glam::Vec3::from_slice(mean);
+    let u = d / d.length();
+    let i = c - view_start;
+    if i < 6 * freqs {
+        let (axis, k) = (i / (2 * freqs), (i % (2 * freqs)) / 2);
+        return encoding_tol(k, VIEW_REL_ERR * u[axis].abs());
+    }
+    match i - 6 * freqs {
+        0 => 12.0 * EPS,
+        1 => 21.0 * EPS,
+        _ => (23.0 + 9.0 / (sun + u).length()) * EPS,
+    }
+}
+
 /// One ulp of `x` (f32, normal range): `2^floor(log2 |x|) * EPS`.
 fn ulp(x: f32) -> f32 {
     f32::from_bits(x.abs().to_bits() & 0x7f80_0000) * EPS

@@ -50,13 +50,12 @@ fn phi_input_matches_the_cpu_rows() {
             let gpu = probe.finish_f32(enc, &[(&input, n * width)]).unwrap();
             let view_start = f_dim + 6 * freqs;
             let means = s.group(Param::Mean);
-            // The view encoding's argument, v's component, may differ by VIEW_REL_ERR |v|.
             let tol = |r: usize, c: usize| {
-                let i = c.checked_sub(view_start)?;
-                let (axis, k) = (i / (2 * freqs), (i % (2 * freqs)) / 2);
                 let g = s.live()[r] as usize;
-                let d = Vec3::from(CAMERA) - Vec3::from_slice(&means[3 * g..3 * g + 3]);
-                Some(encoding_tol(k, VIEW_REL_ERR * (d[axis] / d.length()).abs()))
+                (c >= view_start).then(|| {
+                    let mean = &means[3 * g..3 * g + 3];
+                    phi_view_column_tol(mean, Vec3::from(SUN), c, view_start, freqs)
+                })
             };
             worst = worst.max(compare_rows("Phi input", &cpu, &gpu[0], width, count, &tol));
             assert_eq!(probe.read_u32(&flags, 1).unwrap(), [0], "flags");
