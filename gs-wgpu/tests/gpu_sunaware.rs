@@ -473,16 +473,18 @@ fn resident_step_a_matches_the_cpu_step() {
 /// smaller than the visible list on a view where Gaussians hide each other; with the skip
 /// off it is the visible list.
 ///
-/// Up to the Gaussians at the 1/255 alpha cut: the device computes the opacity's sigmoid
-/// and the scales with WGSL's `exp` (3 + 2|x| ULP) and the projection and the conic with
-/// its division (2.5 ULP), where the CPU rounds correctly, so a Gaussian whose largest
-/// alpha lies within their effect of the cut may fall on the other side (an H200 counted
-/// 838 rows where the CPU counts 839). That effect, summed through the projection at the
-/// cut's falloff (`|power| = 5.5`), is about 3e-5 to 6e-5 of alpha; the test allows
-/// `ALPHA_REL_ERR = 1e-4`: the device's count must lie between the CPU's counts with every
-/// alpha scaled by `1 -/+ ALPHA_REL_ERR` (opacity logits moved by `ALPHA_REL_ERR / (1 -
-/// sigmoid)`); those nearly opaque Gaussians stop their pixels far from the transmittance
-/// cut (T falls from 2.5e-3 to 6e-6 across the stop at 1e-4), so only the alpha cut moves.
+/// Up to the Gaussians at a cut: the device computes the opacity's sigmoid and the scales
+/// with WGSL's `exp` (3 + 2|x| ULP) and the projection and the conic with its division
+/// (2.5 ULP), where the CPU rounds correctly, so a Gaussian whose alpha lies near the
+/// 1/255 cut, or a pixel whose transmittance lies near the 1e-4 stop (`1 - alpha` of these
+/// nearly opaque Gaussians is 400 times more sensitive than alpha), may fall on the other
+/// side. The device's count must lie between the CPU's counts with every alpha scaled by
+/// `1 -/+ ALPHA_REL_ERR` (opacity logits moved by `ALPHA_REL_ERR / (1 - sigmoid)`), an
+/// estimate of the device's alpha error (about 3e-5 to 6e-5 through exp, the projection
+/// and the conic, doubled). The CPU's counts at 10 and 100 times that are printed beside
+/// them. On lavapipe every count is the CPU's. An NVIDIA H200 counted 839 rows on the
+/// second view against the CPU's 838 at `1 -/+ 1e-4` (839 at `1 - 1e-3`): it fails there,
+/// and why its alpha differs by more than the estimate is open (docs/gpu.md).
 #[test]
 fn resident_network_rows_are_the_cpu_contributing_gaussians() {
     const ALPHA_REL_ERR: f32 = 1e-4;
@@ -512,6 +514,9 @@ fn resident_network_rows_are_the_cpu_contributing_gaussians() {
         };
         let mut cpu = trainer(LOGIT);
         let mut cpu_bracket = [trainer(LOGIT - logit_step), trainer(LOGIT + logit_step)];
+        // Wider brackets, printed only: how far a device's alpha is from the CPU's.
+        let mut wider = [10.0f32, 100.0]
+            .map(|f| [-1.0f32, 1.0].map(|sign| trainer(LOGIT + sign * f * logit_step)));
         let mut gpu = trainer(LOGIT);
         gpu.set_backend(&backend).unwrap();
         for o in &observations {
@@ -520,6 +525,10 @@ fn resident_network_rows_are_the_cpu_contributing_gaussians() {
             let bracket = cpu_bracket
                 .each_mut()
                 .map(|t| t.step(o, 0.0).unwrap().network_rows);
+            let wider_rows = wider
+                .each_mut()
+                .map(|p| p.each_mut().map(|t| t.step(o, 0.0).unwrap().network_rows));
+            eprintln!("CPU rows at alpha -/+ 1e-3 and 1e-2: {wider_rows:?}");
             let (lo, hi) = (
                 bracket.iter().copied().fold(c.network_rows, usize::min),
                 bracket.iter().copied().fold(c.network_rows, usize::max),
