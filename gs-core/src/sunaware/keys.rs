@@ -1,21 +1,117 @@
 //! The model's settings by name: the keys configuration files write ([`ModelKey`], set by
-//! [`SunAwareConfig::set_key`]) and the settings two configurations differ in
+//! [`SunAwareConfig::set_key`]), the learning rates a file may replace ([`RateOverrides`],
+//! a `[rates]` table) and the settings two configurations differ in
 //! ([`SunAwareConfig::differences`]).
 //!
 //! The simulator's presets and the flight component's `[training]` section both set these
-//! keys through [`SunAwareConfig::set_key`], so one string means one model in both: the
-//! text is parsed by the model's own `FromStr` (one parser per setting), and the whole
-//! configuration is validated after each key, so an error belongs to the key just set.
+//! keys through [`SunAwareConfig::set_key`], and both read their rates table as one
+//! [`RateOverrides`], so one string means one model in both: the text is parsed by the
+//! model's own `FromStr` (one parser per setting), and the whole configuration is validated
+//! after each key, so an error belongs to the key just set.
 //!
-//! Invariants: a refused key leaves the configuration unchanged; the Lambertian shadings
+//! Invariants: a refused key leaves the configuration unchanged; an unknown rate name is a
+//! parse error naming it, and a named rate must be finite and >= 0; the Lambertian shadings
 //! and Phi's inputs are set only where the variant has Phi (configuration (a) keeps the
 //! paper's form, so one file's shading applies to every configuration it names);
 //! `differences` lists every field (an exhaustive destructuring, so a new field fails to
 //! compile until it is listed).
 
-use super::config::SunAwareConfig;
+use super::config::{SunAwareConfig, SunAwareRates};
 use super::error::SunAwareError;
 use crate::nn::MatmulPrecision;
+use serde::{Deserialize, Serialize};
+
+/// A `[rates]` table: any of [`SunAwareRates`]' fields by name, each replacing gs-core's
+/// default; an unnamed one keeps it. Unknown names are parse errors (serde names the key).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RateOverrides {
+    pub position_init: Option<f32>,
+    pub position_final: Option<f32>,
+    pub sh_dc: Option<f32>,
+    pub sh_rest: Option<f32>,
+    pub opacity: Option<f32>,
+    pub scale: Option<f32>,
+    pub rotation: Option<f32>,
+    pub feature: Option<f32>,
+    pub shadow_latent: Option<f32>,
+    pub appearance_mlp: Option<f32>,
+    pub shadow_mlp: Option<f32>,
+    pub normal: Option<f32>,
+}
+
+impl RateOverrides {
+    /// `base` with the named rates replaced.
+    pub fn applied_to(&self, base: SunAwareRates) -> SunAwareRates {
+        let pick = |o: Option<f32>, d: f32| o.unwrap_or(d);
+        SunAwareRates {
+            position_init: pick(self.position_init, base.position_init),
+            position_final: pick(self.position_final, base.position_final),
+            sh_dc: pick(self.sh_dc, base.sh_dc),
+            sh_rest: pick(self.sh_rest, base.sh_rest),
+            opacity: pick(self.opacity, base.opacity),
+            scale: pick(self.scale, base.scale),
+            rotation: pick(self.rotation, base.rotation),
+            feature: pick(self.feature, base.feature),
+            shadow_latent: pick(self.shadow_latent, base.shadow_latent),
+            appearance_mlp: pick(self.appearance_mlp, base.appearance_mlp),
+            shadow_mlp: pick(self.shadow_mlp, base.shadow_mlp),
+            normal: pick(self.normal, base.normal),
+        }
+    }
+
+    /// The rates this table names, and `base`'s where it names none (a file's table over a
+    /// default table, key by key).
+    pub fn or(self, base: RateOverrides) -> RateOverrides {
+        RateOverrides {
+            position_init: self.position_init.or(base.position_init),
+            position_final: self.position_final.or(base.position_final),
+            sh_dc: self.sh_dc.or(base.sh_dc),
+            sh_rest: self.sh_rest.or(base.sh_rest),
+            opacity: self.opacity.or(base.opacity),
+            scale: self.scale.or(base.scale),
+            rotation: self.rotation.or(base.rotation),
+            feature: self.feature.or(base.feature),
+            shadow_latent: self.shadow_latent.or(base.shadow_latent),
+            appearance_mlp: self.appearance_mlp.or(base.appearance_mlp),
+            shadow_mlp: self.shadow_mlp.or(base.shadow_mlp),
+            normal: self.normal.or(base.normal),
+        }
+    }
+
+    /// Each rate by name (`SunAwareRates`' field), `None` where the table does not name it.
+    pub fn named(&self) -> [(&'static str, Option<f32>); 12] {
+        [
+            ("position_init", self.position_init),
+            ("position_final", self.position_final),
+            ("sh_dc", self.sh_dc),
+            ("sh_rest", self.sh_rest),
+            ("opacity", self.opacity),
+            ("scale", self.scale),
+            ("rotation", self.rotation),
+            ("feature", self.feature),
+            ("shadow_latent", self.shadow_latent),
+            ("appearance_mlp", self.appearance_mlp),
+            ("shadow_mlp", self.shadow_mlp),
+            ("normal", self.normal),
+        ]
+    }
+
+    /// Replaces `model`'s named rates: a rate that is not finite and >= 0 (the model's own
+    /// rule, `SunAwareConfig::validate`) is an error naming it (`rates.NAME`) and changes
+    /// nothing. Only the rates are checked, so a bad other setting is never blamed on them.
+    pub fn set_on(&self, model: &mut SunAwareConfig) -> Result<(), SunAwareError> {
+        for (name, value) in self.named() {
+            if let Some(v) = value.filter(|v| !(v.is_finite() && *v >= 0.0)) {
+                return Err(SunAwareError::Config(format!(
+                    "rates.{name} = {v} must be finite and >= 0"
+                )));
+            }
+        }
+        model.lr = self.applied_to(model.lr);
+        Ok(())
+    }
+}
 
 /// One model setting as a configuration file writes it: the key and its value.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -168,6 +264,67 @@ fn fields(c: &SunAwareConfig) -> Vec<(&'static str, String)> {
 mod tests {
     use super::*;
     use crate::sunaware::{AppearanceInputs, Shading, Variant};
+
+    #[test]
+    fn rate_overrides_replace_only_the_named_rates_and_refuse_bad_ones() {
+        let mut c = SunAwareConfig::for_variant(Variant::D);
+        let base = c.lr;
+        let rates = RateOverrides {
+            opacity: Some(0.05),
+            normal: Some(0.0),
+            ..RateOverrides::default()
+        };
+        rates.set_on(&mut c).unwrap();
+        assert_eq!((c.lr.opacity, c.lr.normal), (0.05, 0.0));
+        let over = RateOverrides {
+            opacity: Some(0.5),
+            sh_dc: Some(0.01),
+            ..RateOverrides::default()
+        }
+        .or(rates);
+        assert_eq!(
+            (over.opacity, over.sh_dc, over.normal, over.feature),
+            (Some(0.5), Some(0.01), Some(0.0), None),
+            "a table over a base: its own rates win, the base's fill the rest"
+        );
+        assert_eq!(
+            SunAwareRates {
+                opacity: base.opacity,
+                normal: base.normal,
+                ..c.lr
+            },
+            base,
+            "unnamed rates keep the default"
+        );
+        let before = c.clone();
+        for (bad, named) in [
+            (
+                RateOverrides {
+                    sh_dc: Some(-0.01),
+                    ..RateOverrides::default()
+                },
+                "sh_dc",
+            ),
+            (
+                RateOverrides {
+                    feature: Some(f32::NAN),
+                    ..RateOverrides::default()
+                },
+                "feature",
+            ),
+            (
+                RateOverrides {
+                    shadow_mlp: Some(f32::INFINITY),
+                    ..RateOverrides::default()
+                },
+                "shadow_mlp",
+            ),
+        ] {
+            let e = bad.set_on(&mut c).unwrap_err().to_string();
+            assert!(e.contains(&format!("rates.{named}")), "{e}");
+            assert_eq!(c, before, "{named}: a refused rate changed the model");
+        }
+    }
 
     #[test]
     fn keys_parse_with_the_models_parsers_and_validate_one_at_a_time() {

@@ -8,8 +8,8 @@
 //!   `S`; the image is `RGB * S`;
 //! - (d) + the isotropic scale loss `lambda_iso L_iso`.
 //!
-//! Modules: [`config`] (variants and settings), [`keys`] (the settings by name, as files
-//! write them), [`sun_visibility`] (the Sun visibility pass),
+//! Modules: [`config`] (variants and settings), [`keys`] (the settings and rates by name, as
+//! files write them), [`sun_visibility`] (the Sun visibility pass),
 //! [`model`] (model, forward and backward of one image), [`shading`] (an optional
 //! Lambertian factor from a normal and the Sun, beyond the paper), [`trainer`] (Adam, steps,
 //! densification, evaluation), [`checkpoint`] (bit-exact save/load), [`export`] (PLY baked
@@ -35,6 +35,6 @@ pub use config::{
     SunAwareConfig, SunAwareRates, Variant,
 };
 pub use error::SunAwareError;
-pub use keys::ModelKey;
+pub use keys::{ModelKey, RateOverrides};
 pub use model::{FramePass, SunAwareGrads, SunAwareModel};
 pub use trainer::{Observation, StepStats, StepTimings, SunAwareTrainer, ViewScore};
