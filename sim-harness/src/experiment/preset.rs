@@ -14,7 +14,7 @@
 
 use crate::scenario::{Scenario, ScenarioError};
 use gs_core::sunaware::{
-    BackendKind, ModelKey, SunAwareConfig, SunAwareError, SunAwareRates, Variant,
+    BackendKind, ModelKey, RateOverrides, SunAwareConfig, SunAwareError, Variant,
 };
 use serde::Deserialize;
 use std::fmt;
@@ -190,51 +190,12 @@ pub struct Preset {
     /// (the accuracy ladder's L1, held-out trajectory frames; 0: none withheld).
     pub holdout_every: u32,
     /// Learning rates that replace gs-core's defaults (`SunAwareRates`); unnamed ones keep
-    /// the default.
+    /// the default. gs-core's table, the one the flight component's `[training.rates]` reads.
     pub rates: RateOverrides,
     /// Steps between SH degree increments in configuration (a) (gs-core default: 1000).
     pub sh_degree_interval: Option<u64>,
     /// Applied steps before densification may add Gaussians (gs-core default: 500).
     pub densify_from_step: Option<u64>,
-}
-
-/// `[rates]` of a preset: any of `gs_core::sunaware::SunAwareRates`' fields.
-#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct RateOverrides {
-    pub position_init: Option<f32>,
-    pub position_final: Option<f32>,
-    pub sh_dc: Option<f32>,
-    pub sh_rest: Option<f32>,
-    pub opacity: Option<f32>,
-    pub scale: Option<f32>,
-    pub rotation: Option<f32>,
-    pub feature: Option<f32>,
-    pub shadow_latent: Option<f32>,
-    pub appearance_mlp: Option<f32>,
-    pub shadow_mlp: Option<f32>,
-    pub normal: Option<f32>,
-}
-
-impl RateOverrides {
-    /// `base` with the named rates replaced.
-    pub(crate) fn applied_to(&self, base: SunAwareRates) -> SunAwareRates {
-        let pick = |o: Option<f32>, d: f32| o.unwrap_or(d);
-        SunAwareRates {
-            position_init: pick(self.position_init, base.position_init),
-            position_final: pick(self.position_final, base.position_final),
-            sh_dc: pick(self.sh_dc, base.sh_dc),
-            sh_rest: pick(self.sh_rest, base.sh_rest),
-            opacity: pick(self.opacity, base.opacity),
-            scale: pick(self.scale, base.scale),
-            rotation: pick(self.rotation, base.rotation),
-            feature: pick(self.feature, base.feature),
-            shadow_latent: pick(self.shadow_latent, base.shadow_latent),
-            appearance_mlp: pick(self.appearance_mlp, base.appearance_mlp),
-            shadow_mlp: pick(self.shadow_mlp, base.shadow_mlp),
-            normal: pick(self.normal, base.normal),
-        }
-    }
 }
 
 impl Default for Preset {
@@ -429,13 +390,15 @@ impl Preset {
         model.cull_outside_frustum = self.cull_outside_frustum;
         model.early_termination = self.early_termination;
         model.skip_masked_background_tiles = self.skip_masked_background_tiles;
-        model.lr = self.rates.applied_to(model.lr);
         if let Some(interval) = self.sh_degree_interval {
             model.sh_degree_interval = interval;
         }
         if let Some(from) = self.densify_from_step {
             model.densify_from_step = from;
         }
+        self.rates
+            .set_on(&mut model)
+            .map_err(|e| PresetError::Invalid(e.to_string()))?;
         Ok(model)
     }
 
