@@ -145,62 +145,6 @@ pub struct SyncSettings {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct TrainingConfig {
-    /// Model configuration of the paper's Table I: "a" (3DGS), "b" (+ appearance MLP),
-    /// "c" (+ shadow splatting) or "d" (+ isotropic loss).
-    pub variant: String,
-    /// Passes over the keyframe window per training round (the paper: 1). More passes
-    /// train each keyframe more often at the same frame rate, and make a round longer.
-    pub passes_per_round: u32,
-    /// Keyframe window size W.
-    pub window_size: usize,
-    /// A frame becomes a keyframe when its view moved more than this, degrees.
-    pub min_view_angle_deg: f64,
-    /// Worker threads of the trainer (fixed for bit-identical results).
-    pub threads: usize,
-    /// Where training runs: "cpu" (default) or "wgpu" (needs the cargo feature `wgpu` and a
-    /// Vulkan adapter; either missing stops the start with an error, never a silent
-    /// fallback). On "wgpu" a round's steps run device-resident (docs/gpu.md).
-    pub backend: String,
-    /// On "wgpu": bit-identical results run to run (default `true`, so a replay of the
-    /// same telemetry gives the same model), or `false` for the float-atomic backward,
-    /// faster where the device's atomics are, whose last bits vary from run to run.
-    pub gpu_deterministic: bool,
-    /// Width of the appearance network's (Phi's) hidden layers. Default 128, the
-    /// recommended preset's (docs/runtime-vs-error.md: about half the training CPU of the
-    /// paper's 256 at -0.10..+0.06 dB on the three simulated targets).
-    pub appearance_hidden_width: usize,
-    /// Positional-encoding frequencies of the Sun and view directions. Default 2, the
-    /// recommended preset's (the paper's 4 scored lower in the sweep at the same cost).
-    pub encoding_frequencies: usize,
-    /// The networks' matrix products: "f32" (default) or "bf16" (AVX-512 BF16 only; a CPU
-    /// without it fails validation).
-    pub mlp_precision: String,
-    /// Colour times `k_a + (1 - k_a) max(0, n.s)`: "lambert_learned" (default: a learned
-    /// normal n per Gaussian, the demo's model), "none" (the paper) or "lambert" (the
-    /// shortest scale axis; CPU only). Configuration (a) has no Phi colour and stays plain.
-    pub shading: String,
-    /// What Phi reads beyond the feature: "local" (default: and `[n.s, n.v, n.h]` of the
-    /// learned normal; needs `shading = "lambert_learned"`; CPU only), "paper" or
-    /// "local_no_sun". With `shading = "lambert_learned"` and "local" the demo scored
-    /// +1.0 dB on held-out frames and +2.0 dB on new Sun directions (docs/results/accuracy.md).
-    pub appearance_inputs: String,
-    /// `V' = shadow_gain * V * Psi` in configurations (c)-(d), 0.5 to 8 (default 2, the
-    /// demo's; the paper's form is 1).
-    pub shadow_gain: f32,
-    /// A trainer job (a frame with its training round, or a command) running longer than
-    /// this is reported with an `Internal` event (`ROUND_DEADLINE_MISSED`), once per job,
-    /// within the 50 ms housekeeping tick. 100 ms to one hour.
-    pub round_deadline_ms: u64,
-    /// Subnormal floats on the trainer's threads: "flush-to-zero" (default; x86 FTZ + DAZ,
-    /// aarch64 FZ; with "ieee" the step took about 1.46x the CPU time on an Intel Xeon) or
-    /// "ieee" (gradual underflow). Deterministic either way; the two differ in the last
-    /// bits. `GS_DENORMALS` overrides it in the binary (`gs_core::fpmode`).
-    pub denormals: String,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
 pub struct CheckpointConfig {
     /// Newest checkpoint; the one before it is kept as `<path>.prev` (both written
     /// atomically and verified; a save never replaces a model trained for more rounds).
@@ -294,30 +238,6 @@ impl Default for SyncSettings {
             min_pose_quality: sync.min_pose_quality,
             time_tag_tolerance_ms: TimeGuardConfig::default().tolerance_us / 1_000,
             resync_after_samples: TimeGuardConfig::default().resync_after,
-        }
-    }
-}
-
-impl Default for TrainingConfig {
-    fn default() -> Self {
-        let window = WindowConfig::default();
-        Self {
-            variant: "d".to_string(),
-            passes_per_round: 1,
-            window_size: window.capacity,
-            min_view_angle_deg: window.min_view_angle_deg,
-            threads: 2,
-            backend: "cpu".to_string(),
-            gpu_deterministic: true,
-            appearance_hidden_width: 128,
-            encoding_frequencies: 2,
-            mlp_precision: "f32".to_string(),
-            // The model docs/results/accuracy.md measured best (the demo preset's).
-            shading: "lambert_learned".to_string(),
-            appearance_inputs: "local".to_string(),
-            shadow_gain: 2.0,
-            round_deadline_ms: 60_000,
-            denormals: DenormalMode::default().name().to_string(),
         }
     }
 }
@@ -524,7 +444,8 @@ impl ComponentConfig {
         }
         // The model first: whether the backend runs it is a property of the file, the
         // same in every build; whether this build has the backend comes after.
-        self.model_config()?;
+        // The model, and the replay memory beside it.
+        self.online_config()?;
         self.backend()?;
         self.denormals()?;
         if self.checkpoint.path.as_os_str().is_empty() {
@@ -659,7 +580,9 @@ impl ComponentConfig {
     /// The Sun-aware model's settings: the variant and the `[training]` model keys over
     /// the trainer's defaults, each set by gs-core's [`SunAwareConfig::set_key`] (the
     /// model's own parsers; the simulator's presets go through it too) and checked by the
-    /// model's validation one at a time, so the error names the key. Then the backend must
+    /// model's validation one at a time, so the error names the key; then the light
+    /// camera's resolution and the rates (gs-core's `RateOverrides`, as the presets'
+    /// `[rates]`). Then the backend must
     /// run the model ([`BackendKind::check_model`]): checked here, when the file loads, not
     /// when the device opens.
     pub fn model_config(&self) -> Result<SunAwareConfig, ConfigError> {
@@ -694,6 +617,15 @@ impl ComponentConfig {
                 .set_key(key)
                 .map_err(|e| invalid(name, e.to_string()))?;
         }
+        // The light camera and the rates are part of the model too (checkpoints store them,
+        // so a resume with other values is a model mismatch).
+        model.light.resolution_px = t.light_resolution_px;
+        model
+            .validate()
+            .map_err(|e| invalid("training.light_resolution_px", e.to_string()))?;
+        t.rates
+            .set_on(&mut model)
+            .map_err(|e| invalid("training.rates", e.to_string()))?;
         self.backend_kind()?.check_model(&model).map_err(|why| {
             invalid(
                 "training.backend",
@@ -726,3 +658,6 @@ impl ComponentConfig {
 
 #[cfg(test)]
 mod tests;
+mod training;
+
+pub use training::TrainingConfig;

@@ -1,7 +1,7 @@
 //! Tests of `config` (a child module, so they reach its private items).
 
 use super::*;
-use gs_core::sunaware::{AppearanceInputs, Shading};
+use gs_core::sunaware::{AppearanceInputs, RateOverrides, Shading};
 
 fn parse(text: &str) -> Result<ComponentConfig, ConfigError> {
     ComponentConfig::from_toml_str(text, Path::new("test.toml"))
@@ -366,4 +366,161 @@ fn missing_file_is_a_read_error() {
     let e = ComponentConfig::load(Path::new("/nonexistent/component.toml")).unwrap_err();
     assert!(matches!(e, ConfigError::Read { .. }));
     assert!(e.to_string().contains("/nonexistent/component.toml"));
+}
+
+/// The demo preset's file (config/presets/demo.toml) as a TOML table: the component's
+/// default model and trainer are read against it, not against a second copy of its numbers
+/// (sim-harness, which parses presets, depends on this crate).
+fn demo_preset() -> toml::Table {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/presets/demo.toml");
+    toml::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// The default `[training]` sets every model key and trainer setting the demo preset sets
+/// under the same name, to the demo's value; its rates are the demo's `[rates]` (the same
+/// gs-core table), and they reach the online trainer's configuration.
+#[test]
+fn demo_preset_keys_are_the_defaults() {
+    let demo = demo_preset();
+    let training = toml::Table::try_from(TrainingConfig::default()).unwrap();
+    for key in [
+        "shading",
+        "appearance_inputs",
+        "shadow_gain",
+        "appearance_hidden_width",
+        "encoding_frequencies",
+        "light_resolution_px",
+        "replay_capacity",
+        "replay_steps_per_round",
+    ] {
+        assert_eq!(training.get(key), demo.get(key), "training.{key}");
+    }
+    let demo_rates: RateOverrides = demo["rates"].clone().try_into().unwrap();
+    let config = ComponentConfig::default();
+    assert_eq!(config.training.rates, demo_rates);
+    let online = config.online_config().unwrap();
+    assert_eq!(
+        online.model.lr,
+        demo_rates.applied_to(SunAwareConfig::default().lr)
+    );
+    assert_eq!(
+        (
+            online.replay_capacity,
+            online.replay_steps_per_round,
+            online.model.light.resolution_px
+        ),
+        (
+            demo["replay_capacity"].as_integer().unwrap() as usize,
+            demo["replay_steps_per_round"].as_integer().unwrap() as usize,
+            demo["light_resolution_px"].as_integer().unwrap() as u32
+        )
+    );
+}
+
+/// The rates, replay memory and light camera a file sets reach the online trainer's
+/// configuration (what `runtime::build_learner` gives the learner); unnamed rates keep
+/// the defaults.
+#[test]
+fn training_keys_reach_the_online_config() {
+    let online = parse(
+        "[training]\nreplay_capacity = 5\nreplay_steps_per_round = 2\n\
+         light_resolution_px = 64\npasses_per_round = 3\n[training.rates]\nnormal = 0.004\n",
+    )
+    .unwrap()
+    .online_config()
+    .unwrap();
+    let demo = TrainingConfig::default().rates;
+    assert_eq!(
+        (
+            online.replay_capacity,
+            online.replay_steps_per_round,
+            online.passes_per_round
+        ),
+        (5, 2, 3)
+    );
+    assert_eq!(online.model.light.resolution_px, 64);
+    assert_eq!(
+        online.model.lr,
+        RateOverrides {
+            normal: Some(0.004),
+            ..demo
+        }
+        .applied_to(SunAwareConfig::default().lr),
+        "a [training.rates] table replaces the default rates key by key"
+    );
+    assert!(
+        !online.unlit_full_frame,
+        "the adapter's own setting is kept"
+    );
+}
+
+#[test]
+fn bad_training_keys_name_the_key() {
+    for (text, key) in [
+        (
+            "[training]\nreplay_capacity = 1025\n",
+            "training.replay_capacity",
+        ),
+        (
+            "[training]\nreplay_steps_per_round = 1001\n",
+            "training.replay_steps_per_round",
+        ),
+        (
+            "[training]\nlight_resolution_px = 4\n",
+            "training.light_resolution_px",
+        ),
+        ("[training.rates]\nopacity = -0.05\n", "training.rates"),
+        ("[training.rates]\nfeature = nan\n", "training.rates"),
+        ("[training.rates]\nsh_dc = inf\n", "training.rates"),
+    ] {
+        assert_eq!(invalid_key(text), key, "{text}");
+    }
+    let message = parse("[training.rates]\nopacity = -0.05\n")
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("rates.opacity"), "{message}");
+    // Unknown rate names and wrong types are parse errors naming the key.
+    for (text, named) in [
+        ("[training.rates]\nopacityy = 0.1\n", "opacityy"),
+        ("[training.rates]\nopacity = \"high\"\n", "opacity"),
+        ("[training]\nreplay_capacity = -1\n", "replay_capacity"),
+    ] {
+        match parse(text) {
+            Err(ConfigError::Parse { message, .. }) => {
+                assert!(message.contains(named), "{text:?}: {message}");
+            }
+            other => panic!("expected a parse error for {text:?}, got {other:?}"),
+        }
+    }
+}
+
+/// Checkpoints store the model (its rates and light camera among it) and the replay
+/// capacity: a resume with other values is refused naming them; the replay steps per
+/// round are not stored, so changing them resumes.
+#[test]
+fn a_resume_with_other_rates_replay_or_light_camera_is_refused() {
+    use crate::runtime::{build_learner, LearnerKind};
+    const SMALL: &str = "[model]\ninit = \"random\"\ninitial_gaussians = 40\n";
+    let learner = |training: &str| {
+        build_learner(
+            &parse(&format!("{SMALL}{training}")).unwrap(),
+            LearnerKind::SunAware,
+        )
+        .unwrap()
+    };
+    let saved = learner("").save();
+    for (training, named) in [
+        ("[training]\nreplay_capacity = 0\n", "replay capacity 32"),
+        ("[training]\nlight_resolution_px = 64\n", "light"),
+        ("[training.rates]\nopacity = 0.04\n", "lr"),
+    ] {
+        let error = learner(training).load(&saved).unwrap_err().to_string();
+        assert!(
+            error.contains("on_config_mismatch") && error.contains(named),
+            "{training}: {error}"
+        );
+    }
+    learner("[training]\nreplay_steps_per_round = 2\n")
+        .load(&saved)
+        .unwrap();
 }

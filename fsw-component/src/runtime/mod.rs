@@ -100,7 +100,10 @@ pub fn build_learner(
         ),
         LearnerKind::SunAware => {
             let mut settings = SunAwareSettings::with_window(window);
-            settings.online.passes_per_round = config.training.passes_per_round;
+            // Window, passes, replay memory and the model (its keys, light camera, rates).
+            settings.online = config
+                .online_config()
+                .map_err(|e| RuntimeError::Config(e.to_string()))?;
             // A missing feature or adapter stops the start here (never a CPU fallback).
             let kind = config
                 .backend()
@@ -111,9 +114,6 @@ pub fn build_learner(
                     config.training.gpu_deterministic,
                 )
                 .map_err(|e| RuntimeError::Config(format!("training.backend: {e}")))?;
-            settings.online.model = config
-                .model_config()
-                .map_err(|e| RuntimeError::Config(e.to_string()))?;
             settings.model = config.model.clone();
             settings.on_config_mismatch = config.checkpoint.on_config_mismatch;
             Box::new(SunAwareLearner::new(settings).map_err(RuntimeError::Config)?)
