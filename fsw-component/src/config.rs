@@ -5,6 +5,8 @@
 //! [`ComponentConfig::validate`] checks ranges and cross-field consistency and names the
 //! offending key; [`ComponentConfig::load`] reads, parses and validates in one step.
 //! Quaternions are written `[w, x, y, z]` like the bus messages.
+//! `[training]` is in [`training`]: its keys (the demo preset's model and trainer by
+//! default) and the online trainer's configuration they give.
 
 use crate::cmdauth::{CommandConfig, CommandPolicy};
 use crate::cyphal_config::{CyphalConfig, CyphalConfigError};
@@ -658,6 +660,6 @@ impl ComponentConfig {
 
 #[cfg(test)]
 mod tests;
-mod training;
+pub mod training;
 
 pub use training::TrainingConfig;
