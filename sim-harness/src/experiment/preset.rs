@@ -768,6 +768,33 @@ mod tests {
         }
     }
 
+    /// The flight component's default configuration trains the demo preset's model and
+    /// trainer: the same model settings but for the ones listed (and documented in
+    /// config/component.toml), the same replay memory; the window and its timing follow
+    /// the paper's cadence instead.
+    #[test]
+    fn the_component_default_trains_the_demo_model() {
+        let demo = super::super::runner::online_config(&Preset::load("demo").unwrap(), Variant::D)
+            .unwrap();
+        let component = fsw_component::config::ComponentConfig::default()
+            .online_config()
+            .unwrap();
+        assert_eq!(
+            demo.model.differences(&component.model),
+            ["max_gaussians: 4000, 200000"],
+            "model settings (demo, component)"
+        );
+        assert_eq!(
+            (demo.replay_capacity, demo.replay_steps_per_round),
+            (component.replay_capacity, component.replay_steps_per_round)
+        );
+        assert_eq!(
+            (demo.passes_per_round, demo.densify_every_rounds),
+            (component.passes_per_round, component.densify_every_rounds)
+        );
+        assert_eq!((demo.window.capacity, component.window.capacity), (6, 10));
+    }
+
     #[test]
     fn bad_presets_name_the_field() {
         let e = Preset::from_toml_str("window = 1", "t")
