@@ -59,7 +59,7 @@ pub struct TrainingConfig {
     /// shortest scale axis; CPU only). Configuration (a) has no Phi colour and stays plain.
     pub shading: String,
     /// What Phi reads beyond the feature: "local" (default: and `[n.s, n.v, n.h]` of the
-    /// learned normal; needs `shading = "lambert_learned"`; CPU only), "paper" or
+    /// learned normal; needs `shading = "lambert_learned"`; both backends), "paper" or
     /// "local_no_sun". With `shading = "lambert_learned"` and "local" the demo scored
     /// +1.0 dB on held-out frames and +2.0 dB on new Sun directions (docs/results/accuracy.md).
     pub appearance_inputs: String,
