@@ -6,7 +6,8 @@
 #   bash tests/gpu/on_a_gpu.sh build DIR   # here: release binaries, stripped, into DIR
 #   bash tests/gpu/on_a_gpu.sh run DIR     # there: runs them; DIR/log.txt is the record
 # `run` needs a Vulkan loader and the GPU's ICD (NVIDIA: VK_DRIVER_FILES, set below when
-# the usual file exists). Nothing here is part of CI, which has no GPU.
+# the usual file exists); NVIDIA's Vulkan driver also loads glvnd's libGLX and libEGL
+# (Debian: libglvnd0, libglx0, libegl1), without which wgpu finds no adapter. Nothing here is part of CI, which has no GPU.
 set -uo pipefail
 
 mode=${1:-}
