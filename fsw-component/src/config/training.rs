@@ -44,9 +44,9 @@ pub struct TrainingConfig {
     /// same telemetry gives the same model), or `false` for the float-atomic backward,
     /// faster where the device's atomics are, whose last bits vary from run to run.
     pub gpu_deterministic: bool,
-    /// Width of the appearance network's (Phi's) hidden layers. Default 128, the
-    /// recommended preset's (docs/runtime-vs-error.md: about half the training CPU of the
-    /// paper's 256 at -0.10..+0.06 dB on the three simulated targets).
+    /// Width of the appearance network's (Phi's) hidden layers. Default 64, the demo's
+    /// (docs/results/accuracy.md section 6: against 128, +0.21 dB on new Sun directions and
+    /// -0.10 dB on held-out frames over three seeds, in 0.74x the training time).
     pub appearance_hidden_width: usize,
     /// Positional-encoding frequencies of the Sun and view directions. Default 2, the
     /// recommended preset's (the paper's 4 scored lower in the sweep at the same cost).
@@ -104,7 +104,7 @@ impl Default for TrainingConfig {
             threads: 2,
             backend: "cpu".to_string(),
             gpu_deterministic: true,
-            appearance_hidden_width: 128,
+            appearance_hidden_width: 64,
             encoding_frequencies: 2,
             mlp_precision: "f32".to_string(),
             // The model docs/results/accuracy.md measured best (the demo preset's).
