@@ -260,13 +260,11 @@ struct Reference {
 
 fn run_reference(dataset: &Path, scene: &SceneData, config: &ComponentConfig) -> Reference {
     let model = &config.model;
+    // The component's own trainer settings (window, model, replay memory, rates).
     let online_config = OnlineConfig {
-        window: config.window_config().unwrap(),
-        model: config.model_config().unwrap(),
-        passes_per_round: config.training.passes_per_round,
         // The component tests brightness only under a mask (`unlit_full_frame` off).
         unlit_full_frame: false,
-        ..OnlineConfig::default()
+        ..config.online_config().unwrap()
     };
     let backend = gs_core::engine::Backend::Cpu;
     let init = Initialisation::RandomSphere {
