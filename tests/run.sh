@@ -19,8 +19,13 @@ step "cargo test (unit, integration, gradient checks, fits, live UDP component)"
 if grep -qw avx512f /proc/cpuinfo; then export GS_REQUIRE_AVX512=1; fi
 if grep -qw avx2 /proc/cpuinfo && grep -qw fma /proc/cpuinfo; then export GS_REQUIRE_AVX2=1; fi
 if grep -qw avx512_bf16 /proc/cpuinfo; then export GS_REQUIRE_BF16=1; fi
+# AMX also needs Linux 5.16+ to grant the tile state; a kernel that refuses is a failure
+# here too, since the CPU flags say the tiles exist.
+if grep -qw amx_bf16 /proc/cpuinfo && grep -qw amx_tile /proc/cpuinfo; then
+    export GS_REQUIRE_AMX=1
+fi
 echo "GS_REQUIRE_AVX512=${GS_REQUIRE_AVX512:-0} GS_REQUIRE_AVX2=${GS_REQUIRE_AVX2:-0}" \
-    "GS_REQUIRE_BF16=${GS_REQUIRE_BF16:-0}"
+    "GS_REQUIRE_BF16=${GS_REQUIRE_BF16:-0} GS_REQUIRE_AMX=${GS_REQUIRE_AMX:-0}"
 # The GPU backend's tests run in the next step, where a missing adapter is a failure.
 cargo test --workspace --exclude gs-wgpu
 

@@ -86,8 +86,9 @@ fn parse(args: &[String]) -> Result<Option<Options>, String> {
         return Err("--record and --replay exclude each other".into());
     }
     options.denormals = fpmode::mode_from_env()?;
-    // A GS_F32_KERNEL this CPU cannot run is a usage error now, not at the first round.
-    gs_core::nn::F32Kernel::from_env().map_err(|e| e.to_string())?;
+    // A GS_F32_KERNEL or GS_BF16_KERNEL this CPU cannot run is a usage error now, not at
+    // the first round.
+    gs_core::nn::check_kernel_env().map_err(|e| e.to_string())?;
     Ok(Some(options))
 }
 

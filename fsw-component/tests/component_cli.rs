@@ -27,7 +27,11 @@ fn output_within_30_s(mut command: Command) -> Output {
 #[test]
 fn a_bad_compute_environment_variable_is_a_usage_error() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    for (var, value) in [("GS_F32_KERNEL", "sse9"), ("GS_DENORMALS", "sometimes")] {
+    for (var, value) in [
+        ("GS_F32_KERNEL", "sse9"),
+        ("GS_BF16_KERNEL", "fp8"),
+        ("GS_DENORMALS", "sometimes"),
+    ] {
         let mut command = Command::new(env!("CARGO_BIN_EXE_fsw-component"));
         command
             .args(["--config", "config/component.toml"])

@@ -1,4 +1,4 @@
-//! A/B of the f32 product kernels on one thread: the networks' layer shapes, each product
+//! A/B of the product kernels (f32 and bf16) on one thread: the networks' layer shapes, each product
 //! as the MLP runs it on one row block (`X W`, `X^T dZ`, `dZ W^T` over `BLOCK_ROWS` rows,
 //! repeated over `--blocks` blocks), and large square products for the machine's best
 //! f32 GEMM rate. The kernels run alternately within every repetition, so a change of
@@ -6,8 +6,9 @@
 //! the repetitions and the ratio of the medians.
 //!
 //! Run: `cargo run --release -p gs-core --example kernel_ab -- [--kernels a,b,...]
-//! [--reps N] [--blocks N] [--square N] [--net phi|psi]`. Kernels: `avx512`, `avx2`,
-//! `gemm-crate` (default: every one this CPU runs). `--square 0` skips the square product.
+//! [--reps N] [--blocks N] [--square N] [--net phi|psi]`. Kernels: f32 `avx512`, `avx2`,
+//! `gemm-crate`; bf16 `amx`, `avx512bf16` (default: every one this CPU runs). `--square 0`
+//! skips the square product.
 
 use std::time::Instant;
 
@@ -15,12 +16,13 @@ mod bench_util;
 use bench_util::{arg, arg_str, exit_if_help, init_threads, median};
 
 use gs_core::nn::mlp::BLOCK_ROWS;
-use gs_core::nn::{AppearanceNet, F32Kernel, PositionalEncoding, Products, ShadowNet};
+use gs_core::nn::{AppearanceNet, Bf16Kernel, F32Kernel, PositionalEncoding, Products, ShadowNet};
 
 const USAGE: &str = "\
 usage: cargo run --release -p gs-core --example kernel_ab -- [FLAGS]
 
-  --kernels A,B    f32 kernels to compare: avx512, avx2, gemm-crate (default: all present)
+  --kernels A,B    kernels to compare: f32 avx512, avx2, gemm-crate; bf16 amx, avx512bf16
+                   (default: all present)
   --reps N         repetitions, each kernel once per repetition, medians kept (default 7)
   --blocks N       row blocks of the network shapes per timing (default 4)
   --square N       side of the square product (default 1024; 0 skips it)
@@ -100,11 +102,18 @@ fn main() {
     let blocks = arg(&args, "--blocks").unwrap_or(4).max(1);
     let square = arg(&args, "--square").unwrap_or(1024);
     let net_filter = arg_str(&args, "--net");
-    let kernels: Vec<F32Kernel> = match arg_str(&args, "--kernels") {
+    let named = |name: &str| -> Result<Products, String> {
+        match F32Kernel::named(name) {
+            Ok(kernel) => Ok(Products::f32_on(kernel)),
+            Err(f32_err) if F32Kernel::NAMES.contains(&name) => Err(f32_err),
+            Err(_) => Bf16Kernel::named(name).map(Products::bf16_on),
+        }
+    };
+    let kernels: Vec<Products> = match arg_str(&args, "--kernels") {
         Some(list) => list
             .split(',')
             .map(|name| {
-                F32Kernel::named(name).unwrap_or_else(|e| {
+                named(name).unwrap_or_else(|e| {
                     eprintln!("kernel_ab: {e}");
                     std::process::exit(2);
                 })
@@ -112,7 +121,8 @@ fn main() {
             .collect(),
         None => F32Kernel::NAMES
             .iter()
-            .filter_map(|name| F32Kernel::named(name).ok())
+            .chain(&Bf16Kernel::NAMES)
+            .filter_map(|name| named(name).ok())
             .collect(),
     };
 
@@ -151,7 +161,7 @@ fn main() {
 
     println!("{}", gs_core::machine::header_line());
     println!("one thread, {reps} repetitions, kernels alternating; median GFLOP/s");
-    let names: Vec<&str> = kernels.iter().map(|k| k.name()).collect();
+    let names: Vec<&str> = kernels.iter().map(|k| k.kernel_name()).collect();
     print!("{:>24}", "product");
     for name in &names {
         print!(" {name:>11}");
@@ -164,7 +174,7 @@ fn main() {
         let mut rates: Vec<Vec<f64>> = vec![Vec::new(); kernels.len()];
         // Warm-up: scratch, caches and page faults out of the timings.
         for &kernel in &kernels {
-            (case.run)(Products::f32_on(kernel));
+            (case.run)(kernel);
         }
         for rep in 0..reps {
             // Alternate which kernel goes first, too.
@@ -175,7 +185,7 @@ fn main() {
                     kernels.len() - 1 - i
                 };
                 let t0 = Instant::now();
-                (case.run)(Products::f32_on(kernels[i]));
+                (case.run)(kernels[i]);
                 rates[i].push(case.flops / t0.elapsed().as_secs_f64() / 1e9);
             }
         }

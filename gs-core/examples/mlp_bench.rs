@@ -9,7 +9,7 @@
 //! [--mlp-only] [--net phi|psi] [--precision f32|bf16] [--kernel avx512|avx2|gemm-crate]
 //! [--width N] [--reference-python PATH | --no-reference]`. `--mlp-only` skips the GEMM
 //! table; `--net` keeps one network; `--precision` picks the products (both the networks'
-//! and the floor's; bf16 needs AVX-512 BF16); `--kernel` the f32 kernel (default:
+//! and the floor's; bf16 needs AMX-BF16 or AVX-512 BF16, `GS_BF16_KERNEL` picks); `--kernel` the f32 kernel (default:
 //! `F32Kernel::detect`; `kernel_ab` compares kernels alternately in one run); `--width` sets Phi's hidden width (default 256); `--json`
 //! prints one JSON object per line instead of the tables.
 //!
@@ -170,7 +170,8 @@ usage: cargo run --release -p gs-core --example mlp_bench -- [FLAGS]
   --reps N         repetitions, the minimum is kept (default 3)
   --mlp-only       skip the GEMM table
   --net NAME       phi or psi: keep one network
-  --precision P    f32 or bf16 products (bf16 needs AVX-512 BF16; default f32)
+  --precision P    f32 or bf16 products (bf16 needs AMX-BF16 or AVX-512 BF16;
+                   default f32)
   --kernel K       f32 kernel: avx512, avx2 or gemm-crate (default: the one detected)
   --width N        Phi's hidden width (default 256)
   --reference-python PATH
@@ -254,7 +255,7 @@ fn main() {
         .collect();
 
     let machine = json_machine_fields();
-    let kernel = products.f32_kernel().map_or("bf16", F32Kernel::name);
+    let kernel = products.kernel_name();
     let header = format!("{}; products: {kernel}", gs_core::machine::header_line());
     if json {
         eprintln!("{header}");

@@ -41,7 +41,11 @@ pub const ENV_HELP: &str = "environment:
   GS_F32_KERNEL=avx512|avx2|gemm-crate
                          the networks' f32 product kernel (default: avx512 where
                          the CPU has it, else avx2; avx512 and avx2 give the same
-                         bits, the gemm crate other ones)";
+                         bits, the gemm crate other ones)
+  GS_BF16_KERNEL=amx|avx512bf16
+                         the bf16 products' kernel when a configuration asks for
+                         bf16 (default: amx where the CPU and Linux allow it, else
+                         avx512bf16; they give different last bits)";
 
 /// How a thread's floating-point unit treats subnormal (denormal) numbers.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -175,10 +179,11 @@ pub fn mode_from_env() -> Result<Option<DenormalMode>, String> {
 
 /// [`mode_from_env`] (default flush-to-zero) applied by [`init_global_pool`]: the one call
 /// a binary or benchmark makes first thing in `main`. Returns the mode set. It also checks
-/// `GS_F32_KERNEL` ([`crate::nn::F32Kernel::from_env`]), so that a kernel name this CPU
-/// cannot run stops the program at start, not when its first network is built.
+/// `GS_F32_KERNEL` and `GS_BF16_KERNEL` ([`crate::nn::check_kernel_env`]), so that a
+/// kernel name this CPU cannot run stops the program at start, not when its first network
+/// is built.
 pub fn init_from_env(threads: Option<usize>) -> Result<DenormalMode, String> {
-    crate::nn::F32Kernel::from_env().map_err(|e| e.to_string())?;
+    crate::nn::check_kernel_env().map_err(|e| e.to_string())?;
     let mode = mode_from_env()?.unwrap_or_default();
     init_global_pool(mode, threads).map_err(|e| format!("rayon global pool: {e}"))?;
     Ok(mode)

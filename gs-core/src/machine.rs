@@ -1,17 +1,17 @@
 //! What machine a measurement ran on, for the benchmarks' headers and JSON: the CPU model,
 //! how many CPUs this process may use, the instruction-set extensions the fast paths pick
-//! at run time (AVX2, AVX-512F, AVX-512 BF16 on x86_64), the calling thread's denormal
-//! mode ([`crate::fpmode`]) and the networks' f32 product kernel. A timing without these
+//! at run time (AVX2, AVX-512F, AVX-512 BF16, AMX-BF16 on x86_64), the calling thread's
+//! denormal mode ([`crate::fpmode`]) and the networks' f32 and bf16 product kernels. A timing without these
 //! cannot be compared with another.
 //!
 //! Reads `/proc/cpuinfo` on Linux; elsewhere the model falls back to the architecture's
 //! name. Never fails.
 
 use crate::fpmode;
-use crate::nn::F32Kernel;
+use crate::nn::{Bf16Kernel, F32Kernel};
 
 /// One line: CPU model, CPUs available, the extensions that matter, e.g.
-/// `Intel(R) Xeon(R) Processor, 2 CPUs available, avx2 avx512f avx512bf16`
+/// `Intel(R) Xeon(R) Processor, 2 CPUs available, avx2 avx512f avx512bf16 amx-bf16`
 /// (a missing extension is listed as `no-avx512bf16`).
 pub fn cpu_description() -> String {
     let model = cpu_model().unwrap_or_else(|| std::env::consts::ARCH.to_string());
@@ -26,13 +26,19 @@ pub fn cpu_description() -> String {
 }
 
 /// The benchmarks' header line: [`cpu_description`], the calling thread's denormal mode
-/// (the binaries set the same mode on every training thread) and the networks' f32 product
-/// kernel (`GS_F32_KERNEL`, else the CPU's default; an invalid setting is shown as such,
-/// the network constructors report it as an error).
+/// (the binaries set the same mode on every training thread) and the networks' f32 and
+/// bf16 product kernels (`GS_F32_KERNEL` / `GS_BF16_KERNEL`, else the CPU's default; an
+/// invalid setting is shown as such, the network constructors report it as an error; a
+/// CPU without bf16 kernels shows "none").
 pub fn header_line() -> String {
     let kernel = F32Kernel::from_env().map_or_else(|e| e.to_string(), |k| k.name().to_string());
+    let bf16 = match std::env::var(crate::nn::matmul::BF16_KERNEL_ENV_VAR) {
+        Ok(name) if !name.is_empty() => Bf16Kernel::from_setting(Some(&name))
+            .map_or_else(|e| e.to_string(), |k| k.name().to_string()),
+        _ => Bf16Kernel::detect().map_or_else(|_| "none".to_string(), |k| k.name().to_string()),
+    };
     format!(
-        "cpu: {}; denormals: {}; f32 kernel: {kernel}",
+        "cpu: {}; denormals: {}; f32 kernel: {kernel}; bf16 kernel: {bf16}",
         cpu_description(),
         fpmode::current()
     )
@@ -63,6 +69,8 @@ fn isa_features() -> String {
                 "avx512bf16",
                 std::arch::is_x86_feature_detected!("avx512bf16"),
             ),
+            // Usable tiles: the CPU has them and Linux granted this process the state.
+            ("amx-bf16", crate::nn::amx::AmxKernels::detect().is_ok()),
         ];
         found
             .iter()
@@ -121,13 +129,14 @@ mod tests {
         assert!(d.contains(" CPUs available"), "{d}");
         assert!(!d.starts_with(','), "{d}");
         if cfg!(target_arch = "x86_64") {
-            assert!(d.contains("avx512bf16"), "{d}");
+            assert!(d.contains("avx512bf16") && d.contains("amx-bf16"), "{d}");
         }
         let line = header_line();
         assert!(
             line.starts_with("cpu: ")
                 && line.contains("; denormals: ")
-                && line.contains("; f32 kernel: "),
+                && line.contains("; f32 kernel: ")
+                && line.contains("; bf16 kernel: "),
             "{line}"
         );
     }

@@ -311,7 +311,7 @@ fn bf16_products_train_to_within_a_small_margin_of_f32() {
     use gs_core::nn::MatmulPrecision;
     let scene = SyntheticScene::plate_and_ball(12, 60).unwrap();
     if let Err(e) = MatmulPrecision::Bf16.check_supported() {
-        // Without AVX-512 BF16 the choice is refused when the model is configured; the
+        // Without AMX-BF16 or AVX-512 BF16 the choice is refused when the model is configured; the
         // comparison itself is skipped, visibly.
         let config = SunAwareConfig {
             mlp_precision: MatmulPrecision::Bf16,

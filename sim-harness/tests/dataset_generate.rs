@@ -332,12 +332,16 @@ fn obj_targets_load_relative_to_the_scenario_file() {
     std::fs::remove_dir_all(dir).unwrap();
 }
 
-/// A bad `GS_F32_KERNEL` or `GS_DENORMALS` stops the binary at start with a usage error
+/// A bad `GS_F32_KERNEL`, `GS_BF16_KERNEL` or `GS_DENORMALS` stops the binary at start with a usage error
 /// (status 2) naming the variable, before any work (no output directory).
 #[test]
 fn a_bad_compute_environment_variable_stops_the_start() {
     let dir = std::env::temp_dir().join(format!("gs_bad_env_{}", std::process::id()));
-    for (var, value) in [("GS_F32_KERNEL", "sse9"), ("GS_DENORMALS", "sometimes")] {
+    for (var, value) in [
+        ("GS_F32_KERNEL", "sse9"),
+        ("GS_BF16_KERNEL", "fp8"),
+        ("GS_DENORMALS", "sometimes"),
+    ] {
         let output = std::process::Command::new(env!("CARGO_BIN_EXE_sim-harness"))
             .args([
                 "generate",

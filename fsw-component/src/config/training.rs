@@ -51,8 +51,8 @@ pub struct TrainingConfig {
     /// Positional-encoding frequencies of the Sun and view directions. Default 2, the
     /// recommended preset's (the paper's 4 scored lower in the sweep at the same cost).
     pub encoding_frequencies: usize,
-    /// The networks' matrix products: "f32" (default) or "bf16" (AVX-512 BF16 only; a CPU
-    /// without it fails validation).
+    /// The networks' matrix products: "f32" (default) or "bf16" (AMX-BF16 or AVX-512 BF16
+    /// only; a CPU with neither fails validation).
     pub mlp_precision: String,
     /// Colour times `k_a + (1 - k_a) max(0, n.s)`: "lambert_learned" (default: a learned
     /// normal n per Gaussian, the demo's model), "none" (the paper) or "lambert" (the

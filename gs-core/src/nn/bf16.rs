@@ -363,14 +363,17 @@ mod x86 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nn::kernel_tests::{operand, transpose};
-    use crate::nn::matmul::{MatmulPrecision, Products};
+    use crate::nn::kernel_tests::{
+        bf16_layouts_meet_the_bound, results_repeat_whatever_the_splits,
+    };
+    use crate::nn::matmul::{Bf16Kernel, MatmulPrecision, Products};
     use crate::rng::SplitMix64;
 
-    /// The bf16 products (the kernels behind `Products`' shape checks), or `None`.
+    /// This module's products (behind `Products`' shape checks, whatever kernel
+    /// `Bf16Kernel::detect` would prefer), or `None` with a visible skip.
     fn kernels() -> Option<Products> {
-        match Products::new(MatmulPrecision::Bf16) {
-            Ok(k) => Some(k),
+        match Bf16Kernels::detect() {
+            Ok(k) => Some(Products::bf16_on(Bf16Kernel::Avx512Bf16(k))),
             Err(e) => {
                 crate::machine::skip_unless_required("GS_REQUIRE_BF16", &e.to_string());
                 None
@@ -409,55 +412,6 @@ mod tests {
         }
     }
 
-    /// `A (m x k)`, `B (k x n)`: per element of `C`, the exact f64 product, the product of
-    /// the bf16-rounded inputs in f64, and `sum |a b|`.
-    fn references(
-        a: &[f32],
-        b: &[f32],
-        (m, k, n): (usize, usize, usize),
-    ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
-        let mut exact = vec![0.0; m * n];
-        let mut rounded = vec![0.0; m * n];
-        let mut magnitude = vec![0.0; m * n];
-        for i in 0..m {
-            for j in 0..n {
-                for t in 0..k {
-                    let (x, y) = (a[i * k + t], b[t * n + j]);
-                    exact[i * n + j] += x as f64 * y as f64;
-                    rounded[i * n + j] += round_to_bf16(x) as f64 * round_to_bf16(y) as f64;
-                    magnitude[i * n + j] += (x as f64 * y as f64).abs();
-                }
-            }
-        }
-        (exact, rounded, magnitude)
-    }
-
-    /// Checks `got` against both references: the stated bf16 bound against exact arithmetic,
-    /// and the f32-accumulation bound against the product of the rounded inputs (which a
-    /// kernel that skipped or truncated the rounding would miss).
-    fn check(got: &[f32], refs: &(Vec<f64>, Vec<f64>, Vec<f64>), k: usize, what: &str) {
-        let u = 2f64.powi(-24);
-        let tiny = 1e-30;
-        for (e, ((&g, (&exact, &rounded)), &mag)) in got
-            .iter()
-            .zip(refs.0.iter().zip(&refs.1))
-            .zip(&refs.2)
-            .enumerate()
-        {
-            let g = g as f64;
-            let bound = (2f64.powi(-7) + 2f64.powi(-16) + (k as f64 + 2.0) * u) * mag + tiny;
-            assert!(
-                (g - exact).abs() <= bound,
-                "{what}: element {e}: {g} vs exact {exact} (bound {bound})"
-            );
-            let accumulation = (k as f64 + 2.0) * u * 1.01 * mag + tiny;
-            assert!(
-                (g - rounded).abs() <= accumulation,
-                "{what}: element {e}: {g} vs bf16-rounded {rounded} (bound {accumulation})"
-            );
-        }
-    }
-
     #[test]
     fn products_match_references_in_all_three_layouts_and_odd_shapes() {
         let Some(kernels) = kernels() else { return };
@@ -475,102 +429,15 @@ mod tests {
             (11, 256, 3),
             (64, 257, 1),
         ];
-        for (m, k, n) in shapes {
-            let a = operand(m * k, &mut rng);
-            let b = operand(k * n, &mut rng);
-            let refs = references(&a, &b, (m, k, n));
-            let shape = format!("{m}x{k}x{n}");
-
-            let mut c = vec![f32::NAN; m * n];
-            kernels.matmul(&a, &b, &mut c, m, k, n, false);
-            check(&c, &refs, k, &format!("matmul {shape}"));
-
-            let mut c2 = vec![f32::NAN; m * n];
-            kernels.matmul_at_b(&transpose(&a, m, k), &b, &mut c2, k, m, n, false);
-            check(&c2, &refs, k, &format!("matmul_at_b {shape}"));
-
-            let mut c3 = vec![f32::NAN; m * n];
-            kernels.matmul_a_bt(&a, &transpose(&b, k, n), &mut c3, m, k, n, false);
-            check(&c3, &refs, k, &format!("matmul_a_bt {shape}"));
-
-            // Accumulation adds the product to what is there (here: the product again).
-            kernels.matmul(&a, &b, &mut c, m, k, n, true);
-            let doubled = (
-                refs.0.iter().map(|v| 2.0 * v).collect(),
-                refs.1.iter().map(|v| 2.0 * v).collect(),
-                refs.2.iter().map(|v| 2.0 * v).collect(),
-            );
-            check(&c, &doubled, k, &format!("accumulated matmul {shape}"));
-        }
+        bf16_layouts_meet_the_bound(kernels, &shapes, &mut rng);
     }
 
+    /// Row splits, repeats and reduction splits at even indices (the second call starts
+    /// from the first one's partial sums) keep the bits.
     #[test]
-    fn rows_do_not_depend_on_their_neighbours_and_repeat_bit_for_bit() {
+    fn rows_and_even_reduction_splits_keep_the_bits() {
         let Some(kernels) = kernels() else { return };
-        let mut rng = SplitMix64::new(5);
-        let (m, k, n) = (21, 75, 40);
-        let a = operand(m * k, &mut rng);
-        let b = operand(k * n, &mut rng);
-        let mut whole = vec![0.0; m * n];
-        kernels.matmul(&a, &b, &mut whole, m, k, n, false);
-        let mut again = vec![0.0; m * n];
-        kernels.matmul(&a, &b, &mut again, m, k, n, false);
-        assert_eq!(whole, again);
-        // Blocks of any row count give the same bits (callers split rows freely).
-        for split in [1, 5, 8, 13] {
-            let mut pieces = vec![0.0; m * n];
-            for (rows_a, rows_c) in a.chunks(split * k).zip(pieces.chunks_mut(split * n)) {
-                kernels.matmul(rows_a, &b, rows_c, rows_c.len() / n, k, n, false);
-            }
-            assert_eq!(
-                whole.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-                pieces.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-                "split {split}"
-            );
-        }
-    }
-
-    #[test]
-    fn accumulating_continues_the_sum_so_splitting_the_reduction_keeps_the_bits() {
-        let Some(kernels) = kernels() else { return };
-        let mut rng = SplitMix64::new(9);
-        let (m, k, n) = (10, 600, 19);
-        let a = operand(m * k, &mut rng);
-        let b = operand(k * n, &mut rng);
-        let mut whole = vec![0.0; m * n];
-        kernels.matmul(&a, &b, &mut whole, m, k, n, false);
-        // The same sum in two calls split at an even reduction index: the second call
-        // starts from the first one's partial sums.
-        let split = 256;
-        let a_cols = |lo: usize, hi: usize| -> Vec<f32> {
-            (0..m)
-                .flat_map(|i| a[i * k + lo..i * k + hi].to_vec())
-                .collect()
-        };
-        let mut parts = vec![0.0; m * n];
-        kernels.matmul(
-            &a_cols(0, split),
-            &b[..split * n],
-            &mut parts,
-            m,
-            split,
-            n,
-            false,
-        );
-        let rest = k - split;
-        kernels.matmul(
-            &a_cols(split, k),
-            &b[split * n..],
-            &mut parts,
-            m,
-            rest,
-            n,
-            true,
-        );
-        assert_eq!(
-            whole.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-            parts.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
-        );
+        results_repeat_whatever_the_splits(kernels, (21, 600, 19), &[2, 76, 256]);
     }
 
     #[test]

@@ -2,8 +2,10 @@
 //! kernel under test as `Products`: the stated summation order against a scalar `mul_add`
 //! chain (bit for bit) and an f64 bound, empty shapes, repeatability under row and
 //! reduction splits, and agreement of two kernels bit for bit on random shapes; and the
-//! operand helpers the bf16 and `matmul.rs` tests use too.
+//! operand helpers the bf16 and `matmul.rs` tests use too, and the bfloat16 kernels'
+//! references and bound (`bf16.rs`, `amx.rs`).
 
+use crate::nn::bf16::round_to_bf16;
 use crate::nn::matmul::Products;
 use crate::rng::SplitMix64;
 
@@ -157,10 +159,15 @@ pub(super) fn empty_shapes_leave_or_zero_the_output(kernels: Products) {
     kernels.matmul_a_bt(&[1.0; 8], &[], &mut [], 2, 4, 0, true);
 }
 
-/// The same bits on a repeat, for any split of the rows and of the reduction over calls.
-pub(super) fn results_repeat_whatever_the_splits(kernels: Products) {
+/// The same bits on a repeat, for any split of the rows and for the kernel's reduction
+/// splits over calls (f32: any index; bf16 kernels: their pair or chunk boundaries), on
+/// `m x k x n` (`k` past the largest split).
+pub(super) fn results_repeat_whatever_the_splits(
+    kernels: Products,
+    (m, k, n): (usize, usize, usize),
+    reduction_splits: &[usize],
+) {
     let mut rng = SplitMix64::new(5);
-    let (m, k, n) = (45, 300, 40);
     let a = operand(m * k, &mut rng);
     let b = operand(k * n, &mut rng);
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
@@ -170,7 +177,7 @@ pub(super) fn results_repeat_whatever_the_splits(kernels: Products) {
     kernels.matmul(&a, &b, &mut again, m, k, n, false);
     assert_eq!(bits(&whole), bits(&again));
     // Row blocks of any size give the same bits (callers split rows freely, in threads).
-    for split in [1, 5, 14, 17] {
+    for split in [1, 5, 14, 17, 33] {
         let mut pieces = vec![0.0; m * n];
         for (rows_a, rows_c) in a.chunks(split * k).zip(pieces.chunks_mut(split * n)) {
             kernels.matmul(rows_a, &b, rows_c, rows_c.len() / n, k, n, false);
@@ -183,7 +190,7 @@ pub(super) fn results_repeat_whatever_the_splits(kernels: Products) {
     let mut at_b = vec![0.0; m * n];
     kernels.matmul_at_b(&a_t, &b, &mut at_b, k, m, n, false);
     assert_eq!(bits(&whole), bits(&at_b));
-    for split in [1, 77, 256] {
+    for &split in reduction_splits {
         let mut parts = vec![0.0; m * n];
         let rest = k - split;
         kernels.matmul_at_b(
@@ -237,5 +244,97 @@ pub(super) fn kernels_agree_bit_for_bit(first: Products, second: Products) {
                 );
             }
         }
+    }
+}
+
+// The bfloat16 kernels' references (`bf16.rs`, `amx.rs`).
+
+/// `A (m x k)`, `B (k x n)`: per element of `C`, the exact f64 product, the product of
+/// the bf16-rounded inputs in f64, and `sum |a b|`.
+pub(super) fn bf16_references(
+    a: &[f32],
+    b: &[f32],
+    (m, k, n): (usize, usize, usize),
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let mut exact = vec![0.0; m * n];
+    let mut rounded = vec![0.0; m * n];
+    let mut magnitude = vec![0.0; m * n];
+    for i in 0..m {
+        for j in 0..n {
+            for t in 0..k {
+                let (x, y) = (a[i * k + t], b[t * n + j]);
+                exact[i * n + j] += x as f64 * y as f64;
+                rounded[i * n + j] += round_to_bf16(x) as f64 * round_to_bf16(y) as f64;
+                magnitude[i * n + j] += (x as f64 * y as f64).abs();
+            }
+        }
+    }
+    (exact, rounded, magnitude)
+}
+
+/// Checks `got` against both references: the stated bf16 bound against exact arithmetic,
+/// and the f32-accumulation bound against the product of the rounded inputs (which a
+/// kernel that skipped or truncated the rounding would miss).
+pub(super) fn bf16_check(got: &[f32], refs: &(Vec<f64>, Vec<f64>, Vec<f64>), k: usize, what: &str) {
+    let u = 2f64.powi(-24);
+    let tiny = 1e-30;
+    for (e, ((&g, (&exact, &rounded)), &mag)) in got
+        .iter()
+        .zip(refs.0.iter().zip(&refs.1))
+        .zip(&refs.2)
+        .enumerate()
+    {
+        let g = g as f64;
+        let bound = (2f64.powi(-7) + 2f64.powi(-16) + (k as f64 + 2.0) * u) * mag + tiny;
+        assert!(
+            (g - exact).abs() <= bound,
+            "{what}: element {e}: {g} vs exact {exact} (bound {bound})"
+        );
+        let accumulation = (k as f64 + 2.0) * u * 1.01 * mag + tiny;
+        assert!(
+            (g - rounded).abs() <= accumulation,
+            "{what}: element {e}: {g} vs bf16-rounded {rounded} (bound {accumulation})"
+        );
+    }
+}
+
+/// Every layout of the bf16 `kernels` on `shapes` (random operands from `rng`) within
+/// [`bf16_check`]'s bound: `matmul`, `matmul_at_b` and `matmul_a_bt`, which pack the same
+/// words and so agree bit for bit, and `matmul` accumulating onto its own result.
+pub(super) fn bf16_layouts_meet_the_bound(
+    kernels: Products,
+    shapes: &[(usize, usize, usize)],
+    rng: &mut SplitMix64,
+) {
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let name = kernels.kernel_name();
+    for &(m, k, n) in shapes {
+        let a = operand(m * k, rng);
+        let b = operand(k * n, rng);
+        let refs = bf16_references(&a, &b, (m, k, n));
+        let shape = format!("{name} {m}x{k}x{n}");
+
+        let mut c = vec![f32::NAN; m * n];
+        kernels.matmul(&a, &b, &mut c, m, k, n, false);
+        bf16_check(&c, &refs, k, &format!("matmul {shape}"));
+
+        let mut c2 = vec![f32::NAN; m * n];
+        kernels.matmul_at_b(&transpose(&a, m, k), &b, &mut c2, k, m, n, false);
+        bf16_check(&c2, &refs, k, &format!("matmul_at_b {shape}"));
+
+        let mut c3 = vec![f32::NAN; m * n];
+        kernels.matmul_a_bt(&a, &transpose(&b, k, n), &mut c3, m, k, n, false);
+        bf16_check(&c3, &refs, k, &format!("matmul_a_bt {shape}"));
+        assert_eq!(bits(&c), bits(&c2), "{shape}");
+        assert_eq!(bits(&c), bits(&c3), "{shape}");
+
+        // Accumulation adds the product to what is there (here: the product again).
+        kernels.matmul(&a, &b, &mut c, m, k, n, true);
+        let doubled = (
+            refs.0.iter().map(|v| 2.0 * v).collect(),
+            refs.1.iter().map(|v| 2.0 * v).collect(),
+            refs.2.iter().map(|v| 2.0 * v).collect(),
+        );
+        bf16_check(&c, &doubled, k, &format!("accumulated matmul {shape}"));
     }
 }

@@ -1,5 +1,6 @@
 //! Single-threaded row-major f32 matrix products, and [`Products`]: the networks' choice
-//! between these and the bfloat16 kernels of `bf16.rs`.
+//! between these and the bfloat16 kernels of `amx.rs` (AMX tiles) and `bf16.rs` (AVX-512
+//! BF16), [`Bf16Kernel`].
 //!
 //! The f32 products run on the AVX-512 kernels of `avx512.rs` where the CPU has AVX-512F,
 //! else on the AVX2 kernels of `avx2.rs` where it has AVX2 and FMA, else on the portable
@@ -24,6 +25,7 @@
 
 use gemm::Parallelism;
 
+use super::amx::AmxKernels;
 use super::avx2::Avx2Kernels;
 use super::avx512::Avx512Kernels;
 use super::bf16::Bf16Kernels;
@@ -35,13 +37,15 @@ pub enum MatmulPrecision {
     /// f32 inputs, f32 accumulation ([`F32Kernel::detect`] picks the kernel).
     #[default]
     F32,
-    /// Inputs rounded to bfloat16, f32 accumulation (AVX-512 BF16 where the CPU has it).
+    /// Inputs rounded to bfloat16, f32 accumulation ([`Bf16Kernel::detect`] picks the
+    /// kernel: AMX tiles, else AVX-512 BF16; a CPU with neither refuses it).
     Bf16,
 }
 
 impl MatmulPrecision {
-    /// `Ok` when this CPU runs products of this precision; for `Bf16` without AVX-512 BF16
-    /// a configuration error naming the missing feature (never a silent fallback).
+    /// `Ok` when this CPU runs products of this precision; for `Bf16` without AMX or
+    /// AVX-512 BF16 a configuration error naming the missing feature (never a silent
+    /// fallback).
     pub fn check_supported(self) -> Result<(), NnError> {
         Products::new(self).map(|_| ())
     }
@@ -127,12 +131,88 @@ impl Default for F32Kernel {
     }
 }
 
+/// The kernel of the bfloat16 products. The two sum the same bfloat16 products in
+/// different orders, so their results differ in the last bits; each is bit-reproducible.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Bf16Kernel {
+    /// `amx.rs` (its value proves the CPU has AMX-BF16 and Linux granted the tiles).
+    Amx(AmxKernels),
+    /// `bf16.rs` (its value proves the CPU has AVX-512 BF16).
+    Avx512Bf16(Bf16Kernels),
+}
+
+impl Bf16Kernel {
+    /// The names [`Bf16Kernel::named`] takes, in the order [`Bf16Kernel::detect`] prefers.
+    pub const NAMES: [&'static str; 2] = ["amx", "avx512bf16"];
+
+    /// The kernel this CPU runs by default: AMX where present, else AVX-512 BF16, else
+    /// the error of the missing feature.
+    pub fn detect() -> Result<Self, NnError> {
+        match AmxKernels::detect() {
+            Ok(amx) => Ok(Self::Amx(amx)),
+            Err(_) => Bf16Kernels::detect().map(Self::Avx512Bf16),
+        }
+    }
+
+    /// The kernel called `name` ([`Bf16Kernel::name`]), or why this CPU cannot run it.
+    pub fn named(name: &str) -> Result<Self, String> {
+        let reason = |e: NnError| format!("bf16 kernel {name}: {e}");
+        match name {
+            "amx" => AmxKernels::detect().map(Self::Amx).map_err(reason),
+            "avx512bf16" => Bf16Kernels::detect().map(Self::Avx512Bf16).map_err(reason),
+            other => Err(format!(
+                "bf16 kernel {other:?}: expected one of {}",
+                Self::NAMES.join(", ")
+            )),
+        }
+    }
+
+    /// [`Bf16Kernel::detect`]'s kernel, unless [`BF16_KERNEL_ENV_VAR`] names one (`amx`
+    /// or `avx512bf16`: to compare them, or to reproduce results of the other). A name
+    /// this CPU cannot run, or an unknown one, is a configuration error.
+    pub fn from_env() -> Result<Self, NnError> {
+        Self::from_setting(std::env::var(BF16_KERNEL_ENV_VAR).ok().as_deref())
+    }
+
+    /// [`Bf16Kernel::from_env`] for the variable's value (`None` or empty: unset).
+    pub fn from_setting(setting: Option<&str>) -> Result<Self, NnError> {
+        match setting {
+            Some(name) if !name.is_empty() => Self::named(name)
+                .map_err(|e| NnError::Config(format!("{BF16_KERNEL_ENV_VAR}: {e}"))),
+            _ => Self::detect(),
+        }
+    }
+
+    /// The name the benchmarks print.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Amx(_) => "amx",
+            Self::Avx512Bf16(_) => "avx512bf16",
+        }
+    }
+}
+
+/// The environment variable that forces the bf16 kernel ([`Bf16Kernel::from_env`]).
+pub const BF16_KERNEL_ENV_VAR: &str = "GS_BF16_KERNEL";
+
+/// Checks both kernel variables (`GS_F32_KERNEL`; `GS_BF16_KERNEL` when set), so that a
+/// binary stops at start on a kernel name this CPU cannot run, not at its first network.
+/// An unset `GS_BF16_KERNEL` is no error on a CPU without bf16 kernels: only the bf16
+/// precision needs one, and it reports its own error.
+pub fn check_kernel_env() -> Result<(), NnError> {
+    F32Kernel::from_env()?;
+    match std::env::var(BF16_KERNEL_ENV_VAR) {
+        Ok(name) if !name.is_empty() => Bf16Kernel::from_setting(Some(&name)).map(|_| ()),
+        _ => Ok(()),
+    }
+}
+
 /// The matrix products of one precision, checked against the CPU when chosen: the three
 /// layouts the MLP uses, each single-threaded and deterministic.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Products {
     /// `Some` for bfloat16 products (its existence proves the CPU runs them).
-    bf16: Option<Bf16Kernels>,
+    bf16: Option<Bf16Kernel>,
     /// The f32 products' kernel (unused when `bf16` is set).
     f32_kernel: F32Kernel,
 }
@@ -140,12 +220,12 @@ pub struct Products {
 impl Products {
     /// Products of `precision`, or an error when the CPU lacks what it needs. f32 products
     /// take [`F32Kernel::from_env`]'s kernel (the CPU's default unless `GS_F32_KERNEL`
-    /// names one).
+    /// names one), bf16 products [`Bf16Kernel::from_env`]'s (`GS_BF16_KERNEL`).
     pub fn new(precision: MatmulPrecision) -> Result<Self, NnError> {
         Ok(Self {
             bf16: match precision {
                 MatmulPrecision::F32 => None,
-                MatmulPrecision::Bf16 => Some(Bf16Kernels::detect()?),
+                MatmulPrecision::Bf16 => Some(Bf16Kernel::from_env()?),
             },
             f32_kernel: F32Kernel::from_env()?,
         })
@@ -156,6 +236,27 @@ impl Products {
         Self {
             bf16: None,
             f32_kernel: kernel,
+        }
+    }
+
+    /// bfloat16 products on `kernel` (benchmarks and tests compare kernels).
+    pub fn bf16_on(kernel: Bf16Kernel) -> Self {
+        Self {
+            bf16: Some(kernel),
+            f32_kernel: F32Kernel::detect(),
+        }
+    }
+
+    /// The kernel of the bfloat16 products (`None` for f32 products).
+    pub fn bf16_kernel(self) -> Option<Bf16Kernel> {
+        self.bf16
+    }
+
+    /// The kernel's name: [`F32Kernel::name`] or [`Bf16Kernel::name`].
+    pub fn kernel_name(self) -> &'static str {
+        match self.bf16 {
+            Some(kernel) => kernel.name(),
+            None => self.f32_kernel.name(),
         }
     }
 
@@ -227,7 +328,10 @@ impl Products {
             return;
         };
         match (self.bf16, self.f32_kernel) {
-            (Some(kernel), _) => kernel.product((m, k, n), a, b, c, accumulate),
+            (Some(Bf16Kernel::Amx(kernel)), _) => kernel.product((m, k, n), a, b, c, accumulate),
+            (Some(Bf16Kernel::Avx512Bf16(kernel)), _) => {
+                kernel.product((m, k, n), a, b, c, accumulate);
+            }
             (None, F32Kernel::Avx512(kernel)) => kernel.product((m, k, n), a, b, c, accumulate),
             (None, F32Kernel::Avx2(kernel)) => kernel.product((m, k, n), a, b, c, accumulate),
             (None, F32Kernel::Portable) => portable::product((m, k, n), a, b, c, accumulate),
@@ -464,6 +568,35 @@ mod tests {
         assert_eq!(F32Kernel::named(detected.name()), Ok(detected));
         assert_eq!(F32Kernel::named("gemm-crate"), Ok(F32Kernel::Portable));
         assert!(F32Kernel::named("sse").is_err());
+    }
+
+    #[test]
+    fn the_bf16_kernel_is_amx_where_usable_and_follows_the_setting() {
+        let amx = AmxKernels::detect().is_ok();
+        let avx512bf16 = Bf16Kernels::detect().is_ok();
+        let detected = Bf16Kernel::detect();
+        assert_eq!(detected.is_ok(), amx || avx512bf16);
+        if let Ok(kernel) = detected {
+            assert_eq!(matches!(kernel, Bf16Kernel::Amx(_)), amx);
+            assert_eq!(Bf16Kernel::named(kernel.name()), Ok(kernel));
+            assert_eq!(Bf16Kernel::from_setting(None), Ok(kernel));
+            assert_eq!(Bf16Kernel::from_setting(Some("")), Ok(kernel));
+            assert_eq!(Products::bf16_on(kernel).kernel_name(), kernel.name());
+            assert_eq!(Products::bf16_on(kernel).f32_kernel(), None);
+        }
+        assert_eq!(Bf16Kernel::named("amx").is_ok(), amx);
+        assert_eq!(Bf16Kernel::named("avx512bf16").is_ok(), avx512bf16);
+        let unknown = Bf16Kernel::from_setting(Some("fp8"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            unknown.contains("GS_BF16_KERNEL") && unknown.contains("fp8"),
+            "{unknown}"
+        );
+        // f32 products name their f32 kernel.
+        let f32_products = Products::f32_on(F32Kernel::Portable);
+        assert_eq!(f32_products.kernel_name(), "gemm-crate");
+        assert_eq!(f32_products.bf16_kernel(), None);
     }
 
     #[test]

@@ -292,7 +292,7 @@ impl Mlp {
     }
 
     /// Runs every later product in `precision`. An error (and no change) when this CPU
-    /// cannot: `Bf16` needs AVX-512 BF16.
+    /// cannot: `Bf16` needs AMX-BF16 or AVX-512 BF16.
     pub fn set_precision(&mut self, precision: MatmulPrecision) -> Result<(), NnError> {
         self.products = Products::new(precision)?;
         Ok(())

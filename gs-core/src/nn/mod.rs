@@ -30,6 +30,7 @@
 //! # }
 //! ```
 
+pub mod amx;
 pub mod appearance;
 pub mod avx2;
 pub mod avx512;
@@ -48,6 +49,6 @@ mod tiled;
 pub use appearance::{AppearanceInputs, AppearanceNet};
 pub use encoding::PositionalEncoding;
 pub use error::NnError;
-pub use matmul::{F32Kernel, MatmulPrecision, Products};
+pub use matmul::{check_kernel_env, Bf16Kernel, F32Kernel, MatmulPrecision, Products};
 pub use mlp::{HiddenActivation, Init, Mlp, MlpForward, TapeMode};
 pub use shadow_net::{SceneBox, ShadowNet};

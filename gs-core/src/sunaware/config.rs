@@ -413,8 +413,8 @@ pub struct SunAwareConfig {
     /// network's shape, so checkpoints store it (from version 3; older ones load as 256).
     pub appearance_hidden_width: usize,
     /// Arithmetic of the networks' matrix products on the CPU: `F32`, or `Bf16` (inputs
-    /// rounded to bfloat16, f32 accumulation, on AVX-512 BF16; `SunAwareModel::new` fails
-    /// on a CPU without it). Both Phi and Psi. A speed setting, not stored in checkpoints:
+    /// rounded to bfloat16, f32 accumulation, on AMX tiles or AVX-512 BF16;
+    /// `SunAwareModel::new` fails on a CPU with neither). Both Phi and Psi. A speed setting, not stored in checkpoints:
     /// a loaded model runs f32 until `SunAwareModel::set_mlp_precision`.
     pub mlp_precision: crate::nn::MatmulPrecision,
     /// Early frustum cull (`RasterSettings::cull_outside_frustum`): a Gaussian whose

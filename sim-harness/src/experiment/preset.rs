@@ -156,8 +156,9 @@ pub struct Preset {
     pub skip_masked_background_tiles: bool,
     /// Hidden width of Phi's three layers (paper: 256).
     pub appearance_hidden_width: usize,
-    /// Arithmetic of the networks' matrix products: "f32" or "bf16" (a CPU with AVX-512
-    /// BF16; elsewhere the run's configuration is refused).
+    /// Arithmetic of the networks' matrix products: "f32" or "bf16" (a CPU with AMX-BF16
+    /// or AVX-512 BF16, `GS_BF16_KERNEL` picks; elsewhere the run's configuration is
+    /// refused).
     pub mlp_precision: String,
     /// `V' = shadow_gain * V * Psi` in configurations (c)-(d) (`SunAwareConfig`; gs-core's
     /// default 1; both backends apply it).

@@ -144,7 +144,7 @@ pub fn default_settings() -> Vec<Setting> {
 /// Settings `--settings` can name besides the default sweep: the skips toggled (also in
 /// the `skips` table), a second pass per round, a dear combined point, Phi's hidden width
 /// 128 and 64 (`mlp128`, `mlp64`) and bfloat16 matrix products (`bf16`, a CPU with
-/// AVX-512 BF16).
+/// AMX-BF16 or AVX-512 BF16).
 pub fn optional_settings() -> Vec<Setting> {
     use Knob::*;
     vec![
