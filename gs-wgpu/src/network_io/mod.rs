@@ -48,10 +48,7 @@ use super::{dispatch_1d, GpuContext, GpuError, Scratch};
 use gs_core::model::Param;
 use gs_core::nn::AppearanceNet;
 pub use probe::NetworkIoProbe;
-use uniform::{
-    check_batch, check_buffer, check_channels, check_finite3, check_layout, check_rows, sun_code,
-    NormalTerms, Uniform,
-};
+use uniform::{check_buffer, check_finite3, check_layout, sun_code, NormalTerms, Uniform};
 
 mod probe;
 mod psi;
@@ -270,7 +267,7 @@ impl NetworkIo {
         let (params, offsets) = (params.buffer, params.offsets);
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         let width = net.input_width();
-        check_rows(n, width)?;
+        batch.check(width)?;
         check_layout(
             offsets,
             n,
@@ -278,7 +275,6 @@ impl NetworkIo {
             net.feature_dim(),
             &[("params", params)],
         )?;
-        check_batch(n, list, count)?;
         check_buffer("Phi input", input, n * width)?;
         check_buffer("flags", flags, 1)?;
         check_finite3("camera centre", camera_centre)?;
@@ -329,9 +325,7 @@ impl NetworkIo {
         chans: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
-        check_channels(nc, &[3, 4])?;
-        check_rows(n, ROW_HEAD + nc)?;
-        check_batch(n, list, count)?;
+        batch.check_raster_rows(nc, &[3, 4])?;
         check_buffer("Phi output", output, n * PHI_OUT)?;
         check_buffer("channels", chans, n * nc)?;
         let terms = shading.as_ref().map(|s| s.terms(n, None)).transpose()?;
@@ -377,9 +371,7 @@ impl NetworkIo {
         d_out: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
-        check_channels(nc, &[3, 4])?;
-        check_rows(n, ROW_HEAD + nc)?;
-        check_batch(n, list, count)?;
+        batch.check_raster_rows(nc, &[3, 4])?;
         check_buffer("rasterizer gradient rows", rows, n * (ROW_HEAD + nc))?;
         check_buffer("Phi output gradient", d_out, n * PHI_OUT)?;
         let terms = match &shading {
@@ -436,48 +428,16 @@ impl NetworkIo {
     /// Phi's input gradient (`d_input`, `n * input_width`) into `grads` (packed like
     /// `params`): for r < count, g = list[r], the Feature row g is set to the row's feature
     /// columns, and the view-direction chain rule of its view columns,
-    /// `-(d_view - (d_view . v) v) / |c - mu_g|`, is ADDED to the Mean row g. For Phi
-    /// without local inputs; with them, [`NetworkIo::encode_phi_input_grad_with_sun`].
-    pub fn encode_phi_input_grad(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: NetworkBatch,
-        net: &AppearanceNet,
-        params: PackedParams,
-        camera_centre: [f32; 3],
-        d_input: &wgpu::Buffer,
-        grads: &wgpu::Buffer,
-    ) -> Result<(), GpuError> {
-        if net.inputs().local_width() != 0 {
-            return Err(GpuError::Invalid(format!(
-                "Phi has appearance_inputs = {:?}: its input gradient needs the Sun \
-                 (encode_phi_input_grad_with_sun)",
-                net.inputs().name()
-            )));
-        }
-        // The Sun is not read without local inputs.
-        let sun = [0.0, 0.0, 1.0];
-        self.encode_phi_input_grad_with_sun(
-            encoder,
-            batch,
-            net,
-            params,
-            camera_centre,
-            sun,
-            d_input,
-            grads,
-        )
-    }
-
-    /// [`NetworkIo::encode_phi_input_grad`] for any Phi: with local inputs, the gradient
-    /// of each row's `[n.s, n.v, n.h]` columns (`sunaware::shading::
-    /// scatter_local_input_grad`, `sun_dir` as given to [`NetworkIo::encode_phi_input`])
-    /// is ADDED to the Normal row g, and its mean term joins the view direction's before
-    /// their sum is added to the Mean row g (the CPU's order); a row whose local gradient
-    /// is all zero, whose normal is degenerate or whose gradient is not finite adds
-    /// nothing there.
+    /// `-(d_view - (d_view . v) v) / |c - mu_g|`, is ADDED to the Mean row g. With local
+    /// inputs, the gradient of each row's `[n.s, n.v, n.h]` columns
+    /// (`sunaware::shading::scatter_local_input_grad`, `sun_dir` as given to
+    /// [`NetworkIo::encode_phi_input`]) is ADDED to the Normal row g, and its mean term
+    /// joins the view direction's before their sum is added to the Mean row g (the CPU's
+    /// order); a row whose local gradient is all zero, whose normal is degenerate or whose
+    /// gradient is not finite adds nothing there. Without local inputs `sun_dir` is not
+    /// read.
     #[allow(clippy::too_many_arguments)]
-    pub fn encode_phi_input_grad_with_sun(
+    pub fn encode_phi_input_grad(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         batch: NetworkBatch,
@@ -491,7 +451,7 @@ impl NetworkIo {
         let (params, offsets) = (params.buffer, params.offsets);
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         let width = net.input_width();
-        check_rows(n, width)?;
+        batch.check(width)?;
         check_layout(
             offsets,
             n,
@@ -499,7 +459,6 @@ impl NetworkIo {
             net.feature_dim(),
             &[("params", params), ("grads", grads)],
         )?;
-        check_batch(n, list, count)?;
         check_buffer("Phi input gradient", d_input, n * width)?;
         check_finite3("camera centre", camera_centre)?;
         let buffers = [("params", params), ("grads", grads)];

@@ -3,10 +3,7 @@
 //! (`nn::shadow_net::ShadowNet::{assemble_input, scatter_input_grad}` and the channel
 //! routing of `sunaware::model`), under the conventions of the parent module's header.
 
-use super::uniform::{
-    box_terms, check_batch, check_buffer, check_channels, check_layout, check_rows, sun_code,
-    Uniform,
-};
+use super::uniform::{box_terms, check_buffer, check_layout, sun_code, Uniform};
 use super::{NetworkBatch, NetworkIo, PackedParams, ROW_HEAD, SHADOWED_CHANNELS};
 use crate::GpuError;
 use gs_core::model::Param;
@@ -32,7 +29,7 @@ impl NetworkIo {
         let (params, offsets) = (params.buffer, params.offsets);
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         let width = net.input_width();
-        check_rows(n, width)?;
+        batch.check(width)?;
         check_layout(
             offsets,
             n,
@@ -40,7 +37,6 @@ impl NetworkIo {
             net.latent_dim(),
             &[("params", params)],
         )?;
-        check_batch(n, list, count)?;
         check_buffer("visibility", visibility, n)?;
         check_buffer("Psi input", input, n * width)?;
         check_buffer("flags", flags, 1)?;
@@ -86,9 +82,7 @@ impl NetworkIo {
         chans: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
-        check_channels(nc, &[SHADOWED_CHANNELS])?;
-        check_rows(n, ROW_HEAD + nc)?;
-        check_batch(n, list, count)?;
+        batch.check_raster_rows(nc, &[SHADOWED_CHANNELS])?;
         check_buffer("visibility", visibility, n)?;
         check_buffer("Psi output", output, n)?;
         check_buffer("channels", chans, n * nc)?;
@@ -126,9 +120,7 @@ impl NetworkIo {
         d_out: &wgpu::Buffer,
     ) -> Result<(), GpuError> {
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
-        check_channels(nc, &[SHADOWED_CHANNELS])?;
-        check_rows(n, ROW_HEAD + nc)?;
-        check_batch(n, list, count)?;
+        batch.check_raster_rows(nc, &[SHADOWED_CHANNELS])?;
         check_buffer("visibility", visibility, n)?;
         check_buffer("rasterizer gradient rows", rows, n * (ROW_HEAD + nc))?;
         check_buffer("Psi output gradient", d_out, n)?;
@@ -169,7 +161,7 @@ impl NetworkIo {
         let (params, offsets) = (params.buffer, params.offsets);
         let (scratch, n, list, count) = (batch.scratch, batch.n, batch.list, batch.count);
         let width = net.input_width();
-        check_rows(n, width)?;
+        batch.check(width)?;
         check_layout(
             offsets,
             n,
@@ -177,7 +169,6 @@ impl NetworkIo {
             net.latent_dim(),
             &[("params", params), ("grads", grads)],
         )?;
-        check_batch(n, list, count)?;
         check_buffer("Psi input gradient", d_input, n * width)?;
         let (box_min, box_extent, box_inv_extent) = box_terms(scene_box);
         let uniform = Uniform {

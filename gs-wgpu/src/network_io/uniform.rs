@@ -2,7 +2,7 @@
 //! and the checks of host arguments that every `encode_*` of [`super::NetworkIo`] runs
 //! before recording (a [`GpuError::Invalid`] or [`GpuError::TooLarge`]).
 
-use super::{SUN_CODE_CAPACITY, SUN_CODE_WORD, UNIFORM_BYTES};
+use super::{NetworkBatch, ROW_HEAD, SUN_CODE_CAPACITY, SUN_CODE_WORD, UNIFORM_BYTES};
 use crate::{u32_bytes, GpuError};
 use gs_core::model::Param;
 use gs_core::nn::SceneBox;
@@ -131,8 +131,24 @@ pub(super) fn check_buffer(what: &str, buf: &wgpu::Buffer, floats: usize) -> Res
     Ok(())
 }
 
+impl NetworkBatch<'_> {
+    /// The batch's rows, `widest` values at most, fit 32-bit indexing ([`check_rows`]),
+    /// and its list and count buffers hold it ([`check_batch`]).
+    pub(super) fn check(&self, widest: usize) -> Result<(), GpuError> {
+        check_rows(self.n, widest)?;
+        check_batch(self.n, self.list, self.count)
+    }
+
+    /// [`NetworkBatch::check`] for the kernels over the rasterizer's rows: `nc` is one of
+    /// `allowed` channel counts and the rows are `ROW_HEAD + nc` wide.
+    pub(super) fn check_raster_rows(&self, nc: usize, allowed: &[usize]) -> Result<(), GpuError> {
+        check_channels(nc, allowed)?;
+        self.check(ROW_HEAD + nc)
+    }
+}
+
 /// `n` and every row-index product the kernels form (`n * widest`) fit u32.
-pub(super) fn check_rows(n: usize, widest: usize) -> Result<(), GpuError> {
+fn check_rows(n: usize, widest: usize) -> Result<(), GpuError> {
     if (n as u64).saturating_mul(widest.max(1) as u64) > u32::MAX as u64 {
         return Err(GpuError::TooLarge(format!(
             "{n} rows of {widest} values exceed 32-bit indexing"
@@ -142,11 +158,7 @@ pub(super) fn check_rows(n: usize, widest: usize) -> Result<(), GpuError> {
 }
 
 /// `list` (max(n, 1) u32) and `count` (1 u32).
-pub(super) fn check_batch(
-    n: usize,
-    list: &wgpu::Buffer,
-    count: &wgpu::Buffer,
-) -> Result<(), GpuError> {
+fn check_batch(n: usize, list: &wgpu::Buffer, count: &wgpu::Buffer) -> Result<(), GpuError> {
     check_buffer("list", list, n.max(1))?;
     check_buffer("count", count, 1)
 }
@@ -196,7 +208,7 @@ pub(super) fn box_terms(scene_box: &SceneBox) -> ([f32; 3], [f32; 3], [f32; 3]) 
     (min, extent, inv)
 }
 
-pub(super) fn check_channels(nc: usize, allowed: &[usize]) -> Result<(), GpuError> {
+fn check_channels(nc: usize, allowed: &[usize]) -> Result<(), GpuError> {
     if allowed.contains(&nc) {
         Ok(())
     } else {

@@ -481,7 +481,7 @@ impl SunAwareResident {
             )?;
             // With local inputs, their gradient joins the Normal group after the
             // shading's term (Phi's output gradient above), as on the CPU.
-            self.io.encode_phi_input_grad_with_sun(
+            self.io.encode_phi_input_grad(
                 &mut encoder,
                 batch,
                 appearance,

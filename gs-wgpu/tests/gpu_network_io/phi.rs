@@ -209,6 +209,7 @@ fn phi_input_gradient_matches_the_cpu_scatter() {
                 &net,
                 b.packed(&s.offsets),
                 CAMERA,
+                SUN,
                 &d_in,
                 &grads,
             )

@@ -137,8 +137,7 @@ fn phi_local_input_matches_the_cpu_rows() {
 /// local term, as the model sums them (backward.rs: `scatter_input_grad`, then
 /// `scatter_local_input_grad`, then into the means), within MEAN_GRAD_TOL of each row's
 /// scale; degenerate normals and a row whose local gradient is zero leave the Normal row
-/// bit for bit; every other value is untouched. The paper-only entry point refuses a Phi
-/// with local inputs.
+/// bit for bit; every other value is untouched. A zero or non-finite Sun is refused.
 #[test]
 fn phi_local_input_gradient_matches_the_cpu_scatter() {
     let Some(Rig { io, scratch, probe }) = rig() else {
@@ -164,20 +163,21 @@ fn phi_local_input_gradient_matches_the_cpu_scatter() {
             let d_in = probe.buffer_f32("d_input", &d_input);
             let grads = probe.buffer_f32("grads", &grads0);
             let mut enc = probe.encoder();
-            let paper_only = io.encode_phi_input_grad(
-                &mut enc,
-                b.rows(&scratch, n),
-                &net,
-                b.packed(&s.offsets),
-                CAMERA,
-                &d_in,
-                &grads,
-            );
-            assert!(
-                matches!(paper_only, Err(GpuError::Invalid(_))),
-                "{paper_only:?}"
-            );
-            io.encode_phi_input_grad_with_sun(
+            // The local inputs need a Sun: a zero or non-finite one records nothing.
+            for bad_sun in [[0.0; 3], [f32::NAN, 0.0, 1.0]] {
+                let r = io.encode_phi_input_grad(
+                    &mut enc,
+                    b.rows(&scratch, n),
+                    &net,
+                    b.packed(&s.offsets),
+                    CAMERA,
+                    bad_sun,
+                    &d_in,
+                    &grads,
+                );
+                assert!(matches!(r, Err(GpuError::Invalid(_))), "{bad_sun:?}: {r:?}");
+            }
+            io.encode_phi_input_grad(
                 &mut enc,
                 b.rows(&scratch, n),
                 &net,
