@@ -230,20 +230,20 @@ mod x86 {
     }
 
     /// Packs A (`A(i, t) = a[i * is + t * ts]`, row-major `ts == 1` or transposed `is ==
-    /// 1`) into `out`: word `(i, p)` at `i * pairs_pad + p`, rows padded to `rows_pad`,
+    /// 1`) into `out`: word `(i, p)` at `i * row_words + p`, rows padded to `rows_pad`,
     /// every padding word zero.
     #[target_feature(enable = "avx512f,avx512bw")]
     fn pack_a(
         (m, k): (usize, usize),
-        (rows_pad, pairs_pad): (usize, usize),
+        (rows_pad, pairs_pad, row_words): (usize, usize, usize),
         (a, is, ts): Strided,
         out: &mut Vec<u32>,
     ) {
-        out.resize(rows_pad * pairs_pad, 0);
-        out[m * pairs_pad..].fill(0);
+        out.resize(rows_pad * row_words, 0);
+        out[m * row_words..].fill(0);
         if ts == 1 {
             // A row's pairs are its elements in order: 16 floats to 16 halves at a time.
-            for (i, words) in out.chunks_exact_mut(pairs_pad).take(m).enumerate() {
+            for (i, words) in out.chunks_exact_mut(row_words).take(m).enumerate() {
                 pack_row(&a[i * is..i * is + k], words);
             }
         } else {
@@ -273,7 +273,7 @@ mod x86 {
                         }
                     }
                     for r in 0..rows {
-                        let words = &mut out[(i0 + r) * pairs_pad + p0..][..TILE];
+                        let words = &mut out[(i0 + r) * row_words + p0..][..TILE];
                         for (pp, w) in words.iter_mut().enumerate() {
                             *w = block[pp][r];
                         }
@@ -425,6 +425,14 @@ mod x86 {
         let rows_pad = m.next_multiple_of(BLOCK);
         let cols_pad = n.next_multiple_of(BLOCK);
         let pairs_pad = k.div_ceil(2).next_multiple_of(TILE);
+        // A tile reads 16 packed rows: a row stride of an even number of 64-byte lines
+        // (4 KB at 1024 pairs, the weight gradient's reduction) puts them in a few L1
+        // sets, which then thrash; an odd number of lines spreads them over 16 sets.
+        let row_words = if (pairs_pad / TILE).is_multiple_of(2) {
+            pairs_pad + TILE
+        } else {
+            pairs_pad
+        };
         let panels = cols_pad / TILE;
         SCRATCH.with(|scratch| {
             let mut scratch = scratch.borrow_mut();
@@ -435,14 +443,14 @@ mod x86 {
             } = &mut *scratch;
             // SAFETY: AMX implies AVX-512F and BW, which `enable` checked too.
             unsafe {
-                pack_a((m, k), (rows_pad, pairs_pad), a, packed_a);
+                pack_a((m, k), (rows_pad, pairs_pad, row_words), a, packed_a);
                 pack_b((k, n), (panels, pairs_pad), b, packed_b);
             }
-            let a_row_bytes = pairs_pad * 4;
+            let a_row_bytes = row_words * 4;
             let b_panel_bytes = pairs_pad * TILE * 4;
             // SAFETY: the CPU and OS run AMX (the caller holds an `AmxKernels`); the
             // configuration is valid for palette 1. Every block below stays inside the
-            // padded packings (`rows_pad x pairs_pad` words of A, `panels` panels of B) and
+            // padded packings (`rows_pad x row_words` words of A, `panels` panels of B) and
             // inside C or the 32 x 32 edge block.
             unsafe {
                 asm!("ldtilecfg [{0}]", in(reg) &CONFIG, options(nostack, readonly));
@@ -450,7 +458,7 @@ mod x86 {
                     let steps = CHUNK_PAIRS.min(pairs_pad - p0) / TILE;
                     let from_c = accumulate || p0 > 0;
                     for i0 in (0..m).step_by(BLOCK) {
-                        let a_ptr = packed_a.as_ptr().add(i0 * pairs_pad + p0);
+                        let a_ptr = packed_a.as_ptr().add(i0 * row_words + p0);
                         for j0 in (0..n).step_by(BLOCK) {
                             let b_ptr = packed_b
                                 .as_ptr()
