@@ -13,6 +13,8 @@ step "cargo fmt --check"
 cargo fmt --all -- --check
 step "cargo clippy"
 cargo clippy --workspace --all-targets -- -D warnings
+step "cargo doc (every intra-doc link resolves)"
+RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps
 step "cargo test (unit, integration, gradient checks, fits, live UDP component)"
 # Tests that need a CPU extension skip visibly where the CPU lacks it; where the CPU has
 # it, a skip would hide a detection bug, so it is made a failure.

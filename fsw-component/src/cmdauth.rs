@@ -296,7 +296,7 @@ impl CommandGate {
     }
 
     /// The RENDER image size for a camera frame size: divided by
-    /// [`CommandGate::render_downsample`] (at least 1 x 1).
+    /// `CommandGate::render_downsample` (at least 1 x 1).
     pub fn render_size(&self, width: u16, height: u16) -> (u16, u16) {
         let k = self.render_downsample(width, height);
         ((width / k).max(1), (height / k).max(1))

@@ -81,7 +81,7 @@ pub struct CanConfig {
     /// never carries predictions.
     pub predictions: bool,
     /// Largest encoded `RenderedPrediction` sent on CAN FD, bytes (1 to
-    /// [`MAX_PREDICTION_CAN_BYTES`]); the subject is `[cyphal.subjects] rendered_prediction`.
+    /// `MAX_PREDICTION_CAN_BYTES`); the subject is `[cyphal.subjects] rendered_prediction`.
     pub prediction_max_bytes: usize,
 }
 

@@ -4,7 +4,7 @@
 //! Invariants (checked by [`CyphalConfig::validate`], at start): every subject-ID is in the
 //! Cyphal unregulated range 0..=6143 and the eight are distinct (a subject published and
 //! subscribed would be heard as our own input); a telemetry source node-ID is 0..=127, is not
-//! this node's, and AOCS and navigation differ, or it is [`ANY_NODE`] (no source filter).
+//! this node's, and AOCS and navigation differ, or it is `ANY_NODE` (no source filter).
 //! The defaults are the ICD's port numbers (`interfaces::messages::port`), so a file without
 //! this section behaves as before. UDP keeps the ICD numbers as CCSDS APIDs whatever is set
 //! here: these are Cyphal subject-IDs only.
@@ -212,7 +212,7 @@ impl SubjectIds {
         Some(PORTS[index].icd_port)
     }
 
-    /// The configured subject-IDs of one direction's always-used ports, in [`PORTS`] order.
+    /// The configured subject-IDs of one direction's always-used ports, in `PORTS` order.
     pub fn of(&self, direction: Direction) -> Vec<u16> {
         PORTS
             .iter()

@@ -8,8 +8,8 @@
 //! docs/initialisation.md), colours the points from the keyframes, and restarts the model
 //! from them with a scene box fitted to the hull. The carving box is the cube of half-side
 //! `target_radius_m` around the target's body origin (a size prior, not a model); a voxel
-//! survives only when at least [`MIN_HULL_VIEWS`] keyframes see it, all on the target.
-//! With fewer than [`MIN_HULL_VIEWS`] masked keyframes, or when carving fails, the random
+//! survives only when at least `MIN_HULL_VIEWS` keyframes see it, all on the target.
+//! With fewer than `MIN_HULL_VIEWS` masked keyframes, or when carving fails, the random
 //! start stays, and the component says which with an event.
 //!
 //! Invariants: the result depends only on the keyframes and the settings (carving and
@@ -127,7 +127,7 @@ pub struct HullStart {
 /// Why there is no hull start.
 #[derive(Clone, Debug, PartialEq)]
 pub enum HullStartError {
-    /// Fewer than [`MIN_HULL_VIEWS`] keyframes carry a mask.
+    /// Fewer than `MIN_HULL_VIEWS` keyframes carry a mask.
     TooFewMasks {
         masked: usize,
     },

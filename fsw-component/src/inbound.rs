@@ -602,7 +602,7 @@ impl BusCore {
     }
 
     /// The trainer panicked: no training on a learner being restarted (Train becomes
-    /// PredictOnly until [`Self::trainer_restored`]); when it gave up, Idle until commanded.
+    /// PredictOnly until `Self::trainer_restored`); when it gave up, Idle until commanded.
     pub fn trainer_faulted(&mut self, gave_up: bool) {
         if gave_up {
             self.mode_after_restart = None;

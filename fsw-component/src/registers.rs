@@ -20,7 +20,7 @@
 //!   their own type (`natural16` for IDs), so clients need not guess the width.
 //!
 //! The register file is TOML, one `"register.name" = value` per mutable register; at start
-//! [`apply_register_file`] applies it over component.toml before validation, so its values
+//! `apply_register_file` applies it over component.toml before validation, so its values
 //! pass the same checks. A missing file is a first start (no overrides); an unknown or
 //! read-only name, or a value of the wrong type, stops the start with the file's name.
 

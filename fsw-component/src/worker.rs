@@ -25,9 +25,9 @@
 //! (`TRAINER_PANICKED`), a [`Notice::TrainerFault`] (the bus side leaves Train while the
 //! learner restarts), an EXECUTION_ERROR ack for a command that was running, and a restart:
 //! the learner is reset and loaded from the newest usable checkpoint, then
-//! [`Notice::TrainerRestored`]. After [`MAX_CONSECUTIVE_PANICS`] panics with no job
+//! [`Notice::TrainerRestored`]. After `MAX_CONSECUTIVE_PANICS` panics with no job
 //! completing in between, or a failed restart, the fault notice says the trainer gave up.
-//! A watchdog ([`WorkerShared::overdue_job`], polled by the bus side) reports a job that runs
+//! A watchdog (`WorkerShared::overdue_job`, polled by the bus side) reports a job that runs
 //! past the round deadline once per job. Learner errors (a refused frame, a failed round,
 //! non-finite steps) become events, never log lines.
 
@@ -334,7 +334,7 @@ impl Worker {
     /// Starts the thread that owns `learner`; the model's parallel work runs on its own pool
     /// of `threads` threads (results are bit-identical for a given thread count and
     /// `denormals` mode, which the thread and the pool's workers set as they start). A job
-    /// running longer than `round_deadline` is reported by [`WorkerShared::overdue_job`].
+    /// running longer than `round_deadline` is reported by `WorkerShared::overdue_job`.
     pub fn start(
         learner: Box<dyn Learner>,
         limits: QueueLimits,

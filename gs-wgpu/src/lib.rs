@@ -199,7 +199,7 @@ impl GpuContext {
         })
     }
 
-    /// Whether per-stage device times can be measured ([`StageClock`]).
+    /// Whether per-stage device times can be measured (`StageClock`).
     pub fn has_timestamps(&self) -> bool {
         self.has_timestamps
     }

@@ -17,7 +17,7 @@ use gs_core::model::{Param, ParamSet};
 use gs_core::optim::Adam;
 
 /// A packed group-major parameter buffer (or its gradient) on the device and its group
-/// starts ([`offsets`]).
+/// starts (`offsets`).
 #[derive(Clone, Copy, Debug)]
 pub struct PackedParams<'a> {
     pub buffer: &'a wgpu::Buffer,

@@ -186,7 +186,7 @@ impl GpuSunVisibility {
 
     /// `V_i` of every Gaussian of `model` for one image: the GPU counterpart of
     /// `sunaware::sun_visibility::sun_visibility` (uploads the geometry, records
-    /// [`Self::encode_sun_visibility`] with the entry count read back, reads `V` back).
+    /// `Self::encode_sun_visibility` with the entry count read back, reads `V` back).
     pub fn sun_visibility(
         &self,
         model: &gs_core::model::GaussianModel,
@@ -210,7 +210,7 @@ impl GpuSunVisibility {
             .visibility)
     }
 
-    /// [`Self::encode_sun_visibility`] on `params` packed in the resident layout
+    /// `Self::encode_sun_visibility` on `params` packed in the resident layout
     /// (`crate::packed::pack`), run from the host: uploads, records with `capacity`,
     /// submits and reads back `V`, the flags word and the entry count.
     pub fn sun_visibility_packed(
@@ -580,7 +580,7 @@ impl GpuSunVisibility {
     /// `V_i` for every Gaussian from its splats in the `side_px` x `side_px` light image:
     /// the GPU counterpart of `sunaware::sun_visibility::visibility_from_splats` (same arguments;
     /// the splats and limits are uploaded, the sort and walk are
-    /// [`Self::encode_sun_visibility`]'s).
+    /// `Self::encode_sun_visibility`'s).
     pub fn visibility_from_splats(
         &self,
         splats: &[Option<Splat>],

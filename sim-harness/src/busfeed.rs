@@ -12,8 +12,8 @@
 //!
 //! Time base: message times and log time tags are microseconds since the scenario epoch
 //! (`time_s` of telemetry.jsonl). Log time tags are receive times: telemetry frames at the
-//! exposure time plus [`CAN_FRAME_SPACING_US`] per frame, the camera datagrams from
-//! [`FRAME_LATENCY_US`] after exposure, [`DATAGRAM_SPACING_US`] apart. They are strictly
+//! exposure time plus `CAN_FRAME_SPACING_US` per frame, the camera datagrams from
+//! `FRAME_LATENCY_US` after exposure, `DATAGRAM_SPACING_US` apart. They are strictly
 //! increasing within a step and below the next step's, so any stable merge of the two logs
 //! keeps the order above.
 //!

@@ -69,12 +69,12 @@ pub struct TrainingConfig {
     /// Side of the shadow pass's light image, pixels, 8 to 8192 (default 96, the demo's:
     /// `SunAwareConfig::light.resolution_px`; gs-core's own default is 256).
     pub light_resolution_px: u32,
-    /// Evicted keyframes kept for replay, 0 to [`MAX_REPLAY_CAPACITY`] (default 32, the
+    /// Evicted keyframes kept for replay, 0 to `MAX_REPLAY_CAPACITY` (default 32, the
     /// demo's; 0: none, the paper). Memory: one frame's image and mask each, `H * W * 16`
     /// bytes (37 MB at 1920x1200: 1.2 GB for 32).
     pub replay_capacity: usize,
     /// Training steps per round on frames drawn from the replay memory, after the window's
-    /// steps, 0 to [`MAX_REPLAY_STEPS_PER_ROUND`] (default 6, the demo's).
+    /// steps, 0 to `MAX_REPLAY_STEPS_PER_ROUND` (default 6, the demo's).
     pub replay_steps_per_round: usize,
     /// Learning rates replacing gs-core's defaults (`[training.rates]`, gs-core's
     /// [`RateOverrides`], the table the simulator's presets read as `[rates]`); default the

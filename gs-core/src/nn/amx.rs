@@ -10,12 +10,14 @@
 //! Layout: A is packed to `[row][pair]` words (two bfloat16 of consecutive reduction
 //! indices per 32-bit word, the lower index in the low half), B to panels of 16 columns
 //! `[panel][pair][column]` (Intel's "VNNI" layout), both zero-padded to whole tiles (rows
-//! and columns to 32, pairs to 16). One micro-kernel call computes a 32 x 32 block of C in
-//! four accumulator tiles (`tmm0..3`) over a chunk of the reduction, loading two A tiles
-//! (`tmm4, 5`) and two B tiles (`tmm6, 7`) per 16 pairs. The reduction runs in chunks of
-//! [`CHUNK_PAIRS`] pairs whose partial sums pass through C in f32 (exact), and every
-//! element's sum runs over the pairs in increasing order whatever the block, so a row's
-//! result does not depend on the other rows (callers split rows freely) nor on `m`.
+//! and columns to 32, pairs to 16; A's rows to an odd number of 64-byte lines, so that the
+//! 16 rows a tile load reads fall in 16 different L1 sets). One micro-kernel call computes
+//! a 32 x 32 block of C in four accumulator tiles (`tmm0..3`) over a chunk of the
+//! reduction, loading two A tiles (`tmm4, 5`) and two B tiles (`tmm6, 7`) per 16 pairs.
+//! The reduction runs in chunks of `x86::CHUNK_PAIRS` pairs whose partial sums pass
+//! through C in f32 (exact), and every element's sum runs over the groups of 16 pairs in
+//! increasing order whatever the block, so a row's result does not depend on the other
+//! rows (callers split rows freely) nor on `m`.
 //!
 //! Invariants: the kernels run only behind an [`AmxKernels`] value, which exists only
 //! when the CPU reports AMX-TILE and AMX-BF16 and Linux granted this process the tile data

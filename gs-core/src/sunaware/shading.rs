@@ -440,7 +440,7 @@ fn fill_local_inputs(
 }
 
 /// Adds the gradient of the local inputs in Phi's input gradient `d_input` (rows as in
-/// [`fill_local_inputs`]) into `d_normal` (`Param::Normal`, `count x 3`) and `d_means`
+/// `fill_local_inputs`) into `d_normal` (`Param::Normal`, `count x 3`) and `d_means`
 /// (`count x 3`); nothing for Phi without local inputs. Rows are summed in list order.
 #[allow(clippy::too_many_arguments)]
 pub fn scatter_local_input_grad(

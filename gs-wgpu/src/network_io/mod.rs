@@ -246,7 +246,7 @@ impl NetworkIo {
     }
 
     /// Phi's input rows (`n * input_width` f32 in `input`) for `list[0..count]`: row r is
-    /// `[f_g | gamma_L(sun) | gamma_L(view_g)]` of g = list[r], view_g the unit vector
+    /// `[f_g | gamma_L(sun) | gamma_L(view_g)]` of g = `list[r]`, view_g the unit vector
     /// from mean_g to the camera centre; rows `>= count` are written as 0. A non-finite
     /// feature or mean, or a Gaussian at the camera centre (view distance not > 0 and
     /// finite), sets `flags` bit 0. With local inputs (`net.inputs()`), the row ends in
@@ -309,8 +309,8 @@ impl NetworkIo {
         )
     }
 
-    /// Phi's output (`n * 3`, row r = list[r]'s RGB) into the channels: `chans[g * nc + k]
-    /// = output[r * 3 + k]`, k < 3, for r < count, g = list[r]; other Gaussians' channels
+    /// Phi's output (`n * 3`, row r = `list[r]`'s RGB) into the channels: `chans[g * nc + k]
+    /// = output[r * 3 + k]`, k < 3, for r < count, g = `list[r]`; other Gaussians' channels
     /// are not touched. `nc` is 3 or 4. With `shading`, the colour is multiplied by the
     /// Gaussian's learned-normal Lambertian factor `f_g` (`shade_forward`: 1 for a
     /// degenerate or non-finite normal), and row r's `f_g` and sign go to
@@ -357,7 +357,7 @@ impl NetworkIo {
     }
 
     /// Phi's output gradient (`n * 3`) from the rasterizer's gradient rows (`n * (13 +
-    /// nc)`): `d_out[r * 3 + k] = rows[g * (13 + nc) + 13 + k]` for r < count, g = list[r];
+    /// nc)`): `d_out[r * 3 + k] = rows[g * (13 + nc) + 13 + k]` for r < count, g = `list[r]`;
     /// 0 for rows `>= count`. With `shading` (`shade_backward`): that gradient times the
     /// row's `f_g`, and the normal's term of a lit Gaussian ADDED to its Normal row of
     /// `shading.grads` (which the caller cleared; Gaussians not lit get nothing).
@@ -426,7 +426,7 @@ impl NetworkIo {
     }
 
     /// Phi's input gradient (`d_input`, `n * input_width`) into `grads` (packed like
-    /// `params`): for r < count, g = list[r], the Feature row g is set to the row's feature
+    /// `params`): for r < count, g = `list[r]`, the Feature row g is set to the row's feature
     /// columns, and the view-direction chain rule of its view columns,
     /// `-(d_view - (d_view . v) v) / |c - mu_g|`, is ADDED to the Mean row g. With local
     /// inputs, the gradient of each row's `[n.s, n.v, n.h]` columns

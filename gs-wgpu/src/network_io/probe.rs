@@ -4,7 +4,7 @@
 use crate::{bytes_f32, bytes_u32, f32_bytes, u32_bytes, GpuContext, GpuError};
 
 /// Host data into device buffers and back, for tests and diagnostics outside the crate
-/// that record [`NetworkIo`]'s `encode_*` functions (the context's buffer helpers are
+/// that record [`NetworkIo`](super::NetworkIo)'s `encode_*` functions (the context's buffer helpers are
 /// crate-private): buffers from host slices, an encoder, one submission and readback.
 #[derive(Debug)]
 pub struct NetworkIoProbe {

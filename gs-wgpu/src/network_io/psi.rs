@@ -11,7 +11,7 @@ use gs_core::nn::{SceneBox, ShadowNet};
 
 impl NetworkIo {
     /// Psi's full input rows (`n * input_width` f32 in `input`) for `list[0..count]`: row r
-    /// is `[V_g | gamma_L(sun) | gamma_L(p_g) | l_g]` of g = list[r], V_g from `visibility`
+    /// is `[V_g | gamma_L(sun) | gamma_L(p_g) | l_g]` of g = `list[r]`, V_g from `visibility`
     /// (n f32), p_g the mean normalised over `scene_box`; rows `>= count` are written as 0.
     /// A non-finite V, mean or latent sets `flags` bit 0.
     pub fn encode_psi_input(
@@ -67,9 +67,9 @@ impl NetworkIo {
         )
     }
 
-    /// Psi's output P (`n`, row r = list[r]'s) into channel 3: `chans[g * nc + 3] = gain *
+    /// Psi's output P (`n`, row r = `list[r]`'s) into channel 3: `chans[g * nc + 3] = gain *
     /// V_g * P_r` when `multiply_gain` is `Some(gain)` (ShadowRefinement::Multiply), else
-    /// `P_r`, for r < count, g = list[r]; other Gaussians' channels are not touched. `nc`
+    /// `P_r`, for r < count, g = `list[r]`; other Gaussians' channels are not touched. `nc`
     /// must be 4.
     pub fn encode_psi_scatter(
         &self,
@@ -108,7 +108,7 @@ impl NetworkIo {
 
     /// Psi's output gradient (`n`): `d_out[r] = rows[g * (13 + nc) + 16]` (channel 3's
     /// gradient) times `gain * V_g` when `multiply_gain` is `Some(gain)`, for r < count, g =
-    /// list[r]; 0 for rows `>= count`. `nc` must be 4.
+    /// `list[r]`; 0 for rows `>= count`. `nc` must be 4.
     pub fn encode_psi_d_output(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -145,7 +145,7 @@ impl NetworkIo {
     }
 
     /// Psi's input gradient (`d_input`, `n * input_width`) into `grads` (packed like
-    /// `params`): for r < count, g = list[r], the ShadowLatent row g is set to the row's
+    /// `params`): for r < count, g = `list[r]`, the ShadowLatent row g is set to the row's
     /// latent columns, and the chain rule of its position columns through the encoding and
     /// the box normalisation is ADDED to the Mean row g. The V column gets nothing.
     pub fn encode_psi_input_grad(

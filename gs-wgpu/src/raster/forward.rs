@@ -351,7 +351,7 @@ impl GpuRasterizer {
     }
 
     /// Per Gaussian: blended into at least one pixel of a blended tile (the device's
-    /// contribution pass, [`Self::encode_contributing`]); the same list as
+    /// contribution pass, `Self::encode_contributing`); the same list as
     /// [`gs_core::raster::PreparedView::contributing`] of `prepare_view(camera, geometry,
     /// settings)` where no tile is left out. The view's channels are ignored.
     pub fn contributing(

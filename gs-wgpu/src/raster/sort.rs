@@ -205,7 +205,7 @@ impl GpuRasterizer {
     }
 
     /// Sorts `keys` on the device as a forward pass sorts its tile keys (see
-    /// [`Self::encode_sort_in`]): `keys.len()` is the sort's capacity, `live` (kept
+    /// `Self::encode_sort_in`): `keys.len()` is the sort's capacity, `live` (kept
     /// on the device, as a pass without the entry-count readback keeps it) the number of
     /// keys sorted, `n_tiles` a bound on their tile words. Returns the whole buffer: the
     /// live keys sorted by (tile, order bits), stably, then the rest as given. For tests

@@ -116,7 +116,7 @@ pub(crate) fn parse_init_variant(name: &str) -> Result<(InitKind, HullVariant), 
     Ok((InitKind::Hull, variant))
 }
 
-/// Parses an initialisation name (see [`parse_init_variant`]) into its kind and whether
+/// Parses an initialisation name (see `parse_init_variant`) into its kind and whether
 /// its colours are grey.
 pub fn parse_init(name: &str) -> Result<(InitKind, bool), ExperimentError> {
     parse_init_variant(name).map(|(kind, v)| (kind, v.grey))

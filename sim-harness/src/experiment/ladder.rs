@@ -8,8 +8,8 @@
 //!
 //! Invariants: a rung with no views is `None` (NaN in CSV, `-` in Markdown), never a number; a
 //! model that does not beat black by [`CLEAR_MARGIN_DB`] on a rung says so in words
-//! ([`verdict`]); the CSV columns are exactly [`CSV_COLUMNS`], in that order; a paired
-//! difference ([`paired_masked_difference`]) exists only over the same views in the same order.
+//! (`verdict`); the CSV columns are exactly [`CSV_COLUMNS`], in that order; a paired
+//! difference (`paired_masked_difference`) exists only over the same views in the same order.
 
 use super::evaluate::{EvalSummary, ViewMetrics};
 use super::runner::RunOutcome;

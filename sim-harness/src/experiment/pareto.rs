@@ -3,9 +3,9 @@
 //! the `pareto` job that writes `pareto.csv`, `pareto.md` and `pareto.png`.
 //!
 //! Also the measuring instruments the skips table and the window ablation share:
-//! [`reset_peak_rss`] / [`peak_rss_mb`]
+//! `reset_peak_rss` / `peak_rss_mb`
 //! (`VmHWM` of /proc/self/status, reset per run through /proc/self/clear_refs), [`Knob`] and
-//! [`Setting`] (named preset overrides), [`run_settings`] (one row per setting) and
+//! [`Setting`] (named preset overrides), `run_settings` (one row per setting) and
 //! [`draw_xy_panel`] (line and scatter plots on the dataset plots' canvas).
 //!
 //! Invariants: a setting changes only the knobs it names, the rest come from the base preset;

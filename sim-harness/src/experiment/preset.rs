@@ -5,7 +5,7 @@
 //! A preset may start from another: `base = "NAME"` (looked up like `--preset NAME`, first
 //! beside the file) takes every setting of that preset, and the file's own settings replace
 //! them key by key (tables such as `[rates]` merge key by key too). Chains are allowed up to
-//! [`MAX_BASE_DEPTH`]; a cycle is an error.
+//! `MAX_BASE_DEPTH`; a cycle is an error.
 //!
 //! Invariants: unknown fields are errors; `validate` checks every value's range and names the
 //! bad field; `apply` changes only the scenario fields the preset names (resolution, cadence,

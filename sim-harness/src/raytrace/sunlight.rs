@@ -1,19 +1,19 @@
 //! Ground-truth Sun visibility: which surface points the Sun reaches directly.
 //!
-//! [`render_sunlight`] classifies the surface point hit by each pixel-centre ray (the same
+//! `render_sunlight` classifies the surface point hit by each pixel-centre ray (the same
 //! ray that makes the frame's mask and depth) as
-//! - [`SunClass::Lit`]: its geometric normal (turned to the viewer, surfaces are two-sided)
+//! - `SunClass::Lit`: its geometric normal (turned to the viewer, surfaces are two-sided)
 //!   faces the Sun and the shadow ray towards the Sun escapes the mesh;
-//! - [`SunClass::CastShadow`]: it faces the Sun but other geometry blocks the shadow ray
+//! - `SunClass::CastShadow`: it faces the Sun but other geometry blocks the shadow ray
 //!   (self-occlusion: what shadow splatting exists to model), or the frame is in eclipse;
-//! - [`SunClass::FacingAway`]: the Sun is behind the surface (attached shadow, "n . l <= 0",
+//! - `SunClass::FacingAway`: the Sun is behind the surface (attached shadow, "n . l <= 0",
 //!   which shading alone already explains);
-//! - [`SunClass::Background`]: the ray misses the target.
+//! - `SunClass::Background`: the ray misses the target.
 //!
 //! The test is exactly the one `shade` applies to the Sun (same normal, same shadow-ray
 //! origin offset), so a pixel is `Lit` if and only if the renderer added direct sunlight to
 //! its centre sample (before the material's micro-normal perturbation, which can only darken
-//! a lit point further). [`sun_reaches_point`] answers the same question for an arbitrary
+//! a lit point further). `sun_reaches_point` answers the same question for an arbitrary
 //! point, e.g. a Gaussian's centre (no normal: the ray starts a small step towards the Sun).
 //!
 //! Invariants: deterministic, independent of the thread count; validates the request like the

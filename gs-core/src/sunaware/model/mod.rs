@@ -12,7 +12,7 @@
 //! 2. colour: SH (a) or Phi([f_i, gamma(sun), gamma(view_i)]) (b-d), with
 //!    `[n.s, n.v, n.h]` appended under `config.appearance_inputs` = local
 //!    ([`super::shading::local_inputs`]);
-//! 3. shadow (c-d): `V` from the light pass ([`super::light`]), `P = Psi([V_i, gamma(sun),
+//! 3. shadow (c-d): `V` from the light pass ([`super::sun_visibility`]), `P = Psi([V_i, gamma(sun),
 //!    gamma(mu_i normalised), l_i])`, and `V' = V_i * P` (default) or `V' = P` (the paper's
 //!    form), per [`super::config::ShadowRefinement`];
 //! 4. the blend of the prepared view ([`crate::raster::render_prepared`]) with channels

@@ -2,9 +2,9 @@
 //!
 //! The light camera sits on the Sun vector at the image camera's distance from the target
 //! centre (at least 1.5 scene radii, so it is outside the box) and looks at the centre:
-//! - [`LightProjection::Perspective`]: a pinhole whose field of view just covers the scene
+//! - [`LightProjection::Perspective`](crate::sunaware::LightProjection::Perspective): a pinhole whose field of view just covers the scene
 //!   box's bounding sphere (times a margin), as in the paper;
-//! - [`LightProjection::Orthographic`]: parallel projection along the Sun vector with the
+//! - [`LightProjection::Orthographic`](crate::sunaware::LightProjection::Orthographic): parallel projection along the Sun vector with the
 //!   same image extent, the exact model of a directional source. The 2D covariance is the
 //!   camera-frame covariance's x/y block times the pixel scale squared (plus the
 //!   rasterizer's 0.3 px^2 dilation).
@@ -34,7 +34,7 @@
 //! Invariants: `V_i` in [0, 1]; no gradient (it is data for Psi); deterministic for any
 //! thread count (tiles are independent, the per-Gaussian sums run in tile order).
 //!
-//! Files: [`light_camera`] (where the light camera sits, the Gaussians' splats in its image
+//! Files: [`light_camera`](mod@light_camera) (where the light camera sits, the Gaussians' splats in its image
 //! and their extents along its axis), `tile_walk` (the per-tile walk that accumulates the
 //! weights and transmittances), this file (the pass from splats to `V_i`).
 

@@ -107,7 +107,7 @@ impl Setting {
 
 /// The default sweep around the base: one knob at a time, configurations (a) and (b), and a
 /// few combined cheap points. The skips are toggled by the `skips` job on the same base
-/// ([`super::skips`]); [`optional_settings`] has more (dearer) points for `--settings`.
+/// ([`crate::experiment::skips`]); [`optional_settings`] has more (dearer) points for `--settings`.
 pub fn default_settings() -> Vec<Setting> {
     use Knob::*;
     vec![
