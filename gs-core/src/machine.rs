@@ -1,8 +1,8 @@
 //! What machine a measurement ran on, for the benchmarks' headers and JSON: the CPU model,
 //! how many CPUs this process may use, the instruction-set extensions the fast paths pick
 //! at run time (AVX2, AVX-512F, AVX-512 BF16, AMX-BF16 on x86_64), the calling thread's
-//! denormal mode ([`crate::fpmode`]) and the networks' f32 and bf16 product kernels. A timing without these
-//! cannot be compared with another.
+//! denormal mode ([`crate::fpmode`]) and the networks' f32 and bf16 product kernels. A
+//! timing without these cannot be compared with another.
 //!
 //! Reads `/proc/cpuinfo` on Linux; elsewhere the model falls back to the architecture's
 //! name. Never fails.
@@ -32,10 +32,9 @@ pub fn cpu_description() -> String {
 /// CPU without bf16 kernels shows "none").
 pub fn header_line() -> String {
     let kernel = F32Kernel::from_env().map_or_else(|e| e.to_string(), |k| k.name().to_string());
-    let bf16 = match std::env::var(crate::nn::matmul::BF16_KERNEL_ENV_VAR) {
-        Ok(name) if !name.is_empty() => Bf16Kernel::from_setting(Some(&name))
-            .map_or_else(|e| e.to_string(), |k| k.name().to_string()),
-        _ => Bf16Kernel::detect().map_or_else(|_| "none".to_string(), |k| k.name().to_string()),
+    let bf16 = match Bf16Kernel::forced_by_env() {
+        Some(forced) => forced.map_or_else(|e| e.to_string(), |k| k.name().to_string()),
+        None => Bf16Kernel::detect().map_or_else(|_| "none".to_string(), |k| k.name().to_string()),
     };
     format!(
         "cpu: {}; denormals: {}; f32 kernel: {kernel}; bf16 kernel: {bf16}",

@@ -466,18 +466,11 @@ mod x86 {
                                 .as_ptr()
                                 .add((j0 / TILE) * pairs_pad * TILE + p0 * TILE);
                             let (rows, cols) = (BLOCK.min(m - i0), BLOCK.min(n - j0));
-                            if rows == BLOCK && cols == BLOCK {
-                                let c_ptr = c.as_mut_ptr().add(i0 * n + j0);
-                                block(
-                                    a_ptr,
-                                    a_row_bytes,
-                                    b_ptr,
-                                    b_panel_bytes,
-                                    steps,
-                                    c_ptr,
-                                    n * 4,
-                                    from_c,
-                                );
+                            let whole = rows == BLOCK && cols == BLOCK;
+                            // A block off C's edge runs in the edge buffer: loaded from
+                            // C's valid part (zeros elsewhere), copied back after.
+                            let (c_ptr, ldc, from) = if whole {
+                                (c.as_mut_ptr().add(i0 * n + j0), n * 4, from_c)
                             } else {
                                 c_edge.fill(0.0);
                                 if from_c {
@@ -486,17 +479,19 @@ mod x86 {
                                             .copy_from_slice(&c[(i0 + r) * n + j0..][..cols]);
                                     }
                                 }
-                                let edge = c_edge.as_mut_ptr();
-                                block(
-                                    a_ptr,
-                                    a_row_bytes,
-                                    b_ptr,
-                                    b_panel_bytes,
-                                    steps,
-                                    edge,
-                                    BLOCK * 4,
-                                    true,
-                                );
+                                (c_edge.as_mut_ptr(), BLOCK * 4, true)
+                            };
+                            block(
+                                a_ptr,
+                                a_row_bytes,
+                                b_ptr,
+                                b_panel_bytes,
+                                steps,
+                                c_ptr,
+                                ldc,
+                                from,
+                            );
+                            if !whole {
                                 for r in 0..rows {
                                     c[(i0 + r) * n + j0..][..cols]
                                         .copy_from_slice(&c_edge[r * BLOCK..r * BLOCK + cols]);

@@ -171,16 +171,23 @@ impl Bf16Kernel {
     /// or `avx512bf16`: to compare them, or to reproduce results of the other). A name
     /// this CPU cannot run, or an unknown one, is a configuration error.
     pub fn from_env() -> Result<Self, NnError> {
-        Self::from_setting(std::env::var(BF16_KERNEL_ENV_VAR).ok().as_deref())
+        Self::forced_by_env().unwrap_or_else(Self::detect)
     }
 
     /// [`Bf16Kernel::from_env`] for the variable's value (`None` or empty: unset).
     pub fn from_setting(setting: Option<&str>) -> Result<Self, NnError> {
-        match setting {
-            Some(name) if !name.is_empty() => Self::named(name)
-                .map_err(|e| NnError::Config(format!("{BF16_KERNEL_ENV_VAR}: {e}"))),
-            _ => Self::detect(),
-        }
+        Self::forced(setting).unwrap_or_else(Self::detect)
+    }
+
+    /// The kernel [`BF16_KERNEL_ENV_VAR`] names, or why this CPU cannot run it; `None`
+    /// when the variable is unset or empty (then [`Bf16Kernel::detect`] picks).
+    pub fn forced_by_env() -> Option<Result<Self, NnError>> {
+        Self::forced(std::env::var(BF16_KERNEL_ENV_VAR).ok().as_deref())
+    }
+
+    fn forced(setting: Option<&str>) -> Option<Result<Self, NnError>> {
+        let name = setting.filter(|name| !name.is_empty())?;
+        Some(Self::named(name).map_err(|e| NnError::Config(format!("{BF16_KERNEL_ENV_VAR}: {e}"))))
     }
 
     /// The name the benchmarks print.
@@ -201,10 +208,7 @@ pub const BF16_KERNEL_ENV_VAR: &str = "GS_BF16_KERNEL";
 /// precision needs one, and it reports its own error.
 pub fn check_kernel_env() -> Result<(), NnError> {
     F32Kernel::from_env()?;
-    match std::env::var(BF16_KERNEL_ENV_VAR) {
-        Ok(name) if !name.is_empty() => Bf16Kernel::from_setting(Some(&name)).map(|_| ()),
-        _ => Ok(()),
-    }
+    Bf16Kernel::forced_by_env().transpose().map(|_| ())
 }
 
 /// The matrix products of one precision, checked against the CPU when chosen: the three
