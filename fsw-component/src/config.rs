@@ -613,6 +613,10 @@ impl ComponentConfig {
                 "training.appearance_inputs",
                 ModelKey::AppearanceInputs(&t.appearance_inputs),
             ),
+            (
+                "training.colour_space",
+                ModelKey::ColourSpace(&t.colour_space),
+            ),
         ];
         for (name, key) in keys {
             model

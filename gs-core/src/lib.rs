@@ -20,6 +20,7 @@ pub mod raster;
 pub mod regularizer;
 pub mod rng;
 pub mod sh;
+pub mod srgb;
 pub mod sunaware;
 
 /// The device engine interface (`sunaware::engine`), at the root for the backend crates.

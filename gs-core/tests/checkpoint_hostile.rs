@@ -83,14 +83,14 @@ fn trainer() -> SunAwareTrainer {
 const PAYLOAD: usize = 20;
 const FEATURE_DIM: usize = PAYLOAD + 13;
 const SHADOW_LATENT_DIM: usize = PAYLOAD + 21;
-/// From the end of the config section (199 bytes in version 7): max_gaussians is followed
+/// From the end of the config section (200 bytes in version 8): max_gaussians is followed
 /// by densify_from_step, background, near, seed, feature_init_std, refinement, hidden
-/// width, shadow gain, shading, shading ambient, the normal's learning rate and Phi's
-/// appearance inputs.
-const CONFIG_BYTES: usize = 199;
+/// width, shadow gain, shading, shading ambient, the normal's learning rate, Phi's
+/// appearance inputs and the colour space.
+const CONFIG_BYTES: usize = 200;
 const MAX_GAUSSIANS: usize =
-    PAYLOAD + CONFIG_BYTES - (8 + 8 + 12 + 4 + 8 + 4 + 1 + 8 + 4 + 1 + 4 + 4 + 1);
-const HIDDEN_WIDTH: usize = PAYLOAD + CONFIG_BYTES - (8 + 4 + 1 + 4 + 4 + 1);
+    PAYLOAD + CONFIG_BYTES - (8 + 8 + 12 + 4 + 8 + 4 + 1 + 8 + 4 + 1 + 4 + 4 + 1 + 1);
+const HIDDEN_WIDTH: usize = PAYLOAD + CONFIG_BYTES - (8 + 4 + 1 + 4 + 4 + 1 + 1);
 const GAUSSIAN_COUNT: usize = PAYLOAD + CONFIG_BYTES + 24;
 
 /// A hostile case: its name, the (offset, bytes) edits, a word the error must contain.

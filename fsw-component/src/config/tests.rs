@@ -270,6 +270,7 @@ fn validation_names_the_key() {
         ("shading = \"phong\"", "training.shading"),
         ("shadow_gain = 0.0", "training.shadow_gain"),
         ("shadow_gain = nan", "training.shadow_gain"),
+        ("colour_space = \"gamma\"", "training.colour_space"),
         (
             "appearance_inputs = \"global\"",
             "training.appearance_inputs",

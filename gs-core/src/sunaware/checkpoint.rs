@@ -3,8 +3,8 @@
 //! File layout (all integers and floats little-endian):
 //! ```text
 //! magic     8 bytes  b"SUNGSCKP"
-//! version   u32      7 (older ones are still read: 6 has no appearance inputs byte,
-//!                    meaning the paper's; 5 also no normal rate, meaning the default; 4 also no shading fields and means none; 3 also no shadow
+//! version   u32      8 (older ones are still read: 7 has no colour space byte,
+//!                    meaning sRGB; 6 also no appearance inputs byte, meaning the paper's; 5 also no normal rate, meaning the default; 4 also no shading fields and means none; 3 also no shadow
 //!                    gain, meaning 1; 2 also no hidden-width field, Phi is 256 wide; 1
 //!                    also no shadow refinement byte, Replace)
 //! length    u64      payload bytes
@@ -27,7 +27,8 @@
 //!    version 4 shadow gain f32, from version 5 shading u8 (0 none, 1 Lambert, 2 Lambert
 //!    with a learned normal) and shading ambient f32, from version 6 the learned normal's
 //!    learning rate f32, from version 7 Phi's appearance inputs u8 (0 paper, 1 local,
-//!    2 local without the Sun's encoding: Phi's input width depends on it);
+//!    2 local without the Sun's encoding: Phi's input width depends on it), from version 8
+//!    the colour space u8 (0 sRGB, 1 linear);
 //! 2. scene box: min 3 f32, max 3 f32;
 //! 3. Gaussians: count u64, then each group of `Param::ALL` in order (count x width f32,
 //!    widths from the config's layout);
@@ -59,15 +60,15 @@ use crate::optim::Adam;
 use crate::regularizer::IsoReduction;
 
 use super::config::{
-    AppearanceInputs, LightConfig, LightProjection, Shading, ShadowRefinement, SunAwareConfig,
-    SunAwareRates, Variant,
+    AppearanceInputs, ColourSpace, LightConfig, LightProjection, Shading, ShadowRefinement,
+    SunAwareConfig, SunAwareRates, Variant,
 };
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
 use super::trainer::{FlatAdam, SunAwareTrainer};
 
 pub const MAGIC: [u8; 8] = *b"SUNGSCKP";
-pub const VERSION: u32 = 7;
+pub const VERSION: u32 = 8;
 /// Oldest version [`from_bytes`] reads.
 pub const OLDEST_READABLE_VERSION: u32 = 1;
 /// Largest Adam step a checkpoint may hold: the bias correction raises the betas to the
@@ -238,6 +239,7 @@ fn write_config(w: &mut Writer, c: &SunAwareConfig) {
     w.f32(c.shading_ambient);
     w.f32(c.lr.normal);
     w.u8(c.appearance_inputs.code());
+    w.u8(c.colour_space.code());
 }
 
 fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareError> {
@@ -362,6 +364,12 @@ fn read_config(r: &mut Reader, version: u32) -> Result<SunAwareConfig, SunAwareE
         let code = r.u8("appearance inputs")?;
         config.appearance_inputs = AppearanceInputs::from_code(code)
             .ok_or_else(|| ck(format!("unknown appearance inputs {code}")))?;
+    }
+    // Before version 8, the model blended sRGB colours.
+    if version >= 8 {
+        let code = r.u8("colour space")?;
+        config.colour_space = ColourSpace::from_code(code)
+            .ok_or_else(|| ck(format!("unknown colour space {code}")))?;
     }
     config
         .validate()
@@ -691,7 +699,7 @@ mod tests {
 
     fn config_bytes(refinement: ShadowRefinement) -> Vec<u8> {
         let mut w = Writer(Vec::new());
-        write_config(
+        write_v7_config(
             &mut w,
             &SunAwareConfig {
                 shadow_refinement: refinement,
@@ -699,6 +707,40 @@ mod tests {
             },
         );
         w.0
+    }
+
+    /// The version-8 field at the very end: the colour space u8.
+    const COLOUR_SPACE_BYTES: usize = 1;
+
+    /// The config section as version 7 wrote it (the tests below derive older versions
+    /// from it by cutting fields off its end).
+    fn write_v7_config(w: &mut Writer, c: &SunAwareConfig) {
+        assert_eq!(
+            c.colour_space,
+            ColourSpace::Srgb,
+            "version 7 had no colour space"
+        );
+        write_config(w, c);
+        w.0.truncate(w.0.len() - COLOUR_SPACE_BYTES);
+    }
+
+    #[test]
+    fn colour_space_round_trips_and_versions_before_8_mean_srgb() {
+        for space in ColourSpace::ALL {
+            let config = SunAwareConfig {
+                colour_space: space,
+                ..SunAwareConfig::for_variant(Variant::A)
+            };
+            let mut w = Writer(Vec::new());
+            write_config(&mut w, &config);
+            assert_eq!(read(&w.0, 8).unwrap(), config);
+            let v7 = read(&w.0[..w.0.len() - COLOUR_SPACE_BYTES], 7).unwrap();
+            assert_eq!(v7.colour_space, ColourSpace::Srgb);
+            let mut bad = w.0.clone();
+            *bad.last_mut().unwrap() = 7;
+            let err = read(&bad, 8).unwrap_err().to_string();
+            assert!(err.contains("unknown colour space 7"), "{err}");
+        }
     }
 
     fn read(bytes: &[u8], version: u32) -> Result<SunAwareConfig, SunAwareError> {
@@ -723,7 +765,7 @@ mod tests {
                 ..SunAwareConfig::for_variant(Variant::D)
             };
             let mut w = Writer(Vec::new());
-            write_config(&mut w, &config);
+            write_v7_config(&mut w, &config);
             let full = w.0;
             assert_eq!(read(&full, 7).unwrap(), config);
             // Version 6 ends before the byte: Phi read the paper's row.
@@ -737,14 +779,14 @@ mod tests {
             ..SunAwareConfig::for_variant(Variant::D)
         };
         let mut w = Writer(Vec::new());
-        write_config(&mut w, &config);
+        write_v7_config(&mut w, &config);
         let mut bad = w.0.clone();
         *bad.last_mut().unwrap() = 9;
         let err = read(&bad, 7).unwrap_err().to_string();
         assert!(err.contains("unknown appearance inputs 9"), "{err}");
         // Local inputs without the learned normal are refused on load as in memory.
         let mut w = Writer(Vec::new());
-        write_config(
+        write_v7_config(
             &mut w,
             &SunAwareConfig {
                 shading: Shading::None,
@@ -764,7 +806,7 @@ mod tests {
         };
         config.lr.normal = 0.02;
         let mut w = Writer(Vec::new());
-        write_config(&mut w, &config);
+        write_v7_config(&mut w, &config);
         // The version-6 section: without the trailing appearance inputs byte.
         let full = w.0[..w.0.len() - APPEARANCE_INPUTS_BYTES].to_vec();
         let back = read(&full, 6).unwrap();
@@ -810,7 +852,7 @@ mod tests {
             ..SunAwareConfig::for_variant(Variant::D)
         };
         let mut w = Writer(Vec::new());
-        write_config(&mut w, &config);
+        write_v7_config(&mut w, &config);
         // The version-4 section: without the trailing shading fields.
         let bytes = w.0[..w.0.len() - AFTER_V4_BYTES].to_vec();
         assert_eq!(read(&bytes, 4).unwrap().shadow_gain, 2.0);
@@ -854,7 +896,7 @@ mod tests {
             appearance_hidden_width: 64,
             ..SunAwareConfig::for_variant(Variant::D)
         };
-        write_config(&mut w, &config);
+        write_v7_config(&mut w, &config);
         // The version-3 section: without the trailing shadow gain (4 bytes) and shading.
         let bytes = &w.0[..w.0.len() - 4 - AFTER_V4_BYTES];
         assert_eq!(read(bytes, 3).unwrap().appearance_hidden_width, 64);

@@ -15,6 +15,7 @@ use super::engine::{Backend, DeviceEngines, OpenEngine};
 use super::error::SunAwareError;
 pub use super::shading::Shading;
 pub use crate::nn::AppearanceInputs;
+pub use crate::srgb::ColourSpace;
 
 /// The four configurations of the paper's Table I.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -123,10 +124,19 @@ impl BackendKind {
     /// model; wgpu runs `shading = "none"` and `"lambert_learned"` (the shortest-axis
     /// `"lambert"` has no device kernels); every `appearance_inputs` (`"paper"`, and the
     /// local-frame `"local"` / `"local_no_sun"`, which `validate` ties to
-    /// `"lambert_learned"`) and `shadow_gain` run on both.
+    /// `"lambert_learned"`) and `shadow_gain` run on both; `colour_space = "linear"` is
+    /// CPU-only.
     pub fn check_model(self, config: &SunAwareConfig) -> Result<(), String> {
         if self == BackendKind::Cpu {
             return Ok(());
+        }
+        if config.colour_space != ColourSpace::Srgb {
+            return Err(format!(
+                "the wgpu backend blends sRGB colours (colour_space = \"srgb\"; this model \
+                 has {:?}, whose per-pixel encoding has no device kernels): use \
+                 colour_space = \"srgb\" or train on the CPU",
+                config.colour_space.name()
+            ));
         }
         match config.shading {
             Shading::None | Shading::LambertLearned => Ok(()),
@@ -370,6 +380,12 @@ pub struct SunAwareConfig {
     /// width, so checkpoints store it (from version 7; older ones load as `Paper`). Both
     /// backends run all three.
     pub appearance_inputs: AppearanceInputs,
+    /// What the colours, the shadow channel and the blend are ([`ColourSpace`]): sRGB
+    /// values (the paper's form) or linear radiance with each pixel of `RGB * S` encoded to
+    /// sRGB before the loss, as the camera and the simulator's ray tracer form an image.
+    /// A model knob, stored in checkpoints (from version 8; older ones load as `Srgb`).
+    /// The wgpu backend's training kernels blend sRGB and refuse `Linear`.
+    pub colour_space: ColourSpace,
     pub lr: SunAwareRates,
     pub densify: DensifyConfig,
     /// Prune Gaussians whose screen radius or world size is too big at densification.
@@ -455,6 +471,7 @@ impl Default for SunAwareConfig {
             shading: Shading::None,
             shading_ambient: 0.1,
             appearance_inputs: AppearanceInputs::Paper,
+            colour_space: ColourSpace::Srgb,
             lr: SunAwareRates::default(),
             densify: DensifyConfig::default(),
             size_prune: false,
@@ -715,6 +732,16 @@ mod tests {
         };
         let e = BackendKind::Wgpu.check_model(&lambert).unwrap_err();
         assert!(e.contains("\"lambert\""), "{e}");
+        let linear = SunAwareConfig {
+            colour_space: ColourSpace::Linear,
+            ..demo
+        };
+        assert!(BackendKind::Cpu.check_model(&linear).is_ok());
+        let e = BackendKind::Wgpu.check_model(&linear).unwrap_err();
+        assert!(
+            e.contains("colour_space") && e.contains("\"linear\""),
+            "{e}"
+        );
     }
 
     #[test]

@@ -4,7 +4,9 @@
 //! the colour model). For (b)-(d), Phi's colour for the given Sun and the view vector from
 //! each Gaussian to `camera_centre` (times the Lambertian factor when `config.shading` is
 //! on) becomes the SH DC term (degree 0), multiplied for (c)-(d) by the refined visibility
-//! `V'` of that Sun: the file shows the target as lit and shadowed for that geometry.
+//! `V'` of that Sun: the file shows the target as lit and shadowed for that geometry. A
+//! model that blends linear radiance (`ColourSpace::Linear`) has its baked colours
+//! sRGB-encoded per Gaussian, since viewers blend what they read as sRGB.
 //! Geometry and opacity are copied unchanged, and a learned shading normal becomes the
 //! PLY's `nx ny nz`. Features,
 //! latents and network weights are not representable in a PLY: they live in the checkpoint.
@@ -18,7 +20,7 @@ use crate::model::{GaussianModel, ModelLayout, Param};
 use crate::ply::write_ply;
 use crate::sh::rgb_to_sh_dc;
 
-use super::config::ShadowRefinement;
+use super::config::{ColourSpace, ShadowRefinement};
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
 use super::shading::{assemble_phi_input, shade_forward, Shading};
@@ -31,12 +33,11 @@ pub fn baked_colours(
 ) -> Result<Vec<f32>, SunAwareError> {
     let n = model.len();
     let p = &model.gaussians.params;
+    let space = model.config.colour_space;
     let Some(phi) = &model.appearance else {
-        return Ok(crate::sh::sh_to_rgb(
-            p,
-            model.gaussians.layout().sh_degree,
-            camera_centre,
-        )?);
+        let mut rgb = crate::sh::sh_to_rgb(p, model.gaussians.layout().sh_degree, camera_centre)?;
+        rgb.iter_mut().for_each(|v| *v = space.to_srgb(*v));
+        return Ok(rgb);
     };
     if !(sun_dir.is_finite() && sun_dir.length_squared() > 1e-12) {
         return Err(SunAwareError::BadObservation(format!(
@@ -90,6 +91,9 @@ pub fn baked_colours(
             }
         }
     }
+    // Viewers read sRGB: a linear model's colours are encoded per Gaussian (the renderer
+    // encodes per pixel after blending, which a viewer cannot do).
+    rgb.iter_mut().for_each(|v| *v = space.to_srgb(*v));
     Ok(rgb)
 }
 
@@ -99,7 +103,8 @@ pub fn bake(
     camera_centre: Vec3,
     sun_dir: Vec3,
 ) -> Result<GaussianModel, SunAwareError> {
-    if model.appearance.is_none() {
+    // Configuration (a)'s SH already is its colour model, unless it is linear radiance.
+    if model.appearance.is_none() && model.config.colour_space == ColourSpace::Srgb {
         let mut out = GaussianModel::new(ModelLayout::sh(model.gaussians.layout().sh_degree))?;
         let src = &model.gaussians.params;
         out.params.push_zeros(model.len());

@@ -130,6 +130,8 @@ pub enum ModelKey<'a> {
     ShadingAmbient(f32),
     /// "paper", "local" or "local_no_sun".
     AppearanceInputs(&'a str),
+    /// "srgb" or "linear".
+    ColourSpace(&'a str),
 }
 
 impl ModelKey<'_> {
@@ -143,6 +145,7 @@ impl ModelKey<'_> {
             Self::Shading(_) => "shading",
             Self::ShadingAmbient(_) => "shading_ambient",
             Self::AppearanceInputs(_) => "appearance_inputs",
+            Self::ColourSpace(_) => "colour_space",
         }
     }
 
@@ -167,6 +170,10 @@ impl ModelKey<'_> {
                 if has_phi {
                     model.appearance_inputs = inputs;
                 }
+            }
+            // A convention of image formation, so every configuration follows it.
+            Self::ColourSpace(text) => {
+                model.colour_space = text.parse().map_err(SunAwareError::Config)?;
             }
         }
         Ok(())
@@ -240,6 +247,7 @@ fn fields(c: &SunAwareConfig) -> Vec<(&'static str, String)> {
         shading,
         shading_ambient,
         appearance_inputs,
+        colour_space,
         lr,
         densify,
         size_prune,
@@ -337,6 +345,7 @@ mod tests {
             ModelKey::AppearanceHiddenWidth(64),
             ModelKey::EncodingFrequencies(2),
             ModelKey::ShadingAmbient(0.2),
+            ModelKey::ColourSpace("linear"),
         ] {
             c.set_key(key)
                 .unwrap_or_else(|e| panic!("{}: {e}", key.name()));
@@ -347,6 +356,7 @@ mod tests {
         assert_eq!(c.mlp_precision, MatmulPrecision::Bf16);
         assert_eq!((c.appearance_hidden_width, c.encoding_frequencies), (64, 2));
         assert_eq!(c.shading_ambient, 0.2);
+        assert_eq!(c.colour_space, crate::srgb::ColourSpace::Linear);
         // A refused key names itself and changes nothing.
         let before = c.clone();
         for (key, named) in [
@@ -361,6 +371,7 @@ mod tests {
             ),
             (ModelKey::EncodingFrequencies(0), "encoding_frequencies"),
             (ModelKey::ShadingAmbient(1.0), "shading_ambient"),
+            (ModelKey::ColourSpace("gamma"), "colour_space"),
         ] {
             let e = c.set_key(key).unwrap_err().to_string();
             assert!(e.contains(named), "{key:?}: {e}");
@@ -375,6 +386,9 @@ mod tests {
         a.set_key(ModelKey::AppearanceInputs("local")).unwrap();
         assert_eq!(a, SunAwareConfig::for_variant(Variant::A));
         assert!(a.set_key(ModelKey::Shading("phong")).is_err());
+        // The colour space is how an image forms, not Phi's: (a) follows it too.
+        a.set_key(ModelKey::ColourSpace("linear")).unwrap();
+        assert_eq!(a.colour_space, crate::srgb::ColourSpace::Linear);
     }
 
     #[test]

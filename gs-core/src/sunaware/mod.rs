@@ -31,8 +31,8 @@ pub mod synthetic;
 pub mod trainer;
 
 pub use config::{
-    AppearanceInputs, BackendKind, LightConfig, LightProjection, Shading, ShadowRefinement,
-    SunAwareConfig, SunAwareRates, Variant,
+    AppearanceInputs, BackendKind, ColourSpace, LightConfig, LightProjection, Shading,
+    ShadowRefinement, SunAwareConfig, SunAwareRates, Variant,
 };
 pub use error::SunAwareError;
 pub use keys::{ModelKey, RateOverrides};

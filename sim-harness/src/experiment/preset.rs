@@ -176,6 +176,11 @@ pub struct Preset {
     /// `shading = "lambert_learned"`; configuration (a) has no Phi; both backends run
     /// all three).
     pub appearance_inputs: String,
+    /// What the model's colours and blend are: "srgb" (the paper's form) or "linear"
+    /// (linear radiance, each rendered pixel sRGB-encoded as the ray tracer's frames are)
+    /// (`SunAwareConfig::colour_space`; every configuration; the wgpu backend refuses
+    /// "linear").
+    pub colour_space: String,
     /// Evicted keyframes kept for replay (0: none, the paper; `OnlineConfig`).
     pub replay_capacity: usize,
     /// Steps per round on replayed keyframes.
@@ -248,6 +253,7 @@ impl Default for Preset {
             shading: "none".into(),
             shading_ambient: SunAwareConfig::default().shading_ambient,
             appearance_inputs: "paper".into(),
+            colour_space: "srgb".into(),
             replay_capacity: 0,
             replay_steps_per_round: 0,
             sun_jitter_deg: 0.0,
@@ -405,7 +411,7 @@ impl Preset {
 
     /// The model keys this preset writes as gs-core names them, in the order they depend
     /// on each other (`shading` before `appearance_inputs`).
-    fn model_keys(&self) -> [ModelKey<'_>; 7] {
+    fn model_keys(&self) -> [ModelKey<'_>; 8] {
         [
             ModelKey::AppearanceHiddenWidth(self.appearance_hidden_width),
             ModelKey::EncodingFrequencies(self.encoding_frequencies),
@@ -414,6 +420,7 @@ impl Preset {
             ModelKey::ShadingAmbient(self.shading_ambient),
             ModelKey::Shading(&self.shading),
             ModelKey::AppearanceInputs(&self.appearance_inputs),
+            ModelKey::ColourSpace(&self.colour_space),
         ]
     }
 
@@ -710,6 +717,7 @@ mod tests {
             ("shading_ambient = 1.0\n", "shading_ambient"),
             ("appearance_inputs = \"global\"\n", "appearance_inputs"),
             ("appearance_inputs = \"local\"\n", "appearance_inputs"),
+            ("colour_space = \"gamma\"\n", "colour_space"),
             ("sun_jitter_deg = 91.0\n", "sun_jitter_deg"),
             ("sun_jitter_deg = nan\n", "sun_jitter_deg"),
             ("[rates]\nnormal = -1.0\n", "normal"),

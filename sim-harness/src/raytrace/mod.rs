@@ -464,12 +464,8 @@ pub fn linear_to_srgb8(linear: f32) -> u8 {
     } else {
         0.0
     };
-    let encoded = if c <= 0.003_130_8 {
-        12.92 * c
-    } else {
-        1.055 * c.powf(1.0 / 2.4) - 0.055
-    };
-    (encoded * 255.0 + 0.5) as u8
+    // The same curve the model encodes its linear renders with (`colour_space = "linear"`).
+    (gs_core::srgb::encode(c) * 255.0 + 0.5) as u8
 }
 
 #[cfg(test)]

@@ -1,5 +1,5 @@
 //! Backward of one image through the Sun-aware model: `dL/d(RGB, S)` from
-//! `dL/d(RGB * S)`, the rasterizer's backward, the Lambertian factor's, then Phi (or SH)
+//! `dL/d(RGB * S)` (through the per-pixel sRGB encoding under `ColourSpace::Linear`), the rasterizer's backward, the Lambertian factor's, then Phi (or SH)
 //! and Psi into their weights, the features, the latents and the means.
 //!
 //! Invariants: the model must not have changed since the forward that made the pass; `V`
@@ -9,6 +9,8 @@
 
 use std::time::Instant;
 
+use rayon::prelude::*;
+
 use crate::model::{Param, ParamSet};
 use crate::nn::shadow_net::ShadowBatch;
 use crate::raster::{
@@ -16,6 +18,7 @@ use crate::raster::{
     PixelGrads,
 };
 use crate::sh::sh_to_rgb_backward;
+use crate::srgb::{self, ColourSpace};
 
 use crate::sunaware::config::ShadowRefinement;
 use crate::sunaware::error::SunAwareError;
@@ -38,6 +41,9 @@ pub struct BackwardTimings {
     /// Psi's output-gradient gather, backward and input-gradient scatter.
     pub psi_backward_ms: f64,
 }
+
+/// Pixels per parallel task of `dL/d(RGB, S)`.
+const COMPOSE_CHUNK_PX: usize = 4096;
 
 fn gather_geometry(params: &ParamSet, g: &GaussianGrads) -> ParamSet {
     let mut out = params.zeros_like();
@@ -81,20 +87,34 @@ impl SunAwareModel {
             )));
         }
         let shadowed = nc == 4;
+        let linear = self.config.colour_space == ColourSpace::Linear;
+        let color = pass.render.color();
         let mut d_color = vec![0.0f32; pixels * nc];
-        for px in 0..pixels {
-            let c = &pass.render.color()[px * nc..px * nc + nc];
-            let s = if shadowed { c[3] } else { 1.0 };
-            let mut d_s = 0.0f32;
-            for ch in 0..3 {
-                let d = d_image[px * 3 + ch];
-                d_color[px * nc + ch] = d * s;
-                d_s += d * c[ch];
-            }
-            if shadowed {
-                d_color[px * nc + 3] = d_s;
-            }
-        }
+        // Pixels are independent: the split changes no bit.
+        d_color
+            .par_chunks_mut(COMPOSE_CHUNK_PX * nc)
+            .enumerate()
+            .for_each(|(chunk, d_chunk)| {
+                let first_px = chunk * COMPOSE_CHUNK_PX;
+                for (i, d_px) in d_chunk.chunks_exact_mut(nc).enumerate() {
+                    let px = first_px + i;
+                    let c = &color[px * nc..px * nc + nc];
+                    let s = if shadowed { c[3] } else { 1.0 };
+                    let mut d_s = 0.0f32;
+                    for ch in 0..3 {
+                        let mut d = d_image[px * 3 + ch];
+                        if linear {
+                            // Through the per-pixel encoding of the forward's `c * s`.
+                            d *= srgb::encode_slope(c[ch] * s);
+                        }
+                        d_px[ch] = d * s;
+                        d_s += d * c[ch];
+                    }
+                    if shadowed {
+                        d_px[3] = d_s;
+                    }
+                }
+            });
         timings.compose_ms = ms_since(t0);
         let t1 = Instant::now();
         let view = GaussianView::from_model(&self.gaussians, &pass.channels, nc);

@@ -1,6 +1,7 @@
 //! Forward of one image through the Sun-aware model: the visible list, Phi (or SH),
 //! the optional Lambertian factor, the Sun visibility and Psi, then the blend and the
-//! `RGB * S` product (see the parent module's header for the stages).
+//! `RGB * S` product, sRGB-encoded per pixel under `ColourSpace::Linear` (see the parent
+//! module's header for the stages).
 //!
 //! Invariants: the visible list, the channel layout and the networks' batch are fixed
 //! by the inputs (deterministic); a non-finite or zero Sun vector is an error before any
@@ -9,6 +10,7 @@
 use std::time::Instant;
 
 use glam::Vec3;
+use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::model::Param;
@@ -20,6 +22,7 @@ use crate::raster::{
     ForwardTimings as RasterForwardTimings, GaussianView, RasterSettings,
 };
 use crate::sh::sh_to_rgb;
+use crate::srgb::{self, ColourSpace};
 
 use crate::sunaware::config::ShadowRefinement;
 use crate::sunaware::error::SunAwareError;
@@ -49,6 +52,10 @@ pub struct ForwardTimings {
     /// Rest of the blend call (checks, visibility flags) and the `RGB * S` product.
     pub compose_ms: f64,
 }
+
+/// Values per parallel task of the per-pixel sRGB encoding (elementwise: the split changes
+/// no bit).
+pub(super) const ENCODE_CHUNK: usize = 1 << 14;
 
 impl SunAwareModel {
     /// Forward of one image with the networks run on every visible Gaussian, so the
@@ -284,6 +291,12 @@ impl SunAwareModel {
             if shadowed {
                 shadow_image[px] = s;
             }
+        }
+        if self.config.colour_space == ColourSpace::Linear {
+            // The camera encodes each pixel's summed light once (crate::srgb).
+            image
+                .par_chunks_mut(ENCODE_CHUNK)
+                .for_each(|chunk| chunk.iter_mut().for_each(|v| *v = srgb::encode(*v)));
         }
         timings.compose_ms = (ms_since(t3) - timings.raster.blend_ms).max(0.0);
         Ok(FramePass {
