@@ -7,21 +7,19 @@
 //! but at 0 and 1 (the encoding of `0.5 x` is about `0.73` times the encoding of `x`). With
 //! [`ColourSpace::Linear`] the model's colours, its shadow channel and the blend are linear
 //! radiance, and [`encode`] turns each pixel of the blended image into sRGB, as the camera
-//! does (`SunAwareConfig::colour_space`).
+//! does (`SunAwareConfig::colour_space`; configurations b-d, whose colour is Phi's sigmoid:
+//! (a)'s SH colour is clamped at zero with no gradient, where dark linear colours sit).
 //!
 //! Invariants: [`encode`] is the standard's piecewise curve, continuous at its knee,
 //! extended past 1 by the same power law (a training render may overshoot; the 8-bit
 //! conversion clamps) and linear below 0; [`encode_slope`] is its derivative (finite
-//! everywhere, 12.92 on the linear segment); [`decode`] inverts [`encode`] on [0, 1].
-//! All three are plain `f32` arithmetic with `powf`: the same bits on every run.
+//! everywhere, 12.92 on the linear segment). Both are plain `f32` arithmetic with `powf`:
+//! the same bits on every run.
 
 use std::str::FromStr;
 
 /// Where the linear segment of the encoding ends (linear value).
 pub const LINEAR_KNEE: f32 = 0.003_130_8;
-
-/// The same knee as an sRGB value (`12.92 * LINEAR_KNEE`).
-pub const ENCODED_KNEE: f32 = 0.040_45;
 
 /// sRGB value (0..1 for 0..1) of a linear value.
 #[inline]
@@ -40,16 +38,6 @@ pub fn encode_slope(linear: f32) -> f32 {
         12.92
     } else {
         (1.055 / 2.4) * linear.powf(1.0 / 2.4 - 1.0)
-    }
-}
-
-/// Linear value of an sRGB value (the inverse of [`encode`]).
-#[inline]
-pub fn decode(encoded: f32) -> f32 {
-    if encoded <= ENCODED_KNEE {
-        encoded / 12.92
-    } else {
-        ((encoded + 0.055) / 1.055).powf(2.4)
     }
 }
 
@@ -81,15 +69,6 @@ impl ColourSpace {
 
     pub fn from_code(code: u8) -> Option<Self> {
         Self::ALL.get(code as usize).copied()
-    }
-
-    /// A colour as this space stores it, from an sRGB value (initial colours read from
-    /// images).
-    pub fn from_srgb(self, encoded: f32) -> f32 {
-        match self {
-            ColourSpace::Srgb => encoded,
-            ColourSpace::Linear => decode(encoded),
-        }
     }
 
     /// An sRGB value of a colour this space stores (for viewers, which know sRGB).
@@ -126,6 +105,15 @@ impl FromStr for ColourSpace {
 mod tests {
     use super::*;
 
+    /// The standard's inverse of [`encode`].
+    fn decode(encoded: f32) -> f32 {
+        if encoded <= 0.040_45 {
+            encoded / 12.92
+        } else {
+            ((encoded + 0.055) / 1.055).powf(2.4)
+        }
+    }
+
     #[test]
     fn encode_matches_the_standard_at_its_reference_points() {
         // IEC 61966-2-1: 0 -> 0, 1 -> 1, the knee continuous, 0.5 -> 0.7354 (188 / 255).
@@ -160,10 +148,8 @@ mod tests {
             let back = decode(encode(x));
             assert!((back - x).abs() <= 2e-6 + 1e-5 * x, "{x} -> {back}");
         }
-        assert_eq!(ColourSpace::Srgb.from_srgb(0.3), 0.3);
-        assert!(
-            (ColourSpace::Linear.to_srgb(ColourSpace::Linear.from_srgb(0.3)) - 0.3).abs() < 1e-6
-        );
+        assert_eq!(ColourSpace::Srgb.to_srgb(0.3), 0.3);
+        assert_eq!(ColourSpace::Linear.to_srgb(0.3), encode(0.3));
     }
 
     #[test]

@@ -328,13 +328,6 @@ fn initial_gaussians(
                     return Err(OnlineError::Config("a surface normal is not finite".into()));
                 }
             }
-            // Colours read from images are sRGB; a linear model stores linear radiance.
-            let space = config.model.colour_space;
-            let colours: Option<Vec<[f32; 3]>> = colours.as_ref().map(|c| {
-                c.iter()
-                    .map(|rgb| rgb.map(|v| space.from_srgb(v)))
-                    .collect()
-            });
             let result = from_points(points, colours.as_deref(), layout)?;
             let mut model = result.model;
             if let Some(n) = normals {
@@ -740,37 +733,6 @@ mod tests {
                 panic!("sun_jitter_rad {bad} was accepted");
             };
             assert!(e.to_string().contains("sun_jitter_rad"), "{e}");
-        }
-    }
-
-    /// Colours read from images are sRGB: a linear model starts from their linear values.
-    #[test]
-    fn surface_colours_start_in_the_models_colour_space() {
-        let points = vec![Vec3::ZERO, Vec3::X, Vec3::Y, Vec3::Z];
-        let init = Initialisation::SurfaceSamples {
-            points,
-            normals: None,
-            colours: Some(vec![[0.5, 0.2, 0.9]; 4]),
-        };
-        let scene_box = SceneBox::new([-1.0; 3], [2.0; 3]).unwrap();
-        let dc_of = |space: gs_core::srgb::ColourSpace| {
-            let mut config = OnlineConfig::default();
-            config.model.variant = gs_core::sunaware::Variant::A;
-            config.model.colour_space = space;
-            let t = OnlineTrainer::new(config, &init, scene_box).unwrap();
-            t.trainer
-                .model
-                .gaussians
-                .params
-                .row(Param::ShDc, 0)
-                .to_vec()
-        };
-        let srgb = dc_of(gs_core::srgb::ColourSpace::Srgb);
-        let linear = dc_of(gs_core::srgb::ColourSpace::Linear);
-        for (c, value) in [0.5f32, 0.2, 0.9].into_iter().enumerate() {
-            assert_eq!(srgb[c], gs_core::sh::rgb_to_sh_dc(value));
-            let want = gs_core::sh::rgb_to_sh_dc(gs_core::srgb::decode(value));
-            assert_eq!(linear[c], want, "channel {c}");
         }
     }
 }

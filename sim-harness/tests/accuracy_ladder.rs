@@ -77,7 +77,8 @@ fn held_out_trajectory_frames_beat_black_in_configuration_d() {
     let (o, _) = run_config(&scene, &preset, Variant::D, 0, &mut |_| {}).expect("run");
     eprintln!("{}", report(&o));
     assert!(o.held_out.views > 0);
-    // Measured: +3.4 dB (16.37 against 12.98 dB), L0 seen +8.9 dB.
-    assert_margin("L1 held-out", &o.held_out, &o.black_held_out, 2.5);
-    assert_margin("L0 seen", &o.seen, &o.black_seen, 6.0);
+    // Measured with the linear blend (Intel Xeon): +6.35 dB (19.33 against 12.98 dB), L0
+    // seen +10.2 dB; with the sRGB blend before it +3.4 dB and +8.9 dB.
+    assert_margin("L1 held-out", &o.held_out, &o.black_held_out, 5.0);
+    assert_margin("L0 seen", &o.seen, &o.black_seen, 8.0);
 }

@@ -729,7 +729,7 @@ mod tests {
         for space in ColourSpace::ALL {
             let config = SunAwareConfig {
                 colour_space: space,
-                ..SunAwareConfig::for_variant(Variant::A)
+                ..SunAwareConfig::for_variant(Variant::D)
             };
             let mut w = Writer(Vec::new());
             write_config(&mut w, &config);

@@ -384,6 +384,9 @@ pub struct SunAwareConfig {
     /// values (the paper's form) or linear radiance with each pixel of `RGB * S` encoded to
     /// sRGB before the loss, as the camera and the simulator's ray tracer form an image.
     /// A model knob, stored in checkpoints (from version 8; older ones load as `Srgb`).
+    /// `Linear` needs Phi (configurations b-d): Phi's colour is a sigmoid, while (a)'s SH
+    /// colour is clamped at zero with no gradient, and dark materials sit near zero in
+    /// linear radiance (the static-target fit of (a) fell from 6.2 to 2.6 dB over black).
     /// The wgpu backend's training kernels blend sRGB and refuse `Linear`.
     pub colour_space: ColourSpace,
     pub lr: SunAwareRates,
@@ -542,6 +545,14 @@ impl SunAwareConfig {
             return bad(format!(
                 "shading_ambient {} is outside [0, 1)",
                 self.shading_ambient
+            ));
+        }
+        if self.colour_space == ColourSpace::Linear && !self.variant.uses_appearance_mlp() {
+            return bad(format!(
+                "colour_space = \"linear\" needs the appearance MLP's colour (configurations \
+                 b-d), not {}: SH colour is clamped at zero with no gradient, and in linear \
+                 radiance dark surfaces sit at that clamp",
+                self.variant
             ));
         }
         if self.shading != Shading::None && !self.variant.uses_appearance_mlp() {
@@ -742,6 +753,23 @@ mod tests {
             e.contains("colour_space") && e.contains("\"linear\""),
             "{e}"
         );
+    }
+
+    #[test]
+    fn linear_colour_needs_phi() {
+        for variant in Variant::ALL {
+            let config = SunAwareConfig {
+                colour_space: ColourSpace::Linear,
+                ..SunAwareConfig::for_variant(variant)
+            };
+            let result = config.validate();
+            if variant.uses_appearance_mlp() {
+                assert!(result.is_ok(), "{variant}: {result:?}");
+            } else {
+                let e = result.unwrap_err().to_string();
+                assert!(e.contains("colour_space") && e.contains("clamped"), "{e}");
+            }
+        }
     }
 
     #[test]

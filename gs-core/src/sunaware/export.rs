@@ -20,7 +20,7 @@ use crate::model::{GaussianModel, ModelLayout, Param};
 use crate::ply::write_ply;
 use crate::sh::rgb_to_sh_dc;
 
-use super::config::{ColourSpace, ShadowRefinement};
+use super::config::ShadowRefinement;
 use super::error::SunAwareError;
 use super::model::SunAwareModel;
 use super::shading::{assemble_phi_input, shade_forward, Shading};
@@ -33,11 +33,12 @@ pub fn baked_colours(
 ) -> Result<Vec<f32>, SunAwareError> {
     let n = model.len();
     let p = &model.gaussians.params;
-    let space = model.config.colour_space;
     let Some(phi) = &model.appearance else {
-        let mut rgb = crate::sh::sh_to_rgb(p, model.gaussians.layout().sh_degree, camera_centre)?;
-        rgb.iter_mut().for_each(|v| *v = space.to_srgb(*v));
-        return Ok(rgb);
+        return Ok(crate::sh::sh_to_rgb(
+            p,
+            model.gaussians.layout().sh_degree,
+            camera_centre,
+        )?);
     };
     if !(sun_dir.is_finite() && sun_dir.length_squared() > 1e-12) {
         return Err(SunAwareError::BadObservation(format!(
@@ -93,6 +94,7 @@ pub fn baked_colours(
     }
     // Viewers read sRGB: a linear model's colours are encoded per Gaussian (the renderer
     // encodes per pixel after blending, which a viewer cannot do).
+    let space = model.config.colour_space;
     rgb.iter_mut().for_each(|v| *v = space.to_srgb(*v));
     Ok(rgb)
 }
@@ -103,8 +105,7 @@ pub fn bake(
     camera_centre: Vec3,
     sun_dir: Vec3,
 ) -> Result<GaussianModel, SunAwareError> {
-    // Configuration (a)'s SH already is its colour model, unless it is linear radiance.
-    if model.appearance.is_none() && model.config.colour_space == ColourSpace::Srgb {
+    if model.appearance.is_none() {
         let mut out = GaussianModel::new(ModelLayout::sh(model.gaussians.layout().sh_degree))?;
         let src = &model.gaussians.params;
         out.params.push_zeros(model.len());

@@ -10,9 +10,10 @@
 //! after each key, so an error belongs to the key just set.
 //!
 //! Invariants: a refused key leaves the configuration unchanged; an unknown rate name is a
-//! parse error naming it, and a named rate must be finite and >= 0; the Lambertian shadings
-//! and Phi's inputs are set only where the variant has Phi (configuration (a) keeps the
-//! paper's form, so one file's shading applies to every configuration it names);
+//! parse error naming it, and a named rate must be finite and >= 0; the Lambertian shadings,
+//! Phi's inputs and the linear colour space are set only where the variant has Phi
+//! (configuration (a) keeps the paper's form, so one file's shading applies to every
+//! configuration it names);
 //! `differences` lists every field (an exhaustive destructuring, so a new field fails to
 //! compile until it is listed).
 
@@ -171,9 +172,11 @@ impl ModelKey<'_> {
                     model.appearance_inputs = inputs;
                 }
             }
-            // A convention of image formation, so every configuration follows it.
             Self::ColourSpace(text) => {
-                model.colour_space = text.parse().map_err(SunAwareError::Config)?;
+                let space = text.parse().map_err(SunAwareError::Config)?;
+                if has_phi {
+                    model.colour_space = space;
+                }
             }
         }
         Ok(())
@@ -386,9 +389,9 @@ mod tests {
         a.set_key(ModelKey::AppearanceInputs("local")).unwrap();
         assert_eq!(a, SunAwareConfig::for_variant(Variant::A));
         assert!(a.set_key(ModelKey::Shading("phong")).is_err());
-        // The colour space is how an image forms, not Phi's: (a) follows it too.
         a.set_key(ModelKey::ColourSpace("linear")).unwrap();
-        assert_eq!(a.colour_space, crate::srgb::ColourSpace::Linear);
+        assert_eq!(a, SunAwareConfig::for_variant(Variant::A));
+        assert!(a.set_key(ModelKey::ColourSpace("gamma")).is_err());
     }
 
     #[test]

@@ -178,8 +178,8 @@ pub struct Preset {
     pub appearance_inputs: String,
     /// What the model's colours and blend are: "srgb" (the paper's form) or "linear"
     /// (linear radiance, each rendered pixel sRGB-encoded as the ray tracer's frames are)
-    /// (`SunAwareConfig::colour_space`; every configuration; the wgpu backend refuses
-    /// "linear").
+    /// (`SunAwareConfig::colour_space`; configurations b-d, (a) keeps "srgb"; the wgpu
+    /// backend refuses "linear").
     pub colour_space: String,
     /// Evicted keyframes kept for replay (0: none, the paper; `OnlineConfig`).
     pub replay_capacity: usize,
