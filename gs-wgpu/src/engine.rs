@@ -5,9 +5,10 @@
 //! Invariants: the kernels are compiled once, when the engine opens (a failure is an
 //! error then, never later a fallback); [`WgpuEngine::supports`] refuses the
 //! configurations the kernels lack (`shading = "lambert"`, the shortest-axis normal;
-//! `"lambert_learned"` and Phi's local-frame `appearance_inputs` run on the device) with
-//! the setting's name (the rule is `BackendKind::check_model`'s); every device error
-//! reaches the caller as a `SunAwareError` (rasterizer input errors keep their type).
+//! `"lambert_learned"`, Phi's local-frame `appearance_inputs` and both `colour_space`s
+//! run on the device) with the setting's name (the rule is `BackendKind::check_model`'s);
+//! every device error reaches the caller as a `SunAwareError` (rasterizer input errors
+//! keep their type).
 
 use std::sync::Arc;
 

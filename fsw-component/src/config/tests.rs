@@ -1,7 +1,7 @@
 //! Tests of `config` (a child module, so they reach its private items).
 
 use super::*;
-use gs_core::sunaware::{AppearanceInputs, RateOverrides, Shading};
+use gs_core::sunaware::{AppearanceInputs, ColourSpace, RateOverrides, Shading};
 
 fn parse(text: &str) -> Result<ComponentConfig, ConfigError> {
     ComponentConfig::from_toml_str(text, Path::new("test.toml"))
@@ -105,10 +105,10 @@ fn the_default_model_is_the_demos() {
     );
 }
 
-/// wgpu runs Phi's local-frame inputs (the default) with the learned-normal shading:
-/// such a file passes the model rule when it loads (then needs the build's feature);
-/// the shortest-axis `shading = "lambert"` is still refused at load, naming the backend
-/// and the setting, in every build.
+/// wgpu runs Phi's local-frame inputs (the default) with the learned-normal shading, in
+/// either colour space: such a file passes the model rule when it loads (then needs the
+/// build's feature); the shortest-axis `shading = "lambert"` is still refused at load,
+/// naming the backend and the setting, in every build.
 #[test]
 fn wgpu_with_local_inputs_is_accepted_and_lambert_refused_at_load() {
     for (inputs, want) in [
@@ -143,14 +143,20 @@ fn wgpu_with_local_inputs_is_accepted_and_lambert_refused_at_load() {
         message.contains("training.backend") && message.contains("\"lambert\""),
         "{message}"
     );
-    // What the device runs passes the model rule (then needs the build's feature).
-    let runs =
-        parse("[training]\nbackend = \"wgpu\"\nappearance_inputs = \"paper\"\nshadow_gain = 2.0\n");
+    // What the device runs passes the model rule (then needs the build's feature), the
+    // linear colour space included.
+    let runs = parse(
+        "[training]\nbackend = \"wgpu\"\nappearance_inputs = \"paper\"\nshadow_gain = 2.0\n\
+         colour_space = \"linear\"\n",
+    );
     match runs {
-        Ok(config) => assert_eq!(
-            config.model_config().unwrap().shading,
-            Shading::LambertLearned
-        ),
+        Ok(config) => {
+            let model = config.model_config().unwrap();
+            assert_eq!(
+                (model.shading, model.colour_space),
+                (Shading::LambertLearned, ColourSpace::Linear)
+            );
+        }
         Err(e) => assert!(e.to_string().contains("feature `wgpu`"), "{e}"),
     }
     // The CPU runs every model.

@@ -64,7 +64,7 @@ pub struct TrainingConfig {
     /// +1.0 dB on held-out frames and +2.0 dB on new Sun directions (docs/results/accuracy.md).
     pub appearance_inputs: String,
     /// What the model's colours and blend are: "srgb" (the paper's form) or "linear"
-    /// (linear radiance, each rendered pixel sRGB-encoded as a camera does; CPU only).
+    /// (linear radiance, each rendered pixel sRGB-encoded as a camera does); both backends.
     pub colour_space: String,
     /// `V' = shadow_gain * V * Psi` in configurations (c)-(d), 0.5 to 8 (default 2, the
     /// demo's; the paper's form is 1).

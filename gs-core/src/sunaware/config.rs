@@ -124,19 +124,10 @@ impl BackendKind {
     /// model; wgpu runs `shading = "none"` and `"lambert_learned"` (the shortest-axis
     /// `"lambert"` has no device kernels); every `appearance_inputs` (`"paper"`, and the
     /// local-frame `"local"` / `"local_no_sun"`, which `validate` ties to
-    /// `"lambert_learned"`) and `shadow_gain` run on both; `colour_space = "linear"` is
-    /// CPU-only.
+    /// `"lambert_learned"`), `shadow_gain` and both `colour_space`s run on both.
     pub fn check_model(self, config: &SunAwareConfig) -> Result<(), String> {
         if self == BackendKind::Cpu {
             return Ok(());
-        }
-        if config.colour_space != ColourSpace::Srgb {
-            return Err(format!(
-                "the wgpu backend blends sRGB colours (colour_space = \"srgb\"; this model \
-                 has {:?}, whose per-pixel encoding has no device kernels): use \
-                 colour_space = \"srgb\" or train on the CPU",
-                config.colour_space.name()
-            ));
         }
         match config.shading {
             Shading::None | Shading::LambertLearned => Ok(()),
@@ -387,7 +378,7 @@ pub struct SunAwareConfig {
     /// `Linear` needs Phi (configurations b-d): Phi's colour is a sigmoid, while (a)'s SH
     /// colour is clamped at zero with no gradient, and dark materials sit near zero in
     /// linear radiance (the static-target fit of (a) fell from 6.2 to 2.6 dB over black).
-    /// The wgpu backend's training kernels blend sRGB and refuse `Linear`.
+    /// Both backends run both.
     pub colour_space: ColourSpace,
     pub lr: SunAwareRates,
     pub densify: DensifyConfig,
@@ -717,42 +708,42 @@ mod tests {
     }
 
     #[test]
-    fn wgpu_runs_every_appearance_input_and_the_learned_normal_only() {
+    fn wgpu_runs_every_appearance_input_and_colour_space_and_the_learned_normal_only() {
         let demo = SunAwareConfig {
             shading: Shading::LambertLearned,
             appearance_inputs: AppearanceInputs::Local,
             shadow_gain: 2.0,
             ..SunAwareConfig::default()
         };
-        for inputs in AppearanceInputs::ALL {
-            let config = SunAwareConfig {
-                appearance_inputs: inputs,
-                ..demo.clone()
-            };
-            assert!(BackendKind::Cpu.check_model(&config).is_ok());
-            assert!(BackendKind::Wgpu.check_model(&config).is_ok(), "{inputs}");
+        for space in ColourSpace::ALL {
+            for inputs in AppearanceInputs::ALL {
+                let config = SunAwareConfig {
+                    appearance_inputs: inputs,
+                    colour_space: space,
+                    ..demo.clone()
+                };
+                assert!(BackendKind::Cpu.check_model(&config).is_ok());
+                assert!(
+                    BackendKind::Wgpu.check_model(&config).is_ok(),
+                    "{inputs} {space}"
+                );
+            }
         }
         let paper_inputs = SunAwareConfig {
             appearance_inputs: AppearanceInputs::Paper,
-            ..demo.clone()
-        };
-        assert!(BackendKind::Wgpu.check_model(&paper_inputs).is_ok());
-        let lambert = SunAwareConfig {
-            shading: Shading::Lambert,
-            ..paper_inputs
-        };
-        let e = BackendKind::Wgpu.check_model(&lambert).unwrap_err();
-        assert!(e.contains("\"lambert\""), "{e}");
-        let linear = SunAwareConfig {
-            colour_space: ColourSpace::Linear,
             ..demo
         };
-        assert!(BackendKind::Cpu.check_model(&linear).is_ok());
-        let e = BackendKind::Wgpu.check_model(&linear).unwrap_err();
-        assert!(
-            e.contains("colour_space") && e.contains("\"linear\""),
-            "{e}"
-        );
+        assert!(BackendKind::Wgpu.check_model(&paper_inputs).is_ok());
+        for space in ColourSpace::ALL {
+            let lambert = SunAwareConfig {
+                shading: Shading::Lambert,
+                colour_space: space,
+                ..paper_inputs.clone()
+            };
+            assert!(BackendKind::Cpu.check_model(&lambert).is_ok());
+            let e = BackendKind::Wgpu.check_model(&lambert).unwrap_err();
+            assert!(e.contains("\"lambert\""), "{e}");
+        }
     }
 
     #[test]

@@ -23,9 +23,11 @@
 //!    learned normal);
 //!    (c-d) Psi's, into channel 3 (`V * P` or `P`) ([`NetworkIo`], [`GpuMlp`]); the
 //!    channels are checked finite;
-//! 5. the blend with those channels, `RGB * S` (`sa_compose`), the masked
-//!    L1 + SSIM loss and its image gradient ([`GpuLoss`](crate::GpuLoss)), `d(RGB, S)`
-//!    (`sa_compose_backward`), the rasterizer's backward;
+//! 5. the blend with those channels, `RGB * S` (`sa_compose`; with
+//!    `colour_space = "linear"` each pixel then sRGB-encoded, in a-b too, whose sRGB
+//!    image is the colour buffer itself), the masked L1 + SSIM loss and its image
+//!    gradient ([`GpuLoss`](crate::GpuLoss)), `d(RGB, S)` (`sa_compose_backward`, through
+//!    the encoding's slope under `"linear"`), the rasterizer's backward;
 //! 6. the geometry gradients and `L_iso` (`sa_grads`), then Phi's and Psi's backward and
 //!    the scatter of their input gradients into features, latents and means (Phi's output
 //!    gradient times the shading factor, and the learned normals' gradient, the Normal

@@ -22,7 +22,7 @@ use crate::{bytes_f32, bytes_u32, dispatch_1d, groups_1d, u32_bytes, GpuError};
 use gs_core::loss::ImageShape;
 use gs_core::model::Param;
 use gs_core::regularizer::IsoReduction;
-use gs_core::sunaware::config::ShadowRefinement;
+use gs_core::sunaware::config::{ColourSpace, ShadowRefinement};
 use gs_core::sunaware::Shading;
 use gs_core::sunaware::StepTimings;
 use gs_core::sunaware::SunAwareModel;
@@ -358,12 +358,23 @@ impl SunAwareResident {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(1, 1, 1);
         }
-        let px_u = own.uniform(ctx, "sa pixels", &count_words(pixels as usize))?;
+        // `RGB * S` (c-d) and the per-pixel sRGB encoding (`colour_space = "linear"`):
+        // without either the image is the colour buffer (a-b in sRGB).
+        let linear = model.config.colour_space == ColourSpace::Linear;
+        let compose = shadowed || linear;
+        let compose_u = own.uniform(
+            ctx,
+            "sa compose",
+            &u32_bytes(&[pixels as u32, nc as u32, linear as u32, 0]),
+        )?;
         let d_image = own.storage(ctx, "sa image gradient", pixels * 5 * 4)?;
         encoder.clear_buffer(&d_image, 0, None);
-        let image = if shadowed {
+        let image = if compose {
             let image = own.storage(ctx, "sa image", pixels * 12)?;
-            let bind = ctx.bind_group(&self.pipelines.compose, &[&px_u, &device.color, &image]);
+            let bind = ctx.bind_group(
+                &self.pipelines.compose,
+                &[&compose_u, &device.color, &image],
+            );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.compose, &bind, pixels);
             drop(pass);
@@ -385,11 +396,12 @@ impl SunAwareResident {
             &flags,
             Some(&pools.raster),
         )?;
-        let px_grad = if shadowed {
-            let d_color = own.storage(ctx, "sa colour gradient", pixels * 6 * 4)?;
+        let px_grad = if compose {
+            // The rasterizer's rows: the channels, alpha and depth.
+            let d_color = own.storage(ctx, "sa colour gradient", pixels * (nc as u64 + 2) * 4)?;
             let bind = ctx.bind_group(
                 &self.pipelines.compose_backward,
-                &[&px_u, &device.color, &d_image, &d_color],
+                &[&compose_u, &device.color, &d_image, &d_color],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             dispatch_1d(&mut pass, &self.pipelines.compose_backward, &bind, pixels);

@@ -166,7 +166,7 @@ pub struct Preset {
     /// Colour times a Lambertian factor of a per-Gaussian normal and the Sun: "none" (the
     /// paper), "lambert" (the shortest scale axis) or "lambert_learned" (a learned normal
     /// per Gaussian, its rate `[rates] normal`) (`SunAwareConfig::shading`; configurations
-    /// b-d, (a) stays plain; the wgpu backend refuses both).
+    /// b-d, (a) stays plain; the wgpu backend refuses "lambert").
     pub shading: String,
     /// Ambient floor `k_a` of the Lambertian shadings, in [0, 1).
     pub shading_ambient: f32,
@@ -178,8 +178,8 @@ pub struct Preset {
     pub appearance_inputs: String,
     /// What the model's colours and blend are: "srgb" (the paper's form) or "linear"
     /// (linear radiance, each rendered pixel sRGB-encoded as the ray tracer's frames are)
-    /// (`SunAwareConfig::colour_space`; configurations b-d, (a) keeps "srgb"; the wgpu
-    /// backend refuses "linear").
+    /// (`SunAwareConfig::colour_space`; configurations b-d, (a) keeps "srgb"; both
+    /// backends run both).
     pub colour_space: String,
     /// Evicted keyframes kept for replay (0: none, the paper; `OnlineConfig`).
     pub replay_capacity: usize,
