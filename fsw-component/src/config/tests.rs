@@ -393,6 +393,7 @@ fn demo_preset_keys_are_the_defaults() {
     for key in [
         "shading",
         "appearance_inputs",
+        "colour_space",
         "shadow_gain",
         "appearance_hidden_width",
         "encoding_frequencies",

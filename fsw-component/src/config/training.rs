@@ -63,8 +63,9 @@ pub struct TrainingConfig {
     /// "local_no_sun". With `shading = "lambert_learned"` and "local" the demo scored
     /// +1.0 dB on held-out frames and +2.0 dB on new Sun directions (docs/results/accuracy.md).
     pub appearance_inputs: String,
-    /// What the model's colours and blend are: "srgb" (the paper's form) or "linear"
-    /// (linear radiance, each rendered pixel sRGB-encoded as a camera does); both backends.
+    /// What the model's colours and blend are: "linear" (default, the demo's: linear
+    /// radiance, each rendered pixel sRGB-encoded as a camera does; configurations b-d) or
+    /// "srgb" (the paper's form); both backends.
     pub colour_space: String,
     /// `V' = shadow_gain * V * Psi` in configurations (c)-(d), 0.5 to 8 (default 2, the
     /// demo's; the paper's form is 1).
@@ -113,7 +114,7 @@ impl Default for TrainingConfig {
             // The model docs/results/accuracy.md measured best (the demo preset's).
             shading: "lambert_learned".to_string(),
             appearance_inputs: "local".to_string(),
-            colour_space: "srgb".to_string(),
+            colour_space: "linear".to_string(),
             shadow_gain: 2.0,
             // The demo's light camera, replay memory and rates (config/presets/demo.toml,
             // measured in docs/results/accuracy.md); `demo_preset_keys_are_the_defaults`
