@@ -36,7 +36,8 @@
 //!
 //! Files: [`light_camera`](mod@light_camera) (where the light camera sits, the Gaussians' splats in its image
 //! and their extents along its axis), `tile_walk` (the per-tile walk that accumulates the
-//! weights and transmittances), this file (the pass from splats to `V_i`).
+//! weights and transmittances), `exp_lanes` (`f32::exp` sixteen lanes at a time, same
+//! bits), this file (the pass from splats to `V_i`).
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -50,6 +51,7 @@ use crate::raster::depth_order;
 use super::config::LightConfig;
 use super::error::SunAwareError;
 
+mod exp_lanes;
 pub mod light_camera;
 #[cfg(test)]
 mod tests;

@@ -3,8 +3,11 @@
 //! what lies in front of it, with occluders applied once each in depth order.
 //!
 //! Invariants: the same bits as a per-pixel scan of the whole list (tested), in the plain
-//! and the AVX-512F builds alike; pixels are visited in row-major order per receiver.
+//! and the AVX-512F builds alike; pixels are visited in row-major order per receiver. The
+//! exponentials are `f32::exp`'s bits whether taken one by one or sixteen at once
+//! ([`ExpLanes`]).
 
+use super::exp_lanes::ExpLanes;
 use crate::raster::bin::PixelRect;
 use crate::raster::blend::{Splat, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_STOP};
 
@@ -20,9 +23,15 @@ pub(super) fn footprint_power(s: &Splat, px: f32, py: f32) -> f32 {
 
 /// The rasterizer's alpha from an occluder's opacity and footprint exponent:
 /// `min(0.99, o exp(power))`, 0 where that is NaN.
-#[inline(always)]
+#[cfg(test)]
 pub(super) fn occluder_alpha(opacity: f32, power: f32) -> f32 {
-    let raw = opacity * power.exp();
+    alpha_of_footprint(opacity, power.exp())
+}
+
+/// [`occluder_alpha`] from the footprint `exp(power)` already taken.
+#[inline(always)]
+fn alpha_of_footprint(opacity: f32, footprint: f32) -> f32 {
+    let raw = opacity * footprint;
     if raw.is_nan() {
         0.0
     } else {
@@ -102,8 +111,9 @@ pub(super) struct TileWalk<'a> {
 
 /// [`tile_visibility`] into `acc` (one entry per list entry, zeroed here) with reused
 /// buffers, compiled for AVX-512F where the CPU has it (the lane loops below become vector
-/// operations: the same separate IEEE operations, and the same scalar `expf` calls, so the
-/// same bits; tested against the plain build).
+/// operations: the same separate IEEE operations, and `f32::exp`'s bits sixteen lanes at a
+/// time where [`ExpLanes::detect`] allows, so the same bits; tested against the plain
+/// build).
 pub(super) fn tile_visibility_into(
     walk: &TileWalk,
     scratch: &mut TileScratch,
@@ -113,11 +123,11 @@ pub(super) fn tile_visibility_into(
     #[cfg(target_arch = "x86_64")]
     if isa == WalkIsa::Detect && std::arch::is_x86_feature_detected!("avx512f") {
         // SAFETY: the CPU has AVX-512F (checked just above).
-        unsafe { tile_visibility_avx512(walk, scratch, acc) };
+        unsafe { tile_visibility_avx512(walk, scratch, acc, ExpLanes::detect()) };
         return;
     }
     let _ = isa;
-    tile_visibility_body(walk, scratch, acc);
+    tile_visibility_body(walk, scratch, acc, ExpLanes::Scalar);
 }
 
 /// Which build of the tile walk runs: the widest the CPU has, or the plain one (tests).
@@ -130,8 +140,13 @@ pub(super) enum WalkIsa {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn tile_visibility_avx512(walk: &TileWalk, scratch: &mut TileScratch, acc: &mut [[f32; 2]]) {
-    tile_visibility_body(walk, scratch, acc);
+unsafe fn tile_visibility_avx512(
+    walk: &TileWalk,
+    scratch: &mut TileScratch,
+    acc: &mut [[f32; 2]],
+    exp: ExpLanes,
+) {
+    tile_visibility_body(walk, scratch, acc, exp);
 }
 
 /// Pixels of a tile row handled together by the occluder loop (a tile row is 16 pixels).
@@ -149,7 +164,12 @@ const WINDOW_SIDE: usize = 8;
 // `!(a < b)` on floats: NaN goes on to the next test, exactly as in the plain scan.
 #[inline(always)]
 #[allow(clippy::neg_cmp_op_on_partial_ord)]
-fn tile_visibility_body(walk: &TileWalk, scratch: &mut TileScratch, acc: &mut [[f32; 2]]) {
+fn tile_visibility_body(
+    walk: &TileWalk,
+    scratch: &mut TileScratch,
+    acc: &mut [[f32; 2]],
+    exp: ExpLanes,
+) {
     let TileWalk {
         list,
         ranked,
@@ -235,7 +255,7 @@ fn tile_visibility_body(walk: &TileWalk, scratch: &mut TileScratch, acc: &mut [[
                 break;
             }
             let o = &splats[next_occluder];
-            apply_occluder(o, floors[next_occluder], rect, trans, &mut saturated);
+            apply_occluder(o, floors[next_occluder], rect, trans, &mut saturated, exp);
             next_occluder += 1;
         }
         // Inside the tile now: pixel coordinates fit in i32 (exact in f32 either way; i32
@@ -256,11 +276,12 @@ fn tile_visibility_body(walk: &TileWalk, scratch: &mut TileScratch, acc: &mut [[
                 *p = footprint_power(s, fx, fy);
                 live |= ((c < x1 - x0 && r < y1 - y0 && inside) as u64) << l;
             }
+            let weights = exp_lanes(exp, &power, live);
             // Bits in increasing row, then x: the sums run in row-major pixel order.
             while live != 0 {
                 let l = live.trailing_zeros() as usize;
                 live &= live - 1;
-                let weight = power[l].exp();
+                let weight = weights[l];
                 if weight.is_nan() || weight <= 1e-6 {
                     continue;
                 }
@@ -308,29 +329,56 @@ fn tile_visibility_body(walk: &TileWalk, scratch: &mut TileScratch, acc: &mut [[
     }
 }
 
-/// Multiplies the transmittance of every pixel in `live` (bit `l`: pixel `trans[l]`) by
-/// `1 - alpha` of its exponent `power[l]` where that alpha reaches the cutoff, in pixel
-/// order (scalar `exp`: the same bits as the plain scan), and counts the pixels it takes
-/// below the stop.
+/// `exp` of the lanes of `power` whose bit is set in `live` (unspecified elsewhere),
+/// sixteen at a time.
 #[inline(always)]
-fn attenuate_live_pixels(
-    mut live: u64,
+fn exp_lanes<const N: usize>(exp: ExpLanes, power: &[f32; N], live: u64) -> [f32; N] {
+    let mut out = [0.0f32; N];
+    for (c, (o, p)) in out
+        .chunks_exact_mut(16)
+        .zip(power.chunks_exact(16))
+        .enumerate()
+    {
+        let m = (live >> (16 * c)) as u16;
+        if m != 0 {
+            o.copy_from_slice(&exp.exp16(p.try_into().expect("16 lanes"), m));
+        }
+    }
+    out
+}
+
+/// Multiplies the transmittance of every pixel in `live` (bit `l`: pixel `trans[l]`) by
+/// `1 - alpha` of its exponent `power[l]` where that alpha reaches the cutoff, and counts
+/// the pixels it takes below the stop. Each lane is its own pixel, so the order of the
+/// lanes does not matter; the exponentials are `f32::exp`'s bits ([`ExpLanes`]).
+#[inline(always)]
+fn attenuate_live_pixels<const N: usize>(
+    live: u64,
     opacity: f32,
-    power: &[f32],
+    power: &[f32; N],
     trans: &mut [f32],
     saturated: &mut usize,
+    exp: ExpLanes,
 ) {
-    while live != 0 {
-        let l = live.trailing_zeros() as usize;
-        live &= live - 1;
-        let alpha = occluder_alpha(opacity, power[l]);
-        if alpha >= ALPHA_MIN {
-            let t = &mut trans[l];
-            *t *= 1.0 - alpha;
-            if *t < TRANSMITTANCE_STOP {
-                *saturated += 1;
-            }
+    let footprint = exp_lanes(exp, power, live);
+    for (c, (t, f)) in trans[..N]
+        .chunks_exact_mut(16)
+        .zip(footprint.chunks_exact(16))
+        .enumerate()
+    {
+        let m = (live >> (16 * c)) as u16;
+        if m == 0 {
+            continue;
         }
+        let mut stopped = 0u32;
+        for l in 0..16 {
+            let alpha = alpha_of_footprint(opacity, f[l]);
+            let go = (m >> l) & 1 != 0 && alpha >= ALPHA_MIN;
+            let attenuated = t[l] * (1.0 - alpha);
+            stopped += u32::from(go && attenuated < TRANSMITTANCE_STOP);
+            t[l] = if go { attenuated } else { t[l] };
+        }
+        *saturated += stopped as usize;
     }
 }
 
@@ -346,6 +394,7 @@ fn apply_occluder(
     rect: PixelRect,
     trans: &mut [f32],
     saturated: &mut usize,
+    exp: ExpLanes,
 ) {
     let tile_w = (rect.x1 - rect.x0) as usize;
     let (x0, x1) = (o.rect.x0.max(rect.x0), o.rect.x1.min(rect.x1));
@@ -377,7 +426,7 @@ fn apply_occluder(
                     && !(*p < floor);
                 live |= (go as u64) << l;
             }
-            attenuate_live_pixels(live, o.opacity, &power, &mut trans[base..], saturated);
+            attenuate_live_pixels(live, o.opacity, &power, &mut trans[base..], saturated, exp);
             py += OCCLUDER_BLOCK_ROWS as u32;
         }
         return;
@@ -406,6 +455,7 @@ fn apply_occluder(
                 &power,
                 &mut trans[base..],
                 saturated,
+                exp,
             );
             cs += WALK_LANES as u32;
         }
