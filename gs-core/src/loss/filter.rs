@@ -65,7 +65,8 @@ pub(super) fn filter_row_padded<T: Real>(src: &[T], taps: &[T; SSIM_WINDOW], dst
     }
 }
 
-/// `N` chunks of [`filter_row_padded`] from column `j`.
+/// `N` chunks of [`filter_row_padded`] from column `j`. The source window and the output
+/// are sliced once, so the lane loads and stores need no bounds checks.
 #[inline(always)]
 fn filter_row_chunks<T: Real, const N: usize>(
     src: &[T],
@@ -73,17 +74,19 @@ fn filter_row_chunks<T: Real, const N: usize>(
     dst: &mut [T],
     j: usize,
 ) {
+    let src = &src[j..j + N * LANES + 2 * HALF];
     let mut acc = [[T::ZERO; LANES]; N];
     for (t, &k) in taps.iter().enumerate() {
         for (n, a) in acc.iter_mut().enumerate() {
-            let s = lanes(src, j + n * LANES + t);
+            let s = lanes(src, n * LANES + t);
             for l in 0..LANES {
                 a[l] += k * s[l];
             }
         }
     }
+    let dst = &mut dst[j..j + N * LANES];
     for (n, a) in acc.iter().enumerate() {
-        *lanes_mut(dst, j + n * LANES) = *a;
+        *lanes_mut(dst, n * LANES) = *a;
     }
 }
 
@@ -103,19 +106,22 @@ pub(super) fn filter_rows<T: Real>(srcs: &[&[T]], ks: &[T], dst: &mut [T]) {
     }
 }
 
-/// `N` chunks of [`filter_rows`] from column `j`.
+/// `N` chunks of [`filter_rows`] from column `j` (each source row and the output sliced
+/// once: no bounds checks in the lane loads and stores).
 #[inline(always)]
 fn filter_rows_chunks<T: Real, const N: usize>(srcs: &[&[T]], ks: &[T], dst: &mut [T], j: usize) {
     let mut acc = [[T::ZERO; LANES]; N];
     for (s, &k) in srcs.iter().zip(ks) {
+        let s = &s[j..j + N * LANES];
         for (n, a) in acc.iter_mut().enumerate() {
-            let s = lanes(s, j + n * LANES);
+            let s = lanes(s, n * LANES);
             for l in 0..LANES {
                 a[l] += k * s[l];
             }
         }
     }
+    let dst = &mut dst[j..j + N * LANES];
     for (n, a) in acc.iter().enumerate() {
-        *lanes_mut(dst, j + n * LANES) = *a;
+        *lanes_mut(dst, n * LANES) = *a;
     }
 }

@@ -303,10 +303,18 @@ fn run_band_body<T: Real>(
                     let (yr, rest) = rest.split_at_mut(padded);
                     let (xx, rest) = rest.split_at_mut(padded);
                     let (yy, xy) = rest.split_at_mut(padded);
-                    for i in 0..w {
-                        let v = (a * w + i) * nc + c;
-                        xr[HALF + i] = x[v];
-                        yr[HALF + i] = y[v];
+                    // Channel `c` of the row, out of the interleaved pixels (whole-row
+                    // slices and chunks: no bounds check per pixel).
+                    let pixels = x[a * w * nc..(a + 1) * w * nc]
+                        .chunks_exact(nc)
+                        .zip(y[a * w * nc..(a + 1) * w * nc].chunks_exact(nc));
+                    for ((xo, yo), (xp, yp)) in xr[HALF..HALF + w]
+                        .iter_mut()
+                        .zip(&mut yr[HALF..HALF + w])
+                        .zip(pixels)
+                    {
+                        *xo = xp[c];
+                        *yo = yp[c];
                     }
                     // Padding columns stay zero: 0 * 0.
                     for ((((o_xx, o_yy), o_xy), &xv), &yv) in xx
@@ -405,10 +413,12 @@ fn run_band_body<T: Real>(
         weight_row[..w].copy_from_slice(&pixel_weight[r * w..(r + 1) * w]);
         let mut l1_total = T::ZERO;
         for c in 0..nc {
-            for i in 0..w {
-                let v = (r * w + i) * nc + c;
-                xs[i] = x[v];
-                ys[i] = y[v];
+            let pixels = x[r * w * nc..(r + 1) * w * nc]
+                .chunks_exact(nc)
+                .zip(y[r * w * nc..(r + 1) * w * nc].chunks_exact(nc));
+            for ((xo, yo), (xp, yp)) in xs[..w].iter_mut().zip(&mut ys[..w]).zip(pixels) {
+                *xo = xp[c];
+                *yo = yp[c];
             }
             if ssim_grad {
                 for q in 0..3 {
@@ -469,8 +479,8 @@ fn run_band_body<T: Real>(
             }
             if !grad.is_none() {
                 let dst = &mut grad_rows[(r - r0) * w * nc..(r - r0 + 1) * w * nc];
-                for (i, &g) in g_row[..w].iter().enumerate() {
-                    dst[i * nc + c] = g;
+                for (px, &g) in dst.chunks_exact_mut(nc).zip(&g_row[..w]) {
+                    px[c] = g;
                 }
             }
         }
