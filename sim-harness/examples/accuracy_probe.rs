@@ -25,7 +25,8 @@ usage: cargo run --release -p sim-harness --example accuracy_probe -- [options]
   --extra TOML         preset lines added to the demo preset's top-level keys, before
                        its tables such as [rates] (\\n for new lines); a key the
                        preset already sets is replaced
-  --rates TOML         lines added to the demo preset's [rates] table ('normal = 0.01')
+  --rates TOML         lines added to the demo preset's [rates] table ('normal = 0.01');
+                       a rate the preset already sets is replaced
   --max-gaussians N    densification cap
   --steps N            offline steps (default 3000)
   --densify-every N    offline: densify every N steps in the first half (default 100)
@@ -300,20 +301,25 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Top-level keys must come before the preset's first table, or TOML files them in it.
     let tables_at = DEMO_PRESET.find("\n[").unwrap_or(DEMO_PRESET.len());
     let (top, tables) = DEMO_PRESET.split_at(tables_at);
-    // A key set in `--extra` replaces the demo preset's line for it (TOML forbids repeats).
+    // A key set in `--extra` or `--rates` replaces the demo preset's line for it (TOML
+    // forbids repeats).
     let key_of = |line: &str| line.split('=').next().map(|k| k.trim().to_string());
-    let extra_keys: Vec<String> = extra
-        .lines()
-        .filter(|l| l.contains('='))
-        .filter_map(key_of)
-        .collect();
-    let top: String = top
-        .lines()
-        .filter(|l| !(l.contains('=') && key_of(l).is_some_and(|k| extra_keys.contains(&k))))
-        .map(|l| format!("{l}\n"))
-        .collect();
+    let keys_in = |text: &str| -> Vec<String> {
+        text.lines()
+            .filter(|l| l.contains('='))
+            .filter_map(key_of)
+            .collect()
+    };
+    let without = |text: &str, keys: &[String]| -> String {
+        text.lines()
+            .filter(|l| !(l.contains('=') && key_of(l).is_some_and(|k| keys.contains(&k))))
+            .map(|l| format!("{l}\n"))
+            .collect()
+    };
+    let top = without(top, &keys_in(&extra));
     // The demo preset's last table is [rates]: lines after it land there.
     let rates = arg("--rates").unwrap_or_default().replace("\\n", "\n");
+    let tables = without(tables, &keys_in(&rates));
     let mut preset =
         Preset::from_toml_str(&format!("{top}\n{extra}\n{tables}\n{rates}\n"), "demo")?;
     let base = match arg("--scenario") {
