@@ -76,13 +76,19 @@ impl ExpLanes {
 #[inline(always)]
 fn scalar_exp16(x: &[f32; 16], live: u16) -> [f32; 16] {
     let mut out = [0.0f32; 16];
-    let mut m = live;
+    scalar_exp_lanes(x, live, &mut out);
+    out
+}
+
+/// `out[l] = f32::exp(x[l])` for each lane `l` set in `lanes`; other lanes untouched.
+#[inline(always)]
+fn scalar_exp_lanes(x: &[f32; 16], lanes: u16, out: &mut [f32; 16]) {
+    let mut m = lanes;
     while m != 0 {
         let l = m.trailing_zeros() as usize;
         m &= m - 1;
         out[l] = x[l].exp();
     }
-    out
 }
 
 /// Values the vector code must reproduce before it is used (about 0.2 M, a few ms once per
@@ -207,12 +213,7 @@ pub(super) mod avx512 {
         // `!(|x| < 88)`: glibc's test on the top 12 bits (`abstop >= top12(88)`), and NaN.
         let abs = _mm512_abs_ps(v);
         let far = _mm512_cmp_ps_mask::<_CMP_NLT_UQ>(abs, _mm512_set1_ps(88.0)) & live;
-        let mut m = far;
-        while m != 0 {
-            let l = m.trailing_zeros() as usize;
-            m &= m - 1;
-            out[l] = x[l].exp();
-        }
+        super::scalar_exp_lanes(x, far, &mut out);
         out
     }
 }
